@@ -1,0 +1,33 @@
+# The README's commands. Every target does its own setup: a .venv with the
+# local CPU torch build installed first, then the project with its extras.
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed-$(shell cksum pyproject.toml | cut -d' ' -f1)
+
+.PHONY: setup test demo bench lint clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --upgrade pip
+	$(PY) -m pip install torch==2.13.0
+	$(PY) -m pip install -e '.[test]'
+	rm -f $(VENV)/.installed-*
+	touch $@
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+demo: $(STAMP)
+	$(VENV)/bin/aesop demo
+
+bench: $(STAMP)
+	$(VENV)/bin/aesop bench detector
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check shared services tests
+
+clean:
+	rm -rf $(VENV) .pytest_cache build *.egg-info

@@ -1,0 +1,1 @@
+"""The AESOP services and the `aesop` command."""

@@ -1,0 +1,1 @@
+"""Code every AESOP service uses: messages, topics, settings, the Zenoh bus."""
