@@ -1,0 +1,164 @@
+"""The ``aesop`` command.
+
+Subcommands import their service lazily, so ``aesop --help`` stays fast and a
+service never imports another. With ``--json`` a command prints exactly one
+JSON object on stdout; progress and logs go to stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
+    try:
+        return int(args.func(args) or 0)
+    except CliError as exc:
+        print(f"aesop: {exc}", file=sys.stderr)
+        return 2
+    except ValidationError as exc:
+        print(f"aesop: invalid settings:\n{exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+class CliError(Exception):
+    """A user error: printed without a traceback, exit status 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="aesop", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    serve = sub.add_parser("serve", help="run one service (settings also from AESOP_* env vars)")
+    serve.add_argument("service", choices=["embedding"])
+    serve.add_argument("--host")
+    serve.add_argument("--port", type=int)
+    serve.add_argument("--data-dir", type=Path)
+    serve.set_defaults(func=cmd_serve)
+
+    detector = sub.add_parser("detector", help="offline tools for the fast anomaly detector")
+    dsub = detector.add_subparsers(dest="detector_command", required=True)
+    ev = dsub.add_parser("eval", help="evaluate the detector on labelled JSONL text sets")
+    ev.add_argument("--nominal", type=Path, required=True, help="JSONL of nominal experiences")
+    ev.add_argument("--calibration", type=Path, help="JSONL labelled calibration set")
+    ev.add_argument("--test", type=Path, required=True, help="JSONL labelled test set")
+    ev.add_argument("--k", type=int, default=5)
+    ev.add_argument("--alpha", type=float, default=0.95)
+    ev.add_argument("--tpr", type=float, default=0.9, help="target TPR for tpr-target")
+    ev.add_argument("--method", choices=["loo-quantile", "conformal", "tpr-target"],
+                    default="loo-quantile")
+    ev.add_argument("--score", choices=["topk", "mahalanobis"], default="topk")
+    ev.add_argument("--model", default=None, help="embedding model (default: all-MiniLM-L6-v2)")
+    ev.add_argument("--json", action="store_true")
+    ev.set_defaults(func=cmd_detector_eval)
+
+    bench = sub.add_parser("bench", help="benchmarks (tables, or one JSON object with --json)")
+    bsub = bench.add_subparsers(dest="bench_command", required=True)
+    bd = bsub.add_parser("detector", help="detector quality, latency, memory and throughput")
+    bd.add_argument("--json", action="store_true")
+    bd.add_argument("--quick", action="store_true", help="small sizes, for a smoke run")
+    bd.add_argument("--only", action="append", help="run only these parts (repeatable)")
+    bd.add_argument("--plot", type=Path, default=None, help="write the quality figure (PNG)")
+    bd.add_argument("--seed", type=int, default=0)
+    bd.set_defaults(func=cmd_bench_detector)
+
+    demo = sub.add_parser("demo", help="the detector demo on the quadrotor scene")
+    demo.add_argument("--json", action="store_true")
+    demo.add_argument("--model", default=None)
+    demo.set_defaults(func=cmd_demo)
+    return parser
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    from services.embedding.api import create_app
+    from services.embedding.settings import EmbeddingSettings
+    from services.embedding.worker import DetectorWorker
+    from shared.http import serve
+
+    overrides = {k: v for k, v in (("host", args.host), ("port", args.port),
+                                   ("data_dir", args.data_dir)) if v is not None}
+    settings = EmbeddingSettings(**overrides)
+    try:
+        settings.check_exposure()
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    factory = DetectorWorker.factory(settings) if settings.zenoh_worker else None
+    serve(create_app(settings, worker_factory=factory), settings)
+    return 0
+
+
+def cmd_detector_eval(args: argparse.Namespace) -> int:
+    from services.embedding.embedders import EmbedderError, load_embedder
+    from services.embedding.errors import DetectorError
+    from services.embedding.evaluate import EvalConfig, evaluate, read_jsonl
+    from services.embedding.settings import DEFAULT_MODEL
+
+    for name in ("nominal", "calibration", "test"):
+        path = getattr(args, name)
+        if path is not None and not path.is_file():
+            raise CliError(f"--{name}: no such file: {path}")
+    if not 0 < args.alpha < 1:
+        raise CliError("--alpha must be in (0, 1)")
+    if args.k < 1:
+        raise CliError("--k must be at least 1")
+    try:
+        config = EvalConfig(k=args.k, alpha=args.alpha, method=args.method, score=args.score,
+                            tpr=args.tpr)
+        nominal = read_jsonl(args.nominal)
+        test = read_jsonl(args.test)
+        calibration = read_jsonl(args.calibration) if args.calibration else []
+        embedder = load_embedder(args.model or DEFAULT_MODEL)
+        result = evaluate(embedder, nominal, test, calibration, config)
+    except (DetectorError, EmbedderError, ValueError) as exc:
+        raise CliError(str(exc)) from None
+    emit(result, args.json)
+    return 0
+
+
+def cmd_bench_detector(args: argparse.Namespace) -> int:
+    from services.embedding.bench import run_detector_bench
+
+    result = run_detector_bench(quick=args.quick, only=args.only, plot=args.plot,
+                                seed=args.seed, table=not args.json)
+    if args.json:
+        emit(result, True)
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from services.embedding.demo import run_demo
+
+    result = run_demo(model=args.model, table=not args.json)
+    if args.json:
+        emit(result, True)
+    return 0 if result["ok"] else 1
+
+
+def emit(result: dict[str, Any], as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(result, allow_nan=False))
+        return
+    width = max(len(k) for k in result)
+    for key, value in result.items():
+        shown = f"{value:.4f}" if isinstance(value, float) else value
+        print(f"{key:<{width}}  {shown}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

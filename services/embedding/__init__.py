@@ -1,0 +1,1 @@
+"""Fast reasoner: the vector-cache anomaly detection service."""

@@ -1,0 +1,325 @@
+"""HTTP admin API of the vector-cache service (routes and shapes from ARCHITECTURE.md)."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from fastapi import Depends, FastAPI, Query, Request
+from fastapi.responses import JSONResponse
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from shared.http import (
+    ApiError,
+    HttpMetrics,
+    bearer_auth,
+    body_limit,
+    error_response,
+    install_error_handlers,
+    ops_router,
+)
+
+from .embedders import EmbedderError
+from .errors import Conflict, DetectorError, InvalidInput, NotCalibrated, NotFound
+from .scoring import ScoringError
+from .service import CacheService, Item, Job, Labelled, ScoreBatch
+from .settings import EmbeddingSettings
+
+log = logging.getLogger(__name__)
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+Id = Annotated[str, Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.:\-]+$")]
+STATUS = {InvalidInput: 422, NotFound: 404, Conflict: 409, NotCalibrated: 409}
+
+
+class Body(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class CreateCache(Body):
+    model: str | None = Field(default=None, min_length=1, max_length=512)
+    dim: int | None = Field(default=None, ge=1, le=16384)
+    k: int | None = Field(default=None, ge=1, le=1000)
+    score: Literal["topk", "mahalanobis"] = "topk"
+    index: Literal["flat", "hnsw"] = "flat"
+
+
+class ItemIn(Body):
+    text: str = Field(min_length=1)
+    id: Id | None = None
+    metadata: dict[str, Any] = Field(default_factory=dict)
+
+
+class AddExperiences(Body):
+    items: list[ItemIn] | None = None
+    vectors: list[list[FiniteFloat]] | None = None
+    ids: list[Id] | None = None
+
+    @model_validator(mode="after")
+    def _one_kind(self) -> AddExperiences:
+        if (self.items is None) == (self.vectors is None):
+            raise ValueError("send either 'items' (texts) or 'vectors'")
+        if self.ids is not None and (self.vectors is None or len(self.ids) != len(self.vectors)):
+            raise ValueError("'ids' must accompany 'vectors', one id per vector")
+        return self
+
+
+class LabelledIn(Body):
+    text: str = Field(min_length=1)
+    label: Literal["nominal", "anomaly"]
+
+
+class Calibrate(Body):
+    method: Literal["loo-quantile", "conformal", "tpr-target"]
+    alpha: float | None = Field(default=None, gt=0.0, lt=1.0)
+    tpr: float | None = Field(default=None, gt=0.0, le=1.0)
+    calibration: list[LabelledIn] | None = None
+
+
+class Score(Body):
+    texts: list[str] | None = None
+    vectors: list[list[FiniteFloat]] | None = None
+    k: int | None = Field(default=None, ge=1, le=1000)
+
+    @model_validator(mode="after")
+    def _one_kind(self) -> Score:
+        if (self.texts is None) == (self.vectors is None):
+            raise ValueError("send either 'texts' or 'vectors'")
+        return self
+
+
+def _service(request: Request) -> CacheService:
+    return request.app.state.service
+
+
+ServiceDep = Annotated[CacheService, Depends(_service)]
+
+
+class Metrics:
+    def __init__(self, registry: CollectorRegistry, service: CacheService) -> None:
+        self.score_seconds = Histogram(
+            "aesop_embedding_score_seconds", "Score request latency (embed + search + threshold)",
+            registry=registry, buckets=(.002, .005, .01, .015, .02, .03, .05, .1, .25, .5, 1, 5))
+        self.batch_size = Histogram(
+            "aesop_embedding_batch_size", "Texts per micro-batched embedding call",
+            registry=registry, buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256))
+        self.verdicts = Counter("aesop_embedding_verdicts", "Anomaly verdicts published",
+                                ["anomaly"], registry=registry)
+        size = Gauge("aesop_embedding_cache_size", "Experiences per cache", ["cache"],
+                     registry=registry)
+        self.size = size
+        self.service = service
+
+    def refresh(self) -> None:
+        for name in self.service.names():
+            self.size.labels(name).set(self.service.entry(name).cache.size)
+
+
+def create_app(
+    settings: EmbeddingSettings,
+    service: CacheService | None = None,
+    worker_factory: Callable[[CacheService, Metrics], Any] | None = None,
+) -> FastAPI:
+    """The service's FastAPI app. ``worker_factory`` starts the Zenoh worker in the
+    lifespan (``aesop serve embedding`` passes one; tests may not)."""
+    registry = CollectorRegistry()
+    state: dict[str, bool] = {"started": False}
+
+    @asynccontextmanager
+    async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+        svc = service or CacheService(settings, on_batch=lambda n: metrics.batch_size.observe(n))
+        app.state.service = svc
+        metrics.service = svc
+        await svc.start()
+        worker = worker_factory(svc, metrics) if worker_factory else None
+        task = asyncio.create_task(worker.run()) if worker else None
+        state["started"] = True
+        try:
+            yield
+        finally:
+            state["started"] = False
+            if worker is not None and task is not None:
+                await worker.stop()
+                task.cancel()
+                await asyncio.gather(task, return_exceptions=True)
+            await svc.close()
+
+    app = FastAPI(title="AESOP vector-cache service", version="1", lifespan=lifespan)
+    metrics = Metrics(registry, service)  # type: ignore[arg-type]
+    install_error_handlers(app)
+    body_limit(app, settings.max_body_bytes)
+    HttpMetrics(registry, "embedding").install(app)
+
+    @app.exception_handler(DetectorError)
+    async def domain_error(_: Request, exc: DetectorError) -> JSONResponse:
+        status = next((s for cls, s in STATUS.items() if isinstance(exc, cls)), 400)
+        return error_response(status, exc.code, exc.message, exc.field)
+
+    @app.exception_handler(ScoringError)
+    async def scoring_error(_: Request, exc: ScoringError) -> JSONResponse:
+        return error_response(422, "invalid", str(exc), exc.field)
+
+    @app.exception_handler(EmbedderError)
+    async def embedder_error(_: Request, exc: EmbedderError) -> JSONResponse:
+        return error_response(502, "embedder_error", str(exc))
+
+    def ready() -> dict[str, Any] | None:
+        return None if state["started"] else {"reason": "starting"}
+
+    def refresh() -> None:
+        if state["started"]:
+            metrics.refresh()
+
+    app.include_router(ops_router(registry, ready, refresh))
+    auth = [Depends(bearer_auth(settings.admin_token))]
+
+    @app.put("/v1/caches/{name}", dependencies=auth)
+    async def put_cache(name: str, body: CreateCache, service: ServiceDep) -> JSONResponse:
+        model = body.model if "model" in body.model_fields_set else settings.embedding_model
+        desc, created = await service.create(name, model=model, dim=body.dim, k=body.k,
+                                             score=body.score, index=body.index)
+        return JSONResponse(desc, status_code=201 if created else 200)
+
+    @app.get("/v1/caches")
+    async def list_caches(service: ServiceDep) -> dict[str, Any]:
+        return {"caches": [service.describe(n) for n in service.names()]}
+
+    @app.get("/v1/caches/{name}")
+    async def get_cache(name: str, service: ServiceDep) -> dict[str, Any]:
+        return service.describe(name)
+
+    @app.post("/v1/caches/{name}/experiences", dependencies=auth)
+    async def add_experiences(
+        name: str, body: AddExperiences, service: ServiceDep,
+        wait: Annotated[bool, Query(description="false: answer 202 with a job id")] = True,
+    ) -> JSONResponse:
+        service.entry(name)
+        items = _items(body, settings)
+        job = service.jobs.create("add_experiences", name, len(items))
+        if wait:
+            result = await _run_job(job, service.add(name, items, job))
+            return JSONResponse({**result, "job": job.id})
+        task = asyncio.create_task(_run_job(job, service.add(name, items, job)))
+        task.add_done_callback(lambda t: t.exception())  # the job records the error
+        return JSONResponse({"job": job.id, "state": job.state, "total": job.total},
+                            status_code=202)
+
+    @app.get("/v1/caches/{name}/experiences/{ident}")
+    async def get_experience(name: str, ident: str, service: ServiceDep) -> dict[str, Any]:
+        return service.experience(name, ident)
+
+    @app.delete("/v1/caches/{name}/experiences/{ident}", dependencies=auth)
+    async def delete_experience(name: str, ident: str, service: ServiceDep) -> dict[str, Any]:
+        return await service.delete(name, ident)
+
+    @app.post("/v1/caches/{name}/calibrate", dependencies=auth)
+    async def calibrate(name: str, body: Calibrate, service: ServiceDep) -> dict[str, Any]:
+        labelled = [Labelled(x.text, x.label == "anomaly") for x in body.calibration or ()]
+        _check_texts([x.text for x in labelled], "calibration", settings, key="text")
+        return await service.calibrate(name, body.method, alpha=body.alpha, tpr=body.tpr,
+                                       calibration=labelled)
+
+    @app.post("/v1/caches/{name}/score")
+    async def score(name: str, body: Score, service: ServiceDep) -> dict[str, Any]:
+        with metrics.score_seconds.time():
+            if body.texts is not None:
+                _check_count(len(body.texts), "texts", settings)
+                _check_texts(body.texts, "texts", settings)
+                batch = await service.score_texts(name, body.texts, body.k)
+            else:
+                vectors = _matrix(body.vectors or [], "vectors", settings)
+                batch = await service.score_vectors(name, vectors, body.k)
+        return _score_response(batch)
+
+    @app.get("/v1/jobs/{job_id}")
+    async def get_job(job_id: str, service: ServiceDep) -> dict[str, Any]:
+        return service.jobs.get(job_id).to_dict()
+
+    return app
+
+
+async def _run_job(job: Job, work: Any) -> dict[str, Any]:
+    import time
+
+    try:
+        result = await work
+    except DetectorError as exc:
+        job.state, job.error = "failed", {"code": exc.code, "message": exc.message,
+                                          "field": exc.field}
+        job.finished_at = time.time()
+        raise
+    except Exception as exc:
+        job.state, job.error = "failed", {"code": "internal", "message": str(exc)}
+        job.finished_at = time.time()
+        raise
+    job.state, job.result, job.finished_at = "succeeded", result, time.time()
+    return result
+
+
+def _items(body: AddExperiences, settings: EmbeddingSettings) -> list[Item]:
+    if body.items is not None:
+        _check_count(len(body.items), "items", settings)
+        _check_texts([it.text for it in body.items], "items", settings, key="text")
+        return [Item(text=it.text, id=it.id, metadata=it.metadata) for it in body.items]
+    vectors = body.vectors or []
+    _matrix(vectors, "vectors", settings)
+    ids = body.ids or [None] * len(vectors)
+    return [Item(vector=v, id=i) for v, i in zip(vectors, ids, strict=True)]
+
+
+def _check_count(n: int, field: str, settings: EmbeddingSettings) -> None:
+    if n == 0:
+        raise InvalidInput(f"'{field}' is empty", field=field)
+    if n > settings.max_items:
+        raise ApiError(413, "too_large", f"{n} {field} in one request; the limit is "
+                       f"{settings.max_items} (AESOP_MAX_ITEMS)", field)
+
+
+def _check_texts(texts: list[str], field: str, settings: EmbeddingSettings,
+                 key: str | None = None) -> None:
+    for i, text in enumerate(texts):
+        where = f"{field}[{i}]" + (f".{key}" if key else "")
+        if not text.strip():
+            raise InvalidInput("text is empty", field=where)
+        if len(text) > settings.max_text_chars:
+            raise InvalidInput(f"text has {len(text)} characters; the limit is "
+                               f"{settings.max_text_chars}", field=where)
+
+
+def _matrix(rows: list[list[float]], field: str, settings: EmbeddingSettings) -> np.ndarray:
+    _check_count(len(rows), field, settings)
+    width = len(rows[0])
+    for i, row in enumerate(rows):
+        if len(row) != width or width == 0:
+            raise InvalidInput(f"row {i} has {len(row)} numbers, row 0 has {width}",
+                               field=f"{field}[{i}]")
+    with np.errstate(over="ignore"):
+        matrix = np.asarray(rows, dtype=np.float32)
+    bad = np.argwhere(~np.isfinite(matrix))
+    if len(bad):
+        raise InvalidInput("numbers must be finite float32 values", field=f"{field}[{bad[0][0]}]")
+    return matrix
+
+
+def _score_response(batch: ScoreBatch) -> dict[str, Any]:
+    threshold = batch.threshold
+    return {
+        "results": [
+            {
+                "score": r.score,
+                "is_anomaly": None if threshold is None else r.score > threshold,
+                "neighbors": [n.model_dump() for n in r.neighbors],
+            }
+            for r in batch.results
+        ],
+        "threshold": threshold,
+        "stale": batch.stale,
+        "k": batch.k,
+        "model": batch.model,
+        "version": batch.version,
+    }

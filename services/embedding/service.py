@@ -1,0 +1,469 @@
+"""The vector-cache service: named caches on disk, embedders, jobs, micro-batched scoring.
+
+Concurrency: per cache, writers are serialised by an asyncio lock and the WAL
+append (fsync) happens before the in-memory apply; readers (scoring,
+leave-one-out) run in worker threads under the shared side of a
+readers-writer lock, so they see a cache either before or after a write.
+Embedding happens outside every lock.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import re
+import threading
+import time
+import uuid
+from collections import OrderedDict
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from .cache import Cache, CacheConfig, Scored, ScoreKind
+from .calibration import Calibration, CalibrationError, auroc, conformal, loo_quantile, tpr_target
+from .embedders import Embedder, EmbedderPool, ModelNotFound
+from .errors import Conflict, InvalidInput, NotFound
+from .index import IndexKind
+from .settings import EmbeddingSettings
+from .storage import CacheStore, Record
+
+log = logging.getLogger(__name__)
+
+CACHE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")
+Method = Literal["loo-quantile", "conformal", "tpr-target"]
+
+
+class RWLock:
+    """Many readers or one writer; a waiting writer blocks new readers."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._readers = 0
+        self._writer = False
+        self._waiting = 0
+
+    @contextmanager
+    def read(self) -> Iterator[None]:
+        with self._cond:
+            self._cond.wait_for(lambda: not self._writer and not self._waiting)
+            self._readers += 1
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._readers -= 1
+                self._cond.notify_all()
+
+    @contextmanager
+    def write(self) -> Iterator[None]:
+        with self._cond:
+            self._waiting += 1
+            self._cond.wait_for(lambda: not self._writer and not self._readers)
+            self._waiting -= 1
+            self._writer = True
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._writer = False
+                self._cond.notify_all()
+
+
+@dataclass
+class Job:
+    """Progress of a long operation (``GET /v1/jobs/{id}``)."""
+
+    id: str
+    kind: str
+    cache: str
+    total: int
+    done: int = 0
+    state: Literal["running", "succeeded", "failed"] = "running"
+    result: dict[str, Any] | None = None
+    error: dict[str, Any] | None = None
+    created_at: float = field(default_factory=time.time)
+    finished_at: float | None = None
+
+    def progress(self, done: int, total: int) -> None:
+        self.done, self.total = done, total
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: getattr(self, k) for k in (
+            "id", "kind", "cache", "total", "done", "state", "result", "error",
+            "created_at", "finished_at")}
+
+
+class Jobs:
+    def __init__(self, keep: int = 1000) -> None:
+        self._jobs: OrderedDict[str, Job] = OrderedDict()
+        self._keep = keep
+
+    def create(self, kind: str, cache: str, total: int) -> Job:
+        job = Job(uuid.uuid4().hex, kind, cache, total)
+        self._jobs[job.id] = job
+        while len(self._jobs) > self._keep:
+            self._jobs.popitem(last=False)
+        return job
+
+    def get(self, job_id: str) -> Job:
+        try:
+            return self._jobs[job_id]
+        except KeyError:
+            raise NotFound(f"no job {job_id!r}", field="id") from None
+
+
+@dataclass
+class Entry:
+    cache: Cache
+    store: CacheStore
+    writer: asyncio.Lock = field(default_factory=asyncio.Lock)
+    rw: RWLock = field(default_factory=RWLock)
+    batchers: dict[int, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Item:
+    """An experience to add: text (embedded by the cache's model) or a raw vector."""
+
+    text: str | None = None
+    vector: Sequence[float] | None = None
+    id: str | None = None
+    metadata: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Labelled:
+    text: str
+    is_anomaly: bool
+
+
+@dataclass(frozen=True)
+class ScoreBatch:
+    results: list[Scored]
+    threshold: float | None
+    stale: bool
+    version: int
+    k: int
+    model: str | None
+
+
+class CacheService:
+    def __init__(
+        self,
+        settings: EmbeddingSettings,
+        embedders: EmbedderPool | None = None,
+        on_batch: Callable[[int], None] | None = None,
+    ) -> None:
+        self.settings = settings
+        self.embedders = embedders or EmbedderPool(
+            openai_base_url=settings.openai_base_url,
+            openai_api_key=(settings.openai_api_key.get_secret_value()
+                            if settings.openai_api_key else None))
+        self.jobs = Jobs()
+        self._entries: dict[str, Entry] = {}
+        self._create_lock = asyncio.Lock()
+        self._on_batch = on_batch
+        self.root = Path(settings.data_dir) / "caches"
+
+    # -- lifecycle --------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Open every cache under the data directory (raises StorageCorrupt naming a file)."""
+        self.root.mkdir(parents=True, exist_ok=True)
+        for directory in sorted(p for p in self.root.iterdir() if p.is_dir()):
+            entry = await asyncio.to_thread(self._open, directory)
+            if entry is not None:
+                self._entries[entry.cache.name] = entry
+                log.info("cache %s: %d experiences, version %d", entry.cache.name,
+                         entry.cache.size, entry.cache.version)
+
+    def _open(self, directory: Path) -> Entry | None:
+        store = CacheStore(directory, fsync=self.settings.fsync)
+        loaded = store.load()
+        if loaded.snapshot is None:
+            store.close()
+            log.warning("ignoring %s: no snapshot (a cache creation that never finished)",
+                        directory)
+            return None
+        cache = Cache.from_snapshot(loaded.snapshot)
+        for record in loaded.records:
+            cache.apply(record)
+        return Entry(cache, store)
+
+    async def close(self) -> None:
+        for entry in self._entries.values():
+            for batcher in entry.batchers.values():
+                await batcher.close()
+            async with entry.writer:
+                await asyncio.to_thread(self._snapshot, entry)
+                entry.store.close()
+        self._entries.clear()
+        self.embedders.close()
+
+    def _snapshot(self, entry: Entry) -> None:
+        with entry.rw.read():
+            meta, arrays = entry.cache.to_snapshot()
+        entry.store.write_snapshot(meta, arrays)
+
+    # -- queries --------------------------------------------------------------
+
+    def names(self) -> list[str]:
+        return sorted(self._entries)
+
+    def entry(self, name: str) -> Entry:
+        try:
+            return self._entries[name]
+        except KeyError:
+            raise NotFound(f"no cache named {name!r}", field="name") from None
+
+    def describe(self, name: str) -> dict[str, Any]:
+        entry = self.entry(name)
+        with entry.rw.read():
+            return entry.cache.describe()
+
+    def experience(self, name: str, ident: str) -> dict[str, Any]:
+        entry = self.entry(name)
+        with entry.rw.read():
+            label = entry.cache.labels_by_id.get(ident)
+            if label is None:
+                raise NotFound(f"no experience {ident!r} in cache {name!r}", field="id")
+            exp = entry.cache.experiences[label]
+            return {"id": exp.id, "text": exp.text, "metadata": dict(exp.metadata)}
+
+    # -- mutations --------------------------------------------------------------
+
+    async def create(
+        self,
+        name: str,
+        *,
+        model: str | None,
+        dim: int | None = None,
+        k: int | None = None,
+        score: ScoreKind = "topk",
+        index: IndexKind = "flat",
+    ) -> tuple[dict[str, Any], bool]:
+        """Create cache ``name`` or reconcile an existing one; returns (description, created)."""
+        if not CACHE_NAME.match(name):
+            raise InvalidInput("cache names are 1-64 letters, digits, '_', '.', '-'", field="name")
+        k = k or self.settings.default_k
+        async with self._create_lock:
+            if name in self._entries:
+                return await self._reconcile(name, model=model, k=k, score=score), False
+            if model is not None:
+                embedder = await self._embedder(model)
+                model, dim = embedder.name, embedder.dim
+            elif dim is None:
+                raise InvalidInput("a cache without a model needs 'dim'", field="dim")
+            config = CacheConfig(name, model, int(dim), k, score, index)
+            entry = await asyncio.to_thread(self._create_entry, config)
+            self._entries[name] = entry
+            return entry.cache.describe(), True
+
+    def _create_entry(self, config: CacheConfig) -> Entry:
+        directory = self.root / config.name
+        store = CacheStore(directory, fsync=self.settings.fsync)
+        loaded = store.load()
+        if loaded.snapshot is not None or loaded.records:
+            store.close()
+            raise Conflict(f"{directory} already holds data that was not loaded", field="name")
+        entry = Entry(Cache(config), store)
+        meta, arrays = entry.cache.to_snapshot()
+        store.write_snapshot(meta, arrays)
+        return entry
+
+    async def _reconcile(self, name: str, *, model: str | None, k: int, score: ScoreKind
+                         ) -> dict[str, Any]:
+        entry = self._entries[name]
+        pinned = entry.cache.config.model
+        if model is not None and pinned is not None:
+            resolved = (await self._embedder(model)).name
+            if resolved != pinned:
+                raise Conflict(f"cache {name!r} is pinned to model {pinned!r}; create another "
+                               f"cache for {resolved!r}", field="model")
+        async with entry.writer:
+            record = entry.cache.plan_configure(k=k, score=score)
+            if record is not None:
+                await self._commit(entry, record)
+        return self.describe(name)
+
+    async def add(self, name: str, items: Sequence[Item], job: Job | None = None
+                  ) -> dict[str, Any]:
+        """Embed and add experiences; durable (fsync'd) when this returns."""
+        entry = self.entry(name)
+        config = entry.cache.config
+        vectors = await self._vectors_for(config, items, job)
+        async with entry.writer:
+            record = entry.cache.plan_add(
+                vectors, ids=[it.id for it in items], texts=[it.text for it in items],
+                metadata=[it.metadata for it in items])
+            await self._commit(entry, record)
+            result = {"ids": [it["id"] for it in record.op["items"]],
+                      "size": entry.cache.size, "version": entry.cache.version}
+        if job is not None:
+            job.progress(len(items), len(items))
+        return result
+
+    async def _vectors_for(self, config: CacheConfig, items: Sequence[Item], job: Job | None
+                           ) -> np.ndarray:
+        texts = [(i, it.text) for i, it in enumerate(items) if it.vector is None]
+        vectors = np.zeros((len(items), config.dim), dtype=np.float32)
+        for i, it in enumerate(items):
+            if it.vector is not None:
+                if len(it.vector) != config.dim:
+                    raise InvalidInput(f"vector has dimension {len(it.vector)}, cache "
+                                       f"{config.name!r} has {config.dim}", field=f"vectors[{i}]")
+                vectors[i] = it.vector
+        if texts:
+            if config.model is None:
+                raise InvalidInput(f"cache {config.name!r} has no embedding model: send "
+                                   "vectors instead of texts", field="items")
+            embedder = await self._embedder(config.model)
+            progress = job.progress if job is not None else None
+            embedded = await asyncio.to_thread(
+                embedder.embed, [t for _, t in texts], batch_size=self.settings.embed_batch_size,
+                progress=progress, show_progress_bar=len(texts) >= 1000)
+            vectors[[i for i, _ in texts]] = embedded
+        return vectors
+
+    async def delete(self, name: str, ident: str) -> dict[str, Any]:
+        entry = self.entry(name)
+        async with entry.writer:
+            await self._commit(entry, entry.cache.plan_delete(ident))
+            return {"id": ident, "size": entry.cache.size, "version": entry.cache.version}
+
+    async def calibrate(
+        self,
+        name: str,
+        method: Method,
+        *,
+        alpha: float | None = None,
+        tpr: float | None = None,
+        calibration: Sequence[Labelled] = (),
+    ) -> dict[str, Any]:
+        entry = self.entry(name)
+        async with entry.writer:
+            cal = await self._calibration(entry, method, alpha, tpr, calibration)
+            await self._commit(entry, entry.cache.plan_calibration(cal))
+            return {**cal.to_dict(), "cache": name, "version": entry.cache.version}
+
+    async def _calibration(self, entry: Entry, method: Method, alpha: float | None,
+                           tpr: float | None, labelled: Sequence[Labelled]) -> Calibration:
+        scores = labels = None
+        if labelled:
+            vectors = await self._embed_texts(entry.cache.config, [x.text for x in labelled])
+            scores = np.array([r.score for r in await self._score_vectors(entry, vectors)])
+            labels = np.array([x.is_anomaly for x in labelled], dtype=bool)
+        try:
+            if method == "loo-quantile":
+                loo = await asyncio.to_thread(self._loo, entry)
+                cal = loo_quantile(loo, 0.95 if alpha is None else alpha)
+                if labels is not None and labels.any() and (~labels).any():
+                    cal = replace(cal, auroc=auroc(scores, labels))
+                return cal
+            if method == "conformal":
+                if scores is None or labels is None or (~labels).sum() == 0:
+                    raise InvalidInput("conformal calibration needs held-out nominal examples",
+                                       field="calibration")
+                cal = conformal(scores[~labels], 0.95 if alpha is None else alpha)
+                if labels.any():
+                    cal = replace(cal, auroc=auroc(scores, labels))
+                return cal
+            if scores is None or labels is None:
+                raise InvalidInput("tpr-target calibration needs a labelled calibration set",
+                                   field="calibration")
+            return tpr_target(scores, labels, 0.9 if tpr is None else tpr)
+        except CalibrationError as exc:
+            raise InvalidInput(str(exc), field=exc.field) from None
+
+    def _loo(self, entry: Entry) -> np.ndarray:
+        with entry.rw.read():
+            return entry.cache.loo_scores()
+
+    async def _commit(self, entry: Entry, record: Record) -> None:
+        await asyncio.to_thread(entry.store.append, [record])
+        with entry.rw.write():
+            entry.cache.apply(record)
+        limit = self.settings.snapshot_wal_bytes
+        if limit and entry.store.wal_bytes > limit:
+            await asyncio.to_thread(self._snapshot, entry)
+
+    # -- scoring ------------------------------------------------------------------
+
+    async def score_texts(self, name: str, texts: Sequence[str], k: int | None = None
+                          ) -> ScoreBatch:
+        entry = self.entry(name)
+        cache = entry.cache
+        k = k or cache.config.k
+        with entry.rw.read():
+            cache.check_k(k)
+        if cache.config.model is None:
+            raise InvalidInput(f"cache {name!r} has no embedding model: score vectors",
+                               field="texts")
+        if self.settings.microbatch:
+            results = await self._batcher(entry, k).submit(list(texts))
+        else:
+            results = await asyncio.to_thread(self._embed_and_score, entry, k, list(texts))
+        return self._batch(entry, results, k)
+
+    async def score_vectors(self, name: str, vectors: np.ndarray, k: int | None = None
+                            ) -> ScoreBatch:
+        entry = self.entry(name)
+        if vectors.shape[1] != entry.cache.config.dim:
+            raise InvalidInput(f"vectors must have dimension {entry.cache.config.dim}",
+                               field="vectors")
+        norms = np.linalg.norm(vectors, axis=1, keepdims=True)
+        if (norms < 1e-12).any():
+            raise InvalidInput("a zero vector has no direction", field="vectors")
+        k = k or entry.cache.config.k
+        results = await self._score_vectors(entry, (vectors / norms).astype(np.float32), k)
+        return self._batch(entry, results, k)
+
+    def _batch(self, entry: Entry, results: list[Scored], k: int) -> ScoreBatch:
+        c = entry.cache
+        return ScoreBatch(results, c.threshold, c.stale, c.version, k, c.config.model)
+
+    def _batcher(self, entry: Entry, k: int) -> Any:
+        from .batching import MicroBatcher
+
+        if k not in entry.batchers:
+            entry.batchers[k] = MicroBatcher(
+                lambda texts: self._embed_and_score(entry, k, texts),
+                max_items=self.settings.microbatch_max,
+                window_s=self.settings.microbatch_window_ms / 1000,
+                on_batch=self._on_batch)
+        return entry.batchers[k]
+
+    def _embed_and_score(self, entry: Entry, k: int, texts: list[str]) -> list[Scored]:
+        config = entry.cache.config
+        assert config.model is not None
+        vectors = self.embedders.get(config.model).embed(
+            texts, batch_size=self.settings.embed_batch_size)
+        with entry.rw.read():
+            return entry.cache.score(vectors, k, self.settings.verdict_neighbors)
+
+    async def _score_vectors(self, entry: Entry, vectors: np.ndarray, k: int | None = None
+                             ) -> list[Scored]:
+        def run() -> list[Scored]:
+            with entry.rw.read():
+                return entry.cache.score(vectors, k, self.settings.verdict_neighbors)
+
+        return await asyncio.to_thread(run)
+
+    async def _embed_texts(self, config: CacheConfig, texts: Sequence[str]) -> np.ndarray:
+        if config.model is None:
+            raise InvalidInput(f"cache {config.name!r} has no embedding model",
+                               field="calibration")
+        embedder = await self._embedder(config.model)
+        return await asyncio.to_thread(embedder.embed, list(texts),
+                                       batch_size=self.settings.embed_batch_size)
+
+    async def _embedder(self, model: str) -> Embedder:
+        try:
+            return await asyncio.to_thread(self.embedders.get, model)
+        except ModelNotFound as exc:
+            raise InvalidInput(str(exc), field="model") from None

@@ -1,0 +1,30 @@
+"""Settings of the vector-cache service (``AESOP_*`` environment variables)."""
+
+from __future__ import annotations
+
+from pydantic import AliasChoices, Field, SecretStr
+
+from shared.settings import ServiceSettings
+
+DEFAULT_MODEL = "sentence-transformers/all-MiniLM-L6-v2"
+
+
+class EmbeddingSettings(ServiceSettings):
+    port: int = Field(default=8001, ge=0, le=65535)
+    embedding_model: str = DEFAULT_MODEL  # default model of new caches
+    openai_base_url: str = "https://api.openai.com/v1"  # for models named "openai:<name>"
+    openai_api_key: SecretStr | None = Field(
+        default=None, validation_alias=AliasChoices("AESOP_OPENAI_API_KEY", "OPENAI_API_KEY"))
+    detector_cache: str = "default"  # the cache the Zenoh worker scores observations against
+    default_k: int = Field(default=5, ge=1, le=1000)
+    verdict_neighbors: int = Field(default=3, ge=0, le=100)
+    max_items: int = Field(default=10_000, ge=1)  # per request
+    max_text_chars: int = Field(default=4_000, ge=1)
+    max_body_bytes: int = Field(default=64 * 1024 * 1024, ge=1024)
+    embed_batch_size: int = Field(default=64, ge=1)
+    microbatch: bool = True  # coalesce concurrent score requests into one embedding call
+    microbatch_window_ms: float = Field(default=2.0, ge=0.0)
+    microbatch_max: int = Field(default=64, ge=1)
+    snapshot_wal_bytes: int = Field(default=64 * 1024 * 1024, ge=0)
+    zenoh_worker: bool = True
+    fsync: bool = True

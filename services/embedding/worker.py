@@ -1,0 +1,116 @@
+"""Zenoh worker: observations in, anomaly verdicts out.
+
+Subscribes ``aesop/*/observation``; every observation is scored against the
+detector cache through the service's micro-batcher (concurrent observations
+share one embedding call) and answered with an ``AnomalyVerdict`` on
+``aesop/{robot}/anomaly``. An uncalibrated cache answers "anomaly" (fail-safe).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable
+from typing import Any
+
+from shared import topics
+from shared.bus import Bus
+from shared.messages import AnomalyVerdict, Event, Observation
+
+from .errors import DetectorError
+from .service import CacheService, ScoreBatch
+from .settings import EmbeddingSettings
+
+log = logging.getLogger(__name__)
+
+
+def make_verdict(obs: Observation, robot: str, batch: ScoreBatch, cache: str,
+                 latency_ms: float) -> AnomalyVerdict:
+    """h(o_t): anomaly iff s(e_t) > tau; no tau yet -> anomaly, with the reason."""
+    scored = batch.results[0]
+    reason = None
+    if batch.threshold is None:
+        is_anomaly, reason = True, "cache not calibrated: fail-safe anomaly"
+    else:
+        is_anomaly = scored.score > batch.threshold
+        if batch.stale:
+            reason = "calibration is stale: experiences changed since it was computed"
+    return AnomalyVerdict(
+        robot=robot, seq=obs.seq, score=scored.score, threshold=batch.threshold,
+        is_anomaly=is_anomaly, k=batch.k, neighbors=scored.neighbors, model=batch.model or "",
+        cache=cache, cache_version=batch.version, latency_ms=latency_ms, reason=reason)
+
+
+class DetectorWorker:
+    def __init__(self, service: CacheService, bus: Bus, *, cache: str,
+                 max_in_flight: int = 256, metrics: Any = None, owns_bus: bool = False) -> None:
+        self.service = service
+        self.bus = bus
+        self.owns_bus = owns_bus
+        self.cache = cache
+        self.metrics = metrics
+        self._slots = asyncio.Semaphore(max_in_flight)
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._subscription: Any = None
+        self._last_alarm = 0.0
+
+    @classmethod
+    def factory(cls, settings: EmbeddingSettings) -> Callable[[CacheService, Any], DetectorWorker]:
+        """For ``create_app``: open a Zenoh session in the lifespan; the worker owns it."""
+
+        def make(service: CacheService, metrics: Any) -> DetectorWorker:
+            bus = Bus.open(settings, "embedding")
+            return cls(service, bus, cache=settings.detector_cache, metrics=metrics,
+                       owns_bus=True)
+
+        return make
+
+    async def run(self) -> None:
+        self._subscription = self.bus.subscribe(
+            topics.observation(topics.ANY_ROBOT), Observation, maxsize=1024)
+        async for received in self._subscription:
+            await self._slots.acquire()
+            task = asyncio.create_task(self._handle(received.message, received.key))
+            self._tasks.add(task)
+            task.add_done_callback(self._done)
+
+    def _done(self, task: asyncio.Task[None]) -> None:
+        self._tasks.discard(task)
+        self._slots.release()
+
+    async def stop(self) -> None:
+        if self._subscription is not None:
+            self._subscription.close()
+        if self._tasks:
+            await asyncio.gather(*self._tasks, return_exceptions=True)
+        if self.owns_bus:
+            self.bus.close()
+
+    async def _handle(self, obs: Observation, key: str) -> None:
+        start = time.perf_counter()
+        robot = topics.robot_of(key)
+        try:
+            batch = await self.service.score_texts(self.cache, [obs.text])
+        except DetectorError as exc:
+            self._alarm(robot, f"cannot score observation {obs.seq}: {exc.message}")
+            return
+        except Exception:
+            log.exception("scoring observation %s of %s failed", obs.seq, robot)
+            return
+        verdict = make_verdict(obs, robot, batch, self.cache,
+                               (time.perf_counter() - start) * 1000)
+        self.bus.publish(topics.anomaly(robot), verdict)
+        if self.metrics is not None:
+            self.metrics.verdicts.labels(str(verdict.is_anomaly).lower()).inc()
+
+    def _alarm(self, robot: str, message: str) -> None:
+        """At most one alarm event per 10 s; the control loop sees missing verdicts as stale."""
+        now = time.monotonic()
+        if now - self._last_alarm < 10.0:
+            return
+        self._last_alarm = now
+        log.warning("%s", message)
+        self.bus.publish(topics.event(robot), Event(
+            robot=robot, source="embedding", kind="detector_unavailable", severity="alarm",
+            message=message))

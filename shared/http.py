@@ -1,0 +1,174 @@
+"""HTTP admin API pieces every service shares (FastAPI).
+
+- errors: JSON ``{"error": {"code", "message", "field"}}`` with a 4xx/5xx status;
+- ``bearer_auth``: mutating routes need ``Authorization: Bearer $AESOP_ADMIN_TOKEN``;
+- ``ops_router``: ``/healthz``, ``/readyz`` and ``/metrics`` (Prometheus, per-app registry);
+- ``serve``: run an app with uvicorn, refusing off-loopback exposure without a token.
+"""
+
+from __future__ import annotations
+
+import hmac
+import time
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+from fastapi import Depends, FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, Response
+from fastapi.routing import APIRouter
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from prometheus_client import (
+    CONTENT_TYPE_LATEST,
+    CollectorRegistry,
+    Counter,
+    Histogram,
+    generate_latest,
+)
+from pydantic import SecretStr
+
+from .settings import ServiceSettings
+
+
+class ApiError(Exception):
+    """An error to answer as JSON: ``status``, machine ``code``, human ``message``, ``field``."""
+
+    def __init__(self, status: int, code: str, message: str, field: str | None = None) -> None:
+        super().__init__(message)
+        self.status, self.code, self.message, self.field = status, code, message, field
+
+
+def error_response(status: int, code: str, message: str, field: str | None = None,
+                   headers: dict[str, str] | None = None) -> JSONResponse:
+    body: dict[str, Any] = {"code": code, "message": message}
+    if field is not None:
+        body["field"] = field
+    return JSONResponse({"error": body}, status_code=status, headers=headers)
+
+
+def field_path(loc: tuple[Any, ...] | list[Any]) -> str:
+    """('body', 'items', 3, 'text') -> 'items[3].text'."""
+    out = ""
+    for part in loc:
+        if part in ("body", "query", "path", "header") and not out:
+            continue
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += f".{part}" if out else str(part)
+    return out or "body"
+
+
+async def _validation_error(_: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    errors = exc.errors()
+    first = errors[0] if errors else {"loc": ("body",), "msg": "invalid request", "type": ""}
+    if first.get("type") == "json_invalid":
+        return error_response(400, "malformed_json", f"request body is not valid JSON: "
+                              f"{first.get('ctx', {}).get('error', first['msg'])}", "body")
+    where = field_path(first["loc"])
+    message = f"{where}: {first['msg']}"
+    if len(errors) > 1:
+        message += f" (and {len(errors) - 1} more)"
+    return error_response(422, "invalid", message, where)
+
+
+async def _api_error(_: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, ApiError)
+    return error_response(exc.status, exc.code, exc.message, exc.field)
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    app.add_exception_handler(RequestValidationError, _validation_error)
+    app.add_exception_handler(ApiError, _api_error)
+
+
+def bearer_auth(token: SecretStr | None) -> Callable[..., Awaitable[None]]:
+    """A dependency for mutating routes. Without a configured token the service only
+    listens on loopback (``ServiceSettings.check_exposure``) and the check is open."""
+    scheme = HTTPBearer(auto_error=False)
+
+    async def check(creds: HTTPAuthorizationCredentials | None = Depends(scheme)) -> None:
+        if token is None:
+            return
+        given = b"" if creds is None else creds.credentials.encode()
+        if not hmac.compare_digest(given, token.get_secret_value().encode()):
+            raise ApiError(401, "unauthorized", "a valid 'Authorization: Bearer <token>' "
+                           "header is required", "Authorization")
+
+    return check
+
+
+class HttpMetrics:
+    """Request counters and latencies, in a registry owned by the app (no globals)."""
+
+    def __init__(self, registry: CollectorRegistry, service: str) -> None:
+        self.requests = Counter("aesop_http_requests", "HTTP requests",
+                                ["service", "method", "route", "status"], registry=registry)
+        self.latency = Histogram("aesop_http_request_seconds", "HTTP request latency",
+                                 ["service", "method", "route"], registry=registry)
+        self.service = service
+
+    def install(self, app: FastAPI) -> None:
+        @app.middleware("http")
+        async def measure(request: Request, call_next: Callable[..., Awaitable[Response]]) -> Response:
+            start = time.perf_counter()
+            response = await call_next(request)
+            route = request.scope.get("route")
+            path = getattr(route, "path", "unmatched")
+            self.latency.labels(self.service, request.method, path).observe(
+                time.perf_counter() - start)
+            self.requests.labels(self.service, request.method, path, str(response.status_code)).inc()
+            return response
+
+
+def ops_router(
+    registry: CollectorRegistry,
+    ready: Callable[[], dict[str, Any] | None],
+    refresh: Callable[[], None] | None = None,
+) -> APIRouter:
+    """``/healthz`` (the process answers), ``/readyz`` (``ready()`` returns None when ready,
+    or a dict saying what is missing), ``/metrics`` (Prometheus text; ``refresh`` updates
+    gauges first)."""
+    router = APIRouter()
+
+    @router.get("/healthz")
+    async def healthz() -> dict[str, str]:
+        return {"status": "ok"}
+
+    @router.get("/readyz")
+    async def readyz() -> Response:
+        missing = ready()
+        if missing:
+            return JSONResponse({"status": "not_ready", **missing}, status_code=503)
+        return JSONResponse({"status": "ready"})
+
+    @router.get("/metrics")
+    async def metrics() -> Response:
+        if refresh is not None:
+            refresh()
+        return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)
+
+    return router
+
+
+def body_limit(app: FastAPI, max_bytes: int) -> None:
+    """Refuse request bodies larger than ``max_bytes`` (413, field "body")."""
+
+    @app.middleware("http")
+    async def limit(request: Request, call_next: Callable[..., Awaitable[Response]]) -> Response:
+        length = request.headers.get("content-length")
+        if length is not None and length.isdigit() and int(length) > max_bytes:
+            return error_response(413, "too_large",
+                                  f"request body is {length} bytes; the limit is {max_bytes}", "body")
+        return await call_next(request)
+
+
+def serve(app: FastAPI, settings: ServiceSettings) -> None:
+    """Run ``app`` with uvicorn until SIGINT/SIGTERM."""
+    import uvicorn
+
+    settings.check_exposure()
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level=settings.log_level,
+                access_log=False)
+

@@ -1,0 +1,283 @@
+"""The vector-cache HTTP admin API: shapes, validation, auth, persistence across restarts."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from services.embedding.api import create_app
+from services.embedding.embedders import EmbedderPool, ModelNotFound
+from services.embedding.service import CacheService
+from services.embedding.settings import EmbeddingSettings
+from tests.fakes.hash_embedder import HashEmbedder
+
+TOKEN = "test-token-0123456789"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+NOMINAL = [
+    f"a {color} package on the conveyor belt next to a {thing}"
+    for color in ("brown", "white", "small", "large", "taped", "flat")
+    for thing in ("storage shelf", "pallet", "scanner", "worker")
+]
+
+
+def loader(model: str) -> HashEmbedder:
+    if model == "missing-model":
+        raise ModelNotFound("missing-model: looked in the test's imagination")
+    return HashEmbedder(name=f"test/{model.split('/')[-1]}")
+
+
+def make_client(data_dir: Path, token: str | None = TOKEN, **overrides: object) -> TestClient:
+    settings = EmbeddingSettings(data_dir=data_dir, admin_token=token, zenoh_worker=False,
+                                 fsync=False, **overrides)
+    service = CacheService(settings, embedders=EmbedderPool(loader=loader))
+    return TestClient(create_app(settings, service=service))
+
+
+@pytest.fixture
+def client(tmp_path: Path) -> Iterator[TestClient]:
+    with make_client(tmp_path) as c:
+        yield c
+
+
+def create(client: TestClient, name: str = "wm", **body: object) -> dict:
+    r = client.put(f"/v1/caches/{name}", json=body, headers=AUTH)
+    assert r.status_code in (200, 201), r.text
+    return r.json()
+
+
+def add_texts(client: TestClient, name: str, texts: list[str]) -> dict:
+    r = client.post(f"/v1/caches/{name}/experiences", headers=AUTH,
+                    json={"items": [{"text": t} for t in texts]})
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+def test_cache_lifecycle_shapes(client: TestClient) -> None:
+    r = client.put("/v1/caches/wm", json={"k": 3}, headers=AUTH)
+    assert r.status_code == 201
+    desc = r.json()
+    assert {"name", "size", "dim", "model", "k", "score", "threshold", "calibration",
+            "version"} <= desc.keys()
+    assert desc["size"] == 0 and desc["dim"] == 64 and desc["k"] == 3
+    assert desc["threshold"] is None and desc["calibration"] is None
+
+    added = add_texts(client, "wm", NOMINAL)
+    assert len(added["ids"]) == len(NOMINAL) and added["size"] == len(NOMINAL)
+    assert added["version"] > desc["version"]
+
+    cal = client.post("/v1/caches/wm/calibrate", headers=AUTH,
+                      json={"method": "loo-quantile", "alpha": 0.9}).json()
+    assert cal["method"] == "loo-quantile" and cal["alpha"] == 0.9 and cal["n"] == len(NOMINAL)
+    got = client.get("/v1/caches/wm").json()
+    assert got["threshold"] == cal["threshold"]
+    assert got["calibration"]["stale"] is False and got["version"] == cal["version"]
+
+    scored = client.post("/v1/caches/wm/score", json={
+        "texts": [NOMINAL[0], "a smoking lithium battery leaking acid everywhere"]}).json()
+    near, far = scored["results"]
+    assert near["score"] == pytest.approx(-1.0 + 0.0, abs=0.5)  # an exact member is near -1
+    assert near["neighbors"][0]["text"] == NOMINAL[0]
+    assert near["neighbors"][0]["similarity"] == pytest.approx(1.0, abs=1e-5)
+    assert far["score"] > near["score"]
+    assert far["is_anomaly"] is True and near["is_anomaly"] is False
+    assert scored["threshold"] == cal["threshold"] and scored["version"] == cal["version"]
+
+    # adding experiences marks the calibration stale and changes the version
+    more = add_texts(client, "wm", ["a blue package on the conveyor belt"])
+    got = client.get("/v1/caches/wm").json()
+    assert got["calibration"]["stale"] is True and got["version"] == more["version"]
+    assert client.get("/v1/caches").json()["caches"][0]["name"] == "wm"
+
+
+def test_put_is_idempotent_and_refuses_a_model_change(client: TestClient) -> None:
+    assert client.put("/v1/caches/c", json={}, headers=AUTH).status_code == 201
+    assert client.put("/v1/caches/c", json={}, headers=AUTH).status_code == 200
+    r = client.put("/v1/caches/c", json={"model": "other-model"}, headers=AUTH)
+    assert r.status_code == 409 and r.json()["error"]["field"] == "model"
+    r = client.put("/v1/caches/d", json={"model": "missing-model"}, headers=AUTH)
+    assert r.status_code == 422 and r.json()["error"]["field"] == "model"
+    assert "imagination" in r.json()["error"]["message"]
+    r = client.put("/v1/caches/bad name!", json={}, headers=AUTH)
+    assert r.status_code == 422 and r.json()["error"]["field"] == "name"
+
+
+def test_experience_get_and_delete(client: TestClient) -> None:
+    create(client)
+    ids = add_texts(client, "wm", NOMINAL[:3])["ids"]
+    r = client.post("/v1/caches/wm/experiences", headers=AUTH, json={
+        "items": [{"text": "a pallet", "id": "pallet-1", "metadata": {"run": 7}}]})
+    assert r.json()["ids"] == ["pallet-1"]
+    assert client.get("/v1/caches/wm/experiences/pallet-1").json() == {
+        "id": "pallet-1", "text": "a pallet", "metadata": {"run": 7}}
+    r = client.delete(f"/v1/caches/wm/experiences/{ids[0]}", headers=AUTH)
+    assert r.status_code == 200 and r.json()["size"] == 3
+    assert client.get(f"/v1/caches/wm/experiences/{ids[0]}").status_code == 404
+    assert client.delete(f"/v1/caches/wm/experiences/{ids[0]}", headers=AUTH).status_code == 404
+
+
+BAD_REQUESTS = [
+    # (method, path, body, status, field)
+    ("post", "/v1/caches/wm/experiences", {"items": [{"text": ""}]}, 422, "items[0].text"),
+    ("post", "/v1/caches/wm/experiences", {"items": [{"text": "ok"}, {"text": "   "}]}, 422,
+     "items[1].text"),
+    ("post", "/v1/caches/wm/experiences", {"items": [{"text": "x" * 5000}]}, 422,
+     "items[0].text"),
+    ("post", "/v1/caches/wm/experiences", {"items": []}, 422, "items"),
+    ("post", "/v1/caches/wm/experiences", {"items": [{"text": "a"}] * 101}, 413, "items"),
+    ("post", "/v1/caches/wm/experiences", {"vectors": [[0.1] * 63]}, 422, "vectors[0]"),
+    ("post", "/v1/caches/wm/experiences", {"vectors": [[0.0] * 64]}, 422, "vectors[0]"),
+    ("post", "/v1/caches/wm/experiences", {"vectors": [[1.0] * 64], "items": []}, 422, "body"),
+    ("post", "/v1/caches/wm/experiences", {"items": [{"text": "a", "id": "e0"},
+                                                      {"text": "b", "id": "e0"}]}, 422,
+     "items[1].id"),
+    ("post", "/v1/caches/wm/experiences", {"items": [{"text": "a", "id": "known"}]}, 409,
+     "items[0].id"),
+    ("post", "/v1/caches/nope/experiences", {"items": [{"text": "a"}]}, 404, "name"),
+    ("post", "/v1/caches/wm/calibrate", {"method": "loo-quantile", "alpha": 1.0}, 422, "alpha"),
+    ("post", "/v1/caches/wm/calibrate", {"method": "loo-quantile", "alpha": 0}, 422, "alpha"),
+    ("post", "/v1/caches/wm/calibrate", {"method": "magic"}, 422, "method"),
+    ("post", "/v1/caches/wm/calibrate", {"method": "conformal"}, 422, "calibration"),
+    ("post", "/v1/caches/wm/calibrate", {"method": "tpr-target", "calibration": [
+        {"text": "a package", "label": "nominal"}]}, 422, "calibration"),
+    ("post", "/v1/caches/wm/calibrate", {"method": "conformal", "alpha": 0.99, "calibration": [
+        {"text": f"a package {i}", "label": "nominal"} for i in range(10)]}, 422, "alpha"),
+    ("post", "/v1/caches/wm/score", {"texts": ["a"], "k": 50}, 422, "k"),
+    ("post", "/v1/caches/wm/score", {"texts": []}, 422, "texts"),
+    ("post", "/v1/caches/wm/score", {"vectors": [[1.0] * 3]}, 422, "vectors"),
+    ("post", "/v1/caches/nope/score", {"texts": ["a"]}, 404, "name"),
+    ("put", "/v1/caches/wm", {"k": 0}, 422, "k"),
+    ("put", "/v1/caches/wm", {"score": "cosine"}, 422, "score"),
+]
+
+
+@pytest.mark.parametrize(("method", "path", "body", "status", "field"), BAD_REQUESTS)
+def test_bad_input_names_the_field_and_changes_nothing(
+    tmp_path: Path, method: str, path: str, body: dict, status: int, field: str
+) -> None:
+    with make_client(tmp_path, max_items=100) as client:
+        create(client, k=3)
+        add_texts(client, "wm", NOMINAL[:10])
+        client.post("/v1/caches/wm/experiences", headers=AUTH,
+                    json={"items": [{"text": "known thing", "id": "known"}]})
+        before = client.get("/v1/caches/wm").json()
+        r = getattr(client, method)(path, json=body, headers=AUTH)
+        assert r.status_code == status, r.text
+        error = r.json()["error"]
+        assert error["field"] == field and error["message"] and error["code"]
+        assert client.get("/v1/caches/wm").json() == before
+
+
+@pytest.mark.parametrize("payload", [
+    b'{"items": [{"text": "a"}',  # truncated
+    b'{"vectors": [[NaN, 1.0]]}',  # NaN is not JSON
+    b'{"vectors": [[Infinity, 1.0]]}',
+])
+def test_malformed_json_and_non_finite_numbers(client: TestClient, payload: bytes) -> None:
+    create(client)
+    before = client.get("/v1/caches/wm").json()
+    r = client.post("/v1/caches/wm/experiences", content=payload,
+                    headers={**AUTH, "Content-Type": "application/json"})
+    assert r.status_code in (400, 422)
+    assert r.json()["error"]["field"].startswith(("body", "vectors"))
+    assert client.get("/v1/caches/wm").json() == before
+
+
+def test_overflowing_float32_is_refused(client: TestClient) -> None:
+    create(client)
+    r = client.post("/v1/caches/wm/experiences", headers=AUTH, json={"vectors": [[1e39] * 64]})
+    assert r.status_code == 422 and r.json()["error"]["field"] == "vectors[0]"
+
+
+def test_mutating_routes_need_the_token(client: TestClient) -> None:
+    assert client.put("/v1/caches/wm", json={}).status_code == 401
+    bad = {"Authorization": "Bearer wrong-token-0123456789"}
+    r = client.put("/v1/caches/wm", json={}, headers=bad)
+    assert r.status_code == 401 and r.json()["error"]["field"] == "Authorization"
+    create(client)
+    for method, path, body in [
+        ("post", "/v1/caches/wm/experiences", {"items": [{"text": "a"}]}),
+        ("post", "/v1/caches/wm/calibrate", {"method": "loo-quantile"}),
+        ("delete", "/v1/caches/wm/experiences/x", None),
+    ]:
+        kwargs = {"json": body} if body is not None else {}
+        assert getattr(client, method)(path, **kwargs).status_code == 401
+    assert client.get("/v1/caches/wm").status_code == 200  # reads are open
+    assert client.post("/v1/caches/wm/score", json={"texts": ["a"]}).status_code == 422  # k
+
+
+def test_state_survives_a_restart(tmp_path: Path) -> None:
+    with make_client(tmp_path) as client:
+        create(client, k=2)
+        add_texts(client, "wm", NOMINAL)
+        client.post("/v1/caches/wm/calibrate", headers=AUTH, json={"method": "loo-quantile"})
+        ident = add_texts(client, "wm", ["one more"])["ids"][0]
+        client.delete(f"/v1/caches/wm/experiences/{ident}", headers=AUTH)
+        before = client.get("/v1/caches/wm").json()
+        scores = client.post("/v1/caches/wm/score", json={"texts": NOMINAL[:3]}).json()
+    with make_client(tmp_path) as client:
+        assert client.get("/v1/caches/wm").json() == before
+        again = client.post("/v1/caches/wm/score", json={"texts": NOMINAL[:3]}).json()
+        assert again == scores
+
+
+def test_async_build_reports_progress_through_a_job(client: TestClient) -> None:
+    create(client)
+    r = client.post("/v1/caches/wm/experiences?wait=false", headers=AUTH,
+                    json={"items": [{"text": t} for t in NOMINAL]})
+    assert r.status_code == 202
+    job_id = r.json()["job"]
+    for _ in range(200):
+        job = client.get(f"/v1/jobs/{job_id}").json()
+        if job["state"] != "running":
+            break
+    assert job["state"] == "succeeded", job
+    assert job["done"] == job["total"] == len(NOMINAL)
+    assert len(job["result"]["ids"]) == len(NOMINAL)
+    assert client.get("/v1/caches/wm").json()["size"] == len(NOMINAL)
+    assert client.get("/v1/jobs/unknown").status_code == 404
+
+
+def test_tpr_target_and_conformal(client: TestClient) -> None:
+    create(client, k=1)
+    add_texts(client, "wm", NOMINAL)
+    labelled = [{"text": t + " today", "label": "nominal"} for t in NOMINAL[:12]] + [
+        {"text": t, "label": "anomaly"} for t in (
+            "a leaking bleach bottle", "two forklifts in collision", "a fire near the dock",
+            "a smoking lithium battery")]
+    r = client.post("/v1/caches/wm/calibrate", headers=AUTH,
+                    json={"method": "tpr-target", "tpr": 0.75, "calibration": labelled})
+    assert r.status_code == 200, r.text
+    cal = r.json()
+    assert cal["method"] == "tpr-target" and cal["tpr"] >= 0.75 and 0 <= cal["auroc"] <= 1
+    r = client.post("/v1/caches/wm/calibrate", headers=AUTH,
+                    json={"method": "conformal", "alpha": 0.9, "calibration": labelled})
+    assert r.status_code == 200, r.text
+    assert r.json()["n"] == 12 and r.json()["method"] == "conformal"
+
+
+def test_ops_routes(client: TestClient) -> None:
+    assert client.get("/healthz").json() == {"status": "ok"}
+    assert client.get("/readyz").status_code == 200
+    create(client)
+    add_texts(client, "wm", NOMINAL[:4])
+    text = client.get("/metrics").text
+    assert 'aesop_embedding_cache_size{cache="wm"} 4.0' in text
+    assert "aesop_http_requests_total" in text
+
+
+def test_vectors_only_cache(client: TestClient) -> None:
+    r = client.put("/v1/caches/raw", json={"model": None, "dim": 3}, headers=AUTH)
+    assert r.status_code == 201 and r.json()["model"] is None
+    r = client.post("/v1/caches/raw/experiences", headers=AUTH,
+                    json={"vectors": [[1, 0, 0], [0, 1, 0], [0, 0, 2]], "ids": ["x", "y", "z"]})
+    assert r.json()["ids"] == ["x", "y", "z"]
+    r = client.post("/v1/caches/raw/score", json={"vectors": [[0, 0, 5]], "k": 1})
+    assert r.json()["results"][0]["score"] == pytest.approx(-1.0)
+    assert r.json()["results"][0]["neighbors"][0]["id"] == "z"
+    r = client.post("/v1/caches/raw/experiences", headers=AUTH, json={"items": [{"text": "a"}]})
+    assert r.status_code == 422 and r.json()["error"]["field"] == "items"
+    assert json.loads(client.get("/v1/caches/raw").text)["dim"] == 3
