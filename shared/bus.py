@@ -1,0 +1,510 @@
+"""The one Zenoh <-> asyncio bridge of the stack.
+
+Zenoh runs callbacks on its own threads. Here a callback only decodes the
+sample and hands it on: to an asyncio loop with ``call_soon_threadsafe`` into
+a bounded drop-oldest queue (``Subscription``), or into a lock-guarded slot
+that keeps the newest message (``Latest``, for a fixed-rate control loop).
+It never calls Zenoh, never blocks and never raises.
+
+    with Bus.open(settings, "embedding") as bus:
+        async for got in bus.subscribe(topics.observation("*"), Observation):
+            bus.publish(topics.anomaly(got.message.robot), verdict)
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import threading
+import time
+import weakref
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Generic, Protocol, Self, TypeVar
+
+import zenoh
+
+from shared import topics
+from shared.messages import Message
+from shared.settings import BusSettings
+
+log = logging.getLogger(__name__)
+
+M = TypeVar("M", bound=Message)
+T = TypeVar("T")
+_C = TypeVar("_C", bound="_Closeable")
+
+HEALTH_ALL = f"{topics.PREFIX}/health/*"
+_ERROR_LOG_INTERVAL_S = 10.0
+
+
+def zenoh_config(settings: BusSettings) -> zenoh.Config:
+    """A Zenoh config: the JSON5 file if any, then mode, endpoints and multicast from settings.
+
+    With a file, only settings given explicitly (init or ``AESOP_*``) override it;
+    without one, all apply (multicast scouting off by default, and a peer with no
+    listen endpoint listens on a random loopback port, not on every interface).
+    """
+    if settings.zenoh_config is not None:
+        conf = zenoh.Config.from_file(settings.zenoh_config)
+        given = settings.model_fields_set
+    else:
+        conf = zenoh.Config()
+        given = {"zenoh_mode", "zenoh_multicast"}
+    if "zenoh_mode" in given:
+        conf.insert_json5("mode", json.dumps(settings.zenoh_mode))
+    listen = settings.zenoh_listen
+    if not listen and settings.zenoh_config is None and settings.zenoh_mode == "peer":
+        listen = ["tcp/127.0.0.1:0"]  # zenoh's own default listens on every interface
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if settings.zenoh_connect:
+        conf.insert_json5("connect/endpoints", json.dumps(settings.zenoh_connect))
+    if "zenoh_multicast" in given:
+        conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.zenoh_multicast))
+    return conf
+
+
+@dataclass(frozen=True, slots=True)
+class Received(Generic[T]):
+    """A decoded message, the concrete key it came on, and ``time.monotonic()`` at arrival."""
+
+    key: str
+    message: T
+    received_at: float
+
+
+@dataclass(frozen=True, slots=True)
+class HealthChange:
+    """A service's liveliness token appeared (``alive``) or vanished."""
+
+    service: str
+    alive: bool
+    received_at: float
+
+
+class _Closeable(Protocol):
+    def close(self) -> None: ...
+
+
+class _Decoder(Generic[M]):
+    """Sample -> ``Received[M]`` on the Zenoh thread; counts and rate-limits decode errors."""
+
+    def __init__(self, key_expr: str, model: type[M]) -> None:
+        self.key_expr = key_expr
+        self.model = model
+        self.received = 0
+        self.decode_errors = 0
+        self._lock = threading.Lock()
+        self._last_log: float | None = None
+        self._unlogged = 0
+
+    def __call__(self, sample: zenoh.Sample) -> Received[M] | None:
+        if sample.kind != zenoh.SampleKind.PUT:
+            return None
+        received_at = time.monotonic()
+        key = str(sample.key_expr)
+        try:
+            message = self.model.decode(sample.payload.to_bytes())
+        except Exception as exc:  # a bad payload must never reach the loop
+            self._count_error(key, exc)
+            return None
+        with self._lock:
+            self.received += 1
+        return Received(key, message, received_at)
+
+    def _count_error(self, key: str, exc: Exception) -> None:
+        now = time.monotonic()
+        with self._lock:
+            self.decode_errors += 1
+            self._unlogged += 1
+            if self._last_log is not None and now - self._last_log < _ERROR_LOG_INTERVAL_S:
+                return
+            self._last_log, count, self._unlogged = now, self._unlogged, 0
+        log.warning(
+            "dropped %d undecodable %s sample(s) on %s (latest on %s: %s)",
+            count,
+            self.model.__name__,
+            self.key_expr,
+            key,
+            _first_line(exc),
+        )
+
+
+def _first_line(exc: Exception) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+class _LoopQueue(Generic[T]):
+    """A bounded drop-oldest queue fed from any thread, read by one asyncio loop."""
+
+    def __init__(self, maxsize: int) -> None:
+        if maxsize < 1:
+            raise ValueError("maxsize must be >= 1")
+        try:
+            self._loop = asyncio.get_running_loop()
+        except RuntimeError:
+            raise RuntimeError(
+                "create subscriptions inside a running asyncio loop (threads: Bus.latest)"
+            ) from None
+        self._items: deque[T] = deque()
+        self._maxsize = maxsize
+        self._ready = asyncio.Event()
+        self._closed = False
+        self.dropped = 0
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def qsize(self) -> int:
+        return len(self._items)
+
+    def put_threadsafe(self, item: T) -> None:
+        """From any thread; a closed loop or queue silently drops the item."""
+        if self._closed:
+            return
+        # A closed loop raises RuntimeError: nobody is listening any more.
+        with contextlib.suppress(RuntimeError):
+            self._loop.call_soon_threadsafe(self._put, item)
+
+    def _put(self, item: T) -> None:
+        if self._closed:
+            return
+        if len(self._items) >= self._maxsize:
+            self._items.popleft()
+            self.dropped += 1
+        self._items.append(item)
+        self._ready.set()
+
+    async def get(self) -> T:
+        """The oldest item; ``StopAsyncIteration`` once closed."""
+        while True:
+            if self._closed:
+                raise StopAsyncIteration
+            if self._items:
+                return self._items.popleft()
+            self._ready.clear()
+            await self._ready.wait()
+
+    def close(self) -> None:
+        """From any thread: end every pending and future ``get``."""
+        self._closed = True
+        try:
+            on_loop = asyncio.get_running_loop() is self._loop
+        except RuntimeError:
+            on_loop = False
+        if on_loop:
+            self._wake()
+            return
+        with contextlib.suppress(RuntimeError):
+            self._loop.call_soon_threadsafe(self._wake)
+
+    def _wake(self) -> None:
+        self._items.clear()
+        self._ready.set()
+
+
+class Subscription(Generic[M]):
+    """Typed samples on ``key_expr`` as an async iterator of ``Received[M]``.
+
+    Create it inside a running loop (``Bus.subscribe``). When the consumer is
+    slow the oldest queued message is discarded and counted in ``dropped``.
+    """
+
+    def __init__(
+        self, session: zenoh.Session, key_expr: str, model: type[M], *, maxsize: int = 64
+    ) -> None:
+        self._queue: _LoopQueue[Received[M]] = _LoopQueue(maxsize)
+        self._decoder = _Decoder(key_expr, model)
+        self._subscriber = session.declare_subscriber(key_expr, self._on_sample)
+        self._undeclare = _once(self._subscriber.undeclare)
+
+    @property
+    def key_expr(self) -> str:
+        return self._decoder.key_expr
+
+    @property
+    def received(self) -> int:
+        """Samples decoded so far (including those later dropped)."""
+        return self._decoder.received
+
+    @property
+    def decode_errors(self) -> int:
+        return self._decoder.decode_errors
+
+    @property
+    def dropped(self) -> int:
+        """Messages discarded because the queue was full (drop-oldest)."""
+        return self._queue.dropped
+
+    @property
+    def closed(self) -> bool:
+        return self._queue.closed
+
+    def qsize(self) -> int:
+        return self._queue.qsize()
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        got = self._decoder(sample)
+        if got is not None:
+            self._queue.put_threadsafe(got)
+
+    def __aiter__(self) -> Self:
+        return self
+
+    async def __anext__(self) -> Received[M]:
+        return await self._queue.get()
+
+    def close(self) -> None:
+        """Undeclare the subscriber and end the iteration; idempotent."""
+        self._queue.close()
+        self._undeclare()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.close()
+
+
+class Latest(Generic[M]):
+    """The newest decoded message on ``key_expr``; thread-safe, for fixed-rate loops."""
+
+    def __init__(self, session: zenoh.Session, key_expr: str, model: type[M]) -> None:
+        self._decoder = _Decoder(key_expr, model)
+        self._lock = threading.Lock()
+        self._latest: Received[M] | None = None
+        self._subscriber = session.declare_subscriber(key_expr, self._on_sample)
+        self._undeclare = _once(self._subscriber.undeclare)
+
+    @property
+    def key_expr(self) -> str:
+        return self._decoder.key_expr
+
+    @property
+    def received(self) -> int:
+        return self._decoder.received
+
+    @property
+    def decode_errors(self) -> int:
+        return self._decoder.decode_errors
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        got = self._decoder(sample)
+        if got is not None:
+            with self._lock:
+                self._latest = got
+
+    def get(self) -> Received[M] | None:
+        with self._lock:
+            return self._latest
+
+    def age(self, now: float | None = None) -> float | None:
+        """Seconds since the newest message arrived (``time.monotonic()`` clock), None if none."""
+        got = self.get()
+        if got is None:
+            return None
+        return (time.monotonic() if now is None else now) - got.received_at
+
+    def close(self) -> None:
+        """Undeclare the subscriber; idempotent. ``get()`` keeps the last value."""
+        self._undeclare()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class LivelinessWatch:
+    """Async iterator of ``HealthChange``s of services under a health prefix."""
+
+    def __init__(
+        self, session: zenoh.Session, key_expr: str, *, history: bool = True, maxsize: int = 256
+    ) -> None:
+        self._queue: _LoopQueue[HealthChange] = _LoopQueue(maxsize)
+        self._subscriber = session.liveliness().declare_subscriber(
+            key_expr, self._on_sample, history=history
+        )
+        self._undeclare = _once(self._subscriber.undeclare)
+
+    @property
+    def dropped(self) -> int:
+        return self._queue.dropped
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        alive = sample.kind == zenoh.SampleKind.PUT
+        service = _service_of(str(sample.key_expr))
+        self._queue.put_threadsafe(HealthChange(service, alive, time.monotonic()))
+
+    def __aiter__(self) -> Self:
+        return self
+
+    async def __anext__(self) -> HealthChange:
+        return await self._queue.get()
+
+    def close(self) -> None:
+        self._queue.close()
+        self._undeclare()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _service_of(key: str) -> str:
+    return key.rsplit("/", 1)[-1]
+
+
+def _once(undeclare: Callable[[], object]) -> Callable[[], None]:
+    """Make a Zenoh ``undeclare`` idempotent and quiet (it raises when repeated or closed)."""
+    done = threading.Event()
+
+    def run() -> None:
+        if done.is_set():
+            return
+        done.set()
+        try:
+            undeclare()
+        except zenoh.ZError as exc:
+            log.debug("undeclare: %s", exc)
+
+    return run
+
+
+class Bus:
+    """A Zenoh session for one service: typed pub/sub plus its liveliness token."""
+
+    def __init__(self, session: zenoh.Session, service: str) -> None:
+        self._session = session
+        self.service = service
+        self._lock = threading.Lock()
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._children: weakref.WeakSet[_Closeable] = weakref.WeakSet()
+        self._token: zenoh.LivelinessToken | None = session.liveliness().declare_token(
+            topics.health(service)
+        )
+        self._closed = False
+
+    @classmethod
+    def open(cls, settings: BusSettings, service: str) -> Self:
+        """Open a session and declare the liveliness token ``aesop/health/{service}``."""
+        topics.health(service)  # validate before opening anything
+        session = zenoh.open(zenoh_config(settings))
+        try:
+            return cls(session, service)
+        except BaseException:
+            session.close()
+            raise
+
+    @property
+    def session(self) -> zenoh.Session:
+        """The raw Zenoh session, for what the bus does not wrap."""
+        return self._session
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def publish(self, key: str, msg: Message) -> None:
+        """Put ``msg`` as JSON on the concrete ``key`` (a publisher is declared once per key).
+
+        Thread-safe; raises ``RuntimeError`` once the bus is closed.
+        """
+        with self._lock:
+            if self._closed:
+                raise RuntimeError("bus is closed")
+            publisher = self._publishers.get(key)
+            if publisher is None:
+                publisher = self._session.declare_publisher(
+                    key, encoding=zenoh.Encoding.APPLICATION_JSON
+                )
+                self._publishers[key] = publisher
+        publisher.put(msg.encode())
+
+    def subscribe(self, key_expr: str, model: type[M], *, maxsize: int = 64) -> Subscription[M]:
+        """An async iterator of ``model`` messages; call from inside the running loop."""
+        return self._adopt(Subscription(self._open_session(), key_expr, model, maxsize=maxsize))
+
+    def latest(self, key_expr: str, model: type[M]) -> Latest[M]:
+        """A slot holding the newest ``model`` message on ``key_expr``; no loop needed."""
+        return self._adopt(Latest(self._open_session(), key_expr, model))
+
+    def watch_alive(self, prefix: str = HEALTH_ALL, *, history: bool = True) -> LivelinessWatch:
+        """An async iterator of services appearing and vanishing; call inside the loop."""
+        return self._adopt(LivelinessWatch(self._open_session(), prefix, history=history))
+
+    def alive(self, prefix: str = HEALTH_ALL, *, timeout: float = 2.0) -> set[str]:
+        """Names of the services whose liveliness tokens under ``prefix`` are alive now.
+
+        Blocks until the query completes (at most ``timeout`` s); from async code
+        prefer ``await asyncio.to_thread(bus.alive)``.
+        """
+        alive: set[str] = set()
+        for reply in self._open_session().liveliness().get(prefix, timeout=timeout):
+            sample = reply.ok
+            if sample is not None:
+                alive.add(_service_of(str(sample.key_expr)))
+        return alive
+
+    def close(self) -> None:
+        """Undeclare everything and close the session; idempotent."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            publishers, self._publishers = list(self._publishers.values()), {}
+            token, self._token = self._token, None
+        for child in list(self._children):
+            child.close()
+        for publisher in publishers:
+            _once(publisher.undeclare)()
+        if token is not None:
+            _once(token.undeclare)()
+        self._session.close()
+
+    def _open_session(self) -> zenoh.Session:
+        if self._closed:
+            raise RuntimeError("bus is closed")
+        return self._session
+
+    def _adopt(self, child: _C) -> _C:
+        self._children.add(child)
+        return child
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()

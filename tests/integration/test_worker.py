@@ -1,0 +1,92 @@
+"""The detector's Zenoh worker over two real peers: observations in, verdicts out."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+
+from services.embedding.embedders import EmbedderPool
+from services.embedding.service import CacheService, Item
+from services.embedding.settings import EmbeddingSettings
+from services.embedding.worker import DetectorWorker
+from shared import topics
+from shared.bus import Bus
+from shared.messages import AnomalyVerdict, Observation
+from tests.fakes.hash_embedder import HashEmbedder
+from tests.zenoh_peers import DEADLINE_S, routed
+
+pytestmark = pytest.mark.timeout(90)
+
+NOMINAL = [f"a {c} box on the ground near a {t}" for c in ("red", "blue", "green", "white")
+           for t in ("drill", "soccer ball", "bicycle tire", "chair")]
+
+
+@pytest.fixture
+async def service(tmp_path: Path) -> AsyncIterator[tuple[CacheService, HashEmbedder]]:
+    embedder = HashEmbedder()
+    settings = EmbeddingSettings(data_dir=tmp_path, fsync=False, microbatch_window_ms=200,
+                                 zenoh_worker=False)
+    svc = CacheService(settings, embedders=EmbedderPool(loader=lambda _: embedder))
+    await svc.start()
+    await svc.create("scene", model="hash", k=1)
+    await svc.add("scene", [Item(text=t) for t in NOMINAL])
+    yield svc, embedder
+    await svc.close()
+
+
+async def verdicts(sub: object, n: int) -> list[AnomalyVerdict]:
+    out = []
+    for _ in range(n):
+        got = await asyncio.wait_for(anext(sub), DEADLINE_S)  # type: ignore[call-overload]
+        out.append(got.message)
+    return out
+
+
+async def test_verdicts_for_observations(service: tuple[CacheService, HashEmbedder],
+                                         listener: Bus, connector: Bus) -> None:
+    svc, embedder = service
+    await svc.calibrate("scene", "loo-quantile", alpha=0.9)
+    worker = DetectorWorker(svc, listener, cache="scene")
+    task = asyncio.create_task(worker.run())
+    sub = connector.subscribe(topics.anomaly(topics.ANY_ROBOT), AnomalyVerdict)
+    await routed(connector, listener)
+    await routed(listener, connector)
+
+    embedder.calls.clear()
+    texts = [NOMINAL[3], "a keyboard and a burning quadrotor on the red box"]
+    for seq in range(20):
+        connector.publish(topics.observation("drone7"),
+                          Observation(robot="drone7", seq=seq, text=texts[seq % 2]))
+    got = sorted(await verdicts(sub, 20), key=lambda v: v.seq)
+    assert [v.seq for v in got] == list(range(20))
+    version = svc.entry("scene").cache.version
+    for v in got:
+        assert v.robot == "drone7" and v.cache == "scene" and v.cache_version == version
+        assert v.model == "test/hash-embedder" and v.k == 1 and v.threshold is not None
+        assert v.is_anomaly == (v.seq % 2 == 1)
+        assert v.is_anomaly == (v.score > v.threshold) and v.reason is None
+    assert got[0].neighbors[0].text == NOMINAL[3]
+    assert got[0].neighbors[0].similarity == pytest.approx(1.0, abs=1e-5)
+    # 20 observations published in a burst inside a 200 ms window share embedding calls
+    assert sum(embedder.calls) == 20 and len(embedder.calls) < 20
+    await worker.stop()
+    await asyncio.wait_for(task, DEADLINE_S)
+
+
+async def test_uncalibrated_cache_is_a_fail_safe_anomaly(
+        service: tuple[CacheService, HashEmbedder], listener: Bus, connector: Bus) -> None:
+    svc, _ = service
+    worker = DetectorWorker(svc, listener, cache="scene")
+    task = asyncio.create_task(worker.run())
+    sub = connector.subscribe(topics.anomaly("robot0"), AnomalyVerdict)
+    await routed(connector, listener)
+    await routed(listener, connector)
+    connector.publish(topics.observation("robot0"), Observation(seq=1, text=NOMINAL[0]))
+    (verdict,) = await verdicts(sub, 1)
+    assert verdict.is_anomaly and verdict.threshold is None
+    assert "not calibrated" in (verdict.reason or "")
+    await worker.stop()
+    await asyncio.wait_for(task, DEADLINE_S)
