@@ -1,0 +1,90 @@
+"""``aesop detector eval`` as a user runs it: real model, JSONL files, one JSON object out."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
+
+KEYS = {"auroc", "threshold", "tpr", "fpr", "accuracy", "balanced_accuracy", "n_nominal",
+        "n_calibration", "n_test", "method", "k", "alpha", "model"}
+OBJECTS = ["a cardboard package", "a padded envelope", "a plastic tote", "a shrink-wrapped box",
+           "a barcode label", "a small parcel", "a shipping crate", "a sealed carton"]
+PLACES = ["on the conveyor belt", "next to the storage shelf", "on a pallet"]
+ANOMALIES = ["a smoking lithium battery on the conveyor belt", "a leaking bleach bottle",
+             "two forklifts in collision", "a fire next to the storage shelf",
+             "a person lying on the conveyor belt", "a broken glass bottle with sharp shards"]
+
+
+def write(path: Path, rows: list[tuple[str, str]]) -> Path:
+    path.write_text("".join(json.dumps({"text": t, "label": lab}) + "\n" for t, lab in rows))
+    return path
+
+
+def aesop(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "services.cli", *args], capture_output=True,
+                          text=True, timeout=240, stdin=subprocess.DEVNULL)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    d = tmp_path_factory.mktemp("eval")
+    nominal = [(f"{o} {p}", "nominal") for o in OBJECTS for p in PLACES]
+    return {
+        "nominal": write(d / "nominal.jsonl", nominal[::2]),
+        "calibration": write(d / "cal.jsonl", nominal[1::4] + [(a, "anomaly") for a in
+                                                              ANOMALIES[:3]]),
+        "test": write(d / "test.jsonl", nominal[3::4] + [(a, "anomaly") for a in ANOMALIES[3:]]),
+        "bad": write(d / "bad.jsonl", [("x", "weird")]),
+    }
+
+
+@pytest.mark.parametrize("method", ["loo-quantile", "conformal", "tpr-target"])
+def test_eval_prints_exactly_one_json_object(files: dict[str, Path], method: str) -> None:
+    args = ["detector", "eval", "--nominal", str(files["nominal"]), "--test", str(files["test"]),
+            "--calibration", str(files["calibration"]), "--method", method, "--k", "2",
+            "--alpha", "0.75", "--json"]
+    r = aesop(*args)
+    assert r.returncode == 0, r.stderr
+    result = json.loads(r.stdout)  # the whole of stdout is one object
+    assert set(result) == KEYS
+    assert result["method"] == method and result["k"] == 2
+    assert result["n_nominal"] == 12 and result["n_calibration"] == 9 and result["n_test"] == 9
+    assert result["model"] == "sentence-transformers/all-MiniLM-L6-v2"
+    assert 0.0 <= result["auroc"] <= 1.0 and 0.0 <= result["accuracy"] <= 1.0
+    # overtly abnormal warehouse concepts are far from packages on a conveyor belt
+    assert result["auroc"] > 0.8
+
+
+def test_eval_mahalanobis_runs(files: dict[str, Path]) -> None:
+    r = aesop("detector", "eval", "--nominal", str(files["nominal"]), "--test",
+              str(files["test"]), "--score", "mahalanobis", "--json")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["threshold"] > 0  # a distance, not a negated similarity
+
+
+@pytest.mark.parametrize(("extra", "message"), [
+    (["--alpha", "1.5"], "--alpha"),
+    (["--k", "0"], "--k"),
+    (["--method", "conformal"], "--calibration"),
+    (["--model", "no-such-model-anywhere"], "no-such-model-anywhere"),
+])
+def test_eval_user_errors_exit_non_zero_with_a_message(files: dict[str, Path],
+                                                        extra: list[str], message: str) -> None:
+    r = aesop("detector", "eval", "--nominal", str(files["nominal"]), "--test",
+              str(files["test"]), *extra, "--json")
+    assert r.returncode == 2 and r.stdout == ""
+    assert message in r.stderr and "Traceback" not in r.stderr
+
+
+def test_eval_bad_files(files: dict[str, Path], tmp_path: Path) -> None:
+    r = aesop("detector", "eval", "--nominal", str(tmp_path / "missing.jsonl"), "--test",
+              str(files["test"]))
+    assert r.returncode == 2 and "missing.jsonl" in r.stderr
+    r = aesop("detector", "eval", "--nominal", str(files["bad"]), "--test", str(files["test"]))
+    assert r.returncode == 2 and "bad.jsonl:1" in r.stderr
