@@ -24,6 +24,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from .batching import MicroBatcher
 from .cache import Cache, CacheConfig, Scored, ScoreKind
 from .calibration import Calibration, CalibrationError, auroc, conformal, loo_quantile, tpr_target
 from .embedders import Embedder, EmbedderPool, ModelNotFound
@@ -123,7 +124,7 @@ class Entry:
     store: CacheStore
     writer: asyncio.Lock = field(default_factory=asyncio.Lock)
     rw: RWLock = field(default_factory=RWLock)
-    batchers: dict[int, Any] = field(default_factory=dict)
+    batchers: dict[int, MicroBatcher[str, Scored]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -427,9 +428,7 @@ class CacheService:
         c = entry.cache
         return ScoreBatch(results, c.threshold, c.stale, c.version, k, c.config.model)
 
-    def _batcher(self, entry: Entry, k: int) -> Any:
-        from .batching import MicroBatcher
-
+    def _batcher(self, entry: Entry, k: int) -> MicroBatcher[str, Scored]:
         if k not in entry.batchers:
             entry.batchers[k] = MicroBatcher(
                 lambda texts: self._embed_and_score(entry, k, texts),
