@@ -153,13 +153,13 @@ def print_table(result: dict[str, Any]) -> None:
     print(f"threshold tau = {cal['threshold']:.4f} ({cal['method']}, TPR target 0.9: "
           f"TPR {cal['tpr']:.2f}, FPR {cal['fpr']:.2f}, AUROC {cal['auroc']:.3f})\n")
     header = f"{'scenario':<22} {'expected':<9} {'verdict':<9} {'score':>8} {'ms':>6}  " \
-             f"{'next step':<25} ok"
+             f"{'next step':<42} ok"
     print(header)
     print("-" * len(header))
     for r in result["scenarios"]:
         print(f"{r['name']:<22} {_label(r['expected_anomaly']):<9} {_label(r['is_anomaly']):<9} "
               f"{r['score']:>8.4f} {r['latency_ms']:>6.1f}  "
-              f"{_next_step(r):<25} {'yes' if r['ok'] else 'NO'}")
+              f"{_next_step(r):<42} {'yes' if r['ok'] else 'NO'}")
     print(f"\n{'all scenarios as expected' if result['ok'] else 'SOME SCENARIOS FAILED'}")
 
 
