@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -17,6 +18,13 @@ from types import TracebackType
 import httpx
 
 
+def free_port() -> int:
+    """A TCP port free on loopback right now (for a child service or a Zenoh endpoint)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
 class ServiceFailed(RuntimeError):
     """The child exited or never became ready; the message carries its log tail."""
 
@@ -25,11 +33,12 @@ class ServiceProcess:
     """``python -m services.cli <args>`` with its output in ``log_path``."""
 
     def __init__(self, args: Sequence[str], *, port: int, log_path: Path,
-                 env: Mapping[str, str] | None = None, ready_timeout_s: float = 120.0) -> None:
+                 env: Mapping[str, str] | None = None, ready_timeout_s: float = 120.0,
+                 unset: Sequence[str] = ()) -> None:
         self.args = list(args)
         self.port = port
         self.log_path = log_path
-        self.env = {**os.environ, **(env or {})}
+        self.env = {k: v for k, v in {**os.environ, **(env or {})}.items() if k not in unset}
         self.ready_timeout_s = ready_timeout_s
         self.proc: subprocess.Popen[bytes] | None = None
 

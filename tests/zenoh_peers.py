@@ -6,7 +6,6 @@ Nothing is timed: every wait polls a condition under a generous deadline.
 from __future__ import annotations
 
 import asyncio
-import socket
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -16,15 +15,10 @@ import pytest
 from shared import topics
 from shared.bus import Bus
 from shared.messages import Event
+from shared.process import free_port
 from shared.settings import BusSettings
 
 DEADLINE_S = 10.0
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def wait_until(cond: Callable[[], bool], what: str, timeout: float = DEADLINE_S) -> None:

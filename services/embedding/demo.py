@@ -24,7 +24,7 @@ import httpx
 from shared import topics
 from shared.bus import Bus, Subscription
 from shared.messages import AnomalyVerdict, Detection, Observation
-from shared.process import ServiceProcess
+from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
 
 from .domains import QUADROTOR_SCENARIOS, quadrotor_calibration, quadrotor_nominal
@@ -45,8 +45,8 @@ def run_demo(model: str | None = None, table: bool = True, port: int | None = No
 
 async def _demo(model: str, port: int | None, zenoh_port: int | None) -> dict[str, Any]:
     token = secrets.token_urlsafe(24)
-    port = port or _free_port()
-    zenoh_port = zenoh_port or _free_port()
+    port = port or free_port()
+    zenoh_port = zenoh_port or free_port()
     endpoint = f"tcp/127.0.0.1:{zenoh_port}"
     with tempfile.TemporaryDirectory(prefix="aesop-demo-") as tmp:
         env = {"AESOP_ADMIN_TOKEN": token, "AESOP_DETECTOR_CACHE": CACHE,
@@ -178,14 +178,6 @@ def _check(response: httpx.Response) -> dict[str, Any]:
         raise RuntimeError(f"{response.request.method} {response.request.url.path} -> "
                            f"{response.status_code}: {response.text}")
     return response.json()
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def _say(message: str) -> None:

@@ -14,8 +14,7 @@ import httpx
 import numpy as np
 import pytest
 
-from shared.process import ServiceProcess
-from tests.zenoh_peers import free_port
+from shared.process import ServiceProcess, free_port
 
 pytestmark = [pytest.mark.timeout(180), pytest.mark.slow]
 

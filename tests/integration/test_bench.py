@@ -1,0 +1,95 @@
+"""``aesop bench detector`` as a user runs it: one JSON object on stdout, sane values.
+
+Only the cheap parts that need no model (``loo`` and ``search``) run here, in
+quick mode. Nothing is asserted about how fast anything is: timings belong in
+the benchmark's output, not in tests.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from services.embedding.bench import QUICK, _jsonable, _table
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def aesop(*args: str, timeout: float) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "services.cli", *args], cwd=ROOT,
+                          capture_output=True, text=True, timeout=timeout, check=False)
+
+
+def positive(value: Any) -> bool:
+    return isinstance(value, int | float) and math.isfinite(value) and value > 0
+
+
+def check_stats(stats: dict[str, Any], n: int) -> None:
+    assert stats["n"] == n
+    assert positive(stats["median_ms"]) and positive(stats["p99_ms"])
+    assert stats["p99_ms"] >= stats["median_ms"]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_quick_loo_and_search_print_one_json_object() -> None:
+    proc = aesop("bench", "detector", "--quick", "--json", "--only", "loo", "--only", "search",
+                 timeout=840)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.endswith("\n") and proc.stdout.count("\n") == 1, proc.stdout[:500]
+    result = json.loads(proc.stdout)  # the whole of stdout is one object (no NaN allowed)
+
+    assert set(result) == {"meta", "search", "loo"}
+    assert result["meta"]["quick"] is True and result["meta"]["parts"] == ["search", "loo"]
+
+    search = result["search"]
+    assert "error" not in search, search
+    assert [row["n"] for row in search["sizes"]] == list(QUICK.search_sizes)
+    for row in search["sizes"]:
+        assert 0.0 <= row["recall_at_5"] <= 1.0
+        for key in ("exact", "exact_1_thread"):
+            check_stats(row[key], search["queries"])
+        for key in ("hnsw", "hnsw_1_thread"):
+            check_stats(row[key], search["queries"])
+        assert positive(row["hnsw_build_s"]) and positive(row["flat_build_s"])
+        assert positive(row["speedup_exact_over_hnsw"])
+        assert row["hnsw_m"] in (8, 16, 32)
+
+    loo = result["loo"]
+    assert "error" not in loo, loo
+    assert (loo["n"], loo["dim"], loo["k"]) == (QUICK.loo_size, 384, 5)
+    assert positive(loo["loo_scores_s"]) and positive(loo["faiss_search_s"])
+    assert positive(loo["ratio_faiss_over_loo"])
+    assert loo["max_abs_diff"] < 1e-4  # Cache.loo_scores agrees with FAISS's exact search
+    assert loo["verdict"] in ("pass", "FAIL")
+
+
+def test_unknown_part_is_a_user_error() -> None:
+    proc = aesop("bench", "detector", "--json", "--only", "nope", timeout=120)
+    assert proc.returncode == 2
+    assert proc.stdout == ""
+    assert "unknown part" in proc.stderr and "nope" in proc.stderr
+
+
+def test_results_become_strict_json() -> None:
+    import numpy as np
+
+    raw = {"a": np.float32(1.5), "b": float("nan"), "c": (np.int64(3), np.inf), 4: [np.True_]}
+    clean = _jsonable(raw)
+    assert clean == {"a": 1.5, "b": None, "c": [3, None], "4": [True]}
+    json.dumps(clean, allow_nan=False)
+
+
+def test_table_aligns_columns() -> None:
+    text = _table("title", [{"name": "x", "ms": 1.23456, "none": None},
+                            {"name": "longer", "ms": 1234.5, "none": 2}])
+    lines = text.splitlines()
+    assert lines[0] == "title"
+    assert len({len(line) for line in lines[1:]}) == 1
+    assert "1.235" in text and "1234" in text and " -" in text
