@@ -18,6 +18,7 @@ $(STAMP): pyproject.toml
 	touch $@
 
 test: $(STAMP)
+	$(VENV)/bin/ruff check shared services tests
 	$(PY) -m pytest -q
 
 demo: $(STAMP)

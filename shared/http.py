@@ -29,6 +29,8 @@ from pydantic import SecretStr
 
 from .settings import ServiceSettings
 
+Next = Callable[[Request], Awaitable[Response]]
+
 
 class ApiError(Exception):
     """An error to answer as JSON: ``status``, machine ``code``, human ``message``, ``field``."""
@@ -111,14 +113,15 @@ class HttpMetrics:
 
     def install(self, app: FastAPI) -> None:
         @app.middleware("http")
-        async def measure(request: Request, call_next: Callable[..., Awaitable[Response]]) -> Response:
+        async def measure(request: Request, call_next: Next) -> Response:
             start = time.perf_counter()
             response = await call_next(request)
             route = request.scope.get("route")
             path = getattr(route, "path", "unmatched")
             self.latency.labels(self.service, request.method, path).observe(
                 time.perf_counter() - start)
-            self.requests.labels(self.service, request.method, path, str(response.status_code)).inc()
+            status = str(response.status_code)
+            self.requests.labels(self.service, request.method, path, status).inc()
             return response
 
 
@@ -156,11 +159,12 @@ def body_limit(app: FastAPI, max_bytes: int) -> None:
     """Refuse request bodies larger than ``max_bytes`` (413, field "body")."""
 
     @app.middleware("http")
-    async def limit(request: Request, call_next: Callable[..., Awaitable[Response]]) -> Response:
+    async def limit(request: Request, call_next: Next) -> Response:
         length = request.headers.get("content-length")
         if length is not None and length.isdigit() and int(length) > max_bytes:
-            return error_response(413, "too_large",
-                                  f"request body is {length} bytes; the limit is {max_bytes}", "body")
+            return error_response(
+                413, "too_large", f"request body is {length} bytes; the limit is {max_bytes}",
+                "body")
         return await call_next(request)
 
 

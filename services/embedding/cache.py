@@ -175,7 +175,8 @@ class Cache:
         for i, given in enumerate(ids):
             ident = given if given is not None else uuid.uuid4().hex
             if ident in seen:
-                raise InvalidInput(f"duplicate id {ident!r} in request", field=f"{field_prefix}[{i}].id")
+                raise InvalidInput(f"duplicate id {ident!r} in request",
+                                   field=f"{field_prefix}[{i}].id")
             if ident in self.labels_by_id:
                 raise Conflict(f"id {ident!r} already exists in cache {self.name!r}",
                                field=f"{field_prefix}[{i}].id")

@@ -23,7 +23,8 @@ class VectorIndex:
     """Labels -> unit vectors of dimension ``dim``, searched by inner product."""
 
     def __init__(
-        self, dim: int, kind: IndexKind = "flat", *, hnsw_m: int = 32, ef_search: int = 64
+        self, dim: int, kind: IndexKind = "flat", *, hnsw_m: int = 32, ef_search: int = 64,
+        ef_construction: int = 40,
     ) -> None:
         if dim < 1:
             raise ValueError("dim must be positive")
@@ -31,6 +32,7 @@ class VectorIndex:
         self.kind: IndexKind = kind
         self.hnsw_m = hnsw_m
         self.ef_search = ef_search
+        self.ef_construction = ef_construction
         self._flat = faiss.IndexFlatIP(dim)
         self._index = faiss.IndexIDMap2(self._flat)
         self._hnsw: faiss.IndexHNSWFlat | None = None
@@ -40,8 +42,14 @@ class VectorIndex:
         return int(self._index.ntotal)
 
     def labels(self) -> np.ndarray:
-        """(n,) int64 labels in storage order."""
-        return faiss.vector_to_array(self._index.id_map).astype(np.int64, copy=False)
+        """(n,) int64 labels in storage order: a read-only view, valid until the next
+        add or remove (copy it to keep it)."""
+        n = len(self)
+        if n == 0:
+            return np.empty(0, dtype=np.int64)
+        view = faiss.rev_swig_ptr(self._index.id_map.data(), n)
+        view.flags.writeable = False
+        return view
 
     def vectors(self) -> np.ndarray:
         """(n, dim) float32 view of the stored vectors, in storage order (do not mutate)."""
@@ -106,6 +114,7 @@ class VectorIndex:
         if self._hnsw is None or self._hnsw_dirty:
             graph = faiss.IndexHNSWFlat(self.dim, self.hnsw_m, faiss.METRIC_INNER_PRODUCT)
             graph.hnsw.efSearch = self.ef_search
+            graph.hnsw.efConstruction = self.ef_construction
             if len(self):
                 graph.add(np.ascontiguousarray(self.vectors()))
             self._hnsw, self._hnsw_dirty = graph, False

@@ -26,5 +26,6 @@ class EmbeddingSettings(ServiceSettings):
     microbatch_window_ms: float = Field(default=2.0, ge=0.0)
     microbatch_max: int = Field(default=64, ge=1)
     snapshot_wal_bytes: int = Field(default=64 * 1024 * 1024, ge=0)
+    faiss_threads: int = Field(default=1, ge=1)  # OpenMP threads; 1 is fastest per query
     zenoh_worker: bool = True
     fsync: bool = True
