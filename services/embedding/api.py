@@ -29,6 +29,7 @@ from .errors import Conflict, DetectorError, InvalidInput, NotCalibrated, NotFou
 from .scoring import ScoringError
 from .service import CacheService, Item, Job, Labelled, ScoreBatch
 from .settings import EmbeddingSettings
+from .storage import StorageCorrupt
 
 log = logging.getLogger(__name__)
 
@@ -135,7 +136,12 @@ def create_app(
         svc = service or CacheService(settings, on_batch=lambda n: metrics.batch_size.observe(n))
         app.state.service = svc
         metrics.service = svc
-        await svc.start()
+        try:
+            await svc.start()
+        except StorageCorrupt as exc:
+            log.error("refusing to start: %s. The file was left untouched: restore it from a "
+                      "backup or move its cache directory aside.", exc)
+            raise
         worker = worker_factory(svc, metrics) if worker_factory else None
         task = asyncio.create_task(worker.run()) if worker else None
         state["started"] = True

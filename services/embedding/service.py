@@ -27,7 +27,15 @@ import numpy as np
 
 from .batching import MicroBatcher
 from .cache import Cache, CacheConfig, Scored, ScoreKind
-from .calibration import Calibration, CalibrationError, auroc, conformal, loo_quantile, tpr_target
+from .calibration import (
+    Calibration,
+    CalibrationError,
+    auroc,
+    conformal,
+    loo_quantile,
+    roc_curve,
+    tpr_target,
+)
 from .embedders import Embedder, EmbedderPool, ModelNotFound
 from .errors import Conflict, InvalidInput, NotFound
 from .index import IndexKind
@@ -152,6 +160,14 @@ class ScoreBatch:
     version: int
     k: int
     model: str | None
+
+
+def roc_points(scores: np.ndarray, labels: np.ndarray, most: int = 201) -> dict[str, list[Any]]:
+    """The ROC curve as JSON: fpr, tpr and the thresholds (None for the +-inf ends)."""
+    fpr, tpr, thresholds = roc_curve(scores, labels)
+    keep = np.unique(np.linspace(0, len(fpr) - 1, min(most, len(fpr))).round().astype(int))
+    return {"fpr": fpr[keep].tolist(), "tpr": tpr[keep].tolist(),
+            "thresholds": [float(t) if np.isfinite(t) else None for t in thresholds[keep]]}
 
 
 class CacheService:
@@ -351,19 +367,26 @@ class CacheService:
         tpr: float | None = None,
         calibration: Sequence[Labelled] = (),
     ) -> dict[str, Any]:
+        """Compute tau and store it with the cache. The answer adds, for a labelled
+        calibration set with both classes, its ROC curve (at most 201 points)."""
         entry = self.entry(name)
         async with entry.writer:
-            cal = await self._calibration(entry, method, alpha, tpr, calibration)
+            scores = labels = None
+            if calibration:
+                vectors = await self._embed_texts(entry.cache.config,
+                                                  [x.text for x in calibration])
+                scores = np.array([r.score for r in await self._score_vectors(entry, vectors)])
+                labels = np.array([x.is_anomaly for x in calibration], dtype=bool)
+            cal = await self._calibration(entry, method, alpha, tpr, scores, labels)
             await self._commit(entry, entry.cache.plan_calibration(cal))
-            return {**cal.to_dict(), "cache": name, "version": entry.cache.version}
+            answer = {**cal.to_dict(), "cache": name, "version": entry.cache.version}
+        if scores is not None and labels is not None and labels.any() and (~labels).any():
+            answer["roc"] = roc_points(scores, labels)
+        return answer
 
     async def _calibration(self, entry: Entry, method: Method, alpha: float | None,
-                           tpr: float | None, labelled: Sequence[Labelled]) -> Calibration:
-        scores = labels = None
-        if labelled:
-            vectors = await self._embed_texts(entry.cache.config, [x.text for x in labelled])
-            scores = np.array([r.score for r in await self._score_vectors(entry, vectors)])
-            labels = np.array([x.is_anomaly for x in labelled], dtype=bool)
+                           tpr: float | None, scores: np.ndarray | None,
+                           labels: np.ndarray | None) -> Calibration:
         try:
             if method == "loo-quantile":
                 loo = await asyncio.to_thread(self._loo, entry)

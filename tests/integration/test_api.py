@@ -253,6 +253,9 @@ def test_tpr_target_and_conformal(client: TestClient) -> None:
     assert r.status_code == 200, r.text
     cal = r.json()
     assert cal["method"] == "tpr-target" and cal["tpr"] >= 0.75 and 0 <= cal["auroc"] <= 1
+    roc = cal["roc"]
+    assert roc["fpr"][0] == roc["tpr"][0] == 0.0 and roc["fpr"][-1] == roc["tpr"][-1] == 1.0
+    assert roc["thresholds"][0] is None and len(roc["fpr"]) == len(roc["thresholds"])
     r = client.post("/v1/caches/wm/calibrate", headers=AUTH,
                     json={"method": "conformal", "alpha": 0.9, "calibration": labelled})
     assert r.status_code == 200, r.text

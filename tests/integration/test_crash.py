@@ -14,7 +14,7 @@ import httpx
 import numpy as np
 import pytest
 
-from shared.process import ServiceProcess, free_port
+from shared.process import ServiceFailed, ServiceProcess, free_port
 
 pytestmark = [pytest.mark.timeout(180), pytest.mark.slow]
 
@@ -87,3 +87,22 @@ def test_acknowledged_experiences_survive_sigkill(tmp_path: Path) -> None:
         r = client.post("/v1/caches/crash/experiences",
                         json={"vectors": [vector(999_999_999)], "ids": ["after"]})
         assert r.status_code == 200 and r.json()["size"] == desc["size"] + 1
+
+
+def test_a_corrupt_snapshot_stops_the_service_naming_the_file(tmp_path: Path) -> None:
+    port = free_port()
+    with server(tmp_path, port):
+        r = httpx.put(f"http://127.0.0.1:{port}/v1/caches/c", json={"model": None, "dim": 3},
+                      headers=AUTH)
+        assert r.status_code == 201
+    snapshot = tmp_path / "caches" / "c" / "snapshot.bin"
+    data = bytearray(snapshot.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    snapshot.write_bytes(bytes(data))
+    proc = server(tmp_path, free_port())
+    with pytest.raises(ServiceFailed) as failed:
+        proc.start()
+    assert str(snapshot) in str(failed.value)
+    assert f"refusing to start: {snapshot}" in proc.log_path.read_text()
+    assert proc.proc is not None and proc.proc.returncode != 0
+    assert snapshot.read_bytes() == bytes(data)  # never overwritten
