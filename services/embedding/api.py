@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from typing import Annotated, Any, Literal
@@ -144,6 +145,8 @@ def create_app(
             raise
         worker = worker_factory(svc, metrics) if worker_factory else None
         task = asyncio.create_task(worker.run()) if worker else None
+        if task is not None:
+            task.add_done_callback(_report_worker_exit)
         state["started"] = True
         try:
             yield
@@ -249,9 +252,13 @@ def create_app(
     return app
 
 
-async def _run_job(job: Job, work: Any) -> dict[str, Any]:
-    import time
+def _report_worker_exit(task: asyncio.Task[None]) -> None:
+    if not task.cancelled() and task.exception() is not None:
+        log.error("the Zenoh worker stopped: no more verdicts will be published",
+                  exc_info=task.exception())
 
+
+async def _run_job(job: Job, work: Any) -> dict[str, Any]:
     try:
         result = await work
     except DetectorError as exc:
