@@ -2,7 +2,8 @@
 
 The batch function runs in a worker thread (embedding and FAISS release the
 GIL); at most one batch per batcher is in flight, and requests that arrive
-meanwhile form the next batch, waiting at most ``window_s`` for company.
+meanwhile form the next batch. A request that finds the batcher idle waits
+``window_s`` for company first (0: it goes at once).
 """
 
 from __future__ import annotations

@@ -600,7 +600,7 @@ def _search_at(n: int, m: int, projected: float | None, clusters: _Clusters,
     log.info("search: %d vectors, HNSW M=%d%s", n, m,
              f" (projected build {projected:.0f} s)" if projected else "")
     x = clusters.sample(n, np.random.default_rng([seed, 3, n]))
-    index = VectorIndex(DIM, "hnsw", hnsw_m=m)
+    index = VectorIndex(DIM, "hnsw", hnsw_m=m, query_threads=None)  # FAISS's default first
     t0 = time.perf_counter()
     index.add(x, np.arange(n, dtype=np.int64))  # the exact index: IndexFlatIP storage
     flat_build = time.perf_counter() - t0
@@ -615,9 +615,9 @@ def _search_at(n: int, m: int, projected: float | None, clusters: _Clusters,
     n_exact = min(sizes.exact_queries if n >= 500_000 else len(queries), len(queries))
     exact = _stats(_time_each(lambda i: index.search_exact(queries[i:i + 1], K), n_exact))
     approx = _stats(_time_each(lambda i: index.search(queries[i:i + 1], K), len(queries)))
-    with _faiss_threads(1):  # OpenMP over 2 busy cores can cost more than it gains
-        exact_1 = _stats(_time_each(lambda i: index.search_exact(queries[i:i + 1], K), n_exact))
-        approx_1 = _stats(_time_each(lambda i: index.search(queries[i:i + 1], K), len(queries)))
+    index.query_threads = 1  # what the service uses: one OpenMP thread per small search
+    exact_1 = _stats(_time_each(lambda i: index.search_exact(queries[i:i + 1], K), n_exact))
+    approx_1 = _stats(_time_each(lambda i: index.search(queries[i:i + 1], K), len(queries)))
     labels = _stats(_time_each(lambda i: index.labels(), 20))
     _, truth = index.search_exact(queries, K)
     _, found = index.search(queries, K)
@@ -633,19 +633,6 @@ def _search_at(n: int, m: int, projected: float | None, clusters: _Clusters,
         "hnsw_ef_search": index.ef_search, "hnsw_projected_build_s": projected,
         "labels_copy_ms": labels["median_ms"],  # paid by every HNSW search (index.labels())
     }
-
-
-@contextlib.contextmanager
-def _faiss_threads(n: int) -> Iterator[None]:
-    """FAISS's OpenMP thread count set to ``n`` for the block, then restored."""
-    import faiss
-
-    before = faiss.omp_get_max_threads()
-    faiss.omp_set_num_threads(n)
-    try:
-        yield
-    finally:
-        faiss.omp_set_num_threads(before)
 
 
 # -- 4. leave-one-out ------------------------------------------------------------------

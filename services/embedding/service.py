@@ -22,7 +22,6 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
-import faiss
 import numpy as np
 
 from .batching import MicroBatcher
@@ -191,11 +190,7 @@ class CacheService:
     # -- lifecycle --------------------------------------------------------------
 
     async def start(self) -> None:
-        """Open every cache under the data directory (raises StorageCorrupt naming a file).
-
-        Also sets FAISS's OpenMP threads (process-wide): single queries are fastest on
-        one thread, and the embedding model keeps the other cores busy."""
-        faiss.omp_set_num_threads(self.settings.faiss_threads)
+        """Open every cache under the data directory (raises StorageCorrupt naming a file)."""
         self.root.mkdir(parents=True, exist_ok=True)
         for directory in sorted(p for p in self.root.iterdir() if p.is_dir()):
             entry = await asyncio.to_thread(self._open, directory)

@@ -23,9 +23,10 @@ class EmbeddingSettings(ServiceSettings):
     max_body_bytes: int = Field(default=64 * 1024 * 1024, ge=1024)
     embed_batch_size: int = Field(default=64, ge=1)
     microbatch: bool = True  # coalesce concurrent score requests into one embedding call
-    microbatch_window_ms: float = Field(default=2.0, ge=0.0)
+    # how long a lone request waits for company; 0: none, yet requests that arrive while
+    # a batch is being embedded still form the next batch
+    microbatch_window_ms: float = Field(default=0.0, ge=0.0)
     microbatch_max: int = Field(default=64, ge=1)
     snapshot_wal_bytes: int = Field(default=64 * 1024 * 1024, ge=0)
-    faiss_threads: int = Field(default=1, ge=1)  # OpenMP threads; 1 is fastest per query
     zenoh_worker: bool = True
     fsync: bool = True
