@@ -1,7 +1,7 @@
 """Micro-batching: concurrent requests coalesced into one call of a batch function.
 
-The batch function runs in a worker thread (embedding and FAISS release the
-GIL); at most one batch per batcher is in flight, and requests that arrive
+The batch function runs in a worker thread of ``executor`` (asyncio's default
+if none); at most one batch per batcher is in flight, and requests that arrive
 meanwhile form the next batch. A request that finds the batcher idle waits
 ``window_s`` for company first (0: it goes at once).
 """
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Callable, Sequence
+from concurrent.futures import Executor
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
@@ -24,8 +25,10 @@ class MicroBatcher(Generic[T, R]):
         max_items: int = 64,
         window_s: float = 0.002,
         on_batch: Callable[[int], None] | None = None,
+        executor: Executor | None = None,
     ) -> None:
         self._fn = fn
+        self._executor = executor
         self._max_items = max_items
         self._window_s = window_s
         self._on_batch = on_batch
@@ -48,7 +51,8 @@ class MicroBatcher(Generic[T, R]):
             if self._on_batch is not None:
                 self._on_batch(len(items))
             try:
-                results = await asyncio.to_thread(self._fn, items)
+                results = await asyncio.get_running_loop().run_in_executor(
+                    self._executor, self._fn, items)
             except Exception as exc:  # every waiter of this batch gets the error
                 for _, fut in batch:
                     if not fut.done():

@@ -473,20 +473,35 @@ def plot_quality(domains: Mapping[str, Mapping[str, Any]], path: Path) -> None:
 
 
 def bench_latency(bench: _Bench) -> dict[str, Any]:
-    """One VTOL observation prompt: embed + search + threshold via ``CacheService.score_texts``."""
-    return asyncio.run(_latency(bench))
+    """One observation end to end, measured in a fresh process (``--latency-probe``).
+
+    The probe's main thread never runs torch or FAISS, as in ``aesop serve``: libgomp
+    keeps an OpenMP team per thread that has used it, and a second live team (this
+    process's, after the quality part) slows the service's compute thread about 2x."""
+    sizes = bench.sizes
+    return _probe(["--latency-probe", "--n", str(sizes.latency_n), "--size",
+                   str(sizes.latency_cache), "--seed", str(bench.seed)])
 
 
-async def _latency(bench: _Bench) -> dict[str, Any]:
+def latency_probe(n: int, size: int, seed: int) -> dict[str, Any]:
+    return asyncio.run(_latency(n, size, seed))
+
+
+async def _latency(n: int, size: int, seed: int) -> dict[str, Any]:
     """The observation as a robot publishes it (the brief form) is the measure; the
     paper's full prompt is timed too, to show what its fixed preamble costs."""
-    sizes = bench.sizes
-    embedder = bench.embedder
-    ds = bench.dataset("vtol")
-    samples = (ds.anomalies + ds.nominal)[: sizes.latency_n]
+    from concurrent.futures import ThreadPoolExecutor
+
+    from .domains import generate
+    from .embedders import load_embedder
+    from .service import on_fresh_thread
+    from .settings import DEFAULT_MODEL
+
+    embedder = await on_fresh_thread(load_embedder, DEFAULT_MODEL)
+    ds = generate("vtol", seed=seed, n_nominal=max(n, 200), n_anomaly=n)
+    samples = (ds.anomalies + ds.nominal)[:n]
     texts = {"brief": [s.brief for s in samples], "prompt": [s.text for s in samples]}
-    cache_x = _Clusters(DIM, bench.seed).sample(sizes.latency_cache,
-                                                np.random.default_rng([bench.seed, 1]))
+    cache_x = _Clusters(DIM, seed).sample(size, np.random.default_rng([seed, 1]))
     end_to_end = {}
     with tempfile.TemporaryDirectory(prefix="aesop-bench-") as tmp:
         for microbatch in (True, False):  # the second service reopens the first one's cache
@@ -503,15 +518,21 @@ async def _latency(bench: _Bench) -> dict[str, Any]:
                         [await _score_one(service, batch[i]) for i in range(len(batch))])
             finally:
                 await service.close()
-    vectors = embedder.embed(texts["brief"])
     entry_cache = _cache_of(cache_x)
-    embed = {form: _stats(_time_each(lambda i, f=form: embedder.embed([texts[f][i]]),
-                                     len(samples))) for form in texts}
-    search = _stats(_time_each(lambda i: entry_cache.score(vectors[i:i + 1], K), len(samples)))
+    def timings() -> tuple[dict[str, dict[str, float]], dict[str, float]]:
+        vectors = embedder.embed(texts["brief"])
+        embed = {form: _stats(_time_each(lambda i, f=form: embedder.embed([texts[f][i]]),
+                                         len(samples))) for form in texts}
+        search = _stats(_time_each(lambda i: entry_cache.score(vectors[i:i + 1], K),
+                                   len(samples)))
+        return embed, search
+
+    with ThreadPoolExecutor(1) as compute:  # one OpenMP thread, as in the service
+        embed, search = compute.submit(timings).result()
     e2e = end_to_end["brief", True]
     chars = {form: np.mean([len(t) for t in batch]) for form, batch in texts.items()}
     return {
-        "cache_size": sizes.latency_cache, "dim": DIM, "n": len(samples),
+        "cache_size": size, "dim": DIM, "n": len(samples),
         "text": f"VTOL observation, brief form (mean {chars['brief']:.0f} chars; "
                 f"the full prompt has {chars['prompt']:.0f})",
         "end_to_end": e2e, "end_to_end_no_microbatch": end_to_end["brief", False],
@@ -702,16 +723,20 @@ async def _build(bench: _Bench) -> dict[str, Any]:
 # -- 6. memory -------------------------------------------------------------------------
 
 
-def bench_memory(sizes: Sizes) -> dict[str, Any]:
-    """Peak RSS of a fresh process: model + ``memory_cache`` vectors + a few scores."""
-    cmd = [sys.executable, "-m", "services.embedding.bench", "--memory-probe",
-           "--size", str(sizes.memory_cache)]
+def _probe(args: list[str]) -> dict[str, Any]:
+    """Run ``python -m services.embedding.bench <args>`` and read its one JSON line."""
+    cmd = [sys.executable, "-m", "services.embedding.bench", *args]
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1"}
-    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600,
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900,
                           check=False)
     if proc.returncode != 0:
-        raise RuntimeError(f"memory probe exited {proc.returncode}: {proc.stderr[-2000:]}")
-    probe = json.loads(proc.stdout.strip().splitlines()[-1])
+        raise RuntimeError(f"{args[0]} exited {proc.returncode}: {proc.stderr[-2000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def bench_memory(sizes: Sizes) -> dict[str, Any]:
+    """Peak RSS of a fresh process: model + ``memory_cache`` vectors + a few scores."""
+    probe = _probe(["--memory-probe", "--size", str(sizes.memory_cache)])
     peak = probe["peak_rss_mb"] or probe["ru_maxrss_mb"]
     return {**probe, "target_mb": MEMORY_TARGET_MB, "verdict": _verdict(peak, MEMORY_TARGET_MB)}
 
@@ -1017,13 +1042,19 @@ def _render_rest(r: Mapping[str, Any]) -> str:
 
 def _main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="helpers of `aesop bench detector`")
-    parser.add_argument("--memory-probe", action="store_true", required=True)
+    probe = parser.add_mutually_exclusive_group(required=True)
+    probe.add_argument("--memory-probe", action="store_true")
+    probe.add_argument("--latency-probe", action="store_true")
     parser.add_argument("--size", type=int, default=100_000)
+    parser.add_argument("--n", type=int, default=300)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr)
     with contextlib.redirect_stdout(sys.stderr):
-        result = memory_probe(args.size, args.seed)
+        if args.memory_probe:
+            result = memory_probe(args.size, args.seed)
+        else:
+            result = latency_probe(args.n, args.size, args.seed)
     print(json.dumps(_jsonable(result), allow_nan=False))
     return 0
 

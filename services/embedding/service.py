@@ -5,6 +5,14 @@ append (fsync) happens before the in-memory apply; readers (scoring,
 leave-one-out) run in worker threads under the shared side of a
 readers-writer lock, so they see a cache either before or after a write.
 Embedding happens outside every lock.
+
+Model inference and query searches all run on ONE dedicated compute thread.
+torch and FAISS share libgomp, which keeps a team of OpenMP threads per calling
+thread for as long as that thread lives; with more than one such thread alive,
+embedding one observation took twice as long here. So the rare heavy admin work
+that also uses OpenMP (leave-one-out, loading a model) runs on a short-lived
+thread of its own, which takes its team with it when it ends, and never on
+asyncio's long-lived executor threads.
 """
 
 from __future__ import annotations
@@ -17,10 +25,12 @@ import time
 import uuid
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 
@@ -45,6 +55,7 @@ log = logging.getLogger(__name__)
 
 CACHE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")
 Method = Literal["loo-quantile", "conformal", "tpr-target"]
+T = TypeVar("T")
 
 
 class RWLock:
@@ -161,6 +172,31 @@ class ScoreBatch:
     model: str | None
 
 
+async def on_fresh_thread(fn: Callable[..., T], *args: Any) -> T:
+    """Run ``fn`` on a new thread that ends with it (see the module docstring)."""
+    loop = asyncio.get_running_loop()
+    future: asyncio.Future[T] = loop.create_future()
+
+    def settle(result: Any, error: BaseException | None) -> None:
+        if future.done():
+            return
+        if error is not None:
+            future.set_exception(error)
+        else:
+            future.set_result(result)
+
+    def run() -> None:
+        try:
+            result = fn(*args)
+        except BaseException as exc:  # handed to the awaiting coroutine
+            loop.call_soon_threadsafe(settle, None, exc)
+        else:
+            loop.call_soon_threadsafe(settle, result, None)
+
+    threading.Thread(target=run, name="aesop-oneoff", daemon=True).start()
+    return await future
+
+
 def roc_points(scores: np.ndarray, labels: np.ndarray, most: int = 201) -> dict[str, list[Any]]:
     """The ROC curve as JSON: fpr, tpr and the thresholds (None for the +-inf ends)."""
     fpr, tpr, thresholds = roc_curve(scores, labels)
@@ -185,6 +221,7 @@ class CacheService:
         self._entries: dict[str, Entry] = {}
         self._create_lock = asyncio.Lock()
         self._on_batch = on_batch
+        self._compute = ThreadPoolExecutor(max_workers=1, thread_name_prefix="aesop-compute")
         self.root = Path(settings.data_dir) / "caches"
 
     # -- lifecycle --------------------------------------------------------------
@@ -220,6 +257,7 @@ class CacheService:
                 await asyncio.to_thread(self._snapshot, entry)
                 entry.store.close()
         self._entries.clear()
+        self._compute.shutdown(wait=True)
         self.embedders.close()
 
     def _snapshot(self, entry: Entry) -> None:
@@ -341,7 +379,7 @@ class CacheService:
                                    "vectors instead of texts", field="items")
             embedder = await self._embedder(config.model)
             progress = job.progress if job is not None else None
-            embedded = await asyncio.to_thread(
+            embedded = await self._on_compute(
                 embedder.embed, [t for _, t in texts], batch_size=self.settings.embed_batch_size,
                 progress=progress, show_progress_bar=len(texts) >= 1000)
             vectors[[i for i, _ in texts]] = embedded
@@ -384,7 +422,7 @@ class CacheService:
                            labels: np.ndarray | None) -> Calibration:
         try:
             if method == "loo-quantile":
-                loo = await asyncio.to_thread(self._loo, entry)
+                loo = await on_fresh_thread(self._loo, entry)
                 cal = loo_quantile(loo, 0.95 if alpha is None else alpha)
                 if labels is not None and labels.any() and (~labels).any():
                     cal = replace(cal, auroc=auroc(scores, labels))
@@ -431,7 +469,7 @@ class CacheService:
         if self.settings.microbatch:
             results = await self._batcher(entry, k).submit(list(texts))
         else:
-            results = await asyncio.to_thread(self._embed_and_score, entry, k, list(texts))
+            results = await self._on_compute(self._embed_and_score, entry, k, list(texts))
         return self._batch(entry, results, k)
 
     async def score_vectors(self, name: str, vectors: np.ndarray, k: int | None = None
@@ -457,7 +495,7 @@ class CacheService:
                 lambda texts: self._embed_and_score(entry, k, texts),
                 max_items=self.settings.microbatch_max,
                 window_s=self.settings.microbatch_window_ms / 1000,
-                on_batch=self._on_batch)
+                on_batch=self._on_batch, executor=self._compute)
         return entry.batchers[k]
 
     def _embed_and_score(self, entry: Entry, k: int, texts: list[str]) -> list[Scored]:
@@ -474,18 +512,23 @@ class CacheService:
             with entry.rw.read():
                 return entry.cache.score(vectors, k, self.settings.verdict_neighbors)
 
-        return await asyncio.to_thread(run)
+        return await self._on_compute(run)
 
     async def _embed_texts(self, config: CacheConfig, texts: Sequence[str]) -> np.ndarray:
         if config.model is None:
             raise InvalidInput(f"cache {config.name!r} has no embedding model",
                                field="calibration")
         embedder = await self._embedder(config.model)
-        return await asyncio.to_thread(embedder.embed, list(texts),
+        return await self._on_compute(embedder.embed, list(texts),
                                        batch_size=self.settings.embed_batch_size)
+
+    async def _on_compute(self, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
+        """Run ``fn`` on the compute thread (see the module docstring)."""
+        return await asyncio.get_running_loop().run_in_executor(
+            self._compute, partial(fn, *args, **kwargs))
 
     async def _embedder(self, model: str) -> Embedder:
         try:
-            return await asyncio.to_thread(self.embedders.get, model)
+            return await on_fresh_thread(self.embedders.get, model)
         except ModelNotFound as exc:
             raise InvalidInput(str(exc), field="model") from None
