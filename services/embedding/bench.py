@@ -204,12 +204,13 @@ class _Bench:
                                             n_anomaly=n_anomaly)
         return self._datasets[name]
 
-    def nominal_vectors(self, name: str, n: int) -> np.ndarray:
+    def nominal_vectors(self, name: str, n: int, form: str = "prompt") -> np.ndarray:
         """The first ``n`` nominal embeddings: from ``vectors`` if already embedded, else
         only those ``n`` texts are embedded."""
-        if (name, "prompt") in self._vectors:
-            return self._vectors[name, "prompt"][0][:n]
-        texts = [s.text for s in self.dataset(name).nominal[:n]]
+        if (name, form) in self._vectors:
+            return self._vectors[name, form][0][:n]
+        texts = [s.text if form == "prompt" else s.brief
+                 for s in self.dataset(name).nominal[:n]]
         log.info("embedding %d %s texts", len(texts), name)
         return self.embedder.embed(texts, batch_size=64, show_progress_bar=True)
 
@@ -803,8 +804,8 @@ def bench_rest(bench: _Bench) -> dict[str, Any]:
     """Concurrent single-text score requests against real servers, micro-batching on vs off."""
     sizes = bench.sizes
     ds = bench.dataset("vtol")
-    cache_x = bench.nominal_vectors("vtol", sizes.rest_cache)
-    texts = [s.text for s in ds.nominal[sizes.rest_cache:] + ds.anomalies]
+    cache_x = bench.nominal_vectors("vtol", sizes.rest_cache, "brief")
+    texts = [s.brief for s in ds.nominal[sizes.rest_cache:] + ds.anomalies]
     runs = {}
     for microbatch in (True, False):  # one after the other, never concurrently
         label = "microbatch" if microbatch else "no_microbatch"
