@@ -25,10 +25,11 @@ from shared.http import (
     ops_router,
 )
 
+from .cache import Labelled
 from .embedders import EmbedderError
 from .errors import Conflict, DetectorError, InvalidInput, NotCalibrated, NotFound
 from .scoring import ScoringError
-from .service import CacheService, Item, Job, Labelled, ScoreBatch
+from .service import CacheService, Item, Job, ScoreBatch
 from .settings import EmbeddingSettings
 from .storage import StorageCorrupt
 

@@ -48,6 +48,14 @@ class Experience:
 
 
 @dataclass(frozen=True)
+class Labelled:
+    """A labelled text of a calibration or test set."""
+
+    text: str
+    is_anomaly: bool
+
+
+@dataclass(frozen=True)
 class Scored:
     """s(e_t; D_e) for one query, with its nearest nominal experiences."""
 

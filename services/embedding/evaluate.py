@@ -15,18 +15,12 @@ from typing import Any, Literal
 
 import numpy as np
 
-from .cache import Cache, CacheConfig, ScoreKind
+from .cache import Cache, CacheConfig, Labelled, ScoreKind
 from .calibration import Calibration, auroc, binary_metrics, conformal, loo_quantile, tpr_target
 from .embedders import Embedder
 from .errors import InvalidInput
 
 Method = Literal["loo-quantile", "conformal", "tpr-target"]
-
-
-@dataclass(frozen=True)
-class LabelledText:
-    text: str
-    is_anomaly: bool
 
 
 @dataclass(frozen=True)
@@ -38,7 +32,7 @@ class EvalConfig:
     tpr: float = 0.9  # the target of "tpr-target" (the hardware appendix uses 0.9)
 
 
-def read_jsonl(path: Path) -> list[LabelledText]:
+def read_jsonl(path: Path) -> list[Labelled]:
     """Lines ``{"text": ..., "label": "nominal"|"anomaly"}``; errors name file and line."""
     out = []
     with open(path, encoding="utf-8") as fh:
@@ -54,7 +48,7 @@ def read_jsonl(path: Path) -> list[LabelledText]:
             if label not in ("nominal", "anomaly") or not isinstance(text, str) or not text:
                 raise InvalidInput(f"{path}:{lineno}: 'label' must be nominal|anomaly and "
                                    "'text' a non-empty string", field=str(path))
-            out.append(LabelledText(text, label == "anomaly"))
+            out.append(Labelled(text, label == "anomaly"))
     if not out:
         raise InvalidInput(f"{path} has no examples", field=str(path))
     return out
@@ -81,9 +75,9 @@ def calibrate(cache: Cache, config: EvalConfig, cal_scores: np.ndarray | None,
 
 def evaluate(
     embedder: Embedder,
-    nominal: Sequence[LabelledText],
-    test: Sequence[LabelledText],
-    calibration: Sequence[LabelledText] = (),
+    nominal: Sequence[Labelled],
+    test: Sequence[Labelled],
+    calibration: Sequence[Labelled] = (),
     config: EvalConfig = EvalConfig(),
 ) -> dict[str, Any]:
     """Build, calibrate, test; the ``aesop detector eval --json`` object."""

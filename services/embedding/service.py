@@ -35,7 +35,7 @@ from typing import Any, Literal, TypeVar
 import numpy as np
 
 from .batching import MicroBatcher
-from .cache import Cache, CacheConfig, Scored, ScoreKind
+from .cache import Cache, CacheConfig, Labelled, Scored, ScoreKind
 from .calibration import (
     Calibration,
     CalibrationError,
@@ -154,12 +154,6 @@ class Item:
     vector: Sequence[float] | None = None
     id: str | None = None
     metadata: Mapping[str, Any] = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class Labelled:
-    text: str
-    is_anomaly: bool
 
 
 @dataclass(frozen=True)
