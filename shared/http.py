@@ -168,6 +168,22 @@ def body_limit(app: FastAPI, max_bytes: int) -> None:
         return await call_next(request)
 
 
+def require_json(app: FastAPI) -> None:
+    """Refuse a request body that is not declared as JSON (415, field "Content-Type")."""
+
+    @app.middleware("http")
+    async def json_only(request: Request, call_next: Next) -> Response:
+        has_body = request.headers.get("content-length", "0") != "0" or \
+            "transfer-encoding" in request.headers
+        kind = request.headers.get("content-type", "")
+        if request.method in ("POST", "PUT", "PATCH") and has_body and "json" not in kind:
+            return error_response(
+                415, "unsupported_media_type",
+                f"send the body as JSON with 'Content-Type: application/json' (got "
+                f"{kind or 'no Content-Type'})", "Content-Type")
+        return await call_next(request)
+
+
 def serve(app: FastAPI, settings: ServiceSettings) -> None:
     """Run ``app`` with uvicorn until SIGINT/SIGTERM."""
     import uvicorn

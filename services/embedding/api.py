@@ -23,6 +23,7 @@ from shared.http import (
     error_response,
     install_error_handlers,
     ops_router,
+    require_json,
 )
 
 from .cache import Labelled
@@ -163,6 +164,7 @@ def create_app(
     metrics = Metrics(registry, service)  # type: ignore[arg-type]
     install_error_handlers(app)
     body_limit(app, settings.max_body_bytes)
+    require_json(app)
     HttpMetrics(registry, "embedding").install(app)
 
     @app.exception_handler(DetectorError)

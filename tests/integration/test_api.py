@@ -186,6 +186,13 @@ def test_malformed_json_and_non_finite_numbers(client: TestClient, payload: byte
     assert client.get("/v1/caches/wm").json() == before
 
 
+def test_a_body_that_is_not_json_is_refused_with_415(client: TestClient) -> None:
+    r = client.put("/v1/caches/wm", content=b'{"k": 1}', headers={
+        **AUTH, "Content-Type": "application/x-www-form-urlencoded"})
+    assert r.status_code == 415 and r.json()["error"]["field"] == "Content-Type"
+    assert client.get("/v1/caches/wm").status_code == 404
+
+
 def test_overflowing_float32_is_refused(client: TestClient) -> None:
     create(client)
     r = client.post("/v1/caches/wm/experiences", headers=AUTH, json={"vectors": [[1e39] * 64]})
