@@ -1,0 +1,1 @@
+"""Slow reasoner: LLM prompts, strict answer parsing and the deadline-bound service."""

@@ -1,0 +1,226 @@
+"""Slow-reasoner prompts after the paper's prompting appendix (App. ap:prompting, §IV-A).
+
+A prompt describes the robot and the runtime monitor's job, then gives the
+current task, the observation o_t and the numbered options y in {0, 1..d}, and
+ends with an output instruction (chain-of-thought or a single token) plus a
+strict final-answer line. Rendered layout (the delimiters are a contract: the
+fake LLM server and :mod:`services.reasoner.parsing` rely on them)::
+
+    <robot paragraph>
+
+    <monitor paragraph>
+
+    Task: <task>
+    Observation:
+    > <observation line 1>
+    > <observation line 2>
+    Options:
+    0: continue nominal operation
+    1: <label> — <description>
+
+    <instruction>
+    End your answer with one line exactly: FINAL ANSWER: <option number>
+
+The observation is untrusted text: every line is quoted with ``"> "`` so it
+cannot open its own ``Options:`` or ``FINAL ANSWER:`` line, and
+:func:`suspicious_observation` flags text that tries to inject instructions.
+"""
+
+from __future__ import annotations
+
+import re
+import unicodedata
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+from functools import lru_cache
+from importlib import resources
+from typing import Literal
+
+import yaml
+
+from shared.messages import Option
+
+Variant = Literal["cot", "single"]
+
+DOMAINS: tuple[str, ...] = ("quadrotor", "vtol", "warehouse", "vehicle")
+
+CONTINUE_LINE = "0: continue nominal operation"
+FINAL_INSTRUCTION = "End your answer with one line exactly: FINAL ANSWER: <option number>"
+QUOTE = "> "
+DASH = "\u2014"  # em dash between an option's label and its description
+
+
+@dataclass(frozen=True)
+class Template:
+    """The fixed text of one domain's prompt; see the module docstring for the layout."""
+
+    domain: str
+    robot: str
+    monitor: str
+    cot_instruction: str
+    single_token_instruction: str
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if not isinstance(value, str) or not value.strip():
+                raise ValueError(f"{f.name}: must be a non-empty string")
+
+    @property
+    def description(self) -> str:
+        """The robot and monitor paragraphs, separated by a blank line."""
+        return f"{self.robot.strip()}\n\n{self.monitor.strip()}"
+
+    def instruction(self, variant: Variant) -> str:
+        """The output instruction for ``variant``, without the final-answer line."""
+        if variant == "cot":
+            return self.cot_instruction.strip()
+        if variant == "single":
+            return self.single_token_instruction.strip()
+        raise ValueError(f"variant: must be 'cot' or 'single', got {variant!r}")
+
+
+def load_template(domain: str) -> Template:
+    """Load the packaged template ``templates/<domain>.yaml``."""
+    if domain not in DOMAINS:
+        raise ValueError(f"domain: unknown {domain!r}; known domains: {', '.join(DOMAINS)}")
+    return _load(domain)
+
+
+@lru_cache(maxsize=len(DOMAINS))
+def _load(domain: str) -> Template:
+    path = resources.files("services.reasoner").joinpath("templates", f"{domain}.yaml")
+    data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    expected = {f.name for f in fields(Template)}
+    if not isinstance(data, dict) or set(data) != expected:
+        raise ValueError(f"template {domain}: keys must be exactly {sorted(expected)}")
+    if data["domain"] != domain:
+        raise ValueError(f"template {domain}: domain field says {data['domain']!r}")
+    return Template(**data)
+
+
+def build_prompt(
+    template: Template,
+    *,
+    task: str,
+    observation: str,
+    options: Sequence[Option],
+    variant: Variant = "cot",
+) -> str:
+    """The single-string prompt: description, scene, instruction (module docstring layout)."""
+    scene = render_scene(task=task, observation=observation, options=options)
+    return f"{template.description}\n\n{scene}\n\n{_instruction(template, variant)}"
+
+
+def build_messages(
+    template: Template,
+    *,
+    task: str,
+    observation: str,
+    options: Sequence[Option],
+    variant: Variant = "cot",
+) -> list[dict[str, str]]:
+    """OpenAI chat messages: system = description + instructions, user = the scene."""
+    scene = render_scene(task=task, observation=observation, options=options)
+    system = f"{template.description}\n\n{_instruction(template, variant)}"
+    return [{"role": "system", "content": system}, {"role": "user", "content": scene}]
+
+
+def render_scene(*, task: str, observation: str, options: Sequence[Option]) -> str:
+    """The ``Task:`` / ``Observation:`` / ``Options:`` block."""
+    return (
+        f"Task: {_single_line(task, 'task')}\n"
+        f"Observation:\n{quote_observation(observation)}\n"
+        f"Options:\n{render_options(options)}"
+    )
+
+
+def _instruction(template: Template, variant: Variant) -> str:
+    return f"{template.instruction(variant)}\n{FINAL_INSTRUCTION}"
+
+
+def quote_observation(text: str) -> str:
+    """Prefix every line of ``text`` with ``"> "``.
+
+    Lines are split with :meth:`str.splitlines`, the widest notion of a line
+    break, so no reader can find an unquoted line in the result.
+    """
+    if not isinstance(text, str) or not text.strip():
+        raise ValueError("observation: must be a non-empty string")
+    return "\n".join(QUOTE + line.rstrip() for line in text.strip().splitlines())
+
+
+def render_options(options: Sequence[Option]) -> str:
+    """Option lines sorted by index; option 0 always reads ``continue nominal operation``."""
+    checked = validate_options(options)
+    lines = [CONTINUE_LINE]
+    for opt in checked[1:]:
+        label = _single_line(opt.label, f"options[{opt.index}].label")
+        description = " ".join(opt.description.split())
+        lines.append(
+            f"{opt.index}: {label} {DASH} {description}" if description else f"{opt.index}: {label}"
+        )
+    return "\n".join(lines)
+
+
+def validate_options(options: Sequence[Option]) -> tuple[Option, ...]:
+    """Options sorted by index; unique indices, 0 (continue) present, else ValueError."""
+    if not options:
+        raise ValueError("options: must not be empty")
+    seen: set[int] = set()
+    for opt in options:
+        if not isinstance(opt, Option):
+            raise ValueError(f"options: expected Option, got {type(opt).__name__}")
+        if opt.index in seen:
+            raise ValueError(f"options: duplicate index {opt.index}")
+        seen.add(opt.index)
+    if 0 not in seen:
+        raise ValueError("options: index 0 (continue nominal operation) is missing")
+    return tuple(sorted(options, key=lambda o: o.index))
+
+
+def _single_line(text: str, field: str) -> str:
+    collapsed = " ".join(text.split()) if isinstance(text, str) else ""
+    if not collapsed:
+        raise ValueError(f"{field}: must be a non-empty string")
+    return collapsed
+
+
+_INJECTION_PATTERNS: tuple[tuple[str, re.Pattern[str]], ...] = tuple(
+    (reason, re.compile(pattern, re.IGNORECASE | re.MULTILINE))
+    for reason, pattern in (
+        ("final-answer marker", r"final\s*answer"),
+        (
+            "instruction override",
+            r"\b(?:ignore|disregard|forget|override)\b.{0,40}?"
+            r"\b(?:instructions?|prompts?|rules|directions|context)\b",
+        ),
+        ("role reassignment", r"\byou\s+are\s+now\b|\bpretend\s+(?:to\s+be|you)\b"),
+        ("chat role marker", r"\b(?:system|assistant|developer)\s*:|^\s*user\s*:"),
+        ("chat template token", r"<\|[a-z_]+\|>|\[/?inst\]|<</?sys>>"),
+        ("prompt section header", r"^[\s>]*(?:options|task|observation|instructions?)\s*:"),
+        ("option line", r"^[\s>]*\d+\s*:\s*continue\s+nominal"),
+        ("new instructions", r"\bnew\s+instructions?\b|\bsystem\s+prompt\b"),
+        ("answer steering", r"\b(?:choose|select|pick|answer|respond\s+with|output)\s+option\s*\d"),
+    )
+)
+
+
+def suspicious_observation(text: str) -> str | None:
+    """A short reason when ``text`` tries to inject instructions, else None.
+
+    Matching is case-insensitive on the NFKC-normalised text with invisible
+    format characters removed, so full-width or zero-width tricks do not hide
+    a marker.
+    """
+    normalised = _normalise(text)
+    for reason, pattern in _INJECTION_PATTERNS:
+        match = pattern.search(normalised)
+        if match:
+            return f"{reason}: {match.group(0).strip()!r}"
+    return None
+
+
+def _normalise(text: str) -> str:
+    text = unicodedata.normalize("NFKC", text)
+    return "".join(ch for ch in text if unicodedata.category(ch) != "Cf")
