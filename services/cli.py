@@ -20,7 +20,10 @@ from pydantic import ValidationError
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra and getattr(args, "service", None) != "fake-llm":
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    args.extra = extra
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request is noise
@@ -47,7 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     serve = sub.add_parser("serve", help="run one service (settings also from AESOP_* env vars)")
-    serve.add_argument("service", choices=["embedding"])
+    serve.add_argument("service", choices=["embedding", "fake-llm"],
+                       help="fake-llm: an OpenAI-compatible test server; see its --help")
     serve.add_argument("--host")
     serve.add_argument("--port", type=int)
     serve.add_argument("--data-dir", type=Path)
@@ -87,6 +91,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
+    if args.service == "fake-llm":
+        from services.reasoner.fake_llm import main as fake_llm
+
+        given = [(flag, v) for flag, v in (("--host", args.host), ("--port", args.port))
+                 if v is not None]
+        return fake_llm([str(x) for pair in given for x in pair] + args.extra)
+
     from services.embedding.api import create_app
     from services.embedding.settings import EmbeddingSettings
     from services.embedding.worker import DetectorWorker
