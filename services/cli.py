@@ -50,7 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     serve = sub.add_parser("serve", help="run one service (settings also from AESOP_* env vars)")
-    serve.add_argument("service", choices=["embedding", "fake-llm"],
+    serve.add_argument("service", choices=["embedding", "reasoner", "fake-llm"],
                        help="fake-llm: an OpenAI-compatible test server; see its --help")
     serve.add_argument("--host")
     serve.add_argument("--port", type=int)
@@ -98,13 +98,16 @@ def cmd_serve(args: argparse.Namespace) -> int:
                  if v is not None]
         return fake_llm([str(x) for pair in given for x in pair] + args.extra)
 
+    overrides = {k: v for k, v in (("host", args.host), ("port", args.port),
+                                   ("data_dir", args.data_dir)) if v is not None}
+    if args.service == "reasoner":
+        return serve_reasoner(overrides)
+
     from services.embedding.api import create_app
     from services.embedding.settings import EmbeddingSettings
     from services.embedding.worker import DetectorWorker
     from shared.http import serve
 
-    overrides = {k: v for k, v in (("host", args.host), ("port", args.port),
-                                   ("data_dir", args.data_dir)) if v is not None}
     settings = EmbeddingSettings(**overrides)
     try:
         settings.check_exposure()
@@ -112,6 +115,21 @@ def cmd_serve(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     factory = DetectorWorker.factory(settings) if settings.zenoh_worker else None
     serve(create_app(settings, worker_factory=factory), settings)
+    return 0
+
+
+def serve_reasoner(overrides: dict[str, Any]) -> int:
+    from services.reasoner.api import create_app
+    from services.reasoner.settings import ReasonerSettings
+    from services.reasoner.worker import ReasonerWorker
+    from shared.http import serve
+
+    settings = ReasonerSettings(**overrides)
+    try:
+        settings.check_exposure()
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    serve(create_app(settings, worker_factory=ReasonerWorker.factory(settings)), settings)
     return 0
 
 

@@ -1,0 +1,268 @@
+"""OpenAI-compatible chat-completions clients for the slow reasoner.
+
+One adapter, :class:`OpenAIChatBackend`, speaks ``POST {base_url}/chat/completions`` to
+cloud OpenAI, Ollama (``/v1``), vLLM, llama.cpp's server and the fake LLM
+(:mod:`services.reasoner.fake_llm`). It is deliberately thin:
+
+- **No hidden retries** (transport ``retries=0``, no retry loop): a 429 or 5xx is one
+  request and one :class:`BackendError`; the caller decides what to do by its deadline.
+- **No own timeouts**: the caller owns the single deadline ``K`` and cancels the task;
+  cancellation closes the response and its connection (the server sees a disconnect).
+- **Streaming early exit**: with ``stream=True`` the SSE ``data:`` lines are read as
+  they arrive, ``choices[0].delta.content`` is accumulated, and after every chunk
+  ``stop_when(text_so_far)`` is asked; when it says True the stream is closed at once
+  and the :class:`Completion` has ``stopped_early=True``.
+- **JSON mode** (``json_schema=True``): the request carries a ``response_format``
+  json_schema for ``{"reasoning": str, "answer": int}`` and the reply is turned back
+  into ``"<reasoning>\\nFINAL ANSWER: <answer>"`` so the one strict parser
+  (:mod:`services.reasoner.parsing`) applies to both modes. A reasoning line that is
+  exactly ``FINAL ANSWER: <answer>`` (same number) is dropped as a duplicate; any other
+  marker in the reasoning stays, so the parser rejects the ambiguity. Reply content that
+  is not such JSON is passed through unchanged (the parser then rejects it).
+  ``stop_when`` is not consulted in JSON mode (partial JSON is not a final-answer line).
+
+Errors (:class:`BackendError.kind`): ``http`` (status >= 400, ``status`` set), ``connect``
+(cannot reach the server), ``timeout`` (an httpx timeout, only if the caller configured
+one on its own client), ``protocol`` (anything else: bad JSON, missing fields, broken
+stream). Messages never contain the API key (no header is ever formatted into them).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Literal, Protocol
+
+import httpx
+
+ErrorKind = Literal["http", "timeout", "protocol", "connect"]
+StopWhen = Callable[[str], bool]
+
+ANSWER_SCHEMA: dict[str, Any] = {
+    "name": "aesop_decision",
+    "strict": True,
+    "schema": {
+        "type": "object",
+        "properties": {"reasoning": {"type": "string"}, "answer": {"type": "integer"}},
+        "required": ["reasoning", "answer"],
+        "additionalProperties": False,
+    },
+}
+MAX_ERROR_BODY = 200  # characters of a server's error body kept in a BackendError
+
+
+class BackendError(Exception):
+    """A request that produced no completion; ``kind`` says how, ``status`` the HTTP code."""
+
+    def __init__(self, kind: ErrorKind, message: str, status: int | None = None) -> None:
+        super().__init__(message)
+        self.kind: ErrorKind = kind
+        self.status = status
+
+
+@dataclass(frozen=True)
+class BackendConfig:
+    """Where and how to ask one model; ``base_url`` ends before ``/chat/completions``."""
+
+    name: str
+    base_url: str
+    model: str
+    api_key: str | None = None
+    max_tokens: int = 512
+    temperature: float = 0.0
+    stream: bool = True
+    json_schema: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.name or not self.model:
+            raise ValueError("name and model must be non-empty")
+        if not self.base_url.startswith(("http://", "https://")):
+            raise ValueError("base_url must start with http:// or https://")
+        if self.max_tokens < 1 or not 0.0 <= self.temperature <= 2.0:
+            raise ValueError("max_tokens must be >= 1 and temperature in [0, 2]")
+
+    def __repr__(self) -> str:  # never show the key
+        key = "set" if self.api_key else None
+        return (f"BackendConfig(name={self.name!r}, base_url={self.base_url!r}, "
+                f"model={self.model!r}, api_key={key!r}, stream={self.stream})")
+
+
+@dataclass(frozen=True)
+class Completion:
+    """The model's text (so far, if ``stopped_early``) and token usage when reported."""
+
+    text: str
+    prompt_tokens: int | None
+    completion_tokens: int | None
+    stopped_early: bool
+
+
+class ChatBackend(Protocol):
+    """What the decider needs from a model; cancellation must abort the request."""
+
+    name: str
+    model: str
+
+    async def complete(
+        self, messages: list[dict[str, str]], *, stop_when: StopWhen | None = None
+    ) -> Completion: ...
+
+    async def aclose(self) -> None: ...
+
+
+def make_client() -> httpx.AsyncClient:
+    """An AsyncClient with no retries and no timeouts (the caller's deadline rules)."""
+    return httpx.AsyncClient(transport=httpx.AsyncHTTPTransport(retries=0), timeout=None)
+
+
+class OpenAIChatBackend:
+    """:class:`ChatBackend` over the OpenAI chat-completions API (see module docstring)."""
+
+    def __init__(self, config: BackendConfig, client: httpx.AsyncClient | None = None) -> None:
+        self.config = config
+        self.name = config.name
+        self.model = config.model
+        self._client = client or make_client()
+        self._owns_client = client is None
+
+    @property
+    def url(self) -> str:
+        return self.config.base_url.rstrip("/") + "/chat/completions"
+
+    async def complete(
+        self, messages: list[dict[str, str]], *, stop_when: StopWhen | None = None
+    ) -> Completion:
+        try:
+            if self.config.stream:
+                return await self._streamed(messages, stop_when)
+            return await self._plain(messages)
+        except httpx.TimeoutException as exc:
+            raise BackendError("timeout", f"{self.name}: {type(exc).__name__}") from None
+        except httpx.ConnectError as exc:
+            raise BackendError("connect", f"{self.name}: cannot connect: {exc}") from None
+        except httpx.HTTPError as exc:
+            raise BackendError("protocol", f"{self.name}: {type(exc).__name__}: {exc}") from None
+
+    async def aclose(self) -> None:
+        if self._owns_client:
+            await self._client.aclose()
+
+    # ------------------------------------------------------------------ internals
+
+    def _payload(self, messages: list[dict[str, str]]) -> dict[str, Any]:
+        payload: dict[str, Any] = {
+            "model": self.config.model, "messages": messages, "stream": self.config.stream,
+            "max_tokens": self.config.max_tokens, "temperature": self.config.temperature,
+        }
+        if self.config.json_schema:
+            payload["response_format"] = {"type": "json_schema", "json_schema": ANSWER_SCHEMA}
+        return payload
+
+    def _headers(self) -> dict[str, str]:
+        if self.config.api_key:
+            return {"Authorization": f"Bearer {self.config.api_key}"}
+        return {}
+
+    async def _plain(self, messages: list[dict[str, str]]) -> Completion:
+        response = await self._client.post(self.url, json=self._payload(messages),
+                                           headers=self._headers())
+        self._check(response.status_code, response.text)
+        try:
+            body = response.json()
+            text = body["choices"][0]["message"]["content"] or ""
+        except (ValueError, KeyError, IndexError, TypeError) as exc:
+            raise BackendError("protocol", f"{self.name}: bad completion body ({exc!r})") from None
+        usage = body.get("usage") or {}
+        return self._finish(str(text), usage, stopped_early=False)
+
+    async def _streamed(self, messages: list[dict[str, str]], stop_when: StopWhen | None
+                        ) -> Completion:
+        check = None if self.config.json_schema else stop_when
+        parts: list[str] = []
+        usage: dict[str, Any] = {}
+        async with self._client.stream("POST", self.url, json=self._payload(messages),
+                                       headers=self._headers()) as response:
+            if response.status_code >= 400:
+                await response.aread()
+                self._check(response.status_code, response.text)
+            async for line in response.aiter_lines():
+                chunk = self._sse_chunk(line)
+                if chunk is None:
+                    break
+                usage = chunk.get("usage") or usage
+                delta = _delta_text(chunk)
+                if not delta:
+                    continue
+                parts.append(delta)
+                if check is not None and check("".join(parts)):
+                    return self._finish("".join(parts), usage, stopped_early=True)
+            # leaving the block closes the response; an early return closes it unread
+        return self._finish("".join(parts), usage, stopped_early=False)
+
+    def _sse_chunk(self, line: str) -> dict[str, Any] | None:
+        """One ``data:`` line as JSON; ``{}`` for other lines; None at ``[DONE]``."""
+        if not line.startswith("data:"):
+            return {}
+        data = line[5:].strip()
+        if data == "[DONE]":
+            return None
+        try:
+            chunk = json.loads(data)
+        except ValueError:
+            raise BackendError("protocol", f"{self.name}: bad SSE data line") from None
+        if not isinstance(chunk, dict):
+            raise BackendError("protocol", f"{self.name}: SSE chunk is not an object")
+        return chunk
+
+    def _check(self, status: int, body: str) -> None:
+        if status >= 400:
+            snippet = " ".join(body.split())[:MAX_ERROR_BODY]
+            raise BackendError("http", f"{self.name}: HTTP {status}: {snippet}", status=status)
+
+    def _finish(self, text: str, usage: dict[str, Any], *, stopped_early: bool) -> Completion:
+        if self.config.json_schema and not stopped_early:
+            text = json_to_text(text)
+        return Completion(text=text, prompt_tokens=_int_or_none(usage.get("prompt_tokens")),
+                          completion_tokens=_int_or_none(usage.get("completion_tokens")),
+                          stopped_early=stopped_early)
+
+
+def _delta_text(chunk: dict[str, Any]) -> str:
+    try:
+        content = chunk["choices"][0]["delta"].get("content")
+    except (KeyError, IndexError, TypeError, AttributeError):
+        return ""
+    return content if isinstance(content, str) else ""
+
+
+def _int_or_none(value: object) -> int | None:
+    return value if isinstance(value, int) and not isinstance(value, bool) else None
+
+
+_MARKER_LINE = re.compile(r"^\s*final\s*answer\s*:\s*(\d+)\s*\.?\s*$", re.IGNORECASE)
+
+
+def json_to_text(content: str) -> str:
+    """``{"reasoning": str, "answer": int}`` -> ``"reasoning\\nFINAL ANSWER: n"``.
+
+    Pure. Content that is not that JSON is returned unchanged, for the strict parser to
+    reject. Reasoning lines that merely repeat ``FINAL ANSWER: <answer>`` are dropped.
+    """
+    try:
+        data = json.loads(content)
+    except ValueError:
+        return content
+    if not isinstance(data, dict):
+        return content
+    answer, reasoning = data.get("answer"), data.get("reasoning", "")
+    if isinstance(answer, bool) or not isinstance(answer, int) or not isinstance(reasoning, str):
+        return content
+    kept = [line for line in reasoning.splitlines() if not _repeats(line, answer)]
+    return "\n".join([*kept, f"FINAL ANSWER: {answer}"]).strip()
+
+
+def _repeats(line: str, answer: int) -> bool:
+    match = _MARKER_LINE.match(line)
+    return match is not None and int(match.group(1)) == answer

@@ -1,0 +1,41 @@
+"""Settings of the slow-reasoner service (``AESOP_*`` environment variables)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import AliasChoices, Field, SecretStr, field_validator
+
+from shared.settings import ServiceSettings
+
+
+class ReasonerSettings(ServiceSettings):
+    port: int = Field(default=8002, ge=0, le=65535)
+    # the primary backend: any OpenAI-compatible server (default: `aesop serve fake-llm`)
+    llm_base_url: str = "http://127.0.0.1:8010/v1"
+    llm_model: str = "fake"
+    llm_api_key: SecretStr | None = Field(
+        default=None, validation_alias=AliasChoices("AESOP_LLM_API_KEY", "OPENAI_API_KEY"))
+    llm_stream: bool = True
+    llm_json_schema: bool = False  # ask for {"reasoning", "answer"} where servers support it
+    llm_max_tokens: int = Field(default=512, ge=1)
+    llm_temperature: float = Field(default=0.0, ge=0.0, le=2.0)
+    # an optional second backend, asked when the first has not answered after hedge_after_s
+    hedge_base_url: str | None = None
+    hedge_model: str | None = None
+    hedge_after_s: float | None = Field(default=None, gt=0.0)
+    domain: str = "quadrotor"  # prompt template: quadrotor, vtol, warehouse, vehicle
+    variant: Literal["cot", "single"] = "cot"
+    fallback: Literal["first_recovery", "rank"] = "first_recovery"
+    # rank policy: option label -> rank, lower is more conservative; JSON in the environment
+    fallback_ranks: dict[str, int] = Field(default_factory=dict)
+    max_observation_chars: int = Field(default=4000, ge=1)
+    max_options: int = Field(default=16, ge=1)
+    max_deadline_s: float = Field(default=120.0, gt=0.0)
+
+    @field_validator("hedge_base_url", "hedge_model", mode="before")
+    @classmethod
+    def _empty_is_none(cls, v: object) -> object:
+        return None if v == "" else v
+
+

@@ -1,0 +1,111 @@
+"""The slow-reasoner service: HTTP API and Zenoh worker against a real fake-LLM process."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from services.reasoner.api import build_decider, create_app
+from services.reasoner.settings import ReasonerSettings
+from services.reasoner.worker import ReasonerWorker
+from shared import topics
+from shared.bus import Bus
+from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
+from shared.process import ServiceProcess, free_port
+from tests.zenoh_peers import DEADLINE_S, routed
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
+
+TOKEN = "reasoner-test-token-0123"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+OPTIONS = [{"index": 0, "label": "continue"},
+           {"index": 1, "label": "alternative landing site", "description": "the blue box"},
+           {"index": 2, "label": "holding zone", "description": "hover and wait"}]
+RED_BOX = {"seq": 1, "task": "landing on the red box",
+           "text": "a red box on the ground\na blue box on the ground\na quadrotor on the red box"}
+
+
+@pytest.fixture(scope="module")
+def llm_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    port = free_port()
+    log = Path(tmp_path_factory.mktemp("llm")) / "fake-llm.log"
+    with ServiceProcess(["serve", "fake-llm", "--port", str(port), "--profile", "fixed",
+                         "--fixed-s", "0.05"], port=port, log_path=log) as proc:
+        yield f"{proc.url}/v1"
+
+
+def settings_for(llm_url: str, **kw: object) -> ReasonerSettings:
+    return ReasonerSettings(llm_base_url=llm_url, admin_token=TOKEN, **kw)
+
+
+@pytest.fixture
+def client(llm_url: str) -> Iterator[TestClient]:
+    with TestClient(create_app(settings_for(llm_url))) as c:
+        yield c
+
+
+def test_reason_answers_with_the_llm_choice(client: TestClient) -> None:
+    r = client.post("/v1/reason", headers=AUTH, json={
+        "observation": RED_BOX, "options": OPTIONS, "deadline_s": 5.0, "request_id": "q1"})
+    assert r.status_code == 200, r.text
+    d = r.json()
+    assert d["request_id"] == "q1" and d["source"] == "llm" and d["choice"] == 1
+    assert d["model"] == "fake" and d["latency_ms"] > 0
+    assert "aesop_reasoner_decisions_total" in client.get("/metrics").text
+
+
+def test_a_stalled_llm_gets_a_labelled_fallback(llm_url: str) -> None:
+    with TestClient(create_app(settings_for(llm_url, llm_model="fake-stall"))) as c:
+        r = c.post("/v1/reason", headers=AUTH, json={
+            "observation": RED_BOX, "options": OPTIONS, "deadline_s": 0.3})
+    d = r.json()
+    assert d["source"] == "timeout" and d["choice"] == 1  # first recovery option
+
+
+@pytest.mark.parametrize(("change", "field"), [
+    ({"options": []}, "options"),
+    ({"options": [OPTIONS[0], OPTIONS[1], {**OPTIONS[2], "index": 1}]}, "options"),
+    ({"deadline_s": 0}, "deadline_s"),
+    ({"deadline_s": -1}, "deadline_s"),
+    ({"deadline_s": 10_000}, "deadline_s"),
+    ({"observation": {**RED_BOX, "text": "x" * 5000}}, "observation.text"),
+    ({"observation": {**RED_BOX, "text": ""}}, "observation.text"),
+])
+def test_bad_requests_name_the_field(client: TestClient, change: dict, field: str) -> None:
+    body = {"observation": RED_BOX, "options": OPTIONS, "deadline_s": 2.0, **change}
+    r = client.post("/v1/reason", headers=AUTH, json=body)
+    assert r.status_code == 422, r.text
+    assert r.json()["error"]["field"] == field
+
+
+def test_reason_needs_the_token_and_backends_are_listed(client: TestClient) -> None:
+    body = {"observation": RED_BOX, "options": OPTIONS, "deadline_s": 2.0}
+    assert client.post("/v1/reason", json=body).status_code == 401
+    backends = client.get("/v1/backends").json()["backends"]
+    assert backends[0]["name"] == "primary" and backends[0]["model"] == "fake"
+    assert "api_key" not in backends[0]
+
+
+async def test_zenoh_round_trip(llm_url: str, listener: Bus, connector: Bus) -> None:
+    decider = build_decider(settings_for(llm_url))
+    worker = ReasonerWorker(decider, listener)
+    task = asyncio.create_task(worker.run())
+    sub = connector.subscribe(topics.reasoner_decision(topics.ANY_ROBOT), ReasonerDecision)
+    await routed(connector, listener)
+    await routed(listener, connector)
+    request = ReasonerRequest(
+        robot="drone7", request_id="z1", deadline_s=5.0,
+        observation=Observation(robot="drone7", **RED_BOX),
+        options=tuple(Option(**o) for o in OPTIONS))
+    connector.publish(topics.reasoner_request("drone7"), request)
+    got = await asyncio.wait_for(anext(sub), DEADLINE_S)
+    assert got.key == topics.reasoner_decision("drone7")
+    assert got.message.request_id == "z1" and got.message.choice == 1
+    assert got.message.source == "llm" and got.message.robot == "drone7"
+    await worker.stop()
+    await asyncio.wait_for(task, DEADLINE_S)
+    await decider.aclose()
