@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import time
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from typing import Annotated, Any, Literal
@@ -25,12 +24,13 @@ from shared.http import (
     ops_router,
     require_json,
 )
+from shared.jobs import Job, UnknownJob
 
 from .cache import Labelled
 from .embedders import EmbedderError
 from .errors import Conflict, DetectorError, InvalidInput, NotCalibrated, NotFound
 from .scoring import ScoringError
-from .service import CacheService, Item, Job, ScoreBatch
+from .service import CacheService, Item, ScoreBatch
 from .settings import EmbeddingSettings
 from .storage import StorageCorrupt
 
@@ -250,7 +250,10 @@ def create_app(
 
     @app.get("/v1/jobs/{job_id}")
     async def get_job(job_id: str, service: ServiceDep) -> dict[str, Any]:
-        return service.jobs.get(job_id).to_dict()
+        try:
+            return service.jobs.get(job_id).to_dict()
+        except UnknownJob:
+            raise NotFound(f"no job {job_id!r}", field="id") from None
 
     return app
 
@@ -265,15 +268,12 @@ async def _run_job(job: Job, work: Any) -> dict[str, Any]:
     try:
         result = await work
     except DetectorError as exc:
-        job.state, job.error = "failed", {"code": exc.code, "message": exc.message,
-                                          "field": exc.field}
-        job.finished_at = time.time()
+        job.fail(exc.code, exc.message, exc.field)
         raise
     except Exception as exc:
-        job.state, job.error = "failed", {"code": "internal", "message": str(exc)}
-        job.finished_at = time.time()
+        job.fail("internal", str(exc))
         raise
-    job.state, job.result, job.finished_at = "succeeded", result, time.time()
+    job.succeed(result)
     return result
 
 

@@ -21,9 +21,6 @@ import asyncio
 import logging
 import re
 import threading
-import time
-import uuid
-from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
@@ -33,6 +30,8 @@ from pathlib import Path
 from typing import Any, Literal, TypeVar
 
 import numpy as np
+
+from shared.jobs import Job, Jobs
 
 from .batching import MicroBatcher
 from .cache import Cache, CacheConfig, Labelled, Scored, ScoreKind
@@ -92,49 +91,6 @@ class RWLock:
             with self._cond:
                 self._writer = False
                 self._cond.notify_all()
-
-
-@dataclass
-class Job:
-    """Progress of a long operation (``GET /v1/jobs/{id}``)."""
-
-    id: str
-    kind: str
-    cache: str
-    total: int
-    done: int = 0
-    state: Literal["running", "succeeded", "failed"] = "running"
-    result: dict[str, Any] | None = None
-    error: dict[str, Any] | None = None
-    created_at: float = field(default_factory=time.time)
-    finished_at: float | None = None
-
-    def progress(self, done: int, total: int) -> None:
-        self.done, self.total = done, total
-
-    def to_dict(self) -> dict[str, Any]:
-        return {k: getattr(self, k) for k in (
-            "id", "kind", "cache", "total", "done", "state", "result", "error",
-            "created_at", "finished_at")}
-
-
-class Jobs:
-    def __init__(self, keep: int = 1000) -> None:
-        self._jobs: OrderedDict[str, Job] = OrderedDict()
-        self._keep = keep
-
-    def create(self, kind: str, cache: str, total: int) -> Job:
-        job = Job(uuid.uuid4().hex, kind, cache, total)
-        self._jobs[job.id] = job
-        while len(self._jobs) > self._keep:
-            self._jobs.popitem(last=False)
-        return job
-
-    def get(self, job_id: str) -> Job:
-        try:
-            return self._jobs[job_id]
-        except KeyError:
-            raise NotFound(f"no job {job_id!r}", field="id") from None
 
 
 @dataclass

@@ -1,0 +1,63 @@
+"""Progress of long operations (``GET /v1/jobs/{id}``), kept in memory per service."""
+
+from __future__ import annotations
+
+import time
+import uuid
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+
+class UnknownJob(KeyError):
+    """No job with this id (or it was forgotten: only the newest ``keep`` are kept)."""
+
+
+@dataclass
+class Job:
+    """Progress of a long operation (``GET /v1/jobs/{id}``)."""
+
+    id: str
+    kind: str
+    cache: str
+    total: int
+    done: int = 0
+    state: Literal["running", "succeeded", "failed"] = "running"
+    result: dict[str, Any] | None = None
+    error: dict[str, Any] | None = None
+    created_at: float = field(default_factory=time.time)
+    finished_at: float | None = None
+
+    def progress(self, done: int, total: int) -> None:
+        self.done, self.total = done, total
+
+    def succeed(self, result: dict[str, Any]) -> None:
+        self.state, self.result, self.finished_at = "succeeded", result, time.time()
+
+    def fail(self, code: str, message: str, field: str | None = None) -> None:
+        self.state, self.finished_at = "failed", time.time()
+        self.error = {"code": code, "message": message, "field": field}
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: getattr(self, k) for k in (
+            "id", "kind", "cache", "total", "done", "state", "result", "error",
+            "created_at", "finished_at")}
+
+
+class Jobs:
+    def __init__(self, keep: int = 1000) -> None:
+        self._jobs: OrderedDict[str, Job] = OrderedDict()
+        self._keep = keep
+
+    def create(self, kind: str, cache: str, total: int) -> Job:
+        job = Job(uuid.uuid4().hex, kind, cache, total)
+        self._jobs[job.id] = job
+        while len(self._jobs) > self._keep:
+            self._jobs.popitem(last=False)
+        return job
+
+    def get(self, job_id: str) -> Job:
+        try:
+            return self._jobs[job_id]
+        except KeyError:
+            raise UnknownJob(job_id) from None
