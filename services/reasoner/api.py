@@ -7,7 +7,7 @@ import logging
 import uuid
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from fastapi import Depends, FastAPI, Request
 from prometheus_client import CollectorRegistry, Counter, Histogram
@@ -21,10 +21,14 @@ from shared.http import (
     ops_router,
     require_json,
 )
+from shared.jobs import Job, Jobs, UnknownJob
 from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
 
 from .backends import BackendConfig, OpenAIChatBackend
+from .calibrating import CalibrationPlan, measure
 from .deciding import Decider, DeciderConfig, FallbackPolicy
+from .latency import LatencyError, min_samples
+from .prompts import build_messages, load_template
 from .settings import ReasonerSettings
 
 log = logging.getLogger(__name__)
@@ -45,6 +49,27 @@ class ReasonBody(BaseModel):
         if len(set(indices)) != len(indices):
             raise ValueError("option indices must be unique")
         return options
+
+
+class CalibrateBody(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    n: int = Field(default=100, ge=1, le=10_000)
+    warmup: int = Field(default=3, ge=0, le=100)
+    quantile: float = Field(default=0.95, gt=0.0, lt=1.0)
+    confidence: float = Field(default=0.95, gt=0.0, lt=1.0)
+    timeout_s: float = Field(default=30.0, gt=0.0, le=600.0)
+    backend: Literal["primary", "hedge"] = "primary"
+    observation: Observation | None = None  # default: the quadrotor red-box scene
+    options: list[Option] | None = None
+
+
+DEFAULT_SCENE = Observation(
+    seq=0, task="landing on the red box",
+    text="a red box on the ground\na blue box on the ground\na quadrotor on the red box")
+DEFAULT_OPTIONS = (Option(index=0, label="continue"),
+                   Option(index=1, label="alternative landing site", description="the blue box"),
+                   Option(index=2, label="holding zone", description="hover and wait"))
 
 
 class Metrics:
@@ -99,6 +124,8 @@ def create_app(
     registry = CollectorRegistry()
     metrics = Metrics(registry)
     state = {"started": False}
+    jobs = Jobs()
+    tasks: set[asyncio.Task[None]] = set()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -110,6 +137,9 @@ def create_app(
             yield
         finally:
             state["started"] = False
+            for pending in list(tasks):
+                pending.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
             if worker is not None and task is not None:
                 await worker.stop()
                 task.cancel()
@@ -135,6 +165,37 @@ def create_app(
         metrics.observe(decision)
         return decision.model_dump()
 
+    @app.post("/v1/latency/calibrate", dependencies=auth, status_code=202)
+    async def calibrate(body: CalibrateBody, decider: DeciderDep) -> dict[str, Any]:
+        needed = min_samples(body.quantile, body.confidence)
+        if body.n < needed:
+            raise ApiError(422, "invalid", f"n = {body.n} is too small to bound the "
+                           f"{body.quantile:g} quantile with confidence {body.confidence:g}: "
+                           f"at least {needed} queries are needed", "n")
+        names = [b.name for b in decider.backends]
+        if body.backend not in names:
+            raise ApiError(422, "invalid", f"no {body.backend} backend is configured "
+                           f"(configured: {', '.join(names)})", "backend")
+        backend = decider.backends[names.index(body.backend)]
+        scene = body.observation or DEFAULT_SCENE
+        messages = build_messages(load_template(settings.domain), task=scene.task or "its task",
+                                  observation=scene.text, options=body.options or DEFAULT_OPTIONS,
+                                  variant=settings.variant)
+        plan = CalibrationPlan(n=body.n, warmup=body.warmup, quantile=body.quantile,
+                               confidence=body.confidence, timeout_s=body.timeout_s)
+        job = jobs.create("latency_calibration", body.backend, body.warmup + body.n)
+        task = asyncio.create_task(_calibrate(job, backend, messages, plan))
+        tasks.add(task)
+        task.add_done_callback(tasks.discard)
+        return {"job": job.id, "state": job.state, "total": job.total}
+
+    @app.get("/v1/jobs/{job_id}")
+    async def get_job(job_id: str) -> dict[str, Any]:
+        try:
+            return jobs.get(job_id).to_dict()
+        except UnknownJob:
+            raise ApiError(404, "not_found", f"no job {job_id!r}", "id") from None
+
     @app.get("/v1/backends")
     async def backends() -> dict[str, Any]:
         return {"backends": [
@@ -144,6 +205,19 @@ def create_app(
             "variant": settings.variant, "fallback": settings.fallback}
 
     return app
+
+
+async def _calibrate(job: Job, backend: Any, messages: list[dict[str, str]],
+                     plan: CalibrationPlan) -> None:
+    try:
+        report = await measure(backend, messages, plan, job.progress)
+    except LatencyError as exc:
+        job.fail("invalid", str(exc), exc.field)
+    except Exception as exc:  # recorded in the job; the service keeps running
+        log.exception("latency calibration failed")
+        job.fail("internal", str(exc))
+    else:
+        job.succeed(report.to_dict())
 
 
 def check_request(body: ReasonBody, settings: ReasonerSettings) -> None:

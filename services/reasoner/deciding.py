@@ -142,6 +142,10 @@ class Decider:
         self._clock = clock
         self._template = load_template(config.domain)
 
+    @property
+    def backends(self) -> tuple[ChatBackend, ...]:
+        return self._backends
+
     async def aclose(self) -> None:
         """Close every backend (their HTTP clients)."""
         for backend in self._backends:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -109,3 +110,34 @@ async def test_zenoh_round_trip(llm_url: str, listener: Bus, connector: Bus) -> 
     await worker.stop()
     await asyncio.wait_for(task, DEADLINE_S)
     await decider.aclose()
+
+
+def test_latency_calibration_job_recommends_k(client: TestClient) -> None:
+    r = client.post("/v1/latency/calibrate", headers=AUTH,
+                    json={"n": 60, "warmup": 2, "quantile": 0.95, "confidence": 0.95})
+    assert r.status_code == 202, r.text
+    job_id = r.json()["job"]
+    deadline = time.monotonic() + 60
+    while (job := client.get(f"/v1/jobs/{job_id}").json())["state"] == "running":
+        assert time.monotonic() < deadline, job
+        time.sleep(0.05)
+    assert job["state"] == "succeeded", job
+    report = job["result"]
+    assert report["n"] == 60 and len(report["cold_s"]) == 2 and report["n_failed"] == 0
+    assert 0 < report["k_s"] <= report["k_upper_s"] and report["quantile"] == 0.95
+    assert sum(report["histogram"]["counts"]) == 60
+    assert job["done"] == job["total"] == 62
+
+
+@pytest.mark.parametrize(("body", "field"), [
+    ({"n": 20}, "n"),  # 59 are needed for a 0.95 bound at 0.95 confidence
+    ({"n": 100, "quantile": 1.0}, "quantile"),
+    ({"n": 100, "backend": "hedge"}, "backend"),
+])
+def test_latency_calibration_refuses_bad_plans(client: TestClient, body: dict,
+                                               field: str) -> None:
+    r = client.post("/v1/latency/calibrate", headers=AUTH, json=body)
+    assert r.status_code == 422 and r.json()["error"]["field"] == field
+    if field == "n":
+        assert "59" in r.json()["error"]["message"]
+    assert client.get("/v1/jobs/nope").status_code == 404
