@@ -24,7 +24,7 @@ from shared.http import (
 from shared.jobs import Job, Jobs, UnknownJob
 from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
 
-from .backends import BackendConfig, OpenAIChatBackend
+from .backends import BackendConfig, ChatBackend, Completion, OpenAIChatBackend
 from .calibrating import CalibrationPlan, measure
 from .deciding import Decider, DeciderConfig, FallbackPolicy
 from .latency import LatencyError, min_samples
@@ -81,6 +81,16 @@ class Metrics:
         self.decisions = Counter("aesop_reasoner_decisions", "Decisions by source",
                                  ["source"], registry=registry)
 
+        self.tokens = Counter("aesop_reasoner_tokens", "LLM tokens, as the server reports them "
+                              "in 'usage' (streamed answers count only where it does)",
+                              ["kind"], registry=registry)
+
+    def count(self, completion: Completion) -> None:
+        if completion.prompt_tokens:
+            self.tokens.labels("prompt").inc(completion.prompt_tokens)
+        if completion.completion_tokens:
+            self.tokens.labels("completion").inc(completion.completion_tokens)
+
     def observe(self, decision: ReasonerDecision) -> None:
         self.decisions.labels(decision.source).inc()
         self.latency.labels(decision.source).observe(decision.latency_ms / 1000)
@@ -101,8 +111,28 @@ def backend_configs(settings: ReasonerSettings) -> list[BackendConfig]:
     return configs
 
 
-def build_decider(settings: ReasonerSettings) -> Decider:
-    backends = [OpenAIChatBackend(c) for c in backend_configs(settings)]
+class MeteredBackend:
+    """A ``ChatBackend`` that reports each completion (for the token counters)."""
+
+    def __init__(self, inner: ChatBackend, on_completion: Callable[[Completion], None]) -> None:
+        self.inner, self.on_completion = inner, on_completion
+        self.name, self.model = inner.name, inner.model
+
+    async def complete(self, messages: list[dict[str, str]], *,
+                       stop_when: Callable[[str], bool] | None = None) -> Completion:
+        completion = await self.inner.complete(messages, stop_when=stop_when)
+        self.on_completion(completion)
+        return completion
+
+    async def aclose(self) -> None:
+        await self.inner.aclose()
+
+
+def build_decider(settings: ReasonerSettings,
+                  on_completion: Callable[[Completion], None] | None = None) -> Decider:
+    backends: list[ChatBackend] = [OpenAIChatBackend(c) for c in backend_configs(settings)]
+    if on_completion is not None:
+        backends = [MeteredBackend(b, on_completion) for b in backends]
     config = DeciderConfig(domain=settings.domain, variant=settings.variant,
                            hedge_after_s=settings.hedge_after_s)
     policy = FallbackPolicy(kind=settings.fallback, ranks=settings.fallback_ranks)
@@ -129,7 +159,7 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        app.state.decider = decider or build_decider(settings)
+        app.state.decider = decider or build_decider(settings, metrics.count)
         worker = worker_factory(app.state.decider, metrics) if worker_factory else None
         task = asyncio.create_task(worker.run()) if worker else None
         state["started"] = True

@@ -59,6 +59,16 @@ def test_reason_answers_with_the_llm_choice(client: TestClient) -> None:
     assert "aesop_reasoner_decisions_total" in client.get("/metrics").text
 
 
+def test_tokens_are_counted(llm_url: str) -> None:
+    with TestClient(create_app(settings_for(llm_url, llm_stream=False))) as c:
+        c.post("/v1/reason", headers=AUTH, json={
+            "observation": RED_BOX, "options": OPTIONS, "deadline_s": 5.0})
+        text = c.get("/metrics").text
+    line = next(x for x in text.splitlines()
+                if x.startswith('aesop_reasoner_tokens_total{kind="completion"}'))
+    assert float(line.split()[-1]) > 0
+
+
 def test_a_stalled_llm_gets_a_labelled_fallback(llm_url: str) -> None:
     with TestClient(create_app(settings_for(llm_url, llm_model="fake-stall"))) as c:
         r = c.post("/v1/reason", headers=AUTH, json={
