@@ -82,6 +82,17 @@ def build_parser() -> argparse.ArgumentParser:
     bd.add_argument("--plot", type=Path, default=None, help="write the quality figure (PNG)")
     bd.add_argument("--seed", type=int, default=0)
     bd.set_defaults(func=cmd_bench_detector)
+    br = bsub.add_parser("reasoner", help="deadline, fallbacks, overhead and hedging of the "
+                         "slow reasoner against the fake LLM (bimodal profile)")
+    br.add_argument("--requests", type=int, default=1000, help="decisions per run (default 1000)")
+    br.add_argument("--scale", type=float, default=0.1,
+                    help="time scale of the latencies and of K = 4.3 s (default 0.1)")
+    br.add_argument("--concurrency", type=int, default=8, help="decisions in flight (8)")
+    br.add_argument("--seed", type=int, default=0, help="fake LLM seed (second backend: +1)")
+    br.add_argument("--hedge-after", type=float, default=None,
+                    help="hedging delay in s (default: the single-backend p50 latency)")
+    br.add_argument("--json", action="store_true")
+    br.set_defaults(func=cmd_bench_reasoner)
 
     demo = sub.add_parser("demo", help="the detector demo on the quadrotor scene")
     demo.add_argument("--json", action="store_true")
@@ -166,6 +177,21 @@ def cmd_bench_detector(args: argparse.Namespace) -> int:
 
     result = run_detector_bench(quick=args.quick, only=args.only, plot=args.plot,
                                 seed=args.seed, table=not args.json)
+    if args.json:
+        emit(result, True)
+    return 0
+
+
+def cmd_bench_reasoner(args: argparse.Namespace) -> int:
+    from services.reasoner.bench import run_reasoner_bench
+
+    if args.requests < 1 or args.concurrency < 1 or not args.scale > 0:
+        raise CliError("--requests and --concurrency must be >= 1 and --scale > 0")
+    if args.hedge_after is not None and args.hedge_after < 0:
+        raise CliError("--hedge-after must be >= 0")
+    result = run_reasoner_bench(requests=args.requests, scale=args.scale,
+                                concurrency=args.concurrency, seed=args.seed,
+                                hedge_after_s=args.hedge_after, table=not args.json)
     if args.json:
         emit(result, True)
     return 0

@@ -1,0 +1,442 @@
+"""``aesop bench reasoner``: the slow reasoner's deadline against the fake LLM server.
+
+Real processes: the fake OpenAI-compatible server (:mod:`services.reasoner.fake_llm`) runs
+as a child process with the paper's ``bimodal`` latency profile (mean 3.1 s, std 0.85 s,
+95th percentile 4.3 s) and ``K = 4.3 s``, both multiplied by ``scale`` (default 0.1, so
+``K = 0.43 s``). One :class:`~services.reasoner.deciding.Decider` answers ``requests``
+decisions (the quadrotor red-box scenario, options 0 continue / 1 alternative landing
+site / 2 holding zone), ``concurrency`` at a time on one event loop.
+
+Definitions (all times ``time.monotonic``):
+
+- ``start``: just before ``Decider.decide`` (passed as ``received_at``); ``end``: just
+  after it returns. Deadline = ``start + K``.
+- **overshoot** = ``end - (start + K)`` (ms; negative = answered early), over all requests
+  and over the ``timeout`` decisions alone.
+- **deadline miss**: ``end > start + K + 1 ms`` (tolerance ``MISS_TOLERANCE_S``).
+- **fallback rate**: decisions whose source is not ``llm``, overall and by source.
+- **overhead excluding the LLM**, for ``llm`` decisions: ``(first backend call start -
+  start) + (end - winning call end)``; with one backend this is the decision latency minus
+  the backend's ``complete`` time. Backend time (measured by :class:`TimedBackend`)
+  includes the client side of HTTP (httpx), so it counts as "the LLM".
+- **hedging**: the same requests against a fresh primary server (same seed) plus a second
+  server (seed + 1), ``hedge_after_s`` = the single-backend run's p50 decision latency
+  unless given; p95 latency and fallback rate, hedged / single, as ratios.
+
+Each server draws latencies from one seeded RNG in arrival order, so with concurrency
+the draws are reproducible in distribution, not request by request.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import contextvars
+import logging
+import os
+import sys
+import tempfile
+import time
+from collections import Counter
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
+from shared.process import ServiceProcess, free_port
+
+from .backends import (
+    BackendConfig,
+    ChatBackend,
+    Completion,
+    OpenAIChatBackend,
+    StopWhen,
+    make_client,
+)
+from .deciding import Decider, DeciderConfig
+
+log = logging.getLogger(__name__)
+
+PAPER_K_S = 4.3  # s: the paper's deadline, the bimodal profile's 95th percentile
+MISS_TOLERANCE_S = 0.001  # s: an answer later than K + this is a deadline miss
+TARGET_OVERSHOOT_P99_MS = 20.0
+TARGET_OVERHEAD_P99_MS = 5.0
+SOURCES = ("llm", "timeout", "parse_error", "backend_error")
+
+TASK = "land the quadrotor on the red box"
+RED_BOX = "another quadrotor is parked on the red box\na blue box on the ground"
+OPTIONS = (
+    Option(index=0, label="continue", description="proceed with landing on the red box"),
+    Option(index=1, label="alternative landing site", description="land on the blue box instead"),
+    Option(index=2, label="holding zone", description="hover in the designated holding zone"),
+)
+
+
+# --------------------------------------------------------------------------- timing
+
+
+@dataclass
+class Call:
+    """One ``complete`` call: monotonic start/end and whether it returned a completion."""
+
+    backend: str
+    t0: float
+    t1: float = 0.0
+    ok: bool = False
+
+
+_CALLS: contextvars.ContextVar[list[Call] | None] = contextvars.ContextVar(
+    "aesop_bench_calls", default=None)
+
+
+class TimedBackend:
+    """A :class:`ChatBackend` that records every ``complete`` call into the current
+    request's list (a context variable; the decider's attempt tasks copy the context)."""
+
+    def __init__(self, inner: ChatBackend) -> None:
+        self._inner = inner
+        self.name = inner.name
+        self.model = inner.model
+
+    async def complete(self, messages: list[dict[str, str]], *,
+                       stop_when: StopWhen | None = None) -> Completion:
+        call = Call(self.name, time.monotonic())
+        calls = _CALLS.get()
+        if calls is not None:
+            calls.append(call)
+        try:
+            completion = await self._inner.complete(messages, stop_when=stop_when)
+            call.ok = True
+            return completion
+        finally:
+            call.t1 = time.monotonic()
+
+    async def aclose(self) -> None:
+        await self._inner.aclose()
+
+
+@dataclass
+class Sample:
+    """One decision: when it started and ended, and the backend calls behind it."""
+
+    start: float
+    end: float
+    decision: ReasonerDecision
+    calls: list[Call] = field(default_factory=list)
+
+    @property
+    def latency_s(self) -> float:
+        return self.end - self.start
+
+    def overhead_s(self) -> float | None:
+        """Time outside the LLM for an ``llm`` decision (see module docstring)."""
+        done = [c for c in self.calls if c.ok]
+        if self.decision.source != "llm" or not done or not self.calls:
+            return None
+        first = min(c.t0 for c in self.calls)
+        winner = min(done, key=lambda c: c.t1)
+        return (first - self.start) + (self.end - winner.t1)
+
+    def overhead_parts_s(self) -> tuple[float, float] | None:
+        """(before the first backend call, after the winning call) of :meth:`overhead_s`."""
+        if self.overhead_s() is None:
+            return None
+        winner = min((c for c in self.calls if c.ok), key=lambda c: c.t1)
+        return min(c.t0 for c in self.calls) - self.start, self.end - winner.t1
+
+
+# --------------------------------------------------------------------------- the run
+
+
+def run_reasoner_bench(*, requests: int = 1000, scale: float = 0.1, concurrency: int = 8,
+                       seed: int = 0, hedge_after_s: float | None = None,
+                       table: bool = True) -> dict[str, Any]:
+    """Run the single-backend and the hedged phase; return one JSON-able dict.
+
+    Tables go to stdout when ``table``; progress goes to stderr (stray prints too).
+    """
+    if requests < 1 or concurrency < 1 or not scale > 0:
+        raise ValueError("requests and concurrency must be >= 1 and scale > 0")
+    out = sys.stdout
+    started = time.perf_counter()
+    load_start = list(os.getloadavg())
+    deadline_s = PAPER_K_S * scale
+    model = f"fake-bimodal-scale-{scale:g}"
+    with contextlib.redirect_stdout(sys.stderr), \
+            tempfile.TemporaryDirectory(prefix="aesop-bench-reasoner-") as tmp:
+        logs = Path(tmp)
+        log.info("bench reasoner: %d requests, K = %.3f s (scale %g), concurrency %d, seed %d",
+                 requests, deadline_s, scale, concurrency, seed)
+        with _fake_servers(logs, scale, [seed], "single") as urls:
+            single, loop_lag = asyncio.run(_phase(urls, model, requests, deadline_s,
+                                                  concurrency, None))
+        single_lat = [s.latency_s for s in single]
+        hedge = float(np.percentile(single_lat, 50)) if hedge_after_s is None else hedge_after_s
+        log.info("bench reasoner: hedged phase, hedge_after_s = %.3f s", hedge)
+        with _fake_servers(logs, scale, [seed, seed + 1], "hedged") as urls:
+            hedged, hedged_lag = asyncio.run(_phase(urls, model, requests, deadline_s,
+                                                    concurrency, hedge))
+    result = _summarise(single, hedged, deadline_s=deadline_s, hedge_after_s=hedge,
+                        hedge_given=hedge_after_s is not None)
+    result["meta"] = {
+        "scale": scale, "paper_deadline_s": PAPER_K_S, "concurrency": concurrency,
+        "seed": seed, "model": model, "profile": "bimodal",
+        "miss_tolerance_ms": MISS_TOLERANCE_S * 1e3, "margin_s": DeciderConfig().margin_s,
+        "loop_lag_ms": {"single": loop_lag, "hedged": hedged_lag},
+        "cpus": os.cpu_count(), "load_average_start": load_start,
+        "load_average_end": list(os.getloadavg()), "wall_s": time.perf_counter() - started,
+    }
+    if table:
+        print(render(result), file=out, flush=True)
+    return result
+
+
+@contextlib.contextmanager
+def _fake_servers(logs: Path, scale: float, seeds: Sequence[int], phase: str
+                  ) -> Iterator[list[str]]:
+    """Fake LLM processes (bimodal, ``scale``), one per seed; always stopped on exit."""
+    procs: list[ServiceProcess] = []
+    try:
+        for i, seed in enumerate(seeds):
+            port = free_port()
+            proc = ServiceProcess(
+                ["serve", "fake-llm", "--port", str(port), "--profile", "bimodal",
+                 "--time-scale", f"{scale:g}", "--seed", str(seed), "--log-level", "warning"],
+                port=port, log_path=logs / f"fake_llm_{phase}_{i}.log")
+            procs.append(proc)
+            proc.start()
+            log.info("bench reasoner: fake LLM %s/%d (seed %d) at %s", phase, i, seed, proc.url)
+        yield [p.url for p in procs]
+    finally:
+        for proc in reversed(procs):
+            proc.stop()
+
+
+async def _phase(urls: Sequence[str], model: str, n: int, deadline_s: float,
+                 concurrency: int, hedge_after_s: float | None
+                 ) -> tuple[list[Sample], dict[str, float]]:
+    client = make_client()  # shared, so the warm-up opens the connections the run uses
+    configs = [BackendConfig(name=f"fake{i}", base_url=f"{url}/v1", model=model)
+               for i, url in enumerate(urls)]
+    backends = [TimedBackend(OpenAIChatBackend(c, client=client)) for c in configs]
+    decider = Decider(backends, DeciderConfig(domain="quadrotor", hedge_after_s=hedge_after_s))
+    try:
+        await _warm_up(client, urls, concurrency)
+        gate = asyncio.Semaphore(concurrency)
+        stop = asyncio.Event()
+        lag_task = asyncio.create_task(_loop_lag(stop))
+
+        async def one(i: int) -> Sample:
+            async with gate:
+                calls: list[Call] = []
+                token = _CALLS.set(calls)
+                try:
+                    start = time.monotonic()
+                    decision = await decider.decide(_request(i, deadline_s), received_at=start)
+                    end = time.monotonic()
+                finally:
+                    _CALLS.reset(token)
+                return Sample(start, end, decision, calls)
+
+        samples = await asyncio.gather(*(one(i) for i in range(n)))
+        stop.set()
+        lags = await lag_task
+    finally:
+        await decider.aclose()
+        await client.aclose()
+    return list(samples), lags
+
+
+async def _warm_up(client: Any, urls: Sequence[str], concurrency: int) -> None:
+    """Open ``concurrency`` connections per server with instant answers (not measured)."""
+    messages = [{"role": "user", "content": "warm-up"}]
+    for i, url in enumerate(urls):
+        warm = OpenAIChatBackend(BackendConfig(name=f"warm{i}", base_url=f"{url}/v1",
+                                               model="fake-fixed-0", stream=False),
+                                 client=client)
+        await asyncio.gather(*(warm.complete(messages) for _ in range(concurrency)))
+
+
+async def _loop_lag(stop: asyncio.Event, period_s: float = 0.001) -> dict[str, float]:
+    """How late a 1 ms sleep wakes up while the run goes on (event-loop load), in ms."""
+    late: list[float] = []
+    while not stop.is_set():
+        t0 = time.monotonic()
+        await asyncio.sleep(period_s)
+        late.append((time.monotonic() - t0 - period_s) * 1e3)
+    ms = np.asarray(late or [0.0])
+    return {"p50": float(np.percentile(ms, 50)), "p99": float(np.percentile(ms, 99)),
+            "max": float(ms.max())}
+
+
+def _request(i: int, deadline_s: float) -> ReasonerRequest:
+    return ReasonerRequest(
+        request_id=f"bench-{i}", observation=Observation(seq=i, task=TASK, text=RED_BOX),
+        options=OPTIONS, deadline_s=deadline_s)
+
+
+# --------------------------------------------------------------------------- statistics
+
+
+def _stats(values_ms: Sequence[float], keys: Sequence[str] = ("p50", "p99", "max")
+           ) -> dict[str, float | None]:
+    """Percentiles (``pNN``), ``max`` and ``mean`` of values in ms; None when empty."""
+    if not values_ms:
+        return {k: None for k in keys}
+    a = np.asarray(values_ms, dtype=np.float64)
+    out: dict[str, float | None] = {}
+    for k in keys:
+        if k == "max":
+            out[k] = float(a.max())
+        elif k == "mean":
+            out[k] = float(a.mean())
+        else:
+            out[k] = float(np.percentile(a, float(k[1:])))
+    return out
+
+
+def _phase_summary(samples: Sequence[Sample], deadline_s: float) -> dict[str, Any]:
+    over = [(s.latency_s - deadline_s) * 1e3 for s in samples]
+    timeouts = [o for o, s in zip(over, samples, strict=True) if s.decision.source == "timeout"]
+    sources = Counter(s.decision.source for s in samples)
+    n = len(samples)
+    overhead = [o * 1e3 for s in samples if (o := s.overhead_s()) is not None]
+    backend_ms = [(c.t1 - c.t0) * 1e3 for s in samples for c in s.calls if c.ok]
+    return {
+        "requests": n,
+        "deadline_misses": sum(1 for o in over if o > MISS_TOLERANCE_S * 1e3),
+        "overshoot_ms": _stats(over),
+        "overshoot_timeouts_ms": {"n": len(timeouts), **_stats(timeouts)},
+        "fallback_rate": (n - sources["llm"]) / n,
+        "by_source": {src: sources[src] for src in SOURCES},
+        "fallback_by_reason": {src: sources[src] / n for src in SOURCES if src != "llm"},
+        "overhead_ms": {"n": len(overhead), **_stats(overhead, ("p50", "p99", "max"))},
+        "overhead_before_ms": _stats([p[0] * 1e3 for s in samples
+                                      if (p := s.overhead_parts_s()) is not None]),
+        "overhead_after_ms": _stats([p[1] * 1e3 for s in samples
+                                     if (p := s.overhead_parts_s()) is not None]),
+        "latency_ms": _stats([s.latency_s * 1e3 for s in samples], ("p50", "p95", "p99", "max")),
+        "backend_ms": _stats(backend_ms, ("p50", "p95", "max")),
+        "backend_calls": sum(len(s.calls) for s in samples),
+        "llm_choices": dict(sorted(Counter(s.decision.choice for s in samples
+                                           if s.decision.source == "llm").items())),
+    }
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    return None if a is None or b is None or b == 0 else a / b
+
+
+def _summarise(single: Sequence[Sample], hedged: Sequence[Sample], *, deadline_s: float,
+               hedge_after_s: float, hedge_given: bool) -> dict[str, Any]:
+    s, h = _phase_summary(single, deadline_s), _phase_summary(hedged, deadline_s)
+    hedging = {
+        "hedge_after_s": hedge_after_s,
+        "hedge_after_rule": "given" if hedge_given else "single-backend p50 decision latency",
+        "backends": 2,
+        "p95_latency_ms": {"single": s["latency_ms"]["p95"], "hedged": h["latency_ms"]["p95"]},
+        "p95_latency_ratio": _ratio(h["latency_ms"]["p95"], s["latency_ms"]["p95"]),
+        "fallback_rate": {"single": s["fallback_rate"], "hedged": h["fallback_rate"]},
+        "fallback_rate_ratio": _ratio(h["fallback_rate"], s["fallback_rate"]),
+        "hedged_run": h,
+    }
+    targets = {
+        "deadline_misses_zero": s["deadline_misses"] == 0 and h["deadline_misses"] == 0,
+        "overshoot_p99_le_20ms": _le(s["overshoot_ms"]["p99"], TARGET_OVERSHOOT_P99_MS)
+        and _le(h["overshoot_ms"]["p99"], TARGET_OVERSHOOT_P99_MS),
+        "overhead_p99_le_5ms": _le(s["overhead_ms"]["p99"], TARGET_OVERHEAD_P99_MS),
+    }
+    return {
+        "requests": s["requests"], "deadline_s": deadline_s,
+        "deadline_misses": s["deadline_misses"],
+        "overshoot_ms": s["overshoot_ms"],
+        "overshoot_timeouts_ms": s["overshoot_timeouts_ms"],
+        "fallback_rate": s["fallback_rate"], "fallback_by_reason": s["fallback_by_reason"],
+        "overhead_ms": {k: s["overhead_ms"][k] for k in ("p50", "p99")},
+        "hedging": hedging, "targets": targets, "single_run": s,
+    }
+
+
+def _le(value: float | None, limit: float) -> bool:
+    return value is not None and value <= limit
+
+
+# --------------------------------------------------------------------------- tables
+
+
+def _table(title: str, rows: Sequence[Mapping[str, Any]]) -> str:
+    """A plain-text table: a title, a header from the first row's keys, aligned columns."""
+    if not rows:
+        return f"{title}\n  (no rows)\n"
+    header = list(rows[0])
+    cells = [[_cell(row.get(col)) for col in header] for row in rows]
+    widths = [max(len(h), *(len(r[i]) for r in cells)) for i, h in enumerate(header)]
+    lines = [title, "  " + "  ".join(h.rjust(w) for h, w in zip(header, widths, strict=True))]
+    lines += ["  " + "  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True))
+              for r in cells]
+    return "\n".join(lines) + "\n"
+
+
+def _cell(value: Any) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, bool):
+        return "yes" if value else "NO"
+    if isinstance(value, float):
+        return f"{value:.3f}" if abs(value) < 100 else f"{value:.0f}"
+    return str(value)
+
+
+def render(r: Mapping[str, Any]) -> str:
+    meta, h = r["meta"], r["hedging"]
+    runs = {"single": r["single_run"], "hedged": h["hedged_run"]}
+    k_ms = r["deadline_s"] * 1e3
+    parts = [
+        f"reasoner bench: {r['requests']} requests per run, bimodal fake LLM x{meta['scale']:g}"
+        f", K = {k_ms:.0f} ms (paper {meta['paper_deadline_s']} s x{meta['scale']:g}), "
+        f"concurrency {meta['concurrency']}, seed {meta['seed']}, decider margin "
+        f"{meta['margin_s'] * 1e3:g} ms, miss = answer > K + {meta['miss_tolerance_ms']:g} ms\n",
+        _table("deadline (overshoot = answer time - (start + K), ms; negative = early)", [
+            {"run": name, "misses": x["deadline_misses"], "p50": x["overshoot_ms"]["p50"],
+             "p99": x["overshoot_ms"]["p99"], "max": x["overshoot_ms"]["max"],
+             "timeouts": x["overshoot_timeouts_ms"]["n"],
+             "timeout p50": x["overshoot_timeouts_ms"]["p50"],
+             "timeout p99": x["overshoot_timeouts_ms"]["p99"],
+             "timeout max": x["overshoot_timeouts_ms"]["max"]} for name, x in runs.items()]),
+        _table("fallbacks by reason (fraction of requests)", [
+            {"run": name, "fallback": x["fallback_rate"],
+             **x["fallback_by_reason"], "llm choices": _choices(x["llm_choices"])}
+            for name, x in runs.items()]),
+        _table("latency and overhead excluding the LLM (ms, llm decisions)", [
+            {"run": name, "latency p50": x["latency_ms"]["p50"],
+             "latency p95": x["latency_ms"]["p95"], "latency p99": x["latency_ms"]["p99"],
+             "backend p50": x["backend_ms"]["p50"], "calls": x["backend_calls"],
+             "overhead p50": x["overhead_ms"]["p50"], "overhead p99": x["overhead_ms"]["p99"],
+             "overhead max": x["overhead_ms"]["max"],
+             "before p99": x["overhead_before_ms"]["p99"],
+             "after p99": x["overhead_after_ms"]["p99"],
+             "loop lag p99": meta["loop_lag_ms"][name]["p99"]} for name, x in runs.items()]),
+        _table(f"hedging (second backend after {h['hedge_after_s'] * 1e3:.0f} ms = "
+               f"{h['hedge_after_rule']}; ratio = hedged / single)", [
+            {"metric": "p95 latency (ms)", "single": h["p95_latency_ms"]["single"],
+             "hedged": h["p95_latency_ms"]["hedged"], "ratio": h["p95_latency_ratio"]},
+            {"metric": "fallback rate", "single": h["fallback_rate"]["single"],
+             "hedged": h["fallback_rate"]["hedged"], "ratio": h["fallback_rate_ratio"]}]),
+        _table("targets", [
+            {"target": "deadline misses = 0 (both runs)",
+             "met": r["targets"]["deadline_misses_zero"]},
+            {"target": f"overshoot p99 <= {TARGET_OVERSHOOT_P99_MS:g} ms (both runs)",
+             "met": r["targets"]["overshoot_p99_le_20ms"]},
+            {"target": f"overhead p99 <= {TARGET_OVERHEAD_P99_MS:g} ms (single run)",
+             "met": r["targets"]["overhead_p99_le_5ms"]}]),
+        f"total wall time {meta['wall_s']:.1f} s, load average "
+        f"{meta['load_average_start'][0]:.1f} -> {meta['load_average_end'][0]:.1f}",
+    ]
+    return "\n".join(parts)
+
+
+def _choices(counts: Mapping[Any, int]) -> str:
+    return " ".join(f"{k}:{v}" for k, v in counts.items()) or "-"
