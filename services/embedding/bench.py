@@ -48,6 +48,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from shared.process import ServiceProcess, free_port
+from shared.tables import table
 
 if TYPE_CHECKING:
     from .domains import Dataset
@@ -312,7 +313,7 @@ def bench_quality(bench: _Bench, plot: Path | None) -> dict[str, Any]:
         "model": bench.embedder.name, "k": K, "alpha": ALPHA, "repeats": bench.sizes.repeats,
         "test_set": "held-out 20% of nominal + all anomalies",
         "domains": domains,
-        "thresholds": _threshold_table(bench),
+        "thresholds": _thresholdtable(bench),
         "text_forms": _text_forms(bench),
     }
     if plot is not None:
@@ -406,7 +407,7 @@ def _text_forms(bench: _Bench) -> list[dict[str, Any]]:
     return rows
 
 
-def _threshold_table(bench: _Bench) -> dict[str, Any]:
+def _thresholdtable(bench: _Bench) -> dict[str, Any]:
     """VTOL, cache = random 80% of nominal: accuracy at the 75..95th LOO quantiles."""
     nominal, anomalies = bench.vectors("vtol")
     runs = []
@@ -901,31 +902,10 @@ def _mean_batch(metrics: str) -> float | None:
 # -- tables -----------------------------------------------------------------------------
 
 
-def _table(title: str, rows: Sequence[Mapping[str, Any]]) -> str:
-    """A plain-text table: a title, a header from the first row's keys, aligned columns."""
-    if not rows:
-        return f"{title}\n  (no rows)\n"
-    header = list(rows[0])
-    cells = [[_cell(row.get(col)) for col in header] for row in rows]
-    widths = [max(len(h), *(len(r[i]) for r in cells)) for i, h in enumerate(header)]
-    lines = [title, "  " + "  ".join(h.rjust(w) for h, w in zip(header, widths, strict=True))]
-    lines += ["  " + "  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True))
-              for r in cells]
-    return "\n".join(lines) + "\n"
-
-
-def _cell(value: Any) -> str:
-    if value is None:
-        return "-"
-    if isinstance(value, float):
-        return f"{value:.3f}" if abs(value) < 100 else f"{value:.0f}"
-    return str(value)
-
-
 def render(part: str, r: Mapping[str, Any]) -> str:
     """The human-readable tables of one part's result."""
     if "error" in r:
-        return _table(f"[{part}] FAILED", [{"error": r["error"]}])
+        return table(f"[{part}] FAILED", [{"error": r["error"]}])
     return {"quality": _render_quality, "latency": _render_latency, "search": _render_search,
             "loo": _render_loo, "build": _render_build, "memory": _render_memory,
             "rest": _render_rest}[part](r)
@@ -943,18 +923,18 @@ def _render_quality(r: Mapping[str, Any]) -> str:
                      "accuracy": _pm(p, "accuracy"), "balanced": _pm(p, "balanced_accuracy"),
                      "AUROC": _pm(p, "auroc"), "TPR": p.get("tpr"), "FPR": p.get("fpr")}
                     for p in d[key]]
-            out.append(_table(f"{head} -- vs {label}", rows))
+            out.append(table(f"{head} -- vs {label}", rows))
     t = r["thresholds"]
     rows = [{"LOO quantile": f"{row['quantile']:.0%}",
              "accuracy": f"{row['accuracy']:.3f} ({row['accuracy_std']:.3f})",
              "balanced": row["balanced_accuracy"], "paper MPNet": row["paper_mpnet"]}
             for row in t["rows"]]
-    out.append(_table(f"[quality] threshold quantiles, VTOL, cache = random 80% of nominal, "
+    out.append(table(f"[quality] threshold quantiles, VTOL, cache = random 80% of nominal, "
                       f"{t['seeds']} seeds, MiniLM (AUROC {t['auroc']:.3f}) vs paper MPNet", rows))
     rows = [{"domain": f["domain"], "text embedded": f["form"], "AUROC": f["auroc"],
              "accuracy": f["accuracy"], "balanced": f["balanced_accuracy"], "TPR": f["tpr"],
              "FPR": f["fpr"]} for f in r["text_forms"]]
-    out.append(_table("[quality] full prompt vs brief observation (no preamble), cache = 80% "
+    out.append(table("[quality] full prompt vs brief observation (no preamble), cache = 80% "
                       "of nominal, tau = 95% LOO quantile", rows))
     if "plot" in r:
         out.append(f"figure: {r['plot']}\n")
@@ -976,7 +956,7 @@ def _render_latency(r: Mapping[str, Any]) -> str:
                              ("embed only, full paper prompt", r["embed_only_prompt"]),
                              ("search + top-5 score only", r["search_only"]))]
     t = r["target_ms"]
-    return _table(f"[latency] one observation vs a {r['cache_size']}-entry cache; {r['text']}; "
+    return table(f"[latency] one observation vs a {r['cache_size']}-entry cache; {r['text']}; "
                   f"target median <= {t['median']:g} ms: {r['median_verdict']}, "
                   f"p99 <= {t['p99']:g} ms: {r['p99_verdict']}", rows)
 
@@ -997,12 +977,12 @@ def _render_search(r: Mapping[str, Any]) -> str:
               for s in r["sizes"]]
     title = (f"[search] k={r['k']}, clustered unit vectors dim {r['dim']} "
              f"({r['clusters']} centres)")
-    return (_table(f"{title}: single-query latency (FAISS OpenMP threads)", rows) + "\n"
-            + _table(f"{title}: builds and HNSW recall@5 over {r['queries']} queries", builds))
+    return (table(f"{title}: single-query latency (FAISS OpenMP threads)", rows) + "\n"
+            + table(f"{title}: builds and HNSW recall@5 over {r['queries']} queries", builds))
 
 
 def _render_loo(r: Mapping[str, Any]) -> str:
-    return _table(
+    return table(
         f"[loo] leave-one-out at {r['n']} x {r['dim']}, k={r['k']}, median of {r['repeats']}; "
         f"target <= {r['target_s']:g} s: {r['verdict']}",
         [{"Cache.loo_scores s": r["loo_scores_s"], "faiss search(x, k+1) s": r["faiss_search_s"],
@@ -1010,7 +990,7 @@ def _render_loo(r: Mapping[str, Any]) -> str:
 
 
 def _render_build(r: Mapping[str, Any]) -> str:
-    return _table(f"[build] CacheService.add of {r['texts']} brief VTOL observations, batch "
+    return table(f"[build] CacheService.add of {r['texts']} brief VTOL observations, batch "
                   f"{r['embed_batch_size']}",
                   [{"seconds": r["seconds"], "texts/s": r["texts_per_s"],
                     "vectors/s (no embedding)": r["vectors_per_s"],
@@ -1019,7 +999,7 @@ def _render_build(r: Mapping[str, Any]) -> str:
 
 def _render_memory(r: Mapping[str, Any]) -> str:
     rss = r["rss_mb"]
-    return _table(f"[memory] subprocess, model + {r['cache_size']}-vector cache; "
+    return table(f"[memory] subprocess, model + {r['cache_size']}-vector cache; "
                   f"target peak <= {r['target_mb']:g} MB: {r['verdict']}",
                   [{"after imports MB": rss["after_imports"], "+ model MB": rss["after_model"],
                     "+ cache MB": rss["after_cache"], "+ scoring MB": rss["after_scoring"],
@@ -1034,7 +1014,7 @@ def _render_rest(r: Mapping[str, Any]) -> str:
     rows.append({"server": "ratio on/off", "req/s": r["throughput_ratio"],
                  "p50 ms": r["p50_ratio"], "p99 ms": r["p99_ratio"], "errors": None,
                  "mean batch": None})
-    return _table(f"[rest] POST /score, one text each, {r['requests']} requests from "
+    return table(f"[rest] POST /score, one text each, {r['requests']} requests from "
                   f"{r['concurrency']} concurrent clients, cache {r['cache_size']}", rows)
 
 

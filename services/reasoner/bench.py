@@ -47,6 +47,7 @@ import numpy as np
 
 from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
 from shared.process import ServiceProcess, free_port
+from shared.tables import table
 
 from .backends import (
     BackendConfig,
@@ -367,29 +368,6 @@ def _le(value: float | None, limit: float) -> bool:
 # --------------------------------------------------------------------------- tables
 
 
-def _table(title: str, rows: Sequence[Mapping[str, Any]]) -> str:
-    """A plain-text table: a title, a header from the first row's keys, aligned columns."""
-    if not rows:
-        return f"{title}\n  (no rows)\n"
-    header = list(rows[0])
-    cells = [[_cell(row.get(col)) for col in header] for row in rows]
-    widths = [max(len(h), *(len(r[i]) for r in cells)) for i, h in enumerate(header)]
-    lines = [title, "  " + "  ".join(h.rjust(w) for h, w in zip(header, widths, strict=True))]
-    lines += ["  " + "  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True))
-              for r in cells]
-    return "\n".join(lines) + "\n"
-
-
-def _cell(value: Any) -> str:
-    if value is None:
-        return "-"
-    if isinstance(value, bool):
-        return "yes" if value else "NO"
-    if isinstance(value, float):
-        return f"{value:.3f}" if abs(value) < 100 else f"{value:.0f}"
-    return str(value)
-
-
 def render(r: Mapping[str, Any]) -> str:
     meta, h = r["meta"], r["hedging"]
     runs = {"single": r["single_run"], "hedged": h["hedged_run"]}
@@ -399,18 +377,18 @@ def render(r: Mapping[str, Any]) -> str:
         f", K = {k_ms:.0f} ms (paper {meta['paper_deadline_s']} s x{meta['scale']:g}), "
         f"concurrency {meta['concurrency']}, seed {meta['seed']}, decider margin "
         f"{meta['margin_s'] * 1e3:g} ms, miss = answer > K + {meta['miss_tolerance_ms']:g} ms\n",
-        _table("deadline (overshoot = answer time - (start + K), ms; negative = early)", [
+        table("deadline (overshoot = answer time - (start + K), ms; negative = early)", [
             {"run": name, "misses": x["deadline_misses"], "p50": x["overshoot_ms"]["p50"],
              "p99": x["overshoot_ms"]["p99"], "max": x["overshoot_ms"]["max"],
              "timeouts": x["overshoot_timeouts_ms"]["n"],
              "timeout p50": x["overshoot_timeouts_ms"]["p50"],
              "timeout p99": x["overshoot_timeouts_ms"]["p99"],
              "timeout max": x["overshoot_timeouts_ms"]["max"]} for name, x in runs.items()]),
-        _table("fallbacks by reason (fraction of requests)", [
+        table("fallbacks by reason (fraction of requests)", [
             {"run": name, "fallback": x["fallback_rate"],
              **x["fallback_by_reason"], "llm choices": _choices(x["llm_choices"])}
             for name, x in runs.items()]),
-        _table("latency and overhead excluding the LLM (ms, llm decisions)", [
+        table("latency and overhead excluding the LLM (ms, llm decisions)", [
             {"run": name, "latency p50": x["latency_ms"]["p50"],
              "latency p95": x["latency_ms"]["p95"], "latency p99": x["latency_ms"]["p99"],
              "backend p50": x["backend_ms"]["p50"], "calls": x["backend_calls"],
@@ -419,13 +397,13 @@ def render(r: Mapping[str, Any]) -> str:
              "before p99": x["overhead_before_ms"]["p99"],
              "after p99": x["overhead_after_ms"]["p99"],
              "loop lag p99": meta["loop_lag_ms"][name]["p99"]} for name, x in runs.items()]),
-        _table(f"hedging (second backend after {h['hedge_after_s'] * 1e3:.0f} ms = "
+        table(f"hedging (second backend after {h['hedge_after_s'] * 1e3:.0f} ms = "
                f"{h['hedge_after_rule']}; ratio = hedged / single)", [
             {"metric": "p95 latency (ms)", "single": h["p95_latency_ms"]["single"],
              "hedged": h["p95_latency_ms"]["hedged"], "ratio": h["p95_latency_ratio"]},
             {"metric": "fallback rate", "single": h["fallback_rate"]["single"],
              "hedged": h["fallback_rate"]["hedged"], "ratio": h["fallback_rate_ratio"]}]),
-        _table("targets", [
+        table("targets", [
             {"target": "deadline misses = 0 (both runs)",
              "met": r["targets"]["deadline_misses_zero"]},
             {"target": f"overshoot p99 <= {TARGET_OVERSHOOT_P99_MS:g} ms (both runs)",

@@ -16,7 +16,8 @@ from typing import Any
 
 import pytest
 
-from services.embedding.bench import QUICK, _jsonable, _table
+from services.embedding.bench import QUICK, _jsonable
+from shared.tables import table
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -87,7 +88,7 @@ def test_results_become_strict_json() -> None:
 
 
 def test_table_aligns_columns() -> None:
-    text = _table("title", [{"name": "x", "ms": 1.23456, "none": None},
+    text = table("title", [{"name": "x", "ms": 1.23456, "none": None},
                             {"name": "longer", "ms": 1234.5, "none": 2}])
     lines = text.splitlines()
     assert lines[0] == "title"
