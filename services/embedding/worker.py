@@ -8,15 +8,15 @@ share one embedding call) and answered with an ``AnomalyVerdict`` on
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import time
 from collections.abc import Callable
 from typing import Any
 
 from shared import topics
-from shared.bus import Bus
+from shared.bus import Bus, Received
 from shared.messages import AnomalyVerdict, Event, Observation
+from shared.pump import MessagePump
 
 from .errors import DetectorError
 from .service import CacheService, ScoreBatch
@@ -50,9 +50,8 @@ class DetectorWorker:
         self.owns_bus = owns_bus
         self.cache = cache
         self.metrics = metrics
-        self._slots = asyncio.Semaphore(max_in_flight)
-        self._tasks: set[asyncio.Task[None]] = set()
-        self._subscription: Any = None
+        self._pump = MessagePump(bus, topics.observation(topics.ANY_ROBOT), Observation,
+                                 self._handle, max_in_flight=max_in_flight, maxsize=1024)
         self._last_alarm = 0.0
 
     @classmethod
@@ -67,29 +66,17 @@ class DetectorWorker:
         return make
 
     async def run(self) -> None:
-        self._subscription = self.bus.subscribe(
-            topics.observation(topics.ANY_ROBOT), Observation, maxsize=1024)
-        async for received in self._subscription:
-            await self._slots.acquire()
-            task = asyncio.create_task(self._handle(received.message, received.key))
-            self._tasks.add(task)
-            task.add_done_callback(self._done)
-
-    def _done(self, task: asyncio.Task[None]) -> None:
-        self._tasks.discard(task)
-        self._slots.release()
+        await self._pump.run()
 
     async def stop(self) -> None:
-        if self._subscription is not None:
-            self._subscription.close()
-        if self._tasks:
-            await asyncio.gather(*self._tasks, return_exceptions=True)
+        await self._pump.stop()
         if self.owns_bus:
             self.bus.close()
 
-    async def _handle(self, obs: Observation, key: str) -> None:
+    async def _handle(self, received: Received[Observation]) -> None:
         start = time.perf_counter()
-        robot = topics.robot_of(key)
+        obs = received.message
+        robot = topics.robot_of(received.key)
         try:
             batch = await self.service.score_texts(self.cache, [obs.text])
         except DetectorError as exc:

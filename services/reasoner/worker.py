@@ -7,19 +7,16 @@ deadline counts from the moment the request reached this process.
 
 from __future__ import annotations
 
-import asyncio
-import logging
 from collections.abc import Callable
 from typing import Any
 
 from shared import topics
-from shared.bus import Bus
+from shared.bus import Bus, Received
 from shared.messages import ReasonerRequest
+from shared.pump import MessagePump
 
 from .deciding import Decider
 from .settings import ReasonerSettings
-
-log = logging.getLogger(__name__)
 
 
 class ReasonerWorker:
@@ -29,9 +26,8 @@ class ReasonerWorker:
         self.bus = bus
         self.metrics = metrics
         self.owns_bus = owns_bus
-        self._slots = asyncio.Semaphore(max_in_flight)
-        self._tasks: set[asyncio.Task[None]] = set()
-        self._subscription: Any = None
+        self._pump = MessagePump(bus, topics.reasoner_request(topics.ANY_ROBOT),
+                                 ReasonerRequest, self._answer, max_in_flight=max_in_flight)
 
     @classmethod
     def factory(cls, settings: ReasonerSettings) -> Callable[[Decider, Any], ReasonerWorker]:
@@ -41,33 +37,17 @@ class ReasonerWorker:
         return make
 
     async def run(self) -> None:
-        self._subscription = self.bus.subscribe(
-            topics.reasoner_request(topics.ANY_ROBOT), ReasonerRequest, maxsize=256)
-        async for received in self._subscription:
-            await self._slots.acquire()
-            task = asyncio.create_task(
-                self._answer(received.message, received.key, received.received_at))
-            self._tasks.add(task)
-            task.add_done_callback(self._done)
+        await self._pump.run()
 
-    def _done(self, task: asyncio.Task[None]) -> None:
-        self._tasks.discard(task)
-        self._slots.release()
-        if not task.cancelled() and task.exception() is not None:
-            log.error("answering a reasoner request failed", exc_info=task.exception())
-
-    async def _answer(self, request: ReasonerRequest, key: str, received_at: float) -> None:
-        robot = topics.robot_of(key)
-        decision = await self.decider.decide(request, received_at=received_at)
+    async def _answer(self, received: Received[ReasonerRequest]) -> None:
+        robot = topics.robot_of(received.key)
+        decision = await self.decider.decide(received.message, received_at=received.received_at)
         decision = decision.model_copy(update={"robot": robot})
         self.bus.publish(topics.reasoner_decision(robot), decision)
         if self.metrics is not None:
             self.metrics.observe(decision)
 
     async def stop(self) -> None:
-        if self._subscription is not None:
-            self._subscription.close()
-        if self._tasks:
-            await asyncio.gather(*self._tasks, return_exceptions=True)
+        await self._pump.stop()
         if self.owns_bus:
             self.bus.close()
