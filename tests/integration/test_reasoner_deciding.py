@@ -118,6 +118,8 @@ async def test_stall_times_out_and_closes_connection(fake_llm: str, stats: FakeS
     assert decision.choice == 1  # first recovery option
     assert decision.model == ""
     assert "deadline" in decision.rationale
+    # the component's contract, not a speed measurement: a stalled LLM never holds the
+    # caller past its deadline (issue 4 allows exactly this check, with generous slack)
     assert elapsed < 0.5 + 1.0
     after = await stats.settled()
     assert after["active"] == 0
