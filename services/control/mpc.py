@@ -1,0 +1,444 @@
+"""The AESOP multi-branch MPC, eq. 3 of the paper, on OSQP.
+
+``J_t(Y, K, T)``: one nominal branch (index 0) and one recovery branch per
+region in ``Y``, each a trajectory of the hover model over ``T`` steps:
+
+* every branch starts at the measured state ``x_t``;
+* every recovery branch shares its first input with the nominal branch;
+* the recovery branches share their first ``K`` inputs with each other;
+* recovery branch ``i`` lies in region ``X_R^i`` from step ``s`` on (``s = T``
+  in nominal operation, ``T - k`` while a decision is pending); regions are
+  sets of equilibria, so holding them to the end of the horizon changes no
+  feasibility and keeps the problem's shape fixed;
+* state and input boxes on every step of every branch.
+
+The cost is the nominal task cost ``C`` (quadratic tracking of the goal plus
+input effort) plus a small, ``recovery``-weighted tracking cost on each
+recovery branch toward its region's centre, which makes the recovery plans
+unique and smooth without moving the optimum of ``C`` noticeably.
+
+A :class:`BranchProblem` has a fixed shape (number of branches, horizon) and
+is built and factorized once; each tick only vectors change (initial state,
+bounds that encode ``s`` and ``K``, targets), and OSQP warm-starts from the
+previous solution. Shrinking horizons and consensus are bound updates, not
+new problems.
+
+Two robustness details for a plant that is not the linear model:
+
+* constraints on velocity, tilt and rates are tightened by ``shrink`` (3 %),
+  so small model errors do not violate the true limits;
+* if the measured state already exceeds a tightened bound (model error), the
+  bounds of the first ``relax_steps`` steps are widened by that excess,
+  tapering linearly to zero, so the problem stays feasible while the plan
+  brings the state back.
+
+Every recovery branch carries an L1-priced slack per state component that
+shifts its state box (limits and region alike). A problem therefore always
+solves; a plan is *feasible* when the solver converged and the largest slack
+is below ``slack_tolerance``. This is what the baselines need (the
+least-violating plan), it makes AESOP's subset selection a comparison of
+finished solves instead of slow infeasibility detection, and it keeps an
+inexact solve from turning an edge-of-feasibility recovery into "infeasible"
+on the next tick.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+import osqp
+import scipy.sparse as sp
+
+from .dynamics import LinearModel
+from .regions import Region
+
+
+class SolveStatus(StrEnum):
+    SOLVED = "solved"
+    INACCURATE = "solved_inaccurate"
+    INFEASIBLE = "infeasible"
+    MAX_ITER = "max_iter"
+    FAILED = "failed"
+
+    @property
+    def feasible(self) -> bool:
+        return self is SolveStatus.SOLVED
+
+
+_OSQP_STATUS = {
+    osqp.SolverStatus.OSQP_SOLVED: SolveStatus.SOLVED,
+    osqp.SolverStatus.OSQP_SOLVED_INACCURATE: SolveStatus.INACCURATE,
+    osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE: SolveStatus.INFEASIBLE,
+    osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE_INACCURATE: SolveStatus.INFEASIBLE,
+    osqp.SolverStatus.OSQP_MAX_ITER_REACHED: SolveStatus.MAX_ITER,
+}
+
+
+@dataclass(frozen=True)
+class Weights:
+    """Diagonal quadratic weights of the tracking cost (per unit of state/input)."""
+
+    position: float = 1.0  # 1/m^2
+    velocity: float = 0.2  # s^2/m^2
+    attitude: float = 0.5  # 1/rad^2
+    rate: float = 0.1  # s^2/rad^2
+    thrust: float = 0.05  # 1/N^2
+    torque: float = 1.0  # 1/(N m)^2
+
+    def state(self) -> np.ndarray:
+        return np.repeat([self.position, self.velocity, self.attitude, self.rate], 3)
+
+    def input(self) -> np.ndarray:
+        return np.array([self.thrust, self.torque, self.torque, self.torque])
+
+
+@dataclass(frozen=True)
+class MPCConfig:
+    horizon: int = 40  # T, steps
+    consensus: int = 15  # K, steps
+    weights: Weights = field(default_factory=Weights)
+    recovery_weight: float = 0.01  # scale of the recovery branches' own tracking cost
+    shrink: float = 0.03  # fraction by which velocity/tilt/rate limits are tightened
+    relax_steps: int = 10  # steps over which an initial-state excess is tapered out
+    min_region_step: int = 5  # earliest step a shrinking horizon may pin a region to
+    slack_weight: float = 1000.0  # L1 price per unit of constraint violation
+    slack_tolerance: float = 1e-2  # largest slack (m, m/s, rad) a feasible plan may have
+    eps_abs: float = 1e-3
+    eps_rel: float = 1e-3
+    max_iter: int = 500  # per warm solve; a solve that needs more is not trusted
+    max_iter_cold: int = 10000  # the first solve of a problem has no warm start
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.consensus < self.horizon:
+            raise ValueError("need 0 <= consensus < horizon")
+        if not 1 <= self.min_region_step <= self.horizon:
+            raise ValueError("need 1 <= min_region_step <= horizon")
+
+
+@dataclass(frozen=True)
+class Plan:
+    """One solve of eq. 3. Trajectories are ``(T+1, 12)`` state arrays."""
+
+    status: SolveStatus
+    cost: float
+    u0: np.ndarray  # absolute first input [N, N m]
+    inputs: np.ndarray  # (T, 4) absolute inputs of the branch the robot follows
+    nominal: np.ndarray | None
+    recovery: dict[int, np.ndarray]
+    recovery_inputs: dict[int, np.ndarray]  # (T, 4) absolute inputs per region
+    consensus: int
+    region_step: int
+    iterations: int
+    solve_ms: float
+    slack: float = 0.0  # largest constraint violation of a recovery branch
+    slack_tolerance: float = 1e-2
+
+    @property
+    def feasible(self) -> bool:
+        return self.status.feasible and self.slack <= self.slack_tolerance
+
+
+class BranchProblem:
+    """Eq. 3 with a fixed shape: ``nominal`` (0 or 1) + ``n_recovery`` branches.
+
+    ``nominal=False`` is the recovering problem ``J({y}, 0, .)``: the recovery
+    branch is the one followed, with full tracking weight toward its region.
+    """
+
+    def __init__(self, model: LinearModel, x_bounds: tuple[np.ndarray, np.ndarray],
+                 u_bounds: tuple[np.ndarray, np.ndarray], config: MPCConfig,
+                 n_recovery: int, nominal: bool = True, soft: bool = False) -> None:
+        if n_recovery < 0 or (not nominal and n_recovery != 1):
+            raise ValueError("a problem without a nominal branch has exactly one recovery branch")
+        self.model, self.config = model, config
+        self.n_rec, self.has_nominal, self.soft = n_recovery, nominal, soft
+        self.n_branches = n_recovery + int(nominal)
+        n, m, horizon = model.n, model.m, config.horizon
+        self._x_lo_true, self._x_hi_true = x_bounds
+        lo, hi = x_bounds
+        span = np.where(np.isfinite(hi) & np.isfinite(lo) & (lo == -hi), 1.0 - config.shrink, 1.0)
+        self.x_lo, self.x_hi = lo * span, hi * span
+        self.du_lo = u_bounds[0] - model.u_hover
+        self.du_hi = u_bounds[1] - model.u_hover
+        self.branch_size = (horizon + 1) * n + horizon * m
+        self.n_var = self.n_branches * self.branch_size + (2 * n * n_recovery if soft else 0)
+        self._build()
+        self._var_shift, self._con_shift = self._shift_maps()
+        self._previous: tuple[np.ndarray, np.ndarray] | None = None
+        self.shift_warm_start = True
+        self._warm = False
+        self.solver = osqp.OSQP()
+        self.solver.setup(self._p, self._q.copy(), self._a, self._lower.copy(), self._upper.copy(),
+                          eps_abs=config.eps_abs, eps_rel=config.eps_rel,
+                          max_iter=config.max_iter_cold, verbose=False, warm_starting=True,
+                          polishing=False, check_termination=5)
+
+    # -- layout -----------------------------------------------------------------------------
+    def _x(self, branch: int, step: int) -> int:
+        return branch * self.branch_size + step * self.model.n
+
+    def _u(self, branch: int, step: int) -> int:
+        n, horizon = self.model.n, self.config.horizon
+        return branch * self.branch_size + (horizon + 1) * n + step * self.model.m
+
+    def _sigma(self, slot: int) -> int:
+        """First of ``2 n`` slack variables (sigma+, then sigma-) of recovery slot ``slot``."""
+        return self.n_branches * self.branch_size + 2 * slot * self.model.n
+
+    def _slot_branch(self, slot: int) -> int:
+        """Branch number of recovery slot ``slot`` (0-based)."""
+        return slot + int(self.has_nominal)
+
+    def _build(self) -> None:
+        n, m, horizon = self.model.n, self.model.m, self.config.horizon
+        a_dyn, b_dyn = self.model.a, self.model.b
+        rows: list[sp.spmatrix] = []
+        lows: list[np.ndarray] = []
+        highs: list[np.ndarray] = []
+        n_var = self.n_var
+
+        def block(entries: list[tuple[int, np.ndarray]], height: int) -> sp.csc_matrix:
+            mat = sp.lil_matrix((height, n_var))
+            for col, values in entries:
+                mat[:, col:col + values.shape[1]] = values
+            return mat
+
+        eye_n, eye_m = np.eye(n), np.eye(m)
+        # initial state: x_b[0] = x_t
+        self._init_rows = []
+        offset = 0
+        for b in range(self.n_branches):
+            rows.append(block([(self._x(b, 0), eye_n)], n))
+            self._init_rows.append(offset)
+            lows.append(np.zeros(n))
+            highs.append(np.zeros(n))
+            offset += n
+        # dynamics: x_b[j+1] - A x_b[j] - B du_b[j] = 0
+        dyn = []
+        for b in range(self.n_branches):
+            for j in range(horizon):
+                dyn.append(block([(self._x(b, j), -a_dyn), (self._u(b, j), -b_dyn),
+                                  (self._x(b, j + 1), eye_n)], n))
+        rows.append(sp.vstack(dyn))
+        lows.append(np.zeros(len(dyn) * n))
+        highs.append(np.zeros(len(dyn) * n))
+        offset += len(dyn) * n
+        # state boxes on steps 1..T (the region rows are these rows with tighter bounds)
+        self._state_rows = offset
+        r_idx, c_idx, vals = [], [], []
+        row = 0
+        for b in range(self.n_branches):
+            slot = b - int(self.has_nominal)
+            for j in range(1, horizon + 1):
+                for i in range(n):
+                    r_idx.append(row)
+                    c_idx.append(self._x(b, j) + i)
+                    vals.append(1.0)
+                    if self.soft and slot >= 0:  # x - sigma+ + sigma- within the box
+                        r_idx += [row, row]
+                        c_idx += [self._sigma(slot) + i, self._sigma(slot) + n + i]
+                        vals += [-1.0, 1.0]
+                    row += 1
+        rows.append(sp.csc_matrix((vals, (r_idx, c_idx)), shape=(row, n_var)))
+        lows.append(np.zeros(row))
+        highs.append(np.zeros(row))
+        offset += row
+        # input boxes
+        cols = [self._u(b, j) + i for b in range(self.n_branches)
+                for j in range(horizon) for i in range(m)]
+        rows.append(sp.csc_matrix((np.ones(len(cols)), (np.arange(len(cols)), cols)),
+                                  shape=(len(cols), n_var)))
+        lows.append(np.tile(self.du_lo, self.n_branches * horizon))
+        highs.append(np.tile(self.du_hi, self.n_branches * horizon))
+        offset += len(cols)
+        # first input shared with the nominal branch
+        if self.has_nominal:
+            for slot in range(self.n_rec):
+                rows.append(block([(self._u(0, 0), eye_m),
+                                   (self._u(self._slot_branch(slot), 0), -eye_m)], m))
+                lows.append(np.zeros(m))
+                highs.append(np.zeros(m))
+                offset += m
+        # recovery consensus: consecutive recovery branches share inputs 0..K'-1
+        self._consensus_rows = offset
+        n_cons = max(0, self.n_rec - 1) * horizon
+        for slot in range(self.n_rec - 1):
+            b1, b2 = self._slot_branch(slot), self._slot_branch(slot + 1)
+            for j in range(horizon):
+                rows.append(block([(self._u(b1, j), eye_m), (self._u(b2, j), -eye_m)], m))
+        lows.append(np.zeros(n_cons * m))
+        highs.append(np.zeros(n_cons * m))
+        offset += n_cons * m
+        # slack: sigma+ - sigma- >= 0 per recovery branch (the columns sit in the state rows)
+        self._sigma_rows = offset
+        n_sig = 2 * n * self.n_rec if self.soft else 0
+        if n_sig:
+            rows.append(block([(self._sigma(0), np.eye(n_sig))], n_sig))
+            lows.append(np.zeros(n_sig))
+            highs.append(np.full(n_sig, np.inf))
+            offset += n_sig
+        self._a = sp.vstack(rows, format="csc")
+        self._lower = np.concatenate(lows)
+        self._upper = np.concatenate(highs)
+        self._build_cost()
+
+    def _build_cost(self) -> None:
+        cfg, n, horizon = self.config, self.model.n, self.config.horizon
+        q_state, r_input = cfg.weights.state(), cfg.weights.input()
+        diag = np.zeros(self.n_var)
+        self._branch_scale = []
+        for b in range(self.n_branches):
+            scale = 1.0 if (b == 0) else cfg.recovery_weight
+            self._branch_scale.append(scale)
+            start = self._x(b, 1)
+            diag[start:start + horizon * n] = np.tile(q_state, horizon) * scale
+            start = self._u(b, 0)
+            diag[start:start + horizon * self.model.m] = np.tile(r_input, horizon) * scale
+        q = np.zeros(self.n_var)
+        if self.soft and self.n_rec:
+            start = self._sigma(0)
+            diag[start:start + 2 * n * self.n_rec] = 1e-6
+            q[start:start + 2 * n * self.n_rec] = cfg.slack_weight
+        self._diag = diag
+        # OSQP minimises 1/2 z'Pz + q'z: P = 2 diag gives sum(w * z^2)
+        self._p = sp.diags(2 * diag, format="csc")
+        self._q = q
+
+    def _shift_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """Index maps that advance a solution by one step, for a shifted warm start.
+
+        Entry ``i`` says which entry of the previous primal (dual) solution
+        initializes entry ``i`` now: step ``j`` takes step ``j + 1``, and the
+        last step repeats.
+        """
+        n, m, horizon, nb = self.model.n, self.model.m, self.config.horizon, self.n_branches
+        var = np.arange(self.n_var)
+        for b in range(nb):
+            for j in range(horizon + 1):
+                src = self._x(b, min(j + 1, horizon))
+                var[self._x(b, j):self._x(b, j) + n] = np.arange(src, src + n)
+            for j in range(horizon):
+                src = self._u(b, min(j + 1, horizon - 1))
+                var[self._u(b, j):self._u(b, j) + m] = np.arange(src, src + m)
+        con = np.arange(self._a.shape[0])
+
+        def advance(base: int, groups: int, width: int) -> None:
+            idx = np.arange(groups * horizon * width).reshape(groups, horizon, width)
+            src = np.concatenate([idx[:, 1:], idx[:, -1:]], axis=1)
+            con[base:base + idx.size] = base + src.ravel()
+
+        advance(nb * n, nb, n)  # dynamics rows
+        advance(self._state_rows, nb, n)
+        advance(self._state_rows + nb * horizon * n, nb, m)  # input rows
+        advance(self._consensus_rows, max(0, self.n_rec - 1), m)
+        return var, con
+
+    # -- solve ------------------------------------------------------------------------------
+    def solve(self, x0: np.ndarray, goal: np.ndarray, regions: Sequence[Region],
+              consensus: int | None = None, region_step: int | None = None) -> Plan:
+        """Solve for the measured state ``x0``; ``regions`` fill the recovery slots in order.
+
+        ``consensus`` (K' steps) and ``region_step`` (s) default to the
+        configured K and T. ``goal`` is the nominal target state (12,).
+        """
+        cfg, n, horizon = self.config, self.model.n, self.config.horizon
+        if len(regions) != self.n_rec:
+            raise ValueError(f"expected {self.n_rec} regions, got {len(regions)}")
+        consensus = cfg.consensus if consensus is None else consensus
+        s = horizon if region_step is None else region_step
+        s = min(max(s, 1), horizon)
+        lo, hi = self._lower.copy(), self._upper.copy()
+        q = self._q.copy()
+        for r in self._init_rows:
+            lo[r:r + n] = x0
+            hi[r:r + n] = x0
+        # state boxes, widened early on by any excess of x0 over the tightened limits
+        excess = np.maximum(np.maximum(x0 - self.x_hi, self.x_lo - x0), 0.0)
+        taper = np.clip(1.0 - np.arange(horizon) / max(cfg.relax_steps, 1), 0.0, 1.0)
+        widen = taper[:, None] * excess[None, :]  # (T, n), step j = 1..T
+        box_lo = self.x_lo[None, :] - widen
+        box_hi = self.x_hi[None, :] + widen
+        targets = []
+        for b in range(self.n_branches):
+            b_lo, b_hi = box_lo.copy(), box_hi.copy()
+            if b == 0 and self.has_nominal:
+                target = goal
+            else:
+                region = regions[b - int(self.has_nominal)]
+                target = region.center
+                b_lo[s - 1:] = np.maximum(b_lo[s - 1:], region.lo - widen[s - 1:])
+                b_hi[s - 1:] = np.minimum(b_hi[s - 1:], region.hi + widen[s - 1:])
+            targets.append(target)
+            start = self._state_rows + b * horizon * n
+            lo[start:start + horizon * n] = b_lo.ravel()
+            hi[start:start + horizon * n] = b_hi.ravel()
+            xs = self._x(b, 1)
+            q[xs:xs + horizon * n] = -2 * self._diag[xs:xs + horizon * n] * np.tile(target, horizon)
+        # consensus: active for steps < K', free afterwards
+        m = self.model.m
+        for slot in range(self.n_rec - 1):
+            start = self._consensus_rows + slot * horizon * m
+            lo[start:start + horizon * m] = -np.inf
+            hi[start:start + horizon * m] = np.inf
+            lo[start:start + consensus * m] = 0.0
+            hi[start:start + consensus * m] = 0.0
+        if np.any(lo > hi):  # a region outside the state limits: nothing to solve
+            return self._plan(None, SolveStatus.INFEASIBLE, targets, regions, consensus, s, 0.0)
+        lo = np.where(np.isfinite(lo), lo, -osqp.constant("OSQP_INFTY"))
+        hi = np.where(np.isfinite(hi), hi, osqp.constant("OSQP_INFTY"))
+        start_time = time.perf_counter()
+        self.solver.update(q=q, l=lo, u=hi)
+        if self._previous is not None and self.shift_warm_start:
+            z_prev, y_prev = self._previous
+            self.solver.warm_start(x=z_prev[self._var_shift], y=y_prev[self._con_shift])
+        warm = self._previous is not None
+        if warm != self._warm:
+            self.solver.update_settings(max_iter=cfg.max_iter if warm else cfg.max_iter_cold)
+            self._warm = warm
+        result = self.solver.solve(raise_error=False)
+        solve_ms = (time.perf_counter() - start_time) * 1e3
+        status = _OSQP_STATUS.get(result.info.status_val, SolveStatus.FAILED)
+        if status in (SolveStatus.SOLVED, SolveStatus.INACCURATE, SolveStatus.MAX_ITER):
+            self._previous = (result.x.copy(), result.y.copy())
+        return self._plan(result, status, targets, regions, consensus, s, solve_ms)
+
+    def _plan(self, result, status: SolveStatus, targets, regions, consensus: int, s: int,
+              solve_ms: float) -> Plan:
+        n, m, horizon = self.model.n, self.model.m, self.config.horizon
+        z = None if result is None else result.x
+        iterations = 0 if result is None else int(result.info.iter)
+        if status not in (SolveStatus.SOLVED, SolveStatus.INACCURATE) or z is None \
+                or not np.all(np.isfinite(z)):
+            empty = np.zeros((horizon, m))
+            return Plan(status, float("inf"), self.model.u_hover.copy(), empty, None, {}, {},
+                        consensus, s, iterations, solve_ms)
+        cost = float(result.info.obj_val)
+        for b, target in enumerate(targets):  # the constants OSQP leaves out
+            cost += self._branch_scale[b] * horizon * float(target @ (self.config.weights.state()
+                                                                        * target))
+
+        def states(b: int) -> np.ndarray:
+            return z[self._x(b, 0):self._x(b, 0) + (horizon + 1) * n].reshape(horizon + 1, n)
+
+        def inputs(b: int) -> np.ndarray:
+            du = z[self._u(b, 0):self._u(b, 0) + horizon * m].reshape(horizon, m)
+            return du + self.model.u_hover
+
+        recovery = {region.index: states(self._slot_branch(i)) for i, region in enumerate(regions)}
+        recovery_inputs = {region.index: inputs(self._slot_branch(i))
+                           for i, region in enumerate(regions)}
+        followed = 0 if self.has_nominal else self._slot_branch(0)
+        slack = 0.0
+        if self.soft and self.n_rec:
+            sig = z[self._sigma(0):self._sigma(0) + 2 * n * self.n_rec]
+            slack = float(np.max(np.abs(sig)))
+            cost -= self.config.slack_weight * float(np.sum(sig))  # report the task cost
+        applied = inputs(followed)
+        return Plan(status, cost, applied[0].copy(), applied,
+                    states(0) if self.has_nominal else None, recovery, recovery_inputs,
+                    consensus, s,
+                    iterations, solve_ms, slack, self.config.slack_tolerance)
