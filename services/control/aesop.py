@@ -1,0 +1,260 @@
+"""Algorithm 1 (AESOP) as a mode machine, and the two baselines of the paper.
+
+Every controller has the same ``make_step`` shape: given the measured state,
+whether the fast detector flags this tick, and the slow reasoner's decision
+for the pending anomaly (``None`` while it thinks), it returns the input to
+apply and what it did. A step never raises: a failed solve makes the
+controller follow its last feasible plan, shifted one step, and report the
+status.
+
+Modes (``ControlState.mode``):
+
+* ``nominal``: solve ``J_t(Y_t, K, T)`` with the cheapest feasible subset
+  ``Y_t``; on an anomaly remember ``t_anom`` and ``Y_tanom`` and ask the
+  reasoner to choose among ``Y_tanom``;
+* ``anomaly_pending``: at ``k = t - t_anom`` solve ``J_t(Y_tanom, K - k, T - k)``
+  (shrinking consensus and horizon). If no decision has come when ``k = K``,
+  commit to the programmatic fallback (beyond the paper: default, the cheapest
+  feasible recovery in ``Y_tanom``) and say so;
+* ``recovering``: solve ``J_t({y}, 0, T - k)`` and follow the recovery branch.
+
+The horizon to the region never shrinks below ``MPCConfig.min_region_step``
+so that the nonlinear plant's small model errors never pin a region to the
+very next step (documented deviation from ``max(0, T - k)``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+
+from .dynamics import LinearModel
+from .mpc import BranchProblem, MPCConfig, Plan, SolveStatus
+from .regions import Region
+from .selection import SubsetSelector
+
+
+class Mode(StrEnum):
+    NOMINAL = "nominal"
+    PENDING = "anomaly_pending"
+    RECOVERING = "recovering"
+
+
+@dataclass(frozen=True)
+class ControlOutput:
+    u: np.ndarray  # absolute input to apply [N, N m]
+    mode: Mode
+    status: SolveStatus
+    plan: Plan | None  # None when the step fell back to the last plan
+    active_regions: tuple[int, ...]
+    t_anom: int | None  # tick of the pending/handled anomaly
+    chosen: int | None  # region being recovered to
+    request: tuple[int, ...] | None = None  # options for the reasoner, on the detection tick
+    events: tuple[str, ...] = ()
+    fallback: bool = False  # the recovery was committed without a decision
+
+
+@dataclass
+class _Memory:
+    mode: Mode = Mode.NOMINAL
+    t: int = 0
+    t_anom: int | None = None
+    options: tuple[int, ...] = ()
+    chosen: int | None = None
+    fallback: bool = False
+    inputs: np.ndarray | None = None  # last feasible plan's inputs (T, m)
+    age: int = 0  # ticks since that plan
+    events: list[str] = field(default_factory=list)
+
+
+class _Controller:
+    """What all three methods share: the recovering phase and the fallback input."""
+
+    name = "base"
+
+    def __init__(self, model: LinearModel, x_bounds, u_bounds, config: MPCConfig,
+                 regions: Sequence[Region], goal: np.ndarray) -> None:
+        self.model, self.config, self.goal = model, config, goal
+        self.x_bounds, self.u_bounds = x_bounds, u_bounds
+        self.regions = {r.index: r for r in regions}
+        self._recover: BranchProblem | None = None
+        self.memory = _Memory()
+
+    @property
+    def mode(self) -> Mode:
+        return self.memory.mode
+
+    def _region_step(self, k: int) -> int:
+        return max(self.config.min_region_step, self.config.horizon - k)
+
+    def _recovery_problem(self) -> BranchProblem:
+        if self._recover is None:
+            self._recover = BranchProblem(self.model, self.x_bounds, self.u_bounds, self.config,
+                                          1, nominal=False, soft=self.soft_recovery)
+        return self._recover
+
+    soft_recovery = False
+
+    def _follow(self, plan: Plan | None, accept: bool) -> tuple[np.ndarray, Plan | None]:
+        """Apply ``plan`` if usable, else the last plan shifted by one more step."""
+        mem = self.memory
+        if plan is not None and accept:
+            mem.inputs, mem.age = plan.inputs, 0
+            return plan.u0, plan
+        if mem.inputs is None:
+            return self.model.u_hover.copy(), None
+        mem.age += 1
+        return mem.inputs[min(mem.age, len(mem.inputs) - 1)].copy(), None
+
+    def _recovering(self, x: np.ndarray) -> tuple[np.ndarray, Plan | None, SolveStatus]:
+        mem = self.memory
+        k = mem.t - (mem.t_anom or 0)
+        plan = self._recovery_problem().solve(x, self.goal, [self.regions[mem.chosen]],
+                                              0, self._region_step(k))
+        u, used = self._follow(plan, plan.feasible or self.soft_recovery)
+        return u, used, plan.status
+
+    def _output(self, u, status, plan, active, request=None) -> ControlOutput:
+        mem = self.memory
+        out = ControlOutput(u=u, mode=mem.mode, status=status, plan=plan, active_regions=active,
+                            t_anom=mem.t_anom, chosen=mem.chosen, request=request,
+                            events=tuple(mem.events), fallback=mem.fallback)
+        mem.events.clear()
+        mem.t += 1
+        return out
+
+    def _take_decision(self, decision: int | None) -> None:
+        """Apply the reasoner's decision to a pending anomaly."""
+        mem = self.memory
+        if decision is None or mem.mode is not Mode.PENDING:
+            if decision is not None and mem.mode is Mode.RECOVERING:
+                mem.events.append(f"late decision {decision} ignored: already recovering")
+            return
+        if decision == 0:
+            mem.events.append("reasoner: continue; back to nominal")
+            mem.mode, mem.t_anom, mem.options = Mode.NOMINAL, None, ()
+        elif decision in mem.options:
+            mem.mode, mem.chosen = Mode.RECOVERING, decision
+            mem.events.append(f"reasoner chose region {decision}; recovering")
+        else:
+            mem.events.append(f"decision {decision} was not offered {mem.options}; ignored")
+
+
+class AesopController(_Controller):
+    """Algorithm 1 with subset selection and a fallback at ``k = K``."""
+
+    name = "aesop"
+
+    def __init__(self, model: LinearModel, x_bounds, u_bounds, config: MPCConfig,
+                 regions: Sequence[Region], goal: np.ndarray, fallback: str | int = "cheapest",
+                 min_size: int = 2, selector: SubsetSelector | None = None) -> None:
+        super().__init__(model, x_bounds, u_bounds, config, regions, goal)
+        if not (fallback in ("cheapest", "first") or (isinstance(fallback, int)
+                                                      and fallback in self.regions)):
+            raise ValueError("fallback must be 'cheapest', 'first' or a region index")
+        self.fallback = fallback
+        self.selector = selector or SubsetSelector(model, x_bounds, u_bounds, config, regions,
+                                                   min_size=min_size)
+        self._active: tuple[int, ...] = ()
+
+    def make_step(self, x: np.ndarray, anomaly: bool, decision: int | None = None
+                  ) -> ControlOutput:
+        mem = self.memory
+        self._take_decision(decision)
+        if mem.mode is Mode.PENDING and mem.t - mem.t_anom >= self.config.consensus:
+            self._commit_fallback(x)
+        if mem.mode is Mode.RECOVERING:
+            u, plan, status = self._recovering(x)
+            return self._output(u, status, plan, (mem.chosen,))
+        if mem.mode is Mode.PENDING:
+            k = mem.t - mem.t_anom
+            plan = self.selector.solve(mem.options, x, self.goal, self.config.consensus - k,
+                                       self._region_step(k))
+            u, used = self._follow(plan, plan.feasible)
+            return self._output(u, plan.status, used, mem.options)
+        selection = self.selector.select(x, self.goal)
+        if selection.feasible:
+            self._active = selection.subset
+        status = selection.plan.status if selection.plan else SolveStatus.INFEASIBLE
+        u, used = self._follow(selection.plan, selection.feasible)
+        request = None
+        if anomaly and self._active:
+            mem.mode, mem.t_anom, mem.options = Mode.PENDING, mem.t, self._active
+            mem.chosen, mem.fallback = None, False
+            mem.events.append(f"anomaly: asking the reasoner among regions {self._active}")
+            request = self._active
+        return self._output(u, status, used, self._active, request)
+
+    def _commit_fallback(self, x: np.ndarray) -> None:
+        mem = self.memory
+        choice = self.fallback if isinstance(self.fallback, int) else mem.options[0]
+        if self.fallback == "cheapest":
+            k = mem.t - mem.t_anom
+            costs = {}
+            for y in mem.options:
+                plan = self._recovery_problem().solve(x, self.goal, [self.regions[y]], 0,
+                                                      self._region_step(k))
+                if plan.feasible:
+                    costs[y] = plan.cost
+            choice = min(costs, key=costs.get) if costs else mem.options[0]
+        mem.mode, mem.chosen, mem.fallback = Mode.RECOVERING, choice, True
+        mem.events.append(f"no decision by K: fallback to region {choice}")
+
+
+class NaiveController(_Controller):
+    """Plans the nominal trajectory only; plans a recovery once the decision arrives."""
+
+    name = "naive"
+    soft_recovery = True
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self._nominal = BranchProblem(self.model, self.x_bounds, self.u_bounds, self.config, 0)
+
+    def _nominal_step(self, x: np.ndarray) -> tuple[np.ndarray, Plan | None, SolveStatus,
+                                                     tuple[int, ...]]:
+        plan = self._nominal.solve(x, self.goal, [])
+        u, used = self._follow(plan, plan.feasible)
+        return u, used, plan.status, ()
+
+    def make_step(self, x: np.ndarray, anomaly: bool, decision: int | None = None
+                  ) -> ControlOutput:
+        mem = self.memory
+        self._take_decision(decision)
+        if mem.mode is Mode.RECOVERING:
+            u, plan, status = self._recovering(x)
+            return self._output(u, status, plan, (mem.chosen,))
+        u, plan, status, active = self._nominal_step(x)
+        request = None
+        if anomaly and mem.mode is Mode.NOMINAL:
+            options = active or tuple(sorted(self.regions))
+            mem.mode, mem.t_anom, mem.options = Mode.PENDING, mem.t, options
+            mem.chosen = None
+            mem.events.append(f"anomaly: asking the reasoner among regions {options}")
+            request = options
+        return self._output(u, status, plan, active, request)
+
+
+class FallbackSafeController(NaiveController):
+    """FS-MPC: keeps recovery plans (K = 0) and flies nominally until the decision."""
+
+    name = "fsmpc"
+
+    def __init__(self, model: LinearModel, x_bounds, u_bounds, config: MPCConfig,
+                 regions: Sequence[Region], goal: np.ndarray, min_size: int = 2) -> None:
+        super().__init__(model, x_bounds, u_bounds, config, regions, goal)
+        no_consensus = MPCConfig(**{**config.__dict__, "consensus": 0})
+        self.selector = SubsetSelector(model, x_bounds, u_bounds, no_consensus, regions,
+                                       min_size=min_size)
+        self._active: tuple[int, ...] = ()
+
+    def _nominal_step(self, x):
+        selection = self.selector.select(x, self.goal)
+        if selection.feasible:
+            self._active = selection.subset
+        status = selection.plan.status if selection.plan else SolveStatus.INFEASIBLE
+        u, used = self._follow(selection.plan, selection.feasible)
+        return u, used, status, self._active
