@@ -109,7 +109,7 @@ class MPCConfig:
     slack_tolerance: float = 1e-2  # largest slack (m, m/s, rad) a feasible plan may have
     eps_abs: float = 1e-3
     eps_rel: float = 1e-3
-    max_iter: int = 500  # per warm solve; a solve that needs more is not trusted
+    max_iter: int = 4000  # per warm solve (see the README: this problem converges slowly)
     max_iter_cold: int = 10000  # the first solve of a problem has no warm start
 
     def __post_init__(self) -> None:
