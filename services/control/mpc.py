@@ -32,14 +32,16 @@ Two robustness details for a plant that is not the linear model:
   tapering linearly to zero, so the problem stays feasible while the plan
   brings the state back.
 
-Every recovery branch carries an L1-priced slack per state component that
-shifts its state box (limits and region alike). A problem therefore always
-solves; a plan is *feasible* when the solver converged and the largest slack
-is below ``slack_tolerance``. This is what the baselines need (the
-least-violating plan), it makes AESOP's subset selection a comparison of
-finished solves instead of slow infeasibility detection, and it keeps an
-inexact solve from turning an edge-of-feasibility recovery into "infeasible"
-on the next tick.
+With ``soft=True`` every recovery branch carries an L1-priced slack per
+state component that shifts its state box (limits and region alike; the
+shift moves the box, it does not widen it, and the nominal branch has none).
+A region out of reach then costs slack instead of making the problem
+infeasible; a plan is *feasible* when the solver converged and the largest
+slack is below ``slack_tolerance``. The baselines need this (their
+least-violating plan); AESOP's selector uses it so that an inexact solve at
+the edge of feasibility does not read as "infeasible" on the next tick.
+Caveat, measured against the CVXPY reference: OSQP's slack estimate at
+``eps = 1e-3`` runs at about ``10 eps``, as large as the default tolerance.
 """
 
 from __future__ import annotations
@@ -161,6 +163,7 @@ class BranchProblem:
         self._x_lo_true, self._x_hi_true = x_bounds
         lo, hi = x_bounds
         span = np.where(np.isfinite(hi) & np.isfinite(lo) & (lo == -hi), 1.0 - config.shrink, 1.0)
+        span[8] = 1.0  # yaw is bounded by +-pi only to keep angles unwrapped; not tightened
         self.x_lo, self.x_hi = lo * span, hi * span
         self.du_lo = u_bounds[0] - model.u_hover
         self.du_hi = u_bounds[1] - model.u_hover
@@ -273,7 +276,7 @@ class BranchProblem:
         lows.append(np.zeros(n_cons * m))
         highs.append(np.zeros(n_cons * m))
         offset += n_cons * m
-        # slack: sigma+ - sigma- >= 0 per recovery branch (the columns sit in the state rows)
+        # slack: sigma+ >= 0 and sigma- >= 0 per recovery branch (columns in the state rows)
         self._sigma_rows = offset
         n_sig = 2 * n * self.n_rec if self.soft else 0
         if n_sig:
