@@ -26,7 +26,7 @@ very next step (documented deviation from ``max(0, T - k)``).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
 import numpy as np
@@ -74,6 +74,7 @@ class _Controller:
     """What all three methods share: the recovering phase and the fallback input."""
 
     name = "base"
+    soft_recovery = False  # baselines accept a least-violating recovery plan
 
     def __init__(self, model: LinearModel, x_bounds, u_bounds, config: MPCConfig,
                  regions: Sequence[Region], goal: np.ndarray) -> None:
@@ -81,6 +82,7 @@ class _Controller:
         self.x_bounds, self.u_bounds = x_bounds, u_bounds
         self.regions = {r.index: r for r in regions}
         self._recover: BranchProblem | None = None
+        self._active: tuple[int, ...] = ()  # the subset whose recovery plans are kept
         self.memory = _Memory()
 
     @property
@@ -96,8 +98,6 @@ class _Controller:
                                           1, nominal=False, soft=self.soft_recovery)
         return self._recover
 
-    soft_recovery = False
-
     def _follow(self, plan: Plan | None, accept: bool) -> tuple[np.ndarray, Plan | None]:
         """Apply ``plan`` if usable, else the last plan shifted by one more step."""
         mem = self.memory
@@ -108,6 +108,16 @@ class _Controller:
             return self.model.u_hover.copy(), None
         mem.age += 1
         return mem.inputs[min(mem.age, len(mem.inputs) - 1)].copy(), None
+
+    def _select(self, selector: SubsetSelector, x: np.ndarray
+                ) -> tuple[np.ndarray, Plan | None, SolveStatus]:
+        """One selection tick: keep the cheapest feasible subset active and follow its plan."""
+        selection = selector.select(x, self.goal)
+        if selection.feasible:
+            self._active = selection.subset
+        status = selection.plan.status if selection.plan else SolveStatus.INFEASIBLE
+        u, used = self._follow(selection.plan, selection.feasible)
+        return u, used, status
 
     def _recovering(self, x: np.ndarray) -> tuple[np.ndarray, Plan | None, SolveStatus]:
         mem = self.memory
@@ -158,7 +168,6 @@ class AesopController(_Controller):
         self.fallback = fallback
         self.selector = selector or SubsetSelector(model, x_bounds, u_bounds, config, regions,
                                                    min_size=min_size)
-        self._active: tuple[int, ...] = ()
 
     def make_step(self, x: np.ndarray, anomaly: bool, decision: int | None = None
                   ) -> ControlOutput:
@@ -175,11 +184,7 @@ class AesopController(_Controller):
                                        self._region_step(k))
             u, used = self._follow(plan, plan.feasible)
             return self._output(u, plan.status, used, mem.options)
-        selection = self.selector.select(x, self.goal)
-        if selection.feasible:
-            self._active = selection.subset
-        status = selection.plan.status if selection.plan else SolveStatus.INFEASIBLE
-        u, used = self._follow(selection.plan, selection.feasible)
+        u, used, status = self._select(self.selector, x)
         request = None
         if anomaly and self._active:
             mem.mode, mem.t_anom, mem.options = Mode.PENDING, mem.t, self._active
@@ -246,15 +251,9 @@ class FallbackSafeController(NaiveController):
     def __init__(self, model: LinearModel, x_bounds, u_bounds, config: MPCConfig,
                  regions: Sequence[Region], goal: np.ndarray, min_size: int = 2) -> None:
         super().__init__(model, x_bounds, u_bounds, config, regions, goal)
-        no_consensus = MPCConfig(**{**config.__dict__, "consensus": 0})
+        no_consensus = replace(config, consensus=0)
         self.selector = SubsetSelector(model, x_bounds, u_bounds, no_consensus, regions,
                                        min_size=min_size)
-        self._active: tuple[int, ...] = ()
 
     def _nominal_step(self, x):
-        selection = self.selector.select(x, self.goal)
-        if selection.feasible:
-            self._active = selection.subset
-        status = selection.plan.status if selection.plan else SolveStatus.INFEASIBLE
-        u, used = self._follow(selection.plan, selection.feasible)
-        return u, used, status, self._active
+        return (*self._select(self.selector, x), self._active)
