@@ -21,6 +21,15 @@ Modes (``ControlState.mode``):
 The horizon to the region never shrinks below ``MPCConfig.min_region_step``
 so that the nonlinear plant's small model errors never pin a region to the
 very next step (documented deviation from ``max(0, T - k)``).
+
+Holding (beyond the paper). In nominal operation nothing guarantees that
+some subset is feasible at the *full* ``K`` and ``T`` on the next tick: the
+previous tree, shifted, shares only ``K - 1`` recovery inputs. When no
+subset is, the controller keeps the last feasible subset ``Y`` and solves
+``J_t(Y, K - h, T - h)`` for the ``h`` ticks since it was feasible, which
+Theorem 1 keeps feasible: the robot flies the shared recovery prefix and
+slows down until a full tree is feasible again. An anomaly during a hold
+has ``K - h`` ticks left, not ``K``: the consensus budget is already spent.
 """
 
 from __future__ import annotations
@@ -32,7 +41,7 @@ from enum import StrEnum
 import numpy as np
 
 from .dynamics import LinearModel
-from .mpc import BranchProblem, MPCConfig, Plan, SolveStatus
+from .mpc import BranchProblem, MPCConfig, Plan, SolveStatus, tightened_inputs
 from .regions import Region
 from .selection import SubsetSelector
 
@@ -67,6 +76,9 @@ class _Memory:
     fallback: bool = False
     inputs: np.ndarray | None = None  # last feasible plan's inputs (T, m)
     age: int = 0  # ticks since that plan
+    held: int = 0  # ticks since a subset was feasible at full K and T (holding if > 0)
+    degraded: bool = False  # recovering on the least-violating plan
+    spent: int = 0  # consensus ticks already used by a hold when the anomaly came
     events: list[str] = field(default_factory=list)
 
 
@@ -81,9 +93,11 @@ class _Controller:
         self.model, self.config, self.goal = model, config, goal
         self.x_bounds, self.u_bounds = x_bounds, u_bounds
         self.regions = {r.index: r for r in regions}
-        self._recover: BranchProblem | None = None
+        self._recover: dict[bool, BranchProblem] = {}  # the recovering problem, hard/soft
         self._active: tuple[int, ...] = ()  # the subset whose recovery plans are kept
         self.memory = _Memory()
+        self._x = np.zeros(model.n)
+        self._du_hi = tightened_inputs(model, u_bounds, config)[1]
 
     @property
     def mode(self) -> Mode:
@@ -92,17 +106,23 @@ class _Controller:
     def _region_step(self, k: int) -> int:
         return max(self.config.min_region_step, self.config.horizon - k)
 
-    def _recovery_problem(self) -> BranchProblem:
-        if self._recover is None:
-            self._recover = BranchProblem(self.model, self.x_bounds, self.u_bounds, self.config,
-                                          1, nominal=False, soft=self.soft_recovery)
-        return self._recover
+    def _recovery_problem(self, soft: bool) -> BranchProblem:
+        if soft not in self._recover:
+            self._recover[soft] = BranchProblem(self.model, self.x_bounds, self.u_bounds,
+                                                self.config, 1, nominal=False, soft=soft)
+        return self._recover[soft]
 
     def _follow(self, plan: Plan | None, accept: bool) -> tuple[np.ndarray, Plan | None]:
-        """Apply ``plan`` if usable, else the last plan shifted by one more step."""
+        """Apply ``plan`` if usable, else the last plan shifted by one more step.
+
+        What is kept for later is a recovery branch when the plan has one:
+        its first inputs are the shared prefix that keeps every region of
+        the subset reachable, the safest thing to fly blind.
+        """
         mem = self.memory
         if plan is not None and accept:
-            mem.inputs, mem.age = plan.inputs, 0
+            mem.inputs = next(iter(plan.recovery_inputs.values()), plan.inputs)
+            mem.age = 0
             return plan.u0, plan
         if mem.inputs is None:
             return self.model.u_hover.copy(), None
@@ -111,24 +131,80 @@ class _Controller:
 
     def _select(self, selector: SubsetSelector, x: np.ndarray
                 ) -> tuple[np.ndarray, Plan | None, SolveStatus]:
-        """One selection tick: keep the cheapest feasible subset active and follow its plan."""
+        """One selection tick: keep the cheapest feasible subset active and follow its plan.
+
+        With no subset feasible, hold the last one with the consensus and
+        horizon shrunk by the ticks since it was (module docstring).
+        """
+        mem = self.memory
         selection = selector.select(x, self.goal)
-        if selection.feasible:
-            self._active = selection.subset
-        status = selection.plan.status if selection.plan else SolveStatus.INFEASIBLE
-        u, used = self._follow(selection.plan, selection.feasible)
-        return u, used, status
+        if selection.feasible or not self._active:
+            if selection.feasible:
+                self._active = selection.subset
+                if mem.held:
+                    mem.events.append(f"full tree feasible again with regions {self._active}")
+                mem.held = 0
+            status = selection.plan.status if selection.plan else SolveStatus.INFEASIBLE
+            u, used = self._follow(selection.plan, selection.feasible)
+            return u, used, status
+        mem.held += 1
+        if mem.held == 1:
+            mem.events.append(f"no subset feasible at full K and T: holding regions {self._active}")
+        plan = selector.solve(self._active, x, self.goal,
+                              max(0, selector.config.consensus - mem.held),
+                              self._region_step(mem.held))
+        u, used = self._follow(plan, plan.feasible)
+        return u, used, plan.status
 
     def _recovering(self, x: np.ndarray) -> tuple[np.ndarray, Plan | None, SolveStatus]:
+        """Fly toward the chosen region: ``J({y}, 0, T - k)``.
+
+        If the hard problem is infeasible (the nonlinear plant has drifted from
+        the linear plan), fly the least-violating plan rather than blind: it
+        is still closed-loop. The status reported is the hard problem's.
+        """
         mem = self.memory
-        k = mem.t - (mem.t_anom or 0)
-        plan = self._recovery_problem().solve(x, self.goal, [self.regions[mem.chosen]],
-                                              0, self._region_step(k))
-        u, used = self._follow(plan, plan.feasible or self.soft_recovery)
-        return u, used, plan.status
+        k = mem.t - (mem.t_anom or 0) + mem.spent
+        args = (x, self.goal, [self.regions[mem.chosen]], 0, self._region_step(k))
+        plan = self._recovery_problem(self.soft_recovery).solve(*args)
+        status = plan.status
+        usable = plan.status in (SolveStatus.SOLVED, SolveStatus.INACCURATE)
+        if not plan.feasible and not self.soft_recovery:
+            plan = self._recovery_problem(True).solve(*args)
+            usable = plan.status in (SolveStatus.SOLVED, SolveStatus.INACCURATE)
+            if not mem.degraded:
+                mem.events.append(f"recovery to region {mem.chosen} infeasible ({status}): "
+                                  "flying the least-violating plan")
+        mem.degraded = not status.feasible
+        u, used = self._follow(plan, usable)
+        return u, used, status
+
+    def make_step(self, x: np.ndarray, anomaly: bool, decision: int | None = None
+                  ) -> ControlOutput:
+        """One tick: ``x`` measured, ``anomaly`` from the detector, the reasoner's
+        ``decision`` for the pending anomaly (``None`` while it thinks)."""
+        self._x = np.asarray(x, dtype=float)
+        return self._step(self._x, anomaly, decision)
+
+    def _step(self, x: np.ndarray, anomaly: bool, decision: int | None) -> ControlOutput:
+        raise NotImplementedError
+
+    def _tilt_compensated(self, u: np.ndarray) -> np.ndarray:
+        """Scale the collective thrust by ``1 / (cos phi cos theta)``.
+
+        The hover model assumes all thrust is vertical; a tilted vehicle loses
+        that fraction of it and sinks below the plan. The standard remedy,
+        saturated at the thrust box the MPC plans in.
+        """
+        phi, theta = self._x[6], self._x[7]
+        u = u.copy()
+        hi = self.model.u_hover[0] + self._du_hi[0]
+        u[0] = min(u[0] / max(np.cos(phi) * np.cos(theta), 0.5), hi)
+        return u
 
     def _output(self, u, status, plan, active, request=None) -> ControlOutput:
         mem = self.memory
+        u = self._tilt_compensated(u)
         out = ControlOutput(u=u, mode=mem.mode, status=status, plan=plan, active_regions=active,
                             t_anom=mem.t_anom, chosen=mem.chosen, request=request,
                             events=tuple(mem.events), fallback=mem.fallback)
@@ -169,17 +245,16 @@ class AesopController(_Controller):
         self.selector = selector or SubsetSelector(model, x_bounds, u_bounds, config, regions,
                                                    min_size=min_size)
 
-    def make_step(self, x: np.ndarray, anomaly: bool, decision: int | None = None
-                  ) -> ControlOutput:
+    def _step(self, x: np.ndarray, anomaly: bool, decision: int | None) -> ControlOutput:
         mem = self.memory
         self._take_decision(decision)
-        if mem.mode is Mode.PENDING and mem.t - mem.t_anom >= self.config.consensus:
+        if mem.mode is Mode.PENDING and self._k() >= self.config.consensus:
             self._commit_fallback(x)
         if mem.mode is Mode.RECOVERING:
             u, plan, status = self._recovering(x)
             return self._output(u, status, plan, (mem.chosen,))
         if mem.mode is Mode.PENDING:
-            k = mem.t - mem.t_anom
+            k = self._k()
             plan = self.selector.solve(mem.options, x, self.goal, self.config.consensus - k,
                                        self._region_step(k))
             u, used = self._follow(plan, plan.feasible)
@@ -188,19 +263,24 @@ class AesopController(_Controller):
         request = None
         if anomaly and self._active:
             mem.mode, mem.t_anom, mem.options = Mode.PENDING, mem.t, self._active
-            mem.chosen, mem.fallback = None, False
+            mem.chosen, mem.fallback, mem.spent = None, False, mem.held
             mem.events.append(f"anomaly: asking the reasoner among regions {self._active}")
             request = self._active
         return self._output(u, status, used, self._active, request)
+
+    def _k(self) -> int:
+        """Ticks of the consensus budget used since the anomaly (a hold's included)."""
+        mem = self.memory
+        return mem.t - mem.t_anom + mem.spent
 
     def _commit_fallback(self, x: np.ndarray) -> None:
         mem = self.memory
         choice = self.fallback if isinstance(self.fallback, int) else mem.options[0]
         if self.fallback == "cheapest":
-            k = mem.t - mem.t_anom
+            k = self._k()
             costs = {}
             for y in mem.options:
-                plan = self._recovery_problem().solve(x, self.goal, [self.regions[y]], 0,
+                plan = self._recovery_problem(False).solve(x, self.goal, [self.regions[y]], 0,
                                                       self._region_step(k))
                 if plan.feasible:
                     costs[y] = plan.cost
@@ -225,8 +305,7 @@ class NaiveController(_Controller):
         u, used = self._follow(plan, plan.feasible)
         return u, used, plan.status, ()
 
-    def make_step(self, x: np.ndarray, anomaly: bool, decision: int | None = None
-                  ) -> ControlOutput:
+    def _step(self, x: np.ndarray, anomaly: bool, decision: int | None) -> ControlOutput:
         mem = self.memory
         self._take_decision(decision)
         if mem.mode is Mode.RECOVERING:

@@ -26,7 +26,8 @@ recovery branches of a soft problem and is zero otherwise; ``sigma+, sigma-
 
 The state box ``[lo_b[j], hi_b[j]]``:
 
-* symmetric finite limits (``lo == -hi``) are tightened by ``shrink``;
+* the state, input and region boxes are tightened as the OSQP problem does
+  (``tightened_states``, ``tightened_inputs``, ``planning_box``);
 * an excess of ``x0`` over the tightened box widens the box of step ``j`` by
   ``excess * clip(1 - (j - 1) / relax_steps, 0, 1)``;
 * a recovery branch's box is intersected, on steps ``j >= s``, with its
@@ -46,7 +47,7 @@ import cvxpy as cp
 import numpy as np
 
 from .dynamics import LinearModel
-from .mpc import MPCConfig
+from .mpc import MPCConfig, planning_box, tightened_inputs, tightened_states
 from .regions import Region
 
 SLACK_QUADRATIC = 1e-6  # the small quadratic price on the slacks that mpc.py uses
@@ -60,14 +61,6 @@ class ReferenceResult:
     solve_ms: float  # the solver's own time, as it reports it
     total_ms: float  # building the CVXPY problem, canonicalizing and solving
     slack: float = 0.0  # largest slack of a recovery branch
-
-
-def _box_bounds(x_bounds: tuple[np.ndarray, np.ndarray], shrink: float
-                ) -> tuple[np.ndarray, np.ndarray]:
-    lo, hi = (np.asarray(v, dtype=float) for v in x_bounds)
-    symmetric = np.isfinite(lo) & np.isfinite(hi) & (lo == -hi)
-    scale = np.where(symmetric, 1.0 - shrink, 1.0)
-    return lo * scale, hi * scale
 
 
 def _within(expr: cp.Expression, lo: np.ndarray, hi: np.ndarray) -> list[cp.Constraint]:
@@ -96,11 +89,11 @@ def reference_solve(model: LinearModel, x_bounds: tuple[np.ndarray, np.ndarray],
     k = config.consensus if consensus is None else consensus
     s = min(max(horizon if region_step is None else region_step, 1), horizon)
     x0, goal = np.asarray(x0, dtype=float), np.asarray(goal, dtype=float)
-    du_lo, du_hi = u_bounds[0] - model.u_hover, u_bounds[1] - model.u_hover
+    du_lo, du_hi = tightened_inputs(model, u_bounds, config)
     q_state, r_input = config.weights.state(), config.weights.input()
 
     # the state box of steps 1..T (rows), tightened and then widened by the tapered excess
-    x_lo, x_hi = _box_bounds(x_bounds, config.shrink)
+    x_lo, x_hi = tightened_states(x_bounds, config)
     excess = np.maximum(np.maximum(x0 - x_hi, x_lo - x0), 0.0)
     steps = np.arange(1, horizon + 1)
     taper = np.clip(1.0 - (steps - 1) / max(config.relax_steps, 1), 0.0, 1.0)
@@ -129,8 +122,9 @@ def reference_solve(model: LinearModel, x_bounds: tuple[np.ndarray, np.ndarray],
         shifted = x[1:]
         if region is not None:
             # steps s..T are rows s-1..T-1
-            lo[s - 1:] = np.maximum(lo[s - 1:], region.lo - widen[s - 1:])
-            hi[s - 1:] = np.minimum(hi[s - 1:], region.hi + widen[s - 1:])
+            r_lo, r_hi = planning_box(region, config)
+            lo[s - 1:] = np.maximum(lo[s - 1:], r_lo - widen[s - 1:])
+            hi[s - 1:] = np.minimum(hi[s - 1:], r_hi + widen[s - 1:])
             if soft:
                 sigma_plus, sigma_minus = cp.Variable(n, nonneg=True), cp.Variable(n, nonneg=True)
                 sigmas += [sigma_plus, sigma_minus]

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .dynamics import LinearModel
-from .mpc import BranchProblem, MPCConfig, Plan
+from .mpc import BranchProblem, ChainCache, MPCConfig, Plan
 from .regions import Region
 
 
@@ -47,27 +47,30 @@ class Selection:
 class SubsetSelector:
     def __init__(self, model: LinearModel, x_bounds, u_bounds, config: MPCConfig,
                  regions: Sequence[Region], min_size: int = 2, screen: bool = False,
-                 workers: int = 1) -> None:
+                 workers: int = 1, soft: bool = False) -> None:
         self.model, self.config = model, config
         self.x_bounds, self.u_bounds = x_bounds, u_bounds
         self.regions = {r.index: r for r in regions}
         self.size = max(1, min(min_size, len(self.regions)))
         self.screen = screen and self.size > 1
         self.subsets = list(itertools.combinations(sorted(self.regions), self.size))
+        self.soft = soft
         self._problems: dict[tuple[int, ...], BranchProblem] = {}
+        self._cache: ChainCache = {}  # chain QPs shared by subsets that agree on a chain
         self._pool = ThreadPoolExecutor(workers) if workers > 1 else None
 
     def problem(self, subset: tuple[int, ...]) -> BranchProblem:
         """The warm solver kept for ``subset`` (built on first use)."""
         if subset not in self._problems:
             self._problems[subset] = BranchProblem(self.model, self.x_bounds, self.u_bounds,
-                                                   self.config, len(subset), soft=True)
+                                                   self.config, len(subset), soft=self.soft,
+                                                   cache=self._cache)
         return self._problems[subset]
 
     def solve(self, subset: tuple[int, ...], x0: np.ndarray, goal: np.ndarray,
               consensus: int | None = None, region_step: int | None = None) -> Plan:
         return self.problem(subset).solve(x0, goal, [self.regions[i] for i in subset],
-                                          consensus, region_step)
+                                          consensus, region_step, stop_early=True)
 
     def select(self, x0: np.ndarray, goal: np.ndarray) -> Selection:
         """Solve every candidate subset at full K and T; keep the cheapest feasible."""

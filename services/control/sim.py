@@ -1,0 +1,223 @@
+"""The paper's closed-loop quadrotor ablation: naive MPC, FS-MPC and AESOP.
+
+A case is a start state at rest, the time of a consequential anomaly and a
+scripted reasoner (its latency, at most ``K``, and a seeded choice among the
+regions it was offered at detection time). A flight runs one method on the
+nonlinear plant until ``T`` plus one second after the anomaly (Theorem 1
+promises the region by ``t_anom + T``; the second absorbs the documented
+``min_region_step`` deviation and the plant settling). Success: the flight
+ends inside the chosen region and never left the state or input limits on
+the way, both judged on the nonlinear truth with :data:`TOLERANCE` and
+:data:`LIMIT_TOLERANCE`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .aesop import Mode
+from .dynamics import QuadrotorParams
+from .mpc import MPCConfig
+from .plant import METHODS, Method, SimulatedQuadrotor, make_controller
+from .regions import Tolerance
+from .scenario import Scenario
+
+TOLERANCE = Tolerance()  # how close to a region's box counts as inside (regions.py)
+
+
+@dataclass(frozen=True)
+class LimitTolerance:
+    """How far the nonlinear truth may exceed a limit before it counts as a violation."""
+
+    position: float = 0.05  # m
+    velocity: float = 0.05  # m/s
+    tilt: float = 0.02  # rad
+    rate: float = 0.05  # rad/s
+    input: float = 1e-6  # N, N m (the plant clips; the controller must not ask beyond)
+
+    def state(self) -> np.ndarray:
+        return np.repeat([self.position, self.velocity, self.tilt, self.rate], 3)
+
+
+LIMIT_TOLERANCE = LimitTolerance()
+
+
+@dataclass(frozen=True)
+class Case:
+    """One scenario of the ablation."""
+
+    index: int
+    x0: np.ndarray
+    anomaly_s: float  # when the detector flags the consequential anomaly
+    latency_s: float  # how long the scripted reasoner takes (<= K)
+    pick: float  # in [0, 1): which offered region the reasoner picks
+    continue_: bool = False  # the inconsequential case: the reasoner says y = 0
+
+    def choose(self, options: Sequence[int]) -> int:
+        return 0 if self.continue_ else options[int(self.pick * len(options))]
+
+
+def sample_cases(scenario: Scenario, n: int, seed: int) -> list[Case]:
+    """The paper's distribution: start uniform around the centre, anomaly in [1 s, 4 s]."""
+    rng = np.random.default_rng(seed)
+    return [Case(i, scenario.sample_start(rng), float(rng.uniform(1.0, 4.0)),
+                 float(rng.uniform(0.2, 1.0) * scenario.consensus_s), float(rng.uniform()))
+            for i in range(n)]
+
+
+@dataclass
+class Flight:
+    method: str
+    case: Case
+    states: np.ndarray  # (N+1, 12)
+    inputs: np.ndarray  # (N, 4) as requested by the controller
+    modes: list[str]
+    t_anom_s: float | None = None
+    decision_s: float | None = None
+    chosen: int | None = None
+    fallback: bool = False
+    events: list[str] = field(default_factory=list)
+    solve_ms: list[float] = field(default_factory=list)
+
+    def violations(self, scenario: Scenario, params: QuadrotorParams,
+                   tol: LimitTolerance = LIMIT_TOLERANCE) -> int:
+        """Ticks at which a state or an input exceeded its limit beyond ``tol``."""
+        lo, hi = scenario.limits.box()
+        slack = tol.state()
+        x = self.states[1:]
+        bad_x = np.any((x > hi + slack) | (x < lo - slack), axis=1)
+        u_lo, u_hi = params.input_bounds()
+        bad_u = np.any((self.inputs > u_hi + tol.input) | (self.inputs < u_lo - tol.input), axis=1)
+        return int(np.sum(bad_x | bad_u))
+
+    def in_region(self, scenario: Scenario) -> np.ndarray:
+        """Per tick, whether the state is inside the chosen region (with TOLERANCE)."""
+        if not self.chosen:
+            return np.zeros(len(self.states), dtype=bool)
+        region = scenario.region(self.chosen)
+        return np.array([region.contains(x, TOLERANCE) for x in self.states])
+
+    def time_to_region_s(self, scenario: Scenario) -> float | None:
+        """From the anomaly until the flight enters the chosen region for good."""
+        inside = self.in_region(scenario)
+        if not inside[-1] or self.t_anom_s is None:
+            return None
+        last_out = np.flatnonzero(~inside)
+        first = int(last_out[-1]) + 1 if last_out.size else 0
+        return first * scenario.dt - self.t_anom_s
+
+    def mean_speed(self) -> float:
+        return float(np.mean(np.linalg.norm(self.states[:, 3:6], axis=1)))
+
+
+def fly(method: Method, scenario: Scenario, case: Case, params: QuadrotorParams | None = None,
+        config: MPCConfig | None = None, duration_s: float | None = None) -> Flight:
+    """One closed-loop flight of ``method`` on the nonlinear plant."""
+    params = params or QuadrotorParams()
+    controller = make_controller(method, scenario, params, config)
+    plant = SimulatedQuadrotor(case.x0, scenario.dt, params)
+    dt = scenario.dt
+    anomaly_tick = int(round(case.anomaly_s / dt))
+    latency_ticks = max(1, math.ceil(case.latency_s / dt - 1e-9))
+    end_s = duration_s or case.anomaly_s + scenario.horizon_s + 1.0
+    steps = int(round(end_s / dt))
+    states, inputs, modes = [plant.state], [], []
+    flight = Flight(method, case, np.empty(0), np.empty(0), modes)
+    answer: int | None = None
+    answer_tick: int | None = None
+    for tick in range(steps):
+        decision = answer if answer_tick is not None and tick == answer_tick else None
+        out = controller.make_step(plant.state, tick == anomaly_tick, decision)
+        if out.request is not None and answer_tick is None:
+            answer, answer_tick = case.choose(out.request), tick + latency_ticks
+            flight.t_anom_s = tick * dt
+            if not case.continue_:
+                flight.chosen = answer
+        if decision is not None:
+            flight.decision_s = tick * dt
+        if out.fallback and not flight.fallback:
+            flight.fallback, flight.chosen = True, out.chosen
+        flight.events += [f"{tick * dt:.1f}s {e}" for e in out.events]
+        if out.plan is not None:
+            flight.solve_ms.append(out.plan.solve_ms)
+        inputs.append(out.u)
+        modes.append(str(out.mode))
+        states.append(plant.step(out.u))
+        if out.mode is Mode.RECOVERING and flight.chosen is None:
+            flight.chosen = out.chosen
+    flight.states, flight.inputs = np.array(states), np.array(inputs)
+    return flight
+
+
+@dataclass(frozen=True)
+class Outcome:
+    method: str
+    case: int
+    success: bool
+    violations: int
+    ended_in: int | None
+    chosen: int | None
+    time_to_region_s: float | None
+    mean_speed_m_s: float
+    fallback: bool
+
+
+def judge(flight: Flight, scenario: Scenario, params: QuadrotorParams | None = None) -> Outcome:
+    params = params or QuadrotorParams()
+    violations = flight.violations(scenario, params)
+    final = flight.states[-1]
+    ended_in = next((r.index for r in scenario.regions if r.contains(final, TOLERANCE)), None)
+    success = flight.chosen is not None and ended_in == flight.chosen and violations == 0
+    return Outcome(flight.method, flight.case.index, success, violations, ended_in, flight.chosen,
+                   flight.time_to_region_s(scenario), flight.mean_speed(), flight.fallback)
+
+
+def run_case(args: tuple[Method, Scenario, Case]) -> Outcome:
+    method, scenario, case = args
+    return judge(fly(method, scenario, case), scenario)
+
+
+def summarize(outcomes: Sequence[Outcome]) -> dict:
+    """The ablation row of one method."""
+    times = [o.time_to_region_s for o in outcomes if o.success and o.time_to_region_s is not None]
+    n = max(len(outcomes), 1)
+    return {
+        "success_rate": sum(o.success for o in outcomes) / n,
+        "constraint_violations": sum(o.violations > 0 for o in outcomes),
+        "violation_ticks": sum(o.violations for o in outcomes),
+        "ended_in_chosen": sum(o.ended_in is not None and o.ended_in == o.chosen
+                               for o in outcomes) / n,
+        "mean_time_to_region_s": float(np.mean(times)) if times else None,
+        "mean_speed_m_s": float(np.mean([o.mean_speed_m_s for o in outcomes])) if outcomes
+        else None,
+        "fallbacks": sum(o.fallback for o in outcomes),
+    }
+
+
+def time_lost(scenario: Scenario, case: Case, params: QuadrotorParams | None = None,
+              reach_m: float = 0.2, duration_s: float = 16.0) -> dict:
+    """The inconsequential case: AESOP slows for the K window, resumes after ``y = 0``.
+
+    Time to come within ``reach_m`` of the goal with the anomaly, against the
+    same start with no anomaly (``anomaly_s`` beyond the flight).
+    """
+    goal = np.asarray(scenario.goal)
+
+    def arrival(flight: Flight) -> float | None:
+        near = np.flatnonzero(np.linalg.norm(flight.states[:, :3] - goal, axis=1) <= reach_m)
+        return float(near[0] * scenario.dt) if near.size else None
+
+    quiet = Case(case.index, case.x0, duration_s + 1.0, case.latency_s, case.pick)
+    noisy = Case(case.index, case.x0, case.anomaly_s, case.latency_s, case.pick, continue_=True)
+    base = arrival(fly("aesop", scenario, quiet, params, duration_s=duration_s))
+    with_anomaly = arrival(fly("aesop", scenario, noisy, params, duration_s=duration_s))
+    lost = None if base is None or with_anomaly is None else with_anomaly - base
+    return {"arrival_s": with_anomaly, "arrival_no_anomaly_s": base, "time_lost_s": lost}
+
+
+__all__ = ["METHODS", "Case", "Flight", "Outcome", "fly", "judge", "run_case", "sample_cases",
+           "summarize", "time_lost"]
