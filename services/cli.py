@@ -50,7 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     serve = sub.add_parser("serve", help="run one service (settings also from AESOP_* env vars)")
-    serve.add_argument("service", choices=["embedding", "reasoner", "fake-llm"],
+    serve.add_argument("service", choices=["embedding", "reasoner", "control", "fake-llm"],
                        help="fake-llm: an OpenAI-compatible test server; see its --help")
     serve.add_argument("--host")
     serve.add_argument("--port", type=int)
@@ -94,6 +94,27 @@ def build_parser() -> argparse.ArgumentParser:
     br.add_argument("--json", action="store_true")
     br.set_defaults(func=cmd_bench_reasoner)
 
+    bm = bsub.add_parser("mpc", help="per-tick AESOP control step vs a CVXPY reference of eq. 3")
+    bm.add_argument("--flights", type=int, default=3, help="nominal flights (default 3)")
+    bm.add_argument("--ticks", type=int, default=60, help="ticks per flight (default 60)")
+    bm.add_argument("--reference-every", type=int, default=10,
+                    help="solve the CVXPY reference every N ticks (default 10)")
+    bm.add_argument("--scenario", type=Path, default=None, help="scenario file (default: paper)")
+    bm.add_argument("--seed", type=int, default=0)
+    bm.add_argument("--json", action="store_true")
+    bm.set_defaults(func=cmd_bench_mpc)
+    bc = bsub.add_parser("closed-loop", help="the paper's ablation: naive, FS-MPC and AESOP")
+    bc.add_argument("--scenarios", type=int, default=500, help="cases (default 500)")
+    bc.add_argument("--seed", type=int, default=0)
+    bc.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+                    help="worker processes (default: every CPU)")
+    bc.add_argument("--inconsequential", type=int, default=5,
+                    help="cases flown again with y = 0 to measure the time lost (default 5)")
+    bc.add_argument("--scenario", type=Path, default=None, help="scenario file (default: paper)")
+    bc.add_argument("--plot", type=Path, default=None, help="write a figure of case 0 (PNG)")
+    bc.add_argument("--json", action="store_true")
+    bc.set_defaults(func=cmd_bench_closed_loop)
+
     demo = sub.add_parser("demo", help="the detector demo on the quadrotor scene")
     demo.add_argument("--json", action="store_true")
     demo.add_argument("--model", default=None)
@@ -113,6 +134,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
                                    ("data_dir", args.data_dir)) if v is not None}
     if args.service == "reasoner":
         return serve_reasoner(overrides)
+    if args.service == "control":
+        return serve_control(overrides)
 
     from services.embedding.api import create_app
     from services.embedding.settings import EmbeddingSettings
@@ -141,6 +164,26 @@ def serve_reasoner(overrides: dict[str, Any]) -> int:
     except ValueError as exc:
         raise CliError(str(exc)) from None
     serve(create_app(settings, worker_factory=ReasonerWorker.factory(settings)), settings)
+    return 0
+
+
+def serve_control(overrides: dict[str, Any]) -> int:
+    from services.control.api import create_app
+    from services.control.loop import ControlRuntime
+    from services.control.scenario import load_scenario
+    from services.control.service import SERVICE
+    from services.control.settings import ControlSettings
+    from shared.bus import Bus
+    from shared.http import serve
+
+    settings = ControlSettings(**overrides)
+    try:
+        settings.check_exposure()
+        runtime = ControlRuntime(settings, load_scenario(settings.scenario))
+    except ValueError as exc:  # ScenarioError included: the message names the field
+        raise CliError(str(exc)) from None
+    app = create_app(settings, runtime, bus_factory=lambda: Bus.open(settings, SERVICE))
+    serve(app, settings)
     return 0
 
 
@@ -194,6 +237,52 @@ def cmd_bench_reasoner(args: argparse.Namespace) -> int:
                                 hedge_after_s=args.hedge_after, table=not args.json)
     if args.json:
         emit(result, True)
+    return 0
+
+
+def _control_scenario(path: Path | None):
+    from services.control.scenario import ScenarioError, load_scenario
+
+    try:
+        return load_scenario(path)
+    except (ScenarioError, OSError) as exc:
+        raise CliError(f"--scenario: {exc}") from None
+
+
+def cmd_bench_mpc(args: argparse.Namespace) -> int:
+    from services.control.bench import bench_mpc
+    from shared.tables import table
+
+    if args.flights < 1 or args.ticks < 2 or args.reference_every < 1:
+        raise CliError("--flights and --reference-every must be >= 1, --ticks >= 2")
+    result = bench_mpc(_control_scenario(args.scenario), flights=args.flights, ticks=args.ticks,
+                       reference_every=args.reference_every, seed=args.seed)
+    if args.json:
+        emit(result, True)
+        return 0
+    rows = [{"solver": name, **{k: result[key][k] for k in ("p50", "p99", "max", "n")}}
+            for name, key in (("OSQP, per-chain (AESOP step)", "step_ms"),
+                              ("CVXPY/Clarabel reference", "reference_step_ms"))]
+    print(table("per-tick control step [ms] (selection over every pair + solve)", rows))
+    print(f"speedup p50: {result['speedup_p50']:.1f}x   objective rel. diff max: "
+          f"{result['objective_rel_diff_max']}   infeasible ticks: {result['infeasible_ticks']}")
+    return 0
+
+
+def cmd_bench_closed_loop(args: argparse.Namespace) -> int:
+    from services.control.bench import bench_closed_loop
+    from shared.tables import table
+
+    if args.scenarios < 1 or args.workers < 1 or args.inconsequential < 0:
+        raise CliError("--scenarios and --workers must be >= 1, --inconsequential >= 0")
+    result = bench_closed_loop(args.scenarios, args.seed, args.workers,
+                               _control_scenario(args.scenario), args.inconsequential, args.plot)
+    if args.json:
+        emit(result, True)
+        return 0
+    rows = [{"method": m, **r} for m, r in result["methods"].items()]
+    print(table(f"closed loop, {args.scenarios} cases, seed {args.seed}", rows))
+    print(f"inconsequential case: {result['inconsequential']}")
     return 0
 
 

@@ -64,6 +64,7 @@ class ControlOutput:
     request: tuple[int, ...] | None = None  # options for the reasoner, on the detection tick
     events: tuple[str, ...] = ()
     fallback: bool = False  # the recovery was committed without a decision
+    consensus_left: int | None = None  # ticks until the fallback at K, while one is pending
 
 
 @dataclass
@@ -205,9 +206,12 @@ class _Controller:
     def _output(self, u, status, plan, active, request=None) -> ControlOutput:
         mem = self.memory
         u = self._tilt_compensated(u)
+        left = (self.config.consensus - (mem.t - mem.t_anom + mem.spent)
+                if mem.mode is Mode.PENDING else None)
         out = ControlOutput(u=u, mode=mem.mode, status=status, plan=plan, active_regions=active,
                             t_anom=mem.t_anom, chosen=mem.chosen, request=request,
-                            events=tuple(mem.events), fallback=mem.fallback)
+                            events=tuple(mem.events), fallback=mem.fallback,
+                            consensus_left=left)
         mem.events.clear()
         mem.t += 1
         return out

@@ -1,0 +1,135 @@
+"""HTTP admin API of the control-loop service.
+
+``GET /v1/state`` (the newest ControlState and the loop's timing),
+``GET /v1/regions``, ``POST /v1/regions`` (replace the recovery regions, in
+nominal mode only; admin token), ``POST /v1/reset`` (restart the flight;
+admin token), and ``/healthz``, ``/readyz``, ``/metrics``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import Depends, FastAPI
+from prometheus_client import CollectorRegistry
+from pydantic import BaseModel, ConfigDict
+
+from shared.bus import Bus
+from shared.http import (
+    ApiError,
+    HttpMetrics,
+    bearer_auth,
+    install_error_handlers,
+    ops_router,
+    require_json,
+)
+
+from .loop import ControlRuntime, NotNominal
+from .scenario import ScenarioError, regions_from_list
+from .service import SERVICE, ControlMetrics, ControlService
+from .settings import ControlSettings
+
+
+class RegionsBody(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    regions: list[Any]  # checked by regions_from_list, whose errors name the entry and field
+
+
+class ResetBody(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    start: tuple[float, float, float] | None = None  # m; None: a fresh draw from the start box
+
+
+def error_field(message: str) -> str:
+    """The field a scenario error names: ``'regions[1].name: required'`` -> ``regions[1].name``."""
+    head = message.split(":", 1)[0].strip()
+    return head if head.startswith("regions") and " " not in head else "regions"
+
+
+def create_app(settings: ControlSettings, runtime: ControlRuntime,
+               bus_factory: Callable[[], Bus] | None = None) -> FastAPI:
+    """The app; its lifespan opens the bus (``bus_factory``) and runs the loop."""
+    registry = CollectorRegistry()
+    metrics = ControlMetrics(registry)
+    holder: dict[str, ControlService] = {}
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        bus = bus_factory() if bus_factory is not None else None
+        service = ControlService(settings, runtime, bus, metrics, owns_bus=bus is not None)
+        holder["service"] = service
+        task = asyncio.create_task(service.run())
+        try:
+            yield
+        finally:
+            service.stop()
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+            service.close()
+
+    app = FastAPI(title="AESOP control-loop service", version="1", lifespan=lifespan)
+    install_error_handlers(app)
+    require_json(app)
+    HttpMetrics(registry, SERVICE).install(app)
+    app.include_router(ops_router(
+        registry, lambda: None if runtime.last is not None else {"reason": "no tick yet"}))
+    auth = [Depends(bearer_auth(settings.admin_token))]
+
+    @app.get("/v1/state")
+    async def state() -> dict[str, Any]:
+        last = runtime.last
+        service = holder.get("service")
+        plan = None if last is None else last.output.plan
+        return {
+            "robot": settings.robot,
+            "state": None if last is None else last.state.model_dump(),
+            "mode": runtime.mode.value,
+            "status": None if last is None else last.output.status.value,
+            "method": settings.control_method,
+            "scenario": runtime.scenario.name,
+            "verdict_stale": None if last is None else last.stale,
+            "pending_request": runtime.pending,
+            "loop": {
+                "rate_hz": settings.rate_hz,
+                **(service.scheduler.stats.summary() if service else {}),
+                "last_step_ms": None if last is None else round(last.step_ms, 3),
+                "last_solve_ms": None if plan is None else round(float(plan.solve_ms), 3),
+            },
+        }
+
+    @app.get("/v1/regions")
+    async def get_regions() -> dict[str, Any]:
+        return {"regions": [r.to_dict() for r in runtime.scenario.regions],
+                "mode": runtime.mode.value}
+
+    @app.post("/v1/regions", dependencies=auth)
+    async def post_regions(body: RegionsBody) -> dict[str, Any]:
+        try:
+            regions = regions_from_list(body.regions)
+            await runtime.replace_regions(regions)
+        except ScenarioError as exc:
+            raise ApiError(422, "invalid", str(exc), error_field(str(exc))) from None
+        except NotNominal as exc:
+            raise ApiError(409, "conflict", f"the flight is in mode {exc}: recovery regions "
+                           "change only in nominal mode (POST /v1/reset first)", "mode") from None
+        except ValueError as exc:
+            raise ApiError(422, "invalid", str(exc), error_field(str(exc))) from None
+        return {"regions": [r.to_dict() for r in runtime.scenario.regions],
+                "mode": runtime.mode.value}
+
+    @app.post("/v1/reset", dependencies=auth)
+    async def reset(body: ResetBody | None = None) -> dict[str, Any]:
+        try:
+            x0 = await runtime.reset(None if body is None else body.start)
+        except ValueError as exc:
+            raise ApiError(422, "invalid", str(exc), "start") from None
+        return {"start": [float(v) for v in x0[:3]], "mode": runtime.mode.value}
+
+    return app

@@ -1,0 +1,182 @@
+"""``aesop bench mpc`` and ``aesop bench closed-loop``.
+
+* ``mpc``: the per-tick control step (subset selection over every pair of
+  the paper's four regions, plus the solve) on nominal flights of the
+  nonlinear plant, against a straightforward CVXPY/Clarabel statement of
+  the same eq. 3 solving the same pairs at sampled ticks of the same run.
+* ``closed-loop``: the paper's ablation (naive, FS-MPC, AESOP) over seeded
+  cases, in worker processes, plus the inconsequential case's time loss.
+"""
+
+from __future__ import annotations
+
+import itertools
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from .dynamics import LinearModel, QuadrotorParams
+from .plant import METHODS, SimulatedQuadrotor, make_controller, mpc_config
+from .reference import reference_solve
+from .scenario import Scenario, load_scenario
+from .sim import fly, run_case, sample_cases, summarize, time_lost
+
+
+def _pct(values: list[float]) -> dict:
+    return {"p50": float(np.percentile(values, 50)), "p99": float(np.percentile(values, 99)),
+            "max": float(np.max(values)), "n": len(values)}
+
+
+def bench_mpc(scenario: Scenario | None = None, flights: int = 3, ticks: int = 60,
+              reference_every: int = 10, seed: int = 0) -> dict:
+    """Step time of AESOP's nominal tick and the CVXPY reference on the same states."""
+    scenario = scenario or load_scenario()
+    params = QuadrotorParams()
+    model = LinearModel.hover(params, scenario.dt)
+    config = mpc_config(scenario)
+    rng = np.random.default_rng(seed)
+    step_ms, reference_ms, rel_diffs, iterations = [], [], [], []
+    infeasible = 0
+    for _ in range(flights):
+        controller = make_controller("aesop", scenario, params, config)
+        plant = SimulatedQuadrotor(scenario.sample_start(rng), scenario.dt, params)
+        for tick in range(ticks):
+            x = plant.state
+            start = time.perf_counter()
+            out = controller.make_step(x, False)
+            elapsed = (time.perf_counter() - start) * 1e3
+            if tick > 0:  # the first tick builds and cold-solves every problem
+                step_ms.append(elapsed)
+                if out.plan is not None:
+                    iterations.append(out.plan.iterations)
+            infeasible += not out.status.feasible
+            if tick % reference_every == 1:
+                ref_total, diffs = _reference_tick(model, scenario, params, config, x, controller)
+                reference_ms.append(ref_total)
+                rel_diffs += diffs
+            plant.step(out.u)
+        print(f"bench mpc: flight done ({len(step_ms)} ticks)", file=sys.stderr)
+    return {
+        "problem": {"horizon": config.horizon, "consensus": config.consensus,
+                    "regions": len(scenario.regions), "subsets": len(list(
+                        itertools.combinations(scenario.regions, 2))), "dt_s": scenario.dt},
+        "step_ms": _pct(step_ms),
+        "reference_step_ms": _pct(reference_ms),
+        "speedup_p50": float(np.percentile(reference_ms, 50) / np.percentile(step_ms, 50)),
+        "objective_rel_diff_max": float(max(rel_diffs)) if rel_diffs else None,
+        "objective_compared": len(rel_diffs),
+        "osqp_iterations": _pct(iterations) if iterations else None,
+        "infeasible_ticks": infeasible,
+        "eps": config.eps_abs,
+    }
+
+
+def _reference_tick(model, scenario, params, config, x, controller) -> tuple[float, list[float]]:
+    """CVXPY on every pair at state ``x``; relative cost gap where both call it feasible."""
+    total, diffs = 0.0, []
+    selector = controller.selector
+    for subset in selector.subsets:
+        regions = [scenario.region(i) for i in subset]
+        ref = reference_solve(model, scenario.limits.box(), params.input_bounds(), config,
+                              regions, x, scenario.goal_state)
+        total += ref.total_ms
+        plan = selector.solve(subset, x, scenario.goal_state)
+        if ref.status == "optimal" and plan.feasible:
+            diffs.append(abs(plan.cost - ref.cost) / max(abs(ref.cost), 1e-9))
+    return total, diffs
+
+
+def bench_closed_loop(scenarios: int = 500, seed: int = 0, workers: int = 2,
+                      scenario: Scenario | None = None, inconsequential: int = 5,
+                      plot: Path | None = None) -> dict:
+    scenario = scenario or load_scenario()
+    cases = sample_cases(scenario, scenarios, seed)
+    methods, outcomes = {}, {}
+    started = time.perf_counter()
+    with ProcessPoolExecutor(max(1, workers)) as pool:
+        for method in METHODS:
+            outcomes[method] = list(pool.map(run_case, [(method, scenario, c) for c in cases]))
+            methods[method] = summarize(outcomes[method])
+            print(f"bench closed-loop: {method} done, {time.perf_counter() - started:.0f} s",
+                  file=sys.stderr)
+        lost = list(pool.map(_time_lost, [(scenario, c) for c in cases[:inconsequential]]))
+    losses = [r["time_lost_s"] for r in lost if r["time_lost_s"] is not None]
+    result = {
+        "scenarios": scenarios,
+        "seed": seed,
+        "methods": methods,
+        "inconsequential": {"cases": len(lost),
+                            "mean_time_lost_s": float(np.mean(losses)) if losses else None,
+                            "max_time_lost_s": float(np.max(losses)) if losses else None,
+                            "reached_goal": len(losses)},
+        "failures": {m: [o.case for o in outs if not o.success][:20]
+                     for m, outs in outcomes.items()},
+        "wall_s": time.perf_counter() - started,
+    }
+    if plot is not None:
+        plot_case(scenario, cases[0], plot)
+        result["plot"] = str(plot)
+    return result
+
+
+def _time_lost(args) -> dict:
+    scenario, case = args
+    return time_lost(scenario, case)
+
+
+def plot_case(scenario: Scenario, case, path: Path) -> None:
+    """A figure like the paper's: the three methods' flights of one case over the regions,
+    with AESOP's plan tree at the anomaly (nominal plan and recovery branches)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5))
+    colours = {"naive": "tab:red", "fsmpc": "tab:orange", "aesop": "tab:blue"}
+    for ax, (i, j, names) in zip(axes, ((0, 1, "x [m] / y [m]"), (0, 2, "x [m] / z [m]")),
+                                 strict=True):
+        for region in scenario.regions:
+            lo, hi = region.position_lo, region.position_hi
+            ax.add_patch(Rectangle((lo[i], lo[j]), hi[i] - lo[i], hi[j] - lo[j], alpha=0.25,
+                                   color="tab:green"))
+            ax.annotate(f"{region.index}: {region.name}", (lo[i], hi[j]), fontsize=8)
+        ax.plot(scenario.goal[i], scenario.goal[j], "k*", markersize=12, label="goal")
+        ax.set_xlabel(names.split(" / ")[0])
+        ax.set_ylabel(names.split(" / ")[1])
+    for method in METHODS:
+        flight = fly(method, scenario, case)
+        for ax, (i, j) in zip(axes, ((0, 1), (0, 2)), strict=True):
+            ax.plot(flight.states[:, i], flight.states[:, j], color=colours[method],
+                    label=f"{method} (chose {flight.chosen})")
+            if flight.t_anom_s is not None:
+                k = int(round(flight.t_anom_s / scenario.dt))
+                ax.plot(flight.states[k, i], flight.states[k, j], "x", color=colours[method])
+    tree = _tree_at_anomaly(scenario, case)
+    if tree is not None:
+        for ax, (i, j) in zip(axes, ((0, 1), (0, 2)), strict=True):
+            if tree.nominal is not None:
+                ax.plot(tree.nominal[:, i], tree.nominal[:, j], "k--", linewidth=1,
+                        label="AESOP nominal plan at anomaly")
+            for branch in tree.recovery.values():
+                ax.plot(branch[:, i], branch[:, j], ":", color="tab:purple", linewidth=1)
+    axes[0].legend(fontsize=8, loc="lower left")
+    fig.suptitle(f"{scenario.name}: case {case.index}, anomaly at {case.anomaly_s:.1f} s "
+                 "(dotted: AESOP recovery tree at the anomaly)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _tree_at_anomaly(scenario: Scenario, case):
+    controller = make_controller("aesop", scenario)
+    plant = SimulatedQuadrotor(case.x0, scenario.dt)
+    anomaly_tick = int(round(case.anomaly_s / scenario.dt))
+    for tick in range(anomaly_tick + 1):
+        out = controller.make_step(plant.state, tick == anomaly_tick, None)
+        plant.step(out.u)
+    return out.plan

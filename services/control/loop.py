@@ -1,0 +1,438 @@
+"""The fixed-rate control loop: a deadline scheduler and the per-tick runtime.
+
+Nothing here touches Zenoh or HTTP; the service (:mod:`.service`) feeds each
+tick the newest verdict, decision and observation and publishes what it
+returns.
+
+* :class:`FixedRateScheduler` runs a tick at ``start + k * period`` (never
+  ``previous + period``, so it cannot drift). It records each tick's jitter
+  (actual start minus its deadline) and, when a tick's work ends after the
+  next deadline, counts an overrun and skips to the first deadline still in
+  the future, counting the ticks missed. Clock and sleep are injectable.
+* :class:`ControlRuntime` is one robot's closed loop: fail-safe anomaly flag
+  from the verdict's age, reasoner decisions routed by ``request_id``, the
+  controller's ``make_step`` run off the event loop, the simulated plant
+  advanced by ``dt``, and the messages of the tick.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+import uuid
+from collections import deque
+from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from shared.bus import Received
+from shared.messages import (
+    AnomalyVerdict,
+    ControlState,
+    Event,
+    Observation,
+    Option,
+    PlanSnapshot,
+    ReasonerDecision,
+    ReasonerRequest,
+    Severity,
+)
+
+from .aesop import ControlOutput, Mode
+from .dynamics import N_STATE, POS
+from .plant import SimulatedQuadrotor, make_controller, mpc_config
+from .regions import Region
+from .scenario import Scenario
+from .settings import ControlSettings
+
+SOURCE = "control"
+Clock = Callable[[], float]
+Sleep = Callable[[float], Awaitable[Any]]
+
+# --------------------------------------------------------------------------- scheduling
+
+
+@dataclass(frozen=True)
+class TickTiming:
+    """When one tick ran, on the scheduler's clock (s)."""
+
+    index: int  # k: the tick's deadline is start + k * period
+    deadline: float
+    started: float
+    ended: float
+    overrun: bool  # the work ended after the next deadline
+    missed: int  # deadlines skipped because of that overrun
+
+    @property
+    def jitter_s(self) -> float:
+        return self.started - self.deadline
+
+    @property
+    def work_s(self) -> float:
+        return self.ended - self.started
+
+
+def next_index(start: float, period: float, index: int, ended: float) -> tuple[int, int]:
+    """``(next k, ticks missed)`` after tick ``index`` ended at ``ended``.
+
+    The next tick is ``index + 1`` unless its deadline has already passed; then
+    it is the first deadline strictly after ``ended``.
+    """
+    following = index + 1
+    if ended <= start + following * period:
+        return following, 0
+    future = max(following, math.floor((ended - start) / period) + 1)
+    return future, future - following
+
+
+class LoopStats:
+    """Counters and a window of recent jitters and step times, for ``GET /v1/state``."""
+
+    def __init__(self, window: int = 1000) -> None:
+        self.ticks = 0
+        self.overruns = 0
+        self.missed = 0
+        self.jitter_ms: deque[float] = deque(maxlen=window)
+        self.work_ms: deque[float] = deque(maxlen=window)
+
+    def record(self, timing: TickTiming) -> None:
+        self.ticks += 1
+        self.overruns += int(timing.overrun)
+        self.missed += timing.missed
+        self.jitter_ms.append(timing.jitter_s * 1000.0)
+        self.work_ms.append(timing.work_s * 1000.0)
+
+    def summary(self) -> dict[str, float | int | None]:
+        def pct(values: deque[float], q: float) -> float | None:
+            return round(float(np.percentile(values, q)), 3) if values else None
+
+        return {"ticks": self.ticks, "overruns": self.overruns, "missed_ticks": self.missed,
+                "jitter_p50_ms": pct(self.jitter_ms, 50), "jitter_p99_ms": pct(self.jitter_ms, 99),
+                "jitter_max_ms": round(max(self.jitter_ms), 3) if self.jitter_ms else None,
+                "tick_p50_ms": pct(self.work_ms, 50), "tick_p99_ms": pct(self.work_ms, 99)}
+
+
+class FixedRateScheduler:
+    """Calls ``tick(deadline)`` at ``start + k * period`` until ``stop()`` or cancellation."""
+
+    def __init__(self, period_s: float, *, clock: Clock = time.monotonic,
+                 sleep: Sleep = asyncio.sleep, window: int = 1000) -> None:
+        if not period_s > 0:
+            raise ValueError("period_s must be positive")
+        self.period = period_s
+        self.clock, self.sleep = clock, sleep
+        self.stats = LoopStats(window)
+        self._stopping = False
+
+    def stop(self) -> None:
+        """End the loop after the tick in progress."""
+        self._stopping = True
+
+    async def run(self, tick: Callable[[float], Awaitable[object]], *,
+                  on_tick: Callable[[TickTiming], None] | None = None,
+                  max_ticks: int | None = None) -> None:
+        start = self.clock()
+        index = 0
+        done = 0
+        while not self._stopping and (max_ticks is None or done < max_ticks):
+            deadline = start + index * self.period
+            now = self.clock()
+            if now < deadline:
+                await self.sleep(deadline - now)
+                now = self.clock()
+            await tick(deadline)
+            ended = self.clock()
+            following, missed = next_index(start, self.period, index, ended)
+            timing = TickTiming(index, deadline, now, ended, missed > 0, missed)
+            self.stats.record(timing)
+            if on_tick is not None:
+                on_tick(timing)
+            index = following
+            done += 1
+
+
+# --------------------------------------------------------------------------- the runtime
+
+
+class NotNominal(Exception):
+    """The flight is not in nominal mode, so its recovery regions cannot change now."""
+
+
+@dataclass(frozen=True)
+class TickResult:
+    """What one tick produced: the messages to publish and how long the step took."""
+
+    state: ControlState
+    plan: PlanSnapshot | None
+    request: ReasonerRequest | None
+    events: tuple[Event, ...]
+    output: ControlOutput
+    step_ms: float  # make_step + plant step, wall time
+    anomaly: bool  # the flag make_step was given
+    stale: bool  # the verdict was missing or older than verdict_stale_s
+
+
+@dataclass
+class _Inputs:
+    anomaly: bool
+    decision: int | None
+    stale: bool
+    verdict: Received[AnomalyVerdict] | None
+    events: list[Event] = field(default_factory=list)
+
+
+def options_for(regions: Sequence[Region], offered: Sequence[int]) -> tuple[Option, ...]:
+    """Option 0 (continue) plus one option per offered region, for the reasoner."""
+    by_index = {r.index: r for r in regions}
+    options = [Option(index=0, label="continue", description="keep flying the nominal task")]
+    for index in offered:
+        region = by_index[index]
+        center = (np.asarray(region.position_lo) + np.asarray(region.position_hi)) / 2
+        where = ", ".join(f"{v:.1f}" for v in center)
+        what = "land" if region.kind == "landing" else "hover"
+        options.append(Option(index=index, label=region.label,
+                              description=f"{what} at {region.name} ({where}) m"))
+    return tuple(options)
+
+
+def points(states: np.ndarray) -> tuple[tuple[float, float, float], ...]:
+    """The x, y, z of each row of a ``(T+1, 12)`` trajectory."""
+    return tuple((float(x), float(y), float(z)) for x, y, z in np.asarray(states)[:, POS])
+
+
+def check_start(scenario: Scenario, start: Sequence[float]) -> np.ndarray:
+    """A rest state at ``start`` (m), which must lie inside the scenario's position fence."""
+    pos = np.asarray(start, dtype=float)
+    lo, hi = np.asarray(scenario.limits.position_lo), np.asarray(scenario.limits.position_hi)
+    if pos.shape != (3,) or not np.all(np.isfinite(pos)):
+        raise ValueError("start: expected 3 finite numbers (m)")
+    if np.any(pos < lo) or np.any(pos > hi):
+        raise ValueError(f"start: {pos.tolist()} is outside the position limits "
+                         f"{list(scenario.limits.position_lo)}..{list(scenario.limits.position_hi)}")
+    x = np.zeros(N_STATE)
+    x[POS] = pos
+    return x
+
+
+def check_fence(scenario: Scenario, regions: Sequence[Region]) -> None:
+    """Every region must lie inside the position limits; ``ValueError`` names the entry."""
+    lo, hi = np.asarray(scenario.limits.position_lo), np.asarray(scenario.limits.position_hi)
+    for i, region in enumerate(regions):
+        if np.any(np.asarray(region.position_lo) < lo) or \
+                np.any(np.asarray(region.position_hi) > hi):
+            raise ValueError(f"regions[{i}]: {region.name!r} lies outside the position limits "
+                             f"{list(scenario.limits.position_lo)}.."
+                             f"{list(scenario.limits.position_hi)}")
+
+
+class ControlRuntime:
+    """One robot's closed loop: verdict and decision in, messages out, one tick at a time.
+
+    ``tick`` holds ``lock`` while it runs; ``replace_regions`` and ``reset``
+    take it too, so a controller is only ever swapped between two ticks.
+    """
+
+    def __init__(self, settings: ControlSettings, scenario: Scenario, *,
+                 clock: Clock = time.monotonic) -> None:
+        self.settings, self.scenario, self.clock = settings, scenario, clock
+        self.lock = asyncio.Lock()
+        self._rng = np.random.default_rng(settings.seed)
+        self.controller = self.build_controller(scenario)
+        self.plant = SimulatedQuadrotor(self._start_state(None), scenario.dt)
+        self._k = 0  # plant ticks since the flight (re)started
+        self._k0 = 0  # plant tick at which the controller was built
+        self.mode = Mode.NOMINAL
+        self.pending: str | None = None  # request_id the next decision must carry
+        self._delivered = False
+        self._stale: bool | None = None  # None until the first tick
+        self._stale_asked = False  # this stale episode already raised a request
+        self._verdict_asked: float | None = None  # received_at of the verdict that asked
+        self._queued: list[Event] = []
+        self.last: TickResult | None = None
+
+    # ----------------------------------------------------------------- building
+
+    def build_controller(self, scenario: Scenario) -> Any:
+        """A fresh controller of the configured method for ``scenario`` (pure CPU, no I/O)."""
+        fallback = self.settings.control_fallback
+        if isinstance(fallback, int) and fallback not in {r.index for r in scenario.regions}:
+            raise ValueError(f"control_fallback: region {fallback} is not one of the "
+                             f"scenario's {len(scenario.regions)} recovery regions")
+        config = mpc_config(scenario, **self.settings.mpc_overrides())
+        return make_controller(self.settings.control_method, scenario, config=config,
+                               fallback=fallback)
+
+    def _start_state(self, start: Sequence[float] | None) -> np.ndarray:
+        if start is None:
+            start = self.settings.start_position
+        if start is not None:
+            return check_start(self.scenario, start)
+        return self.scenario.sample_start(self._rng)
+
+    @property
+    def t(self) -> float:
+        """Simulated time of the next tick (s)."""
+        return self._k * self.scenario.dt
+
+    # ----------------------------------------------------------------- one tick
+
+    async def tick(self, *, deadline: float, verdict: Received[AnomalyVerdict] | None,
+                   decision: ReasonerDecision | None = None,
+                   observation: Observation | None = None) -> TickResult:
+        """Run one tick whose deadline was ``deadline`` (scheduler clock, s)."""
+        async with self.lock:
+            inputs = self._read_inputs(verdict, decision)
+            x = self.plant.state
+            started = time.perf_counter()
+            output = await asyncio.to_thread(self._step, x, inputs.anomaly, inputs.decision)
+            step_ms = (time.perf_counter() - started) * 1000.0
+            result = self._finish(x, output, inputs, step_ms, deadline, observation)
+            self.last = result
+            return result
+
+    def _step(self, x: np.ndarray, anomaly: bool, decision: int | None) -> ControlOutput:
+        """Off the event loop: the controller's step, then the plant's."""
+        output = self.controller.make_step(x, anomaly, decision)
+        self.plant.step(output.u)
+        return output
+
+    def _read_inputs(self, verdict: Received[AnomalyVerdict] | None,
+                     decision: ReasonerDecision | None) -> _Inputs:
+        events, self._queued = self._queued, []
+        age = None if verdict is None else self.clock() - verdict.received_at
+        stale = age is None or age > self.settings.verdict_stale_s
+        if stale and self._stale is not True:
+            why = "no anomaly verdict has arrived" if age is None else \
+                f"the newest anomaly verdict is {age:.2f} s old"
+            events.append(self._event(
+                "verdict_stale", "alarm",
+                f"{why} (limit {self.settings.verdict_stale_s:g} s): counting it as an anomaly",
+                age_s=None if age is None else round(age, 3)))
+            self._stale_asked = False
+        elif not stale and self._stale is True:
+            events.append(self._event("verdict_fresh", "info", "anomaly verdicts are arriving "
+                                      "again", age_s=round(age or 0.0, 3)))
+        self._stale = stale
+        if stale:
+            anomaly = not self._stale_asked
+        else:
+            assert verdict is not None
+            anomaly = verdict.message.is_anomaly and verdict.received_at != self._verdict_asked
+        chosen = None
+        if (decision is not None and self.pending is not None and not self._delivered
+                and decision.request_id == self.pending):
+            chosen, self._delivered = decision.choice, True
+        return _Inputs(anomaly, chosen, stale, verdict, events)
+
+    def _finish(self, x: np.ndarray, output: ControlOutput, inputs: _Inputs, step_ms: float,
+                deadline: float, observation: Observation | None) -> TickResult:
+        dt = self.scenario.dt
+        t = self._k * dt
+        events = inputs.events
+        request = None
+        if output.request is not None:
+            request = self._request(output.request, inputs, observation, deadline,
+                                    output.consensus_left)
+            self.pending, self._delivered = request.request_id, False
+            if inputs.stale:
+                self._stale_asked = True
+            elif inputs.verdict is not None:
+                self._verdict_asked = inputs.verdict.received_at
+        elif self._delivered:
+            self.pending = None  # answered: a later duplicate is ignored
+        events.extend(self._output_events(output, request))
+        self.mode = output.mode
+        t_anom = None if output.t_anom is None else (self._k0 + output.t_anom) * dt
+        state = ControlState(
+            robot=self.settings.robot, t=t, x=tuple(float(v) for v in x),
+            u=tuple(float(v) for v in output.u), mode=output.mode.value, t_anom=t_anom,
+            chosen=output.chosen, active_regions=tuple(int(i) for i in output.active_regions))
+        plan = None
+        if output.plan is not None:
+            p = output.plan
+            plan = PlanSnapshot(
+                robot=self.settings.robot, t=t,
+                nominal=() if p.nominal is None else points(p.nominal),
+                recovery={int(i): points(s) for i, s in p.recovery.items()},
+                consensus_steps=int(p.consensus), solve_ms=max(0.0, float(p.solve_ms)),
+                status=str(p.status.value))
+        self._k += 1
+        return TickResult(state, plan, request, tuple(events), output, step_ms,
+                          inputs.anomaly, inputs.stale)
+
+    def _request(self, offered: tuple[int, ...], inputs: _Inputs,
+                 observation: Observation | None, deadline: float,
+                 consensus_left: int | None) -> ReasonerRequest:
+        robot = self.settings.robot
+        if observation is None:
+            text = ("the anomaly detector has gone silent" if inputs.stale else
+                    "the anomaly detector flagged the scene; no observation text was received")
+            seq = 0 if inputs.verdict is None else inputs.verdict.message.seq
+            observation = Observation(robot=robot, seq=seq, text=text)
+        # The decision must be here by the tick at k = K: the controller says how many
+        # ticks are left (fewer than K when a hold had already spent some).
+        left = max(self.scenario.consensus if consensus_left is None else consensus_left, 0)
+        due = deadline + left * self.settings.period_s
+        deadline_s = max(due - self.clock() - self.settings.decision_margin_s, 1e-3)
+        return ReasonerRequest(robot=robot, request_id=uuid.uuid4().hex,
+                               observation=observation,
+                               options=options_for(self.scenario.regions, offered),
+                               deadline_s=deadline_s)
+
+    def _output_events(self, output: ControlOutput, request: ReasonerRequest | None
+                       ) -> list[Event]:
+        said = "; ".join(output.events)
+        if output.mode is self.mode:
+            return [self._event("controller", "info", text) for text in output.events]
+        fallback = output.mode is Mode.RECOVERING and output.fallback
+        kind = "fallback" if fallback else "mode_change"
+        severity: Severity = "alarm" if fallback else \
+            ("info" if output.mode is Mode.NOMINAL else "warning")
+        return [self._event(kind, severity, said or f"{self.mode.value} -> {output.mode.value}",
+                            **{"from": self.mode.value, "to": output.mode.value,
+                               "chosen": output.chosen, "fallback": output.fallback,
+                               "request_id": request.request_id if request else self.pending})]
+
+    def _event(self, kind: str, severity: Severity, message: str,
+               **data: str | int | float | bool | None) -> Event:
+        return Event(robot=self.settings.robot, source=SOURCE, kind=kind, severity=severity,
+                     message=message, data=data)
+
+    # ----------------------------------------------------------------- changes between ticks
+
+    async def replace_regions(self, regions: tuple[Region, ...]) -> None:
+        """Swap the recovery regions (and so the controller) between two ticks.
+
+        Raises ``ValueError`` (nothing changed) for regions the scenario cannot
+        use and :class:`NotNominal` unless the flight is in nominal mode.
+        """
+        check_fence(self.scenario, regions)
+        scenario = self.scenario.with_regions(regions)
+        if self.mode is not Mode.NOMINAL:
+            raise NotNominal(self.mode.value)
+        controller = await asyncio.to_thread(self.build_controller, scenario)
+        async with self.lock:
+            if self.mode is not Mode.NOMINAL:
+                raise NotNominal(self.mode.value)
+            self.scenario, self.controller, self._k0 = scenario, controller, self._k
+            self.pending = None
+            self._queued.append(self._event(
+                "regions_updated", "info", f"{len(regions)} recovery regions: "
+                + ", ".join(r.name for r in regions), count=len(regions)))
+
+    async def reset(self, start: Sequence[float] | None = None) -> np.ndarray:
+        """Start the flight again, at rest at ``start`` (m) or a fresh draw; returns x0."""
+        x0 = self._start_state(start)  # ValueError before anything changes
+        controller = await asyncio.to_thread(self.build_controller, self.scenario)
+        async with self.lock:
+            self.controller = controller
+            self.plant = SimulatedQuadrotor(x0, self.scenario.dt)
+            self._k = self._k0 = 0
+            self.mode, self.pending, self._delivered = Mode.NOMINAL, None, False
+            self._queued.append(self._event(
+                "reset", "info", "flight restarted at (" +
+                ", ".join(f"{v:.2f}" for v in x0[POS]) + ") m"))
+        return x0

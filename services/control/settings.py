@@ -1,0 +1,66 @@
+"""Settings of the control-loop service (``AESOP_*`` environment variables).
+
+The names that other services also use carry a ``control_`` prefix
+(``AESOP_CONTROL_METHOD``, ``AESOP_CONTROL_FALLBACK``): the reasoner already
+reads ``AESOP_FALLBACK``, and ``aesop up`` shares one environment.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, field_validator
+
+from shared.settings import ServiceSettings
+
+
+class ControlSettings(ServiceSettings):
+    port: int = Field(default=8003, ge=0, le=65535)
+    rate_hz: float = Field(default=10.0, gt=0.0, le=1000.0)  # ticks per second of wall time
+    scenario: Path | None = None  # YAML/JSON scenario file; None: the packaged paper scenario
+    control_method: Literal["aesop", "fsmpc", "naive"] = "aesop"
+    # the recovery committed at k = K without a decision: cheapest, first, or a region index
+    control_fallback: Literal["cheapest", "first"] | int = "cheapest"
+    # a verdict older than this (s), or none at all, counts as an anomaly (fail-safe)
+    verdict_stale_s: float = Field(default=0.5, gt=0.0)
+    # time kept back from the reasoner's deadline for the trip back over Zenoh (s)
+    decision_margin_s: float = Field(default=0.02, ge=0.0)
+    seed: int = 0  # draws the start state from the scenario's start box
+    start_position: tuple[float, float, float] | None = None  # m; overrides the draw
+    mpc_max_iter: int | None = Field(default=None, ge=1)  # OSQP iterations per warm solve
+    mpc_max_iter_cold: int | None = Field(default=None, ge=1)
+    stats_window: int = Field(default=1000, ge=10)  # ticks behind the jitter percentiles
+
+    @field_validator("scenario", "start_position", "mpc_max_iter", "mpc_max_iter_cold",
+                     mode="before")
+    @classmethod
+    def _empty_is_none(cls, v: object) -> object:
+        return None if v == "" else v
+
+    @field_validator("control_fallback", mode="before")
+    @classmethod
+    def _index_from_text(cls, v: object) -> object:
+        if isinstance(v, str) and v.strip().isdigit():
+            return int(v)
+        return v
+
+    @field_validator("control_fallback")
+    @classmethod
+    def _positive_index(cls, v: str | int) -> str | int:
+        if isinstance(v, int) and v < 1:
+            raise ValueError("a fallback region index is >= 1 (0 means continue)")
+        return v
+
+    @property
+    def period_s(self) -> float:
+        return 1.0 / self.rate_hz
+
+    def mpc_overrides(self) -> dict[str, int]:
+        """``MPCConfig`` fields the settings override (for ``plant.mpc_config``)."""
+        out = {}
+        if self.mpc_max_iter is not None:
+            out["max_iter"] = self.mpc_max_iter
+        if self.mpc_max_iter_cold is not None:
+            out["max_iter_cold"] = self.mpc_max_iter_cold
+        return out

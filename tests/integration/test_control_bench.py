@@ -1,0 +1,48 @@
+"""``aesop bench mpc|closed-loop --json``: one JSON object on stdout, the agreed keys."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
+
+
+def _aesop(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "services.cli", *args], capture_output=True,
+                          text=True, timeout=280, stdin=subprocess.DEVNULL)
+
+
+def test_bench_closed_loop_json(tmp_path) -> None:
+    plot = tmp_path / "cl.png"
+    r = _aesop("bench", "closed-loop", "--scenarios", "2", "--workers", "2",
+               "--inconsequential", "1", "--plot", str(plot), "--json")
+    assert r.returncode == 0, r.stderr[-3000:]
+    result = json.loads(r.stdout)
+    assert result["scenarios"] == 2 and result["seed"] == 0
+    assert set(result["methods"]) == {"naive", "fsmpc", "aesop"}
+    for row in result["methods"].values():
+        assert {"success_rate", "constraint_violations", "mean_time_to_region_s",
+                "mean_speed_m_s"} <= set(row)
+        assert 0.0 <= row["success_rate"] <= 1.0
+    assert result["inconsequential"]["cases"] == 1
+    assert plot.stat().st_size > 10_000  # a real PNG figure
+
+
+def test_bench_mpc_json() -> None:
+    r = _aesop("bench", "mpc", "--flights", "1", "--ticks", "4", "--reference-every", "2",
+               "--json")
+    assert r.returncode == 0, r.stderr[-3000:]
+    result = json.loads(r.stdout)
+    assert {"p50", "p99"} <= set(result["step_ms"]) <= set(result["reference_step_ms"])
+    assert result["step_ms"]["n"] == 3 and result["reference_step_ms"]["n"] == 2
+    assert result["speedup_p50"] > 0
+    assert result["objective_rel_diff_max"] is None or result["objective_rel_diff_max"] < 1e-2
+
+
+def test_bench_rejects_bad_arguments() -> None:
+    r = _aesop("bench", "closed-loop", "--scenarios", "0", "--json")
+    assert r.returncode == 2 and "--scenarios" in r.stderr and r.stdout == ""

@@ -1,0 +1,283 @@
+"""`aesop serve control` as a real process on a real Zenoh link: the loop's messages,
+the reasoner round trip, the stale-verdict alarm, and the HTTP admin API."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Generic, TypeVar
+
+import httpx
+import pytest
+import zenoh
+
+from shared import topics
+from shared.bus import Bus
+from shared.messages import (
+    AnomalyVerdict,
+    ControlState,
+    Event,
+    Message,
+    PlanSnapshot,
+    ReasonerDecision,
+    ReasonerRequest,
+)
+from shared.process import ServiceProcess, free_port
+from shared.settings import BusSettings
+from tests.zenoh_peers import wait_until
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
+
+TOKEN = "control-test-token-0123"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+ROBOT = "drone1"
+WAIT_S = 15.0
+# A small geometry whose ticks take milliseconds; K = 1 s, T = 3 s.
+SCENARIO = """\
+name: light
+dt: 0.1
+horizon_s: 3.0
+consensus_s: 1.0
+start: {center: [0.0, 0.0, 1.0], half_width: 0.0}
+goal: [1.0, 0.0, 1.0]
+regions:
+  - {index: 1, name: hold, label: holding zone, kind: hover,
+     position_lo: [0.3, -0.8, 0.8], position_hi: [1.3, -0.3, 1.2]}
+  - {index: 2, name: roof, label: rooftop, kind: landing,
+     position_lo: [0.3, 0.3, 0.0], position_hi: [1.3, 0.8, 0.2]}
+  - {index: 3, name: lot, label: parking lot, kind: landing,
+     position_lo: [-0.8, -0.5, 0.0], position_hi: [-0.3, 0.5, 0.2]}
+"""
+REGIONS = [
+    {"index": 1, "name": "hold", "label": "holding zone", "kind": "hover",
+     "position_lo": [0.3, -0.8, 0.8], "position_hi": [1.3, -0.3, 1.2]},
+    {"index": 2, "name": "roof", "label": "rooftop", "kind": "landing",
+     "position_lo": [0.3, 0.3, 0.0], "position_hi": [1.3, 0.8, 0.2]},
+]
+
+M = TypeVar("M", bound=Message)
+
+
+class Inbox(Generic[M]):
+    """Every message on ``key``, decoded, in arrival order (thread-safe)."""
+
+    def __init__(self, bus: Bus, key: str, model: type[M]) -> None:
+        self.model = model
+        self._lock = threading.Lock()
+        self._items: list[M] = []
+        self._sub = bus.session.declare_subscriber(key, self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        message = self.model.decode(sample.payload.to_bytes())
+        with self._lock:
+            self._items.append(message)
+
+    def items(self) -> list[M]:
+        with self._lock:
+            return list(self._items)
+
+    def mark(self) -> int:
+        with self._lock:
+            return len(self._items)
+
+    def wait_for(self, cond: Callable[[M], bool], what: str, since: int = 0) -> M:
+        found: list[M] = []
+
+        def check() -> bool:
+            found[:] = [m for m in self.items()[since:] if cond(m)]
+            return bool(found)
+
+        wait_until(check, what, WAIT_S)
+        return found[0]
+
+
+class VerdictSource:
+    """A fake detector: a verdict every 50 ms while ``running``, anomalous while ``anomaly``."""
+
+    def __init__(self, bus: Bus) -> None:
+        self.bus = bus
+        self.running = threading.Event()
+        self.anomaly = False
+        self._stop = threading.Event()
+        self._seq = 0
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.05):
+            if not self.running.is_set():
+                continue
+            self._seq += 1
+            self.bus.publish(topics.anomaly(ROBOT), AnomalyVerdict(
+                robot=ROBOT, seq=self._seq, score=-0.9, threshold=-0.95,
+                is_anomaly=self.anomaly, k=1, model="fake", cache="scene", cache_version=1,
+                latency_ms=1.0))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+
+
+class Stack:
+    def __init__(self, proc: ServiceProcess, bus: Bus, source: VerdictSource) -> None:
+        self.proc, self.bus, self.source = proc, bus, source
+        self.http = httpx.Client(base_url=proc.url, timeout=10)
+        self.states = Inbox(bus, topics.state(ROBOT), ControlState)
+        self.plans = Inbox(bus, topics.plan(ROBOT), PlanSnapshot)
+        self.requests = Inbox(bus, topics.reasoner_request(ROBOT), ReasonerRequest)
+        self.events = Inbox(bus, topics.event(ROBOT), Event)
+
+    def nominal_flight(self) -> None:
+        """Verdicts flowing, nothing flagged, the flight restarted and seen nominal."""
+        self.source.anomaly = False
+        self.source.running.set()
+        time.sleep(0.3)  # let a nominal verdict replace any flagged one
+        wait_until(lambda: self.http.get("/v1/state").json()["verdict_stale"] is False,
+                   "fresh verdicts", WAIT_S)
+        r = self.http.post("/v1/reset", headers=AUTH, json={"start": [0.0, 0.0, 1.0]})
+        assert r.status_code == 200, r.text
+        since = self.states.mark()
+        self.states.wait_for(lambda s: s.mode == "nominal" and s.t == 0.0, "the reset", since)
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
+    tmp = tmp_path_factory.mktemp("control")
+    (tmp / "light.yaml").write_text(SCENARIO)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    port = free_port()
+    env = {"AESOP_ADMIN_TOKEN": TOKEN, "AESOP_SCENARIO": str(tmp / "light.yaml"),
+           "AESOP_ZENOH_LISTEN": endpoint, "AESOP_ROBOT": ROBOT, "AESOP_RATE_HZ": "10",
+           "AESOP_VERDICT_STALE_S": "1.0", "AESOP_START_POSITION": "[0, 0, 1]"}
+    proc = ServiceProcess(["serve", "control", "--port", str(port)], port=port, env=env,
+                          log_path=tmp / "control.log", ready_timeout_s=60)
+    with proc, Bus.open(BusSettings(zenoh_connect=[endpoint]), "tester") as bus:
+        source = VerdictSource(bus)
+        stack = Stack(proc, bus, source)
+        try:
+            yield stack
+        finally:
+            source.close()
+            stack.http.close()
+
+
+def test_state_and_plans_stream_at_about_the_rate(stack: Stack) -> None:
+    stack.nominal_flight()
+    since_state, since_plan = stack.states.mark(), stack.plans.mark()
+    time.sleep(1.5)  # about 15 ticks at 10 Hz; generous bounds below
+    states = stack.states.items()[since_state:]
+    plans = stack.plans.items()[since_plan:]
+    assert 5 <= len(states) <= 30 and len(plans) >= 5
+    assert all(s.robot == ROBOT and len(s.x) == 12 and len(s.u) == 4 for s in states)
+    assert all(s.mode == "nominal" for s in states)
+    assert len(plans[-1].nominal) == 31 and plans[-1].consensus_steps == 10
+    assert set(plans[-1].recovery) <= {1, 2, 3} and plans[-1].recovery
+    body = stack.http.get("/v1/state").json()
+    assert body["mode"] == "nominal" and body["state"]["robot"] == ROBOT
+    assert body["method"] == "aesop" and body["scenario"] == "light"
+    loop = body["loop"]
+    assert loop["rate_hz"] == 10 and loop["ticks"] > 10
+    assert loop["jitter_p50_ms"] is not None and loop["jitter_p99_ms"] >= loop["jitter_p50_ms"]
+    assert loop["overruns"] >= 0 and loop["last_step_ms"] > 0
+    assert "control" in stack.bus.alive()
+
+
+def test_an_anomaly_asks_the_reasoner_and_its_decision_starts_the_recovery(
+        stack: Stack) -> None:
+    stack.nominal_flight()
+    since_req, since_state = stack.requests.mark(), stack.states.mark()
+    since_event = stack.events.mark()
+    stack.source.anomaly = True
+    request = stack.requests.wait_for(lambda r: True, "a reasoner request", since_req)
+    assert request.robot == ROBOT and request.options[0].index == 0
+    assert request.options[0].label == "continue" and 0 < request.deadline_s <= 1.0
+    choice = request.options[1].index
+    decision = ReasonerDecision(robot=ROBOT, request_id=request.request_id, choice=choice,
+                                source="llm", latency_ms=12.0)
+    stack.bus.publish(topics.reasoner_decision(ROBOT), decision)
+    state = stack.states.wait_for(lambda s: s.mode == "recovering", "recovering", since_state)
+    assert state.chosen == choice
+    event = stack.events.wait_for(lambda e: e.data.get("to") == "recovering",
+                                  "the mode change", since_event)
+    assert event.kind == "mode_change" and event.data["fallback"] is False
+    stack.source.anomaly = False
+
+
+def test_silent_detector_raises_one_stale_alarm(stack: Stack) -> None:
+    stack.nominal_flight()
+    since = stack.events.mark()
+    stack.source.running.clear()
+    alarm = stack.events.wait_for(lambda e: e.kind == "verdict_stale", "a stale alarm", since)
+    assert alarm.severity == "alarm" and alarm.source == "control"
+    stack.source.running.set()
+    stack.events.wait_for(lambda e: e.kind == "verdict_fresh", "verdicts again", since)
+    assert [e.kind for e in stack.events.items()[since:]].count("verdict_stale") == 1
+
+
+def test_regions_routes(stack: Stack) -> None:
+    http = stack.http
+    before = http.get("/v1/regions").json()["regions"]
+    assert [r["name"] for r in before] == ["hold", "roof", "lot"]
+    assert http.post("/v1/regions", json={"regions": REGIONS}).status_code == 401
+    bad = [({"regions": [{k: v for k, v in REGIONS[0].items() if k != "name"}]},
+            "regions[0].name"),
+           ({"regions": [{k: v for k, v in REGIONS[0].items() if k != "position_hi"}]},
+            "regions[0].position_hi"),
+           ({"regions": [REGIONS[0], {**REGIONS[1], "kind": "orbit"}]}, "regions[1]"),
+           ({"regions": []}, "regions"),
+           ({"regions": [{**REGIONS[0], "position_hi": [1.3, 99.0, 1.2]}]}, "regions[0]"),
+           ({}, "regions")]
+    for body, field in bad:
+        r = http.post("/v1/regions", headers=AUTH, json=body)
+        assert r.status_code == 422, (body, r.text)
+        assert r.json()["error"]["field"] == field, (body, r.json())
+    assert http.get("/v1/regions").json()["regions"] == before
+
+    stack.nominal_flight()
+    since = stack.states.mark()
+    stack.source.anomaly = True
+    stack.states.wait_for(lambda s: s.mode != "nominal", "leaving nominal", since)
+    r = http.post("/v1/regions", headers=AUTH, json={"regions": REGIONS})
+    assert r.status_code == 409 and r.json()["error"]["field"] == "mode"
+    assert http.get("/v1/regions").json()["regions"] == before
+
+    stack.nominal_flight()
+    since = stack.events.mark()
+    r = http.post("/v1/regions", headers=AUTH, json={"regions": REGIONS})
+    assert r.status_code == 200, r.text
+    assert [x["name"] for x in http.get("/v1/regions").json()["regions"]] == ["hold", "roof"]
+    event = stack.events.wait_for(lambda e: e.kind == "regions_updated", "the swap", since)
+    assert event.data["count"] == 2
+
+
+def test_reset_and_ops_routes(stack: Stack) -> None:
+    http = stack.http
+    assert http.post("/v1/reset", json={}).status_code == 401
+    r = http.post("/v1/reset", headers=AUTH, json={"start": [0.0, 0.0, 99.0]})
+    assert r.status_code == 422 and r.json()["error"]["field"] == "start"
+    assert http.post("/v1/reset", headers=AUTH).status_code == 200  # no body: a fresh draw
+    assert http.get("/healthz").json() == {"status": "ok"}
+    assert http.get("/readyz").status_code == 200
+    metrics = http.get("/metrics").text
+    for series in ("aesop_control_ticks_total", "aesop_control_jitter_seconds_bucket",
+                   "aesop_control_overruns_total", "aesop_control_missed_ticks_total",
+                   "aesop_control_step_seconds_bucket", 'aesop_control_mode{mode="nominal"}',
+                   "aesop_control_stale_verdict_ticks_total",
+                   "aesop_control_stale_verdict_alarms_total",
+                   "aesop_control_reasoner_requests_total"):
+        assert series in metrics, series
+    assert "aesop_control_tick_errors_total 0.0" in metrics
+
+
+def test_a_bad_scenario_stops_the_command_with_the_field(tmp_path: Path) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text(SCENARIO.replace("goal: [1.0, 0.0, 1.0]\n", ""))
+    env = {"AESOP_SCENARIO": str(path), "PATH": "/usr/bin:/bin"}
+    done = subprocess.run([sys.executable, "-m", "services.cli", "serve", "control"],
+                          env=env, capture_output=True, text=True, timeout=60,
+                          cwd=Path(__file__).resolve().parents[2])
+    assert done.returncode == 2 and "goal: required" in done.stderr

@@ -1,0 +1,290 @@
+"""The control loop without I/O: the deadline scheduler on a fake clock, and the runtime's
+tick (fail-safe verdicts, decisions routed by request_id, the messages it builds)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.control.loop import (
+    ControlRuntime,
+    FixedRateScheduler,
+    LoopStats,
+    NotNominal,
+    TickResult,
+    TickTiming,
+    next_index,
+)
+from services.control.regions import Region
+from services.control.scenario import Scenario
+from services.control.settings import ControlSettings
+from shared.bus import Received
+from shared.messages import AnomalyVerdict, Observation, ReasonerDecision
+
+# A small geometry that solves in milliseconds (see tests/unit/test_control_mpc.py).
+REGIONS = (
+    Region(1, "hold", "holding zone", "hover", (0.3, -0.8, 0.8), (1.3, -0.3, 1.2)),
+    Region(2, "roof", "rooftop", "landing", (0.3, 0.3, 0.0), (1.3, 0.8, 0.2)),
+    Region(3, "lot", "parking lot", "landing", (-0.8, -0.5, 0.0), (-0.3, 0.5, 0.2)),
+)
+SCENARIO = Scenario("light", goal=(1.0, 0.0, 1.0), start_center=(0.0, 0.0, 1.0),
+                    start_half_width=0.0, regions=REGIONS, horizon_s=3.0, consensus_s=0.8)
+K = SCENARIO.consensus
+
+
+class FakeClock:
+    """Monotonic seconds that move only when someone sleeps or works."""
+
+    def __init__(self, now: float = 1000.0) -> None:
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
+
+    async def sleep(self, seconds: float) -> None:
+        self.now += seconds
+
+
+# --------------------------------------------------------------------------- scheduler
+
+
+async def test_deadlines_never_drift_and_jitter_is_the_lateness() -> None:
+    clock = FakeClock()
+    late = 0.0007  # every wake-up oversleeps a little, as a real loop does
+
+    async def sleep(seconds: float) -> None:
+        await clock.sleep(seconds + late)
+
+    scheduler = FixedRateScheduler(0.1, clock=clock, sleep=sleep)
+    start = clock.now
+    timings: list[TickTiming] = []
+
+    async def tick(deadline: float) -> None:
+        clock.now += 0.03  # work
+
+    await scheduler.run(tick, on_tick=timings.append, max_ticks=1000)
+    assert [t.index for t in timings] == list(range(1000))
+    for t in timings:  # deadline k is start + k * period, whatever the lateness before
+        assert t.deadline == pytest.approx(start + t.index * 0.1, abs=1e-9)
+    assert timings[-1].deadline - start == pytest.approx(99.9, abs=1e-9)
+    assert all(t.jitter_s == pytest.approx(late) for t in timings[1:])
+    assert timings[0].jitter_s == 0.0  # the first tick starts at once
+    stats = scheduler.stats.summary()
+    assert stats["ticks"] == 1000 and stats["overruns"] == 0 and stats["missed_ticks"] == 0
+    assert stats["jitter_p50_ms"] == pytest.approx(0.7, abs=1e-3)
+    assert stats["tick_p50_ms"] == pytest.approx(30.0, abs=1e-3)
+
+
+async def test_an_overrun_is_counted_and_skips_to_the_next_future_deadline() -> None:
+    clock = FakeClock()
+    scheduler = FixedRateScheduler(0.1, clock=clock, sleep=clock.sleep)
+    start = clock.now
+    timings: list[TickTiming] = []
+
+    async def tick(deadline: float) -> None:
+        index = round((deadline - start) / 0.1)
+        clock.now += 0.35 if index == 5 else 0.01  # tick 5 runs past deadlines 6, 7 and 8
+
+    await scheduler.run(tick, on_tick=timings.append, max_ticks=10)
+    indices = [t.index for t in timings]
+    assert indices == [0, 1, 2, 3, 4, 5, 9, 10, 11, 12]
+    five = timings[5]
+    assert five.overrun and five.missed == 3
+    assert not any(t.overrun for t in timings if t.index != 5)
+    assert timings[6].deadline == pytest.approx(start + 0.9)
+    assert timings[6].jitter_s == pytest.approx(0.0, abs=1e-9)  # it waited for tick 9
+    assert scheduler.stats.overruns == 1 and scheduler.stats.missed == 3
+
+
+def test_next_index() -> None:
+    assert next_index(0.0, 0.1, 4, 0.45) == (5, 0)
+    assert next_index(0.0, 0.1, 4, 0.5) == (5, 0)  # ending on the next deadline is in time
+    assert next_index(0.0, 0.1, 4, 0.5001) == (6, 1)
+    assert next_index(0.0, 0.1, 4, 0.95) == (10, 5)
+
+
+def test_stats_percentiles() -> None:
+    stats = LoopStats(window=100)
+    for i in range(200):  # only the newest 100 count
+        jitter = 0.001 * (i - 100) if i >= 100 else 1.0
+        stats.record(TickTiming(i, 0.0, jitter, jitter + 0.002, False, 0))
+    summary = stats.summary()
+    assert summary["ticks"] == 200
+    assert summary["jitter_p50_ms"] == pytest.approx(49.5)
+    assert summary["jitter_p99_ms"] == pytest.approx(98.01)
+    assert summary["tick_p99_ms"] == pytest.approx(2.0)
+
+
+# --------------------------------------------------------------------------- runtime
+
+
+def runtime(clock: FakeClock, **kw: object) -> ControlRuntime:
+    settings = ControlSettings(start_position=(0.0, 0.0, 1.0), verdict_stale_s=0.5,
+                               robot="drone1", **kw)
+    return ControlRuntime(settings, SCENARIO, clock=clock)
+
+
+def verdict(clock: FakeClock, seq: int, anomaly: bool) -> Received[AnomalyVerdict]:
+    message = AnomalyVerdict(robot="drone1", seq=seq, score=-0.9, threshold=-0.95,
+                             is_anomaly=anomaly, k=1, model="m", cache="c", cache_version=1,
+                             latency_ms=1.0)
+    return Received("aesop/drone1/anomaly", message, clock.now)
+
+
+async def tick(rt: ControlRuntime, clock: FakeClock, v: Received[AnomalyVerdict] | None,
+               decision: ReasonerDecision | None = None,
+               observation: Observation | None = None) -> TickResult:
+    result = await rt.tick(deadline=clock.now, verdict=v, decision=decision,
+                           observation=observation)
+    clock.now += 0.1
+    return result
+
+
+def kinds(result: TickResult) -> list[str]:
+    return [e.kind for e in result.events]
+
+
+async def test_a_missing_or_stale_verdict_is_an_anomaly_with_one_alarm_per_episode() -> None:
+    clock = FakeClock()
+    rt = runtime(clock)
+    first = await tick(rt, clock, None)
+    assert first.stale and first.anomaly
+    stale = [e for e in first.events if e.kind == "verdict_stale"]
+    assert len(stale) == 1 and stale[0].severity == "alarm" and stale[0].source == "control"
+    assert first.request is not None  # fail-safe: the reasoner is asked
+    assert "gone silent" in first.request.observation.text
+    later = [await tick(rt, clock, None) for _ in range(3)]
+    assert all(r.stale for r in later)
+    assert not any("verdict_stale" in kinds(r) for r in later)
+    assert not any(r.anomaly for r in later)  # this episode has asked already
+
+    clock2 = FakeClock()
+    rt2 = runtime(clock2)
+    await tick(rt2, clock2, verdict(clock2, 1, False))
+    old = verdict(clock2, 2, False)
+    fresh = await tick(rt2, clock2, old)
+    assert not fresh.stale and not fresh.anomaly
+    assert not [k for k in kinds(fresh) if k.startswith("verdict")]
+    clock2.now += 0.5  # the detector stops talking
+    gone = await tick(rt2, clock2, old)
+    assert gone.stale and gone.anomaly and kinds(gone).count("verdict_stale") == 1
+    assert "0.60 s old" in gone.events[0].message
+    back = await tick(rt2, clock2, verdict(clock2, 3, False))
+    assert not back.stale and "verdict_fresh" in kinds(back)
+
+
+async def test_an_anomaly_asks_the_reasoner_and_the_decision_is_routed_by_request_id() -> None:
+    clock = FakeClock()
+    rt = runtime(clock)
+    for seq in range(3):
+        result = await tick(rt, clock, verdict(clock, seq, False))
+        assert result.state.mode == "nominal" and result.request is None
+    scene = Observation(robot="drone1", seq=3, text="a quadrotor on the red box")
+    asked = await tick(rt, clock, verdict(clock, 3, True), observation=scene)
+    request = asked.request
+    assert request is not None and asked.state.mode == "anomaly_pending"
+    assert request.robot == "drone1" and request.observation == scene
+    assert [o.index for o in request.options] == [0, *asked.output.request]
+    assert request.options[0].label == "continue"
+    labels = {r.index: r.label for r in REGIONS}
+    assert all(o.label == labels[o.index] for o in request.options[1:])
+    # due by the tick at k = K, K periods after this one, less the margin for the way back
+    assert request.deadline_s == pytest.approx(K * 0.1 - 0.02)
+    change = [e for e in asked.events if e.kind == "mode_change"]
+    assert change and change[0].data["to"] == "anomaly_pending"
+    assert change[0].data["request_id"] == request.request_id
+
+    choice = request.options[1].index
+    other = ReasonerDecision(robot="drone1", request_id="someone-else", choice=choice,
+                             source="llm", latency_ms=5.0)
+    ignored = await tick(rt, clock, verdict(clock, 4, True), other)
+    assert ignored.state.mode == "anomaly_pending" and rt.pending == request.request_id
+    mine = other.model_copy(update={"request_id": request.request_id})
+    taken = await tick(rt, clock, verdict(clock, 5, True), mine)
+    assert taken.state.mode == "recovering" and taken.state.chosen == choice
+    event = next(e for e in taken.events if e.kind == "mode_change")
+    assert event.data["to"] == "recovering" and event.data["chosen"] == choice
+    assert not event.data["fallback"] and rt.pending is None
+    again = await tick(rt, clock, verdict(clock, 6, True), mine)  # a duplicate changes nothing
+    assert again.state.mode == "recovering"
+    assert not [e for e in again.events if "decision" in e.message]
+
+
+async def test_continue_goes_back_to_nominal_and_only_a_new_verdict_asks_again() -> None:
+    clock = FakeClock()
+    rt = runtime(clock)
+    await tick(rt, clock, verdict(clock, 0, False))
+    flagged = verdict(clock, 1, True)
+    asked = await tick(rt, clock, flagged)
+    assert asked.request is not None
+    cont = ReasonerDecision(request_id=asked.request.request_id, choice=0, source="llm",
+                            latency_ms=1.0)
+    back = await tick(rt, clock, flagged, cont)
+    assert back.state.mode == "nominal" and back.request is None
+    assert (await tick(rt, clock, flagged)).request is None  # the answered verdict
+    assert (await tick(rt, clock, verdict(clock, 2, True))).request is not None
+
+
+async def test_no_decision_by_k_commits_the_fallback_with_an_alarm() -> None:
+    clock = FakeClock()
+    rt = runtime(clock)
+    await tick(rt, clock, verdict(clock, 0, False))
+    asked = await tick(rt, clock, verdict(clock, 1, True))
+    assert asked.request is not None
+    results = [await tick(rt, clock, verdict(clock, 2 + i, True)) for i in range(K)]
+    assert [r.state.mode for r in results[:-1]] == ["anomaly_pending"] * (K - 1)
+    last = results[-1]
+    assert last.state.mode == "recovering" and last.output.fallback
+    alarm = [e for e in last.events if e.kind == "fallback"]
+    assert len(alarm) == 1 and alarm[0].severity == "alarm" and "no decision by K" in \
+        alarm[0].message
+    assert last.state.t_anom == pytest.approx(asked.state.t)
+
+
+async def test_messages_carry_the_state_the_input_and_the_plan_tree() -> None:
+    clock = FakeClock()
+    rt = runtime(clock)
+    results = [await tick(rt, clock, verdict(clock, i, False)) for i in range(3)]
+    for i, r in enumerate(results):
+        assert r.state.robot == "drone1" and r.state.t == pytest.approx(i * SCENARIO.dt)
+        assert len(r.state.x) == 12 and len(r.state.u) == 4
+    assert results[0].state.x[:3] == (0.0, 0.0, 1.0)
+    assert results[1].state.x != results[0].state.x  # the plant moved
+    plan = results[-1].plan
+    assert plan is not None and plan.robot == "drone1" and plan.status == "solved"
+    assert len(plan.nominal) == SCENARIO.horizon + 1 and len(plan.nominal[0]) == 3
+    assert set(plan.recovery) == set(results[-1].state.active_regions)
+    assert plan.consensus_steps == K and plan.solve_ms > 0
+    assert plan.nominal[0] == pytest.approx(results[-1].state.x[:3], abs=1e-3)
+
+
+async def test_regions_change_only_in_nominal_mode_and_a_bad_set_changes_nothing() -> None:
+    clock = FakeClock()
+    rt = runtime(clock)
+    await tick(rt, clock, verdict(clock, 0, False))
+    far = (Region(1, "far", "holding zone", "hover", (0.0, 0.0, 1.0), (1.0, 9.5, 2.0)),)
+    with pytest.raises(ValueError, match=r"regions\[0\]"):  # beyond the position limits
+        await rt.replace_regions(far)
+    assert rt.scenario.regions == REGIONS
+    await rt.replace_regions(REGIONS[:2])
+    assert rt.scenario.regions == REGIONS[:2]
+    result = await tick(rt, clock, verdict(clock, 1, True))
+    assert "regions_updated" in kinds(result) and result.request is not None
+    assert set(result.output.request) <= {1, 2}
+    with pytest.raises(NotNominal):
+        await rt.replace_regions(REGIONS)
+    assert rt.scenario.regions == REGIONS[:2]
+
+
+async def test_reset_restarts_the_flight() -> None:
+    clock = FakeClock()
+    rt = runtime(clock)
+    await tick(rt, clock, None)  # stale: asks the reasoner, mode pending
+    assert rt.mode.value == "anomaly_pending"
+    with pytest.raises(ValueError, match="start"):
+        await rt.reset((0.0, 0.0, 99.0))
+    x0 = await rt.reset((0.5, 0.0, 1.0))
+    assert np.allclose(x0[:3], (0.5, 0.0, 1.0)) and rt.mode.value == "nominal"
+    result = await tick(rt, clock, verdict(clock, 0, False))
+    assert result.state.t == 0.0 and result.state.x[:3] == (0.5, 0.0, 1.0)
+    assert "reset" in kinds(result) and result.state.mode == "nominal"
