@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Generic, TypeVar
 
 import httpx
+import numpy as np
 import pytest
 import zenoh
 
@@ -165,13 +166,17 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
             stack.http.close()
 
 
-def test_state_and_plans_stream_at_about_the_rate(stack: Stack) -> None:
+def test_state_and_plans_stream_one_per_tick(stack: Stack) -> None:
+    """Every tick publishes a state one plant step (dt) after the last; the loop's
+    wall-clock rate is measured on /metrics and in benchmarks, not asserted here."""
     stack.nominal_flight()
     since_state, since_plan = stack.states.mark(), stack.plans.mark()
-    time.sleep(1.5)  # about 15 ticks at 10 Hz; generous bounds below
+    wait_until(lambda: len(stack.states.items()) - since_state >= 10
+               and len(stack.plans.items()) - since_plan >= 5, "10 states and 5 plans", WAIT_S)
     states = stack.states.items()[since_state:]
     plans = stack.plans.items()[since_plan:]
-    assert 5 <= len(states) <= 30 and len(plans) >= 5
+    steps = np.diff([s.t for s in states])
+    assert np.allclose(steps, 0.1, atol=1e-6), steps
     assert all(s.robot == ROBOT and len(s.x) == 12 and len(s.u) == 4 for s in states)
     assert all(s.mode == "nominal" for s in states)
     assert len(plans[-1].nominal) == 31 and plans[-1].consensus_steps == 10
