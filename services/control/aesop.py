@@ -169,15 +169,13 @@ class _Controller:
         args = (x, self.goal, [self.regions[mem.chosen]], 0, self._region_step(k))
         plan = self._recovery_problem(self.soft_recovery).solve(*args)
         status = plan.status
-        usable = plan.status in (SolveStatus.SOLVED, SolveStatus.INACCURATE)
         if not plan.feasible and not self.soft_recovery:
             plan = self._recovery_problem(True).solve(*args)
-            usable = plan.status in (SolveStatus.SOLVED, SolveStatus.INACCURATE)
             if not mem.degraded:
                 mem.events.append(f"recovery to region {mem.chosen} infeasible ({status}): "
                                   "flying the least-violating plan")
         mem.degraded = not status.feasible
-        u, used = self._follow(plan, usable)
+        u, used = self._follow(plan, plan.status in (SolveStatus.SOLVED, SolveStatus.INACCURATE))
         return u, used, status
 
     def make_step(self, x: np.ndarray, anomaly: bool, decision: int | None = None

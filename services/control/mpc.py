@@ -468,7 +468,7 @@ class ChainQP:
         cfg, n, m, horizon = self.config, self.n, self.m, self.config.horizon
         if len(boxes) != self.n_rec:
             raise ValueError(f"expected {self.n_rec} regions, got {len(boxes)}")
-        key = b"".join([x0.tobytes(), goal.tobytes(), bytes([consensus, s]),
+        key = b"".join([x0.tobytes(), goal.tobytes(), np.array([consensus, s]).tobytes(),
                         *(box.key() for box in boxes)])
         if self._memo is not None and self._memo[0] == key:
             return replace(self._memo[1], iterations=0, solve_ms=0.0)
