@@ -20,7 +20,10 @@ Modes (``ControlState.mode``):
 
 The horizon to the region never shrinks below ``MPCConfig.min_region_step``
 so that the nonlinear plant's small model errors never pin a region to the
-very next step (documented deviation from ``max(0, T - k)``).
+very next step (documented deviation from ``max(0, T - k)``). While
+recovering, a region out of reach by that step is planned to be reached
+later (``_Controller._late``): the nonlinear truth arrives a little after
+Theorem 1's ``t_anom + T`` rather than not at all.
 
 Holding (beyond the paper). In nominal operation nothing guarantees that
 some subset is feasible at the *full* ``K`` and ``T`` on the next tick: the
@@ -34,7 +37,7 @@ has ``K - h`` ticks left, not ``K``: the consensus budget is already spent.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
@@ -80,6 +83,7 @@ class _Memory:
     held: int = 0  # ticks since a subset was feasible at full K and T (holding if > 0)
     degraded: bool = False  # recovering on the least-violating plan
     spent: int = 0  # consensus ticks already used by a hold when the anomaly came
+    region_step: int | None = None  # the step the last plan reached its regions by (s)
     events: list[str] = field(default_factory=list)
 
 
@@ -105,7 +109,38 @@ class _Controller:
         return self.memory.mode
 
     def _region_step(self, k: int) -> int:
-        return max(self.config.min_region_step, self.config.horizon - k)
+        """Algorithm 1's ``s = T - k``, at least ``min_region_step``, and never earlier than
+        one step before the last plan's (a deadline pushed back stays pushed back)."""
+        s = max(self.config.min_region_step, self.config.horizon - k)
+        last = self.memory.region_step
+        return s if last is None else min(max(s, last - 1), self.config.horizon)
+
+    def _late(self, solve: Callable[[int], Plan], s: int, what: str) -> Plan:
+        """``solve(s)``; if infeasible, ``solve`` again with the region due later.
+
+        On the nonlinear plant the measured state drifts from the linear
+        plan, and a region due in ``s`` steps can be out of reach while it is
+        still reachable a little later (killing a small residual velocity
+        takes the attitude chain about 1 s). Feasibility only grows with
+        ``s``, so this pushes the deadline back in ``late_region_steps``
+        increments up to ``T``, and last drops it (``s = T + 1``: the plan
+        only heads for the region) so that the state and input limits stay
+        hard for as long as they can be met. Reported once (beyond the paper).
+        """
+        mem, cfg = self.memory, self.config
+        plan = solve(s)
+        first = s
+        while not plan.feasible and s <= cfg.horizon:
+            s = cfg.horizon + 1 if s == cfg.horizon else min(cfg.horizon,
+                                                             s + cfg.late_region_steps)
+            plan = solve(s)
+        if plan.feasible:
+            if s > first and (mem.region_step is None or s > mem.region_step):
+                due = "with no deadline" if s > cfg.horizon else f"by step {s}"
+                mem.events.append(f"{what}: region out of reach by step {first}; "
+                                  f"heading for it {due}")
+            mem.region_step = s
+        return plan
 
     def _recovery_problem(self, soft: bool) -> BranchProblem:
         if soft not in self._recover:
@@ -144,7 +179,7 @@ class _Controller:
                 self._active = selection.subset
                 if mem.held:
                     mem.events.append(f"full tree feasible again with regions {self._active}")
-                mem.held = 0
+                mem.held, mem.region_step = 0, None
             status = selection.plan.status if selection.plan else SolveStatus.INFEASIBLE
             u, used = self._follow(selection.plan, selection.feasible)
             return u, used, status
@@ -166,11 +201,16 @@ class _Controller:
         """
         mem = self.memory
         k = mem.t - (mem.t_anom or 0) + mem.spent
-        args = (x, self.goal, [self.regions[mem.chosen]], 0, self._region_step(k))
-        plan = self._recovery_problem(self.soft_recovery).solve(*args)
+        region = [self.regions[mem.chosen]]
+        if self.soft_recovery:
+            plan = self._recovery_problem(True).solve(x, self.goal, region, 0,
+                                                      self._region_step(k))
+        else:
+            plan = self._late(lambda s: self._recovery_problem(False).solve(
+                x, self.goal, region, 0, s), self._region_step(k), "recovering")
         status = plan.status
         if not plan.feasible and not self.soft_recovery:
-            plan = self._recovery_problem(True).solve(*args)
+            plan = self._recovery_problem(True).solve(x, self.goal, region, 0, self.config.horizon)
             if not mem.degraded:
                 mem.events.append(f"recovery to region {mem.chosen} infeasible ({status}): "
                                   "flying the least-violating plan")
@@ -224,6 +264,7 @@ class _Controller:
         if decision == 0:
             mem.events.append("reasoner: continue; back to nominal")
             mem.mode, mem.t_anom, mem.options = Mode.NOMINAL, None, ()
+            mem.region_step = None
         elif decision in mem.options:
             mem.mode, mem.chosen = Mode.RECOVERING, decision
             mem.events.append(f"reasoner chose region {decision}; recovering")

@@ -39,7 +39,9 @@ bound updates, not new problems.
 Two robustness details for a plant that is not the linear model:
 
 * constraints on velocity, tilt and rates are tightened by ``shrink`` (3 %),
-  so small model errors do not violate the true limits;
+  and velocity by ``velocity_margin`` more (0.25 m/s, the overshoot measured
+  on the nonlinear plant when a turn-around is planned at the limit), so
+  model errors do not violate the true limits;
 * if the measured state already exceeds a tightened bound (model error), the
   bounds of the first ``relax_steps`` steps are widened by that excess,
   tapering linearly to zero, so the problem stays feasible while the plan
@@ -119,9 +121,15 @@ class MPCConfig:
     recovery_weight: float = 0.01  # scale of the recovery branches' own tracking cost
     shrink: float = 0.03  # fraction by which velocity/tilt/rate and input limits are tightened
     position_margin: float = 0.05  # m: fence and region boxes planned this far inside
+    # m/s: velocity limits planned this much further inside. The plant's horizontal
+    # acceleration is g tan(theta), not the model's g theta, and the attitude chain
+    # reverses slowly: a turn-around planned at the limit overshoots it by ~0.2 m/s.
+    velocity_margin: float = 0.25
     input_margin: float = 0.005  # N, N m: least tightening of an input bound (OSQP is eps-exact)
-    relax_steps: int = 10  # steps over which an initial-state excess is tapered out
+    relax_steps: int = 20  # steps over which an initial-state excess is tapered out (2 s: the
+    # attitude chain needs about 1 s before it can take off the velocity margin)
     min_region_step: int = 5  # earliest step a shrinking horizon may pin a region to
+    late_region_steps: int = 5  # how far an unreachable region deadline is pushed back per try
     slack_weight: float = 1000.0  # L1 price per unit of constraint violation
     slack_tolerance: float = 1e-2  # largest slack (m, m/s, rad) a feasible plan may have
     eps_abs: float = 1e-3
@@ -135,6 +143,8 @@ class MPCConfig:
             raise ValueError("need 0 <= consensus < horizon")
         if not 1 <= self.min_region_step <= self.horizon:
             raise ValueError("need 1 <= min_region_step <= horizon")
+        if self.late_region_steps < 1:
+            raise ValueError("need late_region_steps >= 1")
 
 
 @dataclass(frozen=True)
@@ -212,6 +222,8 @@ def tightened_states(x_bounds: tuple[np.ndarray, np.ndarray], config: MPCConfig
     lo, hi = lo * span, hi * span
     lo[:3] += config.position_margin
     hi[:3] -= config.position_margin
+    lo[3:6] += config.velocity_margin
+    hi[3:6] -= config.velocity_margin
     return lo, hi
 
 
@@ -603,7 +615,9 @@ class BranchProblem:
         """Solve for the measured state ``x0``; ``regions`` fill the recovery slots in order.
 
         ``consensus`` (K' steps) and ``region_step`` (s) default to the
-        configured K and T. ``goal`` is the nominal target state (12,).
+        configured K and T; ``region_step = T + 1`` drops the region constraints
+        (recovery branches only track their region's centre). ``goal`` is the
+        nominal target state (12,).
         ``stop_early`` skips the remaining chains once one is infeasible
         (selection needs only the verdict then, not the least-violating plan).
         """
@@ -611,7 +625,7 @@ class BranchProblem:
         if len(regions) != self.n_rec:
             raise ValueError(f"expected {self.n_rec} regions, got {len(regions)}")
         consensus = cfg.consensus if consensus is None else consensus
-        s = min(max(horizon if region_step is None else region_step, 1), horizon)
+        s = min(max(horizon if region_step is None else region_step, 1), horizon + 1)
         nb, n, m = self.n_branches, self.model.n, self.model.m
         states = np.zeros((nb, horizon + 1, n))
         du = np.zeros((nb, horizon, m))

@@ -3,9 +3,12 @@
 A case is a start state at rest, the time of a consequential anomaly and a
 scripted reasoner (its latency, at most ``K``, and a seeded choice among the
 regions it was offered at detection time). A flight runs one method on the
-nonlinear plant until ``T`` plus one second after the anomaly (Theorem 1
-promises the region by ``t_anom + T``; the second absorbs the documented
-``min_region_step`` deviation and the plant settling). Success: the flight
+nonlinear plant until :data:`SETTLE_S` after ``t_anom + T``: Theorem 1
+promises the region by ``t_anom + T`` for the linear model; on the nonlinear
+plant the robot arrives up to about 1.5 s later (a recovery whose region is
+out of reach by its step is planned to reach it later, see
+``aesop._Controller._late``), and a landing is judged once it has settled.
+``Outcome.time_to_region_s`` says when it arrived. Success: the flight
 ends inside the chosen region and never left the state or input limits on
 the way, both judged on the nonlinear truth with :data:`TOLERANCE` and
 :data:`LIMIT_TOLERANCE`.
@@ -27,6 +30,7 @@ from .regions import Tolerance
 from .scenario import Scenario
 
 TOLERANCE = Tolerance()  # how close to a region's box counts as inside (regions.py)
+SETTLE_S = 3.0  # s after t_anom + T at which a flight ends and is judged
 
 
 @dataclass(frozen=True)
@@ -123,7 +127,7 @@ def fly(method: Method, scenario: Scenario, case: Case, params: QuadrotorParams 
     dt = scenario.dt
     anomaly_tick = int(round(case.anomaly_s / dt))
     latency_ticks = max(1, math.ceil(case.latency_s / dt - 1e-9))
-    end_s = duration_s or case.anomaly_s + scenario.horizon_s + 1.0
+    end_s = duration_s or case.anomaly_s + scenario.horizon_s + SETTLE_S
     steps = int(round(end_s / dt))
     states, inputs, modes = [plant.state], [], []
     flight = Flight(method, case, np.empty(0), np.empty(0), modes)
@@ -219,5 +223,5 @@ def time_lost(scenario: Scenario, case: Case, params: QuadrotorParams | None = N
     return {"arrival_s": with_anomaly, "arrival_no_anomaly_s": base, "time_lost_s": lost}
 
 
-__all__ = ["METHODS", "Case", "Flight", "Outcome", "fly", "judge", "run_case", "sample_cases",
-           "summarize", "time_lost"]
+__all__ = ["METHODS", "SETTLE_S", "Case", "Flight", "Outcome", "fly", "judge", "run_case",
+           "sample_cases", "summarize", "time_lost"]

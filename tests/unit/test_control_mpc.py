@@ -152,3 +152,44 @@ def test_naive_flies_on_while_waiting_and_plans_the_recovery_afterwards():
     assert outs[1].request == (1, 2, 3)
     assert all(o.active_regions == () for o in outs[:4])  # it keeps no recovery plan
     assert outs[4].mode is Mode.RECOVERING and outs[4].chosen == 2
+
+
+def test_region_step_past_the_horizon_drops_the_region_but_keeps_the_limits():
+    problem = BranchProblem(MODEL, X_BOUNDS, U_BOUNDS, CONFIG, 1, nominal=False)
+    plan = problem.solve(state(), GOAL, [FAR], 0, region_step=CONFIG.horizon + 1)
+    assert plan.feasible and plan.region_step == CONFIG.horizon + 1
+    path = plan.recovery[4]
+    assert not FAR.contains(path[-1])  # out of reach in 3 s ...
+    assert path[-1][0] > 0.5 and path[-1][1] > 0.5  # ... but it heads there
+    assert np.all(path[1:] <= problem.x_hi + TOL) and np.all(path[1:] >= problem.x_lo - TOL)
+
+
+def test_velocity_margin_tightens_the_planned_velocity_limits():
+    loose = BranchProblem(MODEL, X_BOUNDS, U_BOUNDS, MPCConfig(horizon=30, consensus=8,
+                                                               velocity_margin=0.0), 0)
+    tight = BranchProblem(MODEL, X_BOUNDS, U_BOUNDS, MPCConfig(horizon=30, consensus=8,
+                                                               velocity_margin=0.3), 0)
+    assert np.allclose(tight.x_hi[3:6], loose.x_hi[3:6] - 0.3)
+    assert np.allclose(tight.x_lo[3:6], loose.x_lo[3:6] + 0.3)
+    assert np.allclose(tight.x_hi[:3], loose.x_hi[:3])  # positions untouched
+    far = state((0.0, 0.0, 1.0))
+    plan = tight.solve(far, state((20.0, 0.0, 1.0)), [])
+    assert plan.feasible
+    assert np.max(np.abs(plan.nominal[:, 3:6])) <= tight.x_hi[3] + TOL
+
+
+def test_recovery_whose_region_is_out_of_reach_by_its_step_is_planned_to_reach_it_later():
+    """The nonlinear plant left the robot 0.3 m/s off rest inside its region after
+    ``T``: Algorithm 1's ``s = max(min_region_step, T - k)`` is 5 steps, too few for
+    the slow attitude chain to kill that velocity, so the deadline moves back."""
+    controller = aesop()
+    chosen = controller.make_step(state(), True).request[-1]  # t = 0: the anomaly
+    controller.memory.t = CONFIG.horizon + 5  # the decision comes long after it
+    region = {r.index: r for r in REGIONS}[chosen]
+    x = state(region.center[:3], vel=(0.3, 0.0, 0.0))
+    hard = controller._recovery_problem(False)
+    assert not hard.solve(x, GOAL, [region], 0, CONFIG.min_region_step).feasible
+    out = controller.make_step(x, False, chosen)
+    assert out.mode is Mode.RECOVERING and out.status.value == "solved"
+    assert out.plan is not None and out.plan.region_step > CONFIG.min_region_step
+    assert any("out of reach by step 5" in e for e in out.events)
