@@ -4,12 +4,16 @@ PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-$(shell cksum pyproject.toml | cut -d' ' -f1)
+# the browser tests drive Debian's chromium; apt-get needs root (sudo when not root)
+SUDO   := $(if $(filter 0,$(shell id -u)),,sudo)
 
 .PHONY: setup test demo bench lint clean
 
 setup: $(STAMP)
 
 $(STAMP): pyproject.toml
+	command -v chromium >/dev/null || { $(SUDO) apt-get update && \
+		$(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y chromium; }
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --upgrade pip
 	$(PY) -m pip install torch==2.13.0

@@ -1,0 +1,104 @@
+"""The robot's bus traffic as one stream of :class:`Update`s (the Zenoh side of the dashboard).
+
+Both the dashboard service and ``aesop watch`` follow the same six topics of
+one robot plus the liveliness of every service. Each message arrives through
+the shared bridge (``shared.bus``) and is handed on as a JSON-ready dict.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import zenoh
+
+from shared import topics
+from shared.bus import HEALTH_ALL, LivelinessWatch, Received, Subscription
+from shared.messages import (
+    AnomalyVerdict,
+    ControlState,
+    Event,
+    Message,
+    PlanSnapshot,
+    ReasonerDecision,
+    ReasonerRequest,
+)
+
+log = logging.getLogger(__name__)
+
+# kind -> (key of the robot's topic, message type)
+SOURCES: dict[str, tuple[Callable[[str], str], type[Message]]] = {
+    "state": (topics.state, ControlState),
+    "plan": (topics.plan, PlanSnapshot),
+    "anomaly": (topics.anomaly, AnomalyVerdict),
+    "request": (topics.reasoner_request, ReasonerRequest),
+    "decision": (topics.reasoner_decision, ReasonerDecision),
+    "event": (topics.event, Event),
+}
+
+
+@dataclass(frozen=True, slots=True)
+class Update:
+    """One thing seen: ``kind`` (a key of ``SOURCES``, ``health`` or ``regions``), where it
+    came from, the message as JSON-ready data, and the wall-clock time it arrived (s)."""
+
+    kind: str
+    topic: str
+    message: dict[str, Any]
+    received: float
+
+
+Sink = Callable[[Update], None]
+
+
+def message_update(kind: str, got: Received[Message], now: float) -> Update:
+    # through pydantic's JSON encoder: a NaN or infinity becomes null, never invalid JSON
+    return Update(kind, got.key, json.loads(got.message.model_dump_json()), now)
+
+
+async def follow(session: zenoh.Session, robot: str, sink: Sink, *,
+                 clock: Callable[[], float] = time.time) -> None:
+    """Call ``sink`` with every update of ``robot`` until cancelled.
+
+    A sink that raises loses that one update (logged), not the stream.
+    """
+    subs = {kind: Subscription(session, key(robot), model, maxsize=256)
+            for kind, (key, model) in SOURCES.items()}
+    health = LivelinessWatch(session, HEALTH_ALL)
+    guarded = _guard(sink)
+    try:
+        async with asyncio.TaskGroup() as group:
+            for kind, sub in subs.items():
+                group.create_task(_pump(kind, sub, guarded, clock))
+            group.create_task(_pump_health(health, guarded, clock))
+    finally:
+        for sub in subs.values():
+            sub.close()
+        health.close()
+
+
+async def _pump(kind: str, sub: Subscription[Any], sink: Sink,
+                clock: Callable[[], float]) -> None:
+    async for got in sub:
+        sink(message_update(kind, got, clock()))
+
+
+async def _pump_health(watch: LivelinessWatch, sink: Sink, clock: Callable[[], float]) -> None:
+    async for change in watch:
+        sink(Update("health", topics.health(change.service),
+                    {"service": change.service, "alive": change.alive}, clock()))
+
+
+def _guard(sink: Sink) -> Sink:
+    def guarded(update: Update) -> None:
+        try:
+            sink(update)
+        except Exception:  # one bad update must not end the stream
+            log.exception("dropped a %s update from %s", update.kind, update.topic)
+
+    return guarded

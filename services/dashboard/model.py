@@ -1,0 +1,145 @@
+"""The dashboard's picture of one flight, aggregated from the bus stream. Pure: no I/O, no clock.
+
+``FlightModel.apply`` takes one :class:`~.feed.Update`, folds it into bounded
+histories and returns the item to stream to pages: ``{"kind", "topic",
+"received", "message"}`` (plus ``"label"``, the chosen option's label, on a
+decision). ``snapshot`` is everything a page needs to draw at once: the
+latest state, the flown trail, the plan tree, the recovery regions and goal,
+the score timeline, requests, decisions, events, and which services are alive.
+"""
+
+from __future__ import annotations
+
+from collections import Counter, deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from .feed import Update
+
+Json = dict[str, Any]
+
+
+@dataclass(frozen=True)
+class Limits:
+    trail: int = 3000  # states kept for the flown path
+    scores: int = 600  # verdicts kept for the score timeline
+    log: int = 50  # requests, decisions and events kept, each
+
+
+class FlightModel:
+    """Bounded histories of one robot's flight (``deque(maxlen)`` everywhere)."""
+
+    def __init__(self, robot: str, limits: Limits = Limits(),
+                 goal: list[float] | None = None) -> None:
+        self.robot = robot
+        self.state: Json | None = None
+        self.plan: Json | None = None
+        self.verdict: Json | None = None
+        self.regions: list[Json] = []
+        self.goal = goal
+        self.trail: deque[list[Any]] = deque(maxlen=limits.trail)  # [t, x, y, z, mode]
+        self.scores: deque[Json] = deque(maxlen=limits.scores)
+        self.requests: deque[Json] = deque(maxlen=limits.log)
+        self.decisions: deque[Json] = deque(maxlen=limits.log)
+        self.events: deque[Json] = deque(maxlen=limits.log)
+        self.services: dict[str, bool] = {}
+        self.counts: Counter[str] = Counter()
+        self._apply: dict[str, Callable[[Json], Json]] = {
+            "state": self._state, "plan": self._plan, "anomaly": self._anomaly,
+            "request": self._request, "decision": self._decision, "event": self._event,
+            "health": self._health, "regions": self._regions,
+        }
+
+    def apply(self, update: Update) -> Json:
+        """Fold ``update`` in; the item to stream. ``KeyError`` for an unknown kind."""
+        extra = self._apply[update.kind](update.message)
+        self.counts[update.kind] += 1
+        return {"kind": update.kind, "topic": update.topic, "received": update.received,
+                "message": update.message, **extra}
+
+    def snapshot(self) -> Json:
+        return {
+            "robot": self.robot, "state": self.state, "trail": list(self.trail),
+            "plan": self.plan, "regions": self.regions, "goal": self.goal,
+            "verdict": self.verdict, "scores": list(self.scores),
+            "requests": list(self.requests), "decisions": list(self.decisions),
+            "events": list(self.events), "services": dict(sorted(self.services.items())),
+            "counts": dict(self.counts),
+        }
+
+    def _state(self, m: Json) -> Json:
+        if self.trail and m["t"] is not None and m["t"] < self.trail[-1][0]:
+            self.trail.clear()  # time went back: the flight was restarted
+        point = [m["t"], *m["x"][:3]]
+        if None not in point:  # a NaN came through the JSON encoder as null: not drawable
+            self.trail.append([*point, m["mode"]])
+        self.state = m
+        return {}
+
+    def _plan(self, m: Json) -> Json:
+        self.plan = m
+        return {}
+
+    def _anomaly(self, m: Json) -> Json:
+        self.verdict = m
+        self.scores.append({k: m[k] for k in ("seq", "stamp", "score", "threshold",
+                                              "is_anomaly")})
+        return {}
+
+    def _request(self, m: Json) -> Json:
+        self.requests.append(m)
+        return {}
+
+    def _decision(self, m: Json) -> Json:
+        extra = {"label": self.label_of(m["request_id"], m["choice"])}
+        self.decisions.append({**m, **extra})
+        return extra
+
+    def _event(self, m: Json) -> Json:
+        self.events.append(m)
+        return {}
+
+    def _health(self, m: Json) -> Json:
+        self.services[m["service"]] = bool(m["alive"])
+        return {}
+
+    def _regions(self, m: Json) -> Json:
+        self.regions = m["regions"]
+        self.goal = m.get("goal") or self.goal
+        return {}
+
+    def label_of(self, request_id: str, choice: int) -> str | None:
+        """The label of option ``choice`` in request ``request_id``, if it is still kept."""
+        for request in reversed(self.requests):
+            if request["request_id"] == request_id:
+                return next((o["label"] for o in request["options"]
+                             if o["index"] == choice), None)
+        return None
+
+
+def regions_message(body: object, goal: list[float] | None = None) -> Json | None:
+    """A ``regions`` update from the control service's ``GET /v1/regions`` answer.
+
+    None when the body is not ``{"regions": [{index, label, position_lo[3],
+    position_hi[3], ...}]}``; ``goal`` (m) comes from the body when it says, else
+    the default.
+    """
+    if not isinstance(body, dict) or not isinstance(body.get("regions"), list):
+        return None
+    regions = body["regions"]
+    if not all(_is_region(r) for r in regions):
+        return None
+    said = body.get("goal")
+    return {"regions": regions, "goal": said if _is_point(said) else goal}
+
+
+def _is_region(r: object) -> bool:
+    return (isinstance(r, dict) and isinstance(r.get("index"), int)
+            and isinstance(r.get("label", ""), str)
+            and _is_point(r.get("position_lo")) and _is_point(r.get("position_hi")))
+
+
+def _is_point(p: object) -> bool:
+    return (isinstance(p, list) and len(p) == 3
+            and all(isinstance(v, int | float) and not isinstance(v, bool) for v in p))

@@ -1,0 +1,112 @@
+"""``aesop watch``: the dashboard's stream as lines in a terminal.
+
+One line per state at most every ``state_every_s`` seconds (and at every mode
+change), every anomaly flag and the return to nominal, every reasoner request
+and decision, every event, and services appearing and vanishing. Plans are
+left to the dashboard. :class:`Terminal` is the pure part; :func:`watch` the I/O.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import OrderedDict
+from typing import Any, TextIO
+
+import zenoh
+
+from shared.bus import zenoh_config
+from shared.settings import BusSettings
+
+from .feed import Update, follow
+
+Json = dict[str, Any]
+_KEEP_REQUESTS = 32
+
+
+class Terminal:
+    """Turns updates into lines (or None: nothing worth a line)."""
+
+    def __init__(self, state_every_s: float = 1.0) -> None:
+        self.state_every_s = state_every_s
+        self._last_state: float | None = None  # received time of the last printed state
+        self._last_mode: str | None = None
+        self._flagged = False
+        self._labels: OrderedDict[str, dict[int, str]] = OrderedDict()
+
+    def line(self, update: Update) -> str | None:
+        render = {"state": self._state, "anomaly": self._anomaly, "request": self._request,
+                  "decision": self._decision, "event": self._event,
+                  "health": self._health}.get(update.kind)
+        text = None if render is None else render(update.message, update)
+        if text is None:
+            return None
+        clock = time.strftime("%H:%M:%S", time.localtime(update.received))
+        millis = int(math.modf(update.received)[0] * 1000)
+        return f"{clock}.{millis:03d} {update.kind:<8} {text}"
+
+    def _state(self, m: Json, update: Update) -> str | None:
+        due = (self._last_state is None
+               or update.received - self._last_state >= self.state_every_s)
+        if not due and m["mode"] == self._last_mode:
+            return None
+        self._last_state, self._last_mode = update.received, m["mode"]
+        x = m["x"]
+        speed = math.sqrt(sum(v * v for v in x[3:6]))
+        text = (f"t={m['t']:7.2f} s  {m['mode']:<15} pos=({x[0]:6.2f}, {x[1]:6.2f}, "
+                f"{x[2]:6.2f}) m  |v|={speed:4.2f} m/s")
+        if m.get("chosen") is not None:
+            text += f"  y={m['chosen']}"
+        return text
+
+    def _anomaly(self, m: Json, _u: Update) -> str | None:
+        was, self._flagged = self._flagged, bool(m["is_anomaly"])
+        if not m["is_anomaly"] and not was:
+            return None
+        tau = "none (uncalibrated)" if m["threshold"] is None else f"{m['threshold']:.3f}"
+        head = "ANOMALY" if m["is_anomaly"] else "nominal again"
+        text = f"{head} seq={m['seq']} score={m['score']:.3f} tau={tau}"
+        if m["is_anomaly"] and m.get("reason"):
+            text += f" ({m['reason']})"
+        return text
+
+    def _request(self, m: Json, _u: Update) -> str:
+        self._labels[m["request_id"]] = {o["index"]: o["label"] for o in m["options"]}
+        while len(self._labels) > _KEEP_REQUESTS:
+            self._labels.popitem(last=False)
+        options = " | ".join(f"{o['index']} {o['label']}" for o in m["options"])
+        return (f"{m['request_id'][:8]} K={m['deadline_s']:.2f} s "
+                f"\"{_short(m['observation']['text'], 60)}\" options: {options}")
+
+    def _decision(self, m: Json, _u: Update) -> str:
+        label = self._labels.get(m["request_id"], {}).get(m["choice"], "?")
+        text = (f"{m['request_id'][:8]} y={m['choice']} {label} "
+                f"(source={m['source']}, {m['latency_ms']:.0f} ms)")
+        if m.get("rationale"):
+            text += f" {_short(m['rationale'], 60)}"
+        return text
+
+    def _event(self, m: Json, _u: Update) -> str:
+        text = f"[{m['severity']}] {m['source']}/{m['kind']}"
+        return f"{text}: {m['message']}" if m.get("message") else text
+
+    def _health(self, m: Json, _u: Update) -> str:
+        return f"{m['service']} {'alive' if m['alive'] else 'gone'}"
+
+
+def _short(text: str, width: int) -> str:
+    text = " ".join(text.split())
+    return text if len(text) <= width else text[: width - 1] + "…"
+
+
+async def watch(settings: BusSettings, out: TextIO, state_every_s: float = 1.0) -> None:
+    """Print the robot's stream to ``out`` until cancelled (no liveliness token of its own)."""
+    terminal = Terminal(state_every_s)
+
+    def sink(update: Update) -> None:
+        text = terminal.line(update)
+        if text is not None:
+            print(text, file=out, flush=True)
+
+    with zenoh.open(zenoh_config(settings)) as session:
+        await follow(session, settings.robot, sink)

@@ -1,0 +1,147 @@
+"""The dashboard page in real headless Chromium (Debian's, driven by Playwright) while a
+scripted demo flight is published over real Zenoh to a real `aesop serve dashboard`.
+
+Screenshots go to the test's tmp directory and, when ``AESOP_SCREENSHOT_DIR`` is set,
+there too (``dashboard.png`` is the one the README shows).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from playwright.sync_api import Browser, Page, expect, sync_playwright
+
+from shared.bus import Bus
+from shared.process import ServiceProcess, free_port
+from shared.settings import BusSettings
+from tests.e2e.demo_flight import (
+    DECISION_AT,
+    REGIONS,
+    REQUEST_AT,
+    TICKS,
+    FakeControl,
+    Flight,
+    wait_following,
+)
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
+
+CHROMIUM = "/usr/bin/chromium"  # Debian's package; `make setup` installs it
+FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+         "--disable-component-update", "--no-first-run"]
+ROBOT = "e2e"
+WAIT_MS = 15_000
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Browser]:
+    assert Path(CHROMIUM).is_file(), f"{CHROMIUM} is missing: run `make setup` (apt chromium)"
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=FLAGS)
+        try:
+            yield browser
+        finally:
+            browser.close()
+
+
+class Live:
+    def __init__(self, proc: ServiceProcess, bus: Bus) -> None:
+        self.proc, self.bus = proc, bus
+
+
+@pytest.fixture
+def live(tmp_path: Path) -> Iterator[Live]:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    port = free_port()
+    with FakeControl() as control:
+        env = {"AESOP_ZENOH_LISTEN": endpoint, "AESOP_ROBOT": ROBOT,
+               "AESOP_DASHBOARD_CONTROL_URL": control.url,
+               "AESOP_DASHBOARD_REGIONS_POLL_S": "0.5"}
+        proc = ServiceProcess(["serve", "dashboard", "--port", str(port)], port=port, env=env,
+                              log_path=tmp_path / "dashboard.log", ready_timeout_s=60,
+                              unset=["AESOP_ADMIN_TOKEN"])
+        with proc, Bus.open(BusSettings(zenoh_connect=[endpoint]), "control") as bus:
+            wait_following(bus, ROBOT, proc.url)
+            yield Live(proc, bus)
+
+
+def screenshot(page: Page, tmp_path: Path, name: str) -> Path:
+    path = tmp_path / name
+    page.screenshot(path=str(path))
+    out = os.environ.get("AESOP_SCREENSHOT_DIR")
+    if out:
+        Path(out).mkdir(parents=True, exist_ok=True)
+        shutil.copy(path, Path(out) / name)
+    return path
+
+
+def canvas_count(page: Page, canvas: str, attr: str) -> int:
+    return int(page.get_attribute(f"#{canvas}", f"data-{attr}") or 0)
+
+
+def test_the_page_draws_the_live_flight_and_shows_the_decision(
+        browser: Browser, live: Live, tmp_path: Path) -> None:
+    page = browser.new_page(viewport={"width": 1440, "height": 700})
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.on("console", lambda msg: errors.append(msg.text) if msg.type == "error" else None)
+    page.goto(live.proc.url)
+    expect(page.locator("#status")).to_have_attribute("data-state", "connected",
+                                                      timeout=WAIT_MS)
+    expect(page.locator('#services [data-service="control"]')).to_have_attribute(
+        "data-alive", "true", timeout=WAIT_MS)
+    expect(page.locator("#top")).to_have_attribute("data-regions", str(len(REGIONS)),
+                                                   timeout=WAIT_MS)
+
+    flight = Flight(live.bus, ROBOT)
+    flight.fly(until=DECISION_AT)  # nominal, then the anomaly and the request to the reasoner
+    page.wait_for_function(f"document.querySelector('#top').dataset.points >= {DECISION_AT}",
+                           timeout=WAIT_MS)
+    assert canvas_count(page, "top", "branches") == len(REGIONS)  # the recovery tree
+    assert canvas_count(page, "side", "points") == DECISION_AT
+    assert canvas_count(page, "score", "anomalies") == DECISION_AT - REQUEST_AT + 1
+    expect(page.locator("#mode")).to_have_attribute("data-mode", "anomaly_pending")
+    request = page.locator("#requests li").first
+    expect(request).to_have_attribute("data-status", re.compile("pending|expired"))
+    expect(request.locator(".countdown")).to_have_text(re.compile(r"K in \d+\.\d s|past K"))
+    screenshot(page, tmp_path, "dashboard-pending.png")
+
+    flight.fly(until=TICKS)  # the decision, then the recovery toward the rooftop
+    decision = page.locator("#decisions li").first
+    expect(decision).to_have_attribute("data-source", "llm", timeout=WAIT_MS)
+    expect(decision).to_contain_text("y=3 rooftop")
+    expect(request).to_have_attribute("data-status", "answered")
+    expect(request.locator(".countdown")).to_have_text("y=3 (llm)")
+    page.wait_for_function(f"document.querySelector('#top').dataset.points >= {TICKS}",
+                           timeout=WAIT_MS)
+    expect(page.locator("#mode")).to_have_attribute("data-mode", "recovering")
+    assert canvas_count(page, "top", "branches") == 1  # committed: the chosen branch
+    expect(page.locator('#events li[data-kind="mode_change"]')).to_have_count(2)
+    shot = screenshot(page, tmp_path, "dashboard.png")
+    assert shot.stat().st_size > 10_000
+    assert errors == []
+
+
+def test_the_page_reconnects_and_redraws_from_the_snapshot(
+        browser: Browser, live: Live, tmp_path: Path) -> None:
+    Flight(live.bus, ROBOT).fly(period_s=0.0)
+    page = browser.new_page()
+    page.goto(live.proc.url)
+    # a late page draws at once from the snapshot
+    page.wait_for_function(f"document.querySelector('#top').dataset.points >= {TICKS}",
+                           timeout=WAIT_MS)
+    expect(page.locator("#decisions li")).to_have_count(1)
+    live.proc.stop()
+    expect(page.locator("#status")).to_have_attribute(
+        "data-state", re.compile("disconnected|connecting"), timeout=WAIT_MS)
+    live.proc.start()
+    expect(page.locator("#status")).to_have_attribute("data-state", "connected",
+                                                      timeout=WAIT_MS)
+    # the new service knows nothing yet: the page redrew from its (empty) snapshot
+    expect(page.locator("#top")).to_have_attribute("data-points", "0")
+    screenshot(page, tmp_path, "dashboard-reconnected.png")

@@ -1,0 +1,146 @@
+"""`aesop serve dashboard` as a real process on a real Zenoh link: what is published on the
+robot's topics comes back on /ws and in /v1/snapshot, with the regions from the control
+service, the services' liveliness, and the ops routes."""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from websockets.sync.client import ClientConnection, connect
+
+from services.dashboard.api import STATIC
+from shared import topics
+from shared.bus import Bus
+from shared.process import ServiceProcess, free_port
+from shared.settings import BusSettings
+from tests.e2e.demo_flight import GOAL, REGIONS, FakeControl, fly, wait_following
+from tests.zenoh_peers import wait_until
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
+
+ROBOT = "dash1"
+RECV_S = 10.0
+
+
+class Dashboard:
+    def __init__(self, proc: ServiceProcess, bus: Bus, endpoint: str) -> None:
+        self.proc, self.bus, self.endpoint = proc, bus, endpoint
+        self.http = httpx.Client(base_url=proc.url, timeout=10)
+
+    def ws(self) -> ClientConnection:
+        return connect(f"ws://127.0.0.1:{self.proc.port}/ws", open_timeout=10)
+
+    def snapshot(self) -> dict[str, Any]:
+        return self.http.get("/v1/snapshot").json()
+
+
+@pytest.fixture(scope="module")
+def dashboard(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Dashboard]:
+    tmp = tmp_path_factory.mktemp("dashboard")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    port = free_port()
+    with FakeControl() as control:
+        env = {"AESOP_ZENOH_LISTEN": endpoint, "AESOP_ROBOT": ROBOT,
+               "AESOP_DASHBOARD_CONTROL_URL": control.url,
+               "AESOP_DASHBOARD_REGIONS_POLL_S": "0.5", "AESOP_DASHBOARD_CLIENT_QUEUE": "1000"}
+        proc = ServiceProcess(["serve", "dashboard", "--port", str(port)], port=port, env=env,
+                              log_path=tmp / "dashboard.log", ready_timeout_s=60,
+                              unset=["AESOP_ADMIN_TOKEN"])
+        with proc, Bus.open(BusSettings(zenoh_connect=[endpoint]), "tester") as bus:
+            wait_following(bus, ROBOT, proc.url)
+            dashboard = Dashboard(proc, bus, endpoint)
+            try:
+                yield dashboard
+            finally:
+                dashboard.http.close()
+
+
+def read_until(ws: ClientConnection, wanted: set[str]) -> dict[str, dict[str, Any]]:
+    """Items off the socket until one of each wanted kind has come; the last of each kind."""
+    got: dict[str, dict[str, Any]] = {}
+    while not wanted <= got.keys():
+        item = json.loads(ws.recv(timeout=RECV_S))
+        got[item["kind"]] = item
+    return got
+
+
+def test_a_page_gets_a_snapshot_then_every_kind_of_message(dashboard: Dashboard) -> None:
+    with dashboard.ws() as ws:
+        first = json.loads(ws.recv(timeout=RECV_S))
+        assert first["kind"] == "snapshot" and first["message"]["robot"] == ROBOT
+        assert first["message"]["services"]["dashboard"] is True
+        fly(dashboard.bus, ROBOT, period_s=0.0)
+        got = read_until(ws, {"state", "plan", "anomaly", "request", "decision", "event"})
+    assert got["state"]["topic"] == topics.state(ROBOT)
+    state = got["state"]["message"]
+    assert state["robot"] == ROBOT and len(state["x"]) == 12 and len(state["u"]) == 4
+    plan = got["plan"]["message"]
+    assert got["plan"]["topic"] == topics.plan(ROBOT) and (plan["nominal"] or plan["recovery"])
+    assert got["anomaly"]["message"]["threshold"] == -0.7
+    assert got["request"]["message"]["deadline_s"] == 1.5
+    decision = got["decision"]
+    assert decision["topic"] == topics.reasoner_decision(ROBOT)
+    assert decision["message"]["source"] == "llm" and decision["message"]["choice"] == 3
+    assert decision["label"] == "rooftop"
+    assert got["event"]["message"]["kind"] == "mode_change"
+    assert all(isinstance(item["received"], float) for item in got.values())
+
+
+def test_the_snapshot_aggregates_the_flight_regions_and_services(dashboard: Dashboard) -> None:
+    fly(dashboard.bus, ROBOT, period_s=0.0)
+    wait_until(lambda: len(dashboard.snapshot()["decisions"]) >= 1
+               and dashboard.snapshot()["regions"] == REGIONS, "the flight and regions", RECV_S)
+    snap = dashboard.snapshot()
+    assert snap["trail"] and snap["trail"][-1][4] == "recovering"
+    assert snap["state"]["chosen"] == 3
+    assert snap["plan"]["status"] == "solved"
+    assert any(s["is_anomaly"] for s in snap["scores"])
+    assert any(not s["is_anomaly"] for s in snap["scores"])
+    assert snap["decisions"][-1]["label"] == "rooftop"
+    assert snap["requests"][-1]["request_id"] == snap["decisions"][-1]["request_id"]
+    assert snap["goal"] == list(GOAL)
+    assert snap["services"]["tester"] is True and snap["services"]["dashboard"] is True
+
+
+def test_every_page_sees_services_come_and_go(dashboard: Dashboard) -> None:
+    with dashboard.ws() as one, dashboard.ws() as two:
+        for ws in (one, two):
+            assert json.loads(ws.recv(timeout=RECV_S))["kind"] == "snapshot"
+        with Bus.open(BusSettings(zenoh_connect=[dashboard.endpoint]), "visitor"):
+            for ws in (one, two):
+                assert health_of(ws, "visitor") is True
+        for ws in (one, two):
+            assert health_of(ws, "visitor") is False
+    assert dashboard.snapshot()["services"]["visitor"] is False
+
+
+def health_of(ws: ClientConnection, service: str) -> bool:
+    while True:
+        item = json.loads(ws.recv(timeout=RECV_S))
+        if item["kind"] == "health" and item["message"]["service"] == service:
+            assert item["topic"] == topics.health(service)
+            return bool(item["message"]["alive"])
+
+
+def test_page_static_files_and_ops_routes(dashboard: Dashboard) -> None:
+    http = dashboard.http
+    page = http.get("/")
+    assert page.status_code == 200 and "text/html" in page.headers["content-type"]
+    for asset in ("/static/app.js", "/static/style.css"):
+        assert asset in page.text
+        assert http.get(asset).status_code == 200
+    # nothing from the network: these machines are offline
+    for path in Path(STATIC).iterdir():
+        assert not re.search(r"(https?:)?//[a-z0-9.-]+\.[a-z]{2,}", path.read_text()), path.name
+    assert http.get("/healthz").json() == {"status": "ok"}
+    assert http.get("/readyz").json() == {"status": "ready"}
+    metrics = http.get("/metrics").text
+    assert 'aesop_dashboard_updates_total{kind="state"}' in metrics
+    assert "aesop_dashboard_clients" in metrics
+

@@ -1,0 +1,85 @@
+"""`aesop watch` as a real process on a real Zenoh link: the demo flight as terminal lines,
+and Ctrl-C (SIGINT) ends it with status 0."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+from shared import topics
+from shared.bus import Bus
+from shared.messages import Event
+from tests.e2e.demo_flight import Flight
+from tests.zenoh_peers import wait_until
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
+
+ROBOT = "watched"
+
+
+class Lines:
+    """Every stdout line of ``proc``, read on a thread."""
+
+    def __init__(self, proc: subprocess.Popen[str]) -> None:
+        self._lines: list[str] = []
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._read, args=(proc,), daemon=True)
+        self._thread.start()
+
+    def _read(self, proc: subprocess.Popen[str]) -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            with self._lock:
+                self._lines.append(line.rstrip("\n"))
+
+    def all(self) -> list[str]:
+        with self._lock:
+            return list(self._lines)
+
+    def having(self, *parts: str) -> list[str]:
+        return [line for line in self.all() if all(p in line for p in parts)]
+
+
+def test_watch_prints_the_flight_and_exits_0_on_ctrl_c(
+        listener: Bus, endpoint: str, tmp_path: Path) -> None:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("AESOP_ZENOH")}
+    with open(tmp_path / "watch.err", "w") as err:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "services.cli", "watch", "--robot", ROBOT,
+             "--connect", endpoint, "--state-every", "0.5"],
+            stdout=subprocess.PIPE, stderr=err, stdin=subprocess.DEVNULL, text=True, env=env)
+    try:
+        lines = Lines(proc)
+
+        def greeted() -> bool:
+            listener.publish(topics.event(ROBOT), Event(robot=ROBOT, source="test",
+                                                        kind="hello"))
+            return bool(lines.having("event", "[info] test/hello"))
+
+        wait_until(greeted, "watch to follow the bus", 20.0)
+        Flight(listener, ROBOT).fly(period_s=0.02)
+        wait_until(lambda: bool(lines.having("state", "recovering", "y=3")), "recovering",
+                   15.0)
+        assert lines.having("health", "listener alive")
+        assert lines.having("anomaly", "ANOMALY seq=20 score=")
+        assert lines.having("anomaly", "nominal again seq=30")
+        assert lines.having("request", 'K=1.50 s "a person is lying on the landing pad')
+        assert lines.having("decision", "y=3 rooftop (source=llm, 870 ms)")
+        assert lines.having("event", "[alarm] control/mode_change: anomaly_pending -> "
+                                     "recovering (y=3)")
+        states = lines.having(" state ")
+        assert 3 <= len(states) < 60  # throttled, but every mode change shows
+        assert not lines.having("plan")
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(15) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    assert "Traceback" not in (tmp_path / "watch.err").read_text()

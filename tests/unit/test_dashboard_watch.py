@@ -1,0 +1,76 @@
+"""``aesop watch``'s lines (services.dashboard.watch.Terminal): pure, clock passed in."""
+
+from __future__ import annotations
+
+from services.dashboard.feed import Update
+from services.dashboard.watch import Terminal
+
+
+def at(kind: str, message: dict, received: float) -> Update:
+    return Update(kind, f"aesop/r1/{kind}", message, received)
+
+
+def state(t: float, received: float, mode: str = "nominal", chosen: int | None = None) -> Update:
+    x = [1.0, 2.0, 3.0, 0.3, 0.4, 0.0] + [0.0] * 6
+    return at("state", {"t": t, "x": x, "u": [0.0] * 4, "mode": mode, "chosen": chosen},
+              received)
+
+
+def verdict(seq: int, flagged: bool, threshold: float | None = -0.7) -> Update:
+    return at("anomaly", {"seq": seq, "score": -0.5 if flagged else -0.9,
+                          "threshold": threshold, "is_anomaly": flagged,
+                          "reason": None}, 10.0 + seq)
+
+
+def test_states_are_throttled_but_a_mode_change_always_shows() -> None:
+    term = Terminal(state_every_s=1.0)
+    lines = [term.line(state(i * 0.1, 100.0 + i * 0.1)) for i in range(25)]
+    shown = [line for line in lines if line is not None]
+    assert len(shown) == 3  # at 100.0, 101.0, 102.0 s
+    assert "t=   0.00 s" in shown[0] and "pos=(  1.00,   2.00,   3.00) m" in shown[0]
+    assert "|v|=0.50 m/s" in shown[0] and " state " in shown[0]
+    changed = term.line(state(2.55, 102.55, mode="recovering", chosen=3))
+    assert changed is not None and "recovering" in changed and "y=3" in changed
+
+
+def test_every_anomaly_flag_and_the_return_to_nominal() -> None:
+    term = Terminal()
+    assert term.line(verdict(0, False)) is None
+    flagged = [term.line(verdict(i, True)) for i in (1, 2)]
+    assert all(line is not None and "ANOMALY" in line and "tau=-0.700" in line
+               for line in flagged)
+    back = term.line(verdict(3, False))
+    assert back is not None and "nominal again" in back
+    assert term.line(verdict(4, False)) is None
+    uncalibrated = term.line(verdict(5, True, threshold=None))
+    assert uncalibrated is not None and "tau=none (uncalibrated)" in uncalibrated
+
+
+def test_a_request_and_its_decision_with_the_chosen_label_and_source() -> None:
+    term = Terminal()
+    request = term.line(at("request", {
+        "request_id": "0123456789abcdef", "deadline_s": 1.5,
+        "observation": {"text": "a person\n on the pad"},
+        "options": [{"index": 0, "label": "continue"}, {"index": 3, "label": "rooftop"}]},
+        5.0))
+    assert request is not None
+    assert 'K=1.50 s "a person on the pad" options: 0 continue | 3 rooftop' in request
+    assert "01234567 " in request and "89abcdef" not in request
+    decision = term.line(at("decision", {
+        "request_id": "0123456789abcdef", "choice": 3, "source": "llm", "latency_ms": 812.4,
+        "rationale": "the pad is taken"}, 5.5))
+    assert decision is not None
+    assert "y=3 rooftop (source=llm, 812 ms) the pad is taken" in decision
+    unknown = term.line(at("decision", {"request_id": "zz", "choice": 0,
+                                        "source": "timeout", "latency_ms": 1500.0}, 6.0))
+    assert unknown is not None and "y=0 ? (source=timeout" in unknown
+
+
+def test_events_services_and_nothing_for_plans() -> None:
+    term = Terminal()
+    event = term.line(at("event", {"severity": "alarm", "source": "control",
+                                   "kind": "verdict_stale", "message": "no verdicts"}, 1.0))
+    assert event is not None and event.endswith("[alarm] control/verdict_stale: no verdicts")
+    gone = term.line(at("health", {"service": "reasoner", "alive": False}, 1.0))
+    assert gone is not None and gone.endswith("health   reasoner gone")
+    assert term.line(at("plan", {"nominal": []}, 1.0)) is None
