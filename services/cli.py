@@ -50,7 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     serve = sub.add_parser("serve", help="run one service (settings also from AESOP_* env vars)")
-    serve.add_argument("service", choices=["embedding", "reasoner", "control", "fake-llm"],
+    serve.add_argument("service",
+                       choices=["embedding", "reasoner", "control", "dashboard", "fake-llm"],
                        help="fake-llm: an OpenAI-compatible test server; see its --help")
     serve.add_argument("--host")
     serve.add_argument("--port", type=int)
@@ -114,10 +115,59 @@ def build_parser() -> argparse.ArgumentParser:
     bc.add_argument("--plot", type=Path, default=None, help="write a figure of case 0 (PNG)")
     bc.add_argument("--json", action="store_true")
     bc.set_defaults(func=cmd_bench_closed_loop)
+    bl = bsub.add_parser("loop", help="the fixed-rate control loop's jitter and overruns over "
+                         "simulated flights (no Zenoh)")
+    bl.add_argument("--rates", type=float, nargs="+", default=[10.0, 20.0],
+                    help="loop rates in Hz, run one after the other (default 10 20)")
+    bl.add_argument("--minutes", type=float, default=10.0,
+                    help="simulated flight per rate, in minutes (default 10)")
+    bl.add_argument("--scenario", type=Path, default=None, help="scenario file (default: paper)")
+    bl.add_argument("--seed", type=int, default=0)
+    bl.add_argument("--json", action="store_true")
+    bl.set_defaults(func=cmd_bench_loop)
+    bb = bsub.add_parser("bus", help="observation -> verdict and -> control reaction latency "
+                         "over Zenoh (embedding and control as processes)")
+    bb.add_argument("--observations", type=int, default=500,
+                    help="observations timed for the verdict latency (default 500)")
+    bb.add_argument("--rate", type=float, default=20.0, help="observations per second (20)")
+    bb.add_argument("--anomalies", type=int, default=20,
+                    help="anomalies timed for the control reaction (default 20)")
+    bb.add_argument("--cache-detections", type=int, default=4, choices=[1, 2, 3, 4],
+                    help="cache every combination of up to N scene detections (default 4)")
+    bb.add_argument("--model", default=None, help="embedding model (default: all-MiniLM-L6-v2)")
+    bb.add_argument("--json", action="store_true")
+    bb.set_defaults(func=cmd_bench_bus)
 
-    demo = sub.add_parser("demo", help="the detector demo on the quadrotor scene")
+    watch = sub.add_parser("watch", help="the dashboard's live stream as lines in this terminal")
+    watch.add_argument("--robot", help="robot id (default: AESOP_ROBOT or robot0)")
+    watch.add_argument("--connect", action="append", metavar="ENDPOINT",
+                       help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 "
+                            "(repeatable; default: AESOP_ZENOH_CONNECT)")
+    watch.add_argument("--state-every", type=float, default=1.0, metavar="S",
+                       help="at most one state line per S seconds (default 1)")
+    watch.set_defaults(func=cmd_watch)
+
+    up = sub.add_parser("up", help="the whole stack on this machine as processes (Ctrl-C stops)")
+    up.add_argument("--data-dir", type=Path, default=Path("aesop-data"),
+                    help="one subdirectory per service (default ./aesop-data)")
+    up.add_argument("--scenario", type=Path, default=None,
+                    help="control scenario (default: AESOP_SCENARIO or the hardware scene)")
+    up.add_argument("--random-ports", action="store_true",
+                    help="free ports instead of 7447 (Zenoh) and 8001-8003, 8010, 8080")
+    up.add_argument("--no-dashboard", action="store_true")
+    up.set_defaults(func=cmd_up)
+
+    demo = sub.add_parser("demo", help="the paper's hardware scenarios on the whole stack")
     demo.add_argument("--json", action="store_true")
-    demo.add_argument("--model", default=None)
+    demo.add_argument("--out", type=Path, default=Path("aesop-demo-report"),
+                      help="report directory (default ./aesop-demo-report)")
+    demo.add_argument("--random-ports", action="store_true",
+                      help="free ports instead of 7447 (Zenoh) and 8001-8003, 8010, 8080")
+    demo.add_argument("--keep-up", action="store_true",
+                      help="leave the stack running after the scenarios (Ctrl-C stops it)")
+    demo.add_argument("--detector-only", action="store_true",
+                      help="only the vector-cache service and its verdicts (no flights)")
+    demo.add_argument("--model", default=None, help="embedding model (default: all-MiniLM-L6-v2)")
     demo.set_defaults(func=cmd_demo)
     return parser
 
@@ -136,6 +186,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
         return serve_reasoner(overrides)
     if args.service == "control":
         return serve_control(overrides)
+    if args.service == "dashboard":
+        return serve_dashboard(overrides)
 
     from services.embedding.api import create_app
     from services.embedding.settings import EmbeddingSettings
@@ -147,6 +199,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
         settings.check_exposure()
     except ValueError as exc:
         raise CliError(str(exc)) from None
+    if settings.torch_threads:
+        import torch
+
+        torch.set_num_threads(settings.torch_threads)
     factory = DetectorWorker.factory(settings) if settings.zenoh_worker else None
     serve(create_app(settings, worker_factory=factory), settings)
     return 0
@@ -184,6 +240,41 @@ def serve_control(overrides: dict[str, Any]) -> int:
         raise CliError(str(exc)) from None
     app = create_app(settings, runtime, bus_factory=lambda: Bus.open(settings, SERVICE))
     serve(app, settings)
+    return 0
+
+
+def serve_dashboard(overrides: dict[str, Any]) -> int:
+    from services.dashboard.api import create_app
+    from services.dashboard.service import SERVICE
+    from services.dashboard.settings import DashboardSettings
+    from shared.bus import Bus
+    from shared.http import serve
+
+    settings = DashboardSettings(**overrides)
+    try:
+        settings.check_exposure()
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    serve(create_app(settings, bus_factory=lambda: Bus.open(settings, SERVICE)), settings)
+    return 0
+
+
+def cmd_watch(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from services.dashboard.watch import watch
+    from shared.settings import BusSettings
+
+    if not args.state_every >= 0:
+        raise CliError("--state-every must be >= 0")
+    overrides = {k: v for k, v in (("robot", args.robot), ("zenoh_connect", args.connect))
+                 if v is not None}
+    settings = BusSettings(**overrides)
+    print(f"aesop watch: robot {settings.robot}; Ctrl-C to stop", file=sys.stderr, flush=True)
+    try:
+        asyncio.run(watch(settings, sys.stdout, args.state_every))
+    except KeyboardInterrupt:
+        return 0
     return 0
 
 
@@ -286,12 +377,84 @@ def cmd_bench_closed_loop(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_demo(args: argparse.Namespace) -> int:
-    from services.embedding.demo import run_demo
+def cmd_bench_loop(args: argparse.Namespace) -> int:
+    from services.control.loopbench import bench_loop, print_loop_table
 
-    result = run_demo(model=args.model, table=not args.json)
+    if not args.minutes > 0 or any(not r > 0 for r in args.rates):
+        raise CliError("--minutes and every --rates value must be > 0")
+    result = bench_loop(args.rates, args.minutes, _control_scenario(args.scenario), args.seed)
     if args.json:
         emit(result, True)
+    else:
+        print_loop_table(result)
+    return 0
+
+
+def cmd_bench_bus(args: argparse.Namespace) -> int:
+    from services.stack.bench_bus import BenchError, run_bus_bench
+    from shared.process import ServiceFailed
+
+    if args.observations < 1 or args.anomalies < 1 or not args.rate > 0:
+        raise CliError("--observations and --anomalies must be >= 1 and --rate > 0")
+    try:
+        result = run_bus_bench(observations=args.observations, rate_hz=args.rate,
+                               anomalies=args.anomalies, model=args.model,
+                               cache_detections=args.cache_detections, table_out=not args.json)
+    except (BenchError, ServiceFailed) as exc:
+        print(f"aesop: bench bus: {exc}", file=sys.stderr)
+        return 1
+    if args.json:
+        emit(result, True)
+    return 0
+
+
+def _stack_options(args: argparse.Namespace, data_dir: Path):
+    import importlib.util
+
+    from services.stack.up import Ports, StackOptions, hardware_scenario
+
+    scenario_path = args.scenario or Path(os.environ.get("AESOP_SCENARIO") or
+                                          hardware_scenario())
+    scenario = _control_scenario(scenario_path)
+    dashboard = not getattr(args, "no_dashboard", False)
+    if dashboard and importlib.util.find_spec("services.dashboard") is None:
+        print("aesop: the dashboard is not in this checkout (services/dashboard): starting "
+              "without it", file=sys.stderr)
+        dashboard = False
+    ports = Ports.free() if args.random_ports else Ports()
+    busy = ports.busy()
+    if busy:
+        raise CliError(f"ports already in use: {', '.join(busy)} (is `aesop up` running?); "
+                       "stop it or pass --random-ports")
+    rate = None if os.environ.get("AESOP_RATE_HZ") else 1.0 / scenario.dt
+    return StackOptions(data_dir=data_dir, ports=ports, scenario=scenario_path.resolve(),
+                        rate_hz=rate, goal=scenario.goal, dashboard=dashboard)
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    from services.stack.up import run_up
+
+    return run_up(_stack_options(args, args.data_dir.resolve()), os.environ)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    if args.detector_only:
+        from services.embedding.demo import run_demo
+
+        result = run_demo(model=args.model, table=not args.json)
+        if args.json:
+            emit(result, True)
+        return 0 if result["ok"] else 1
+
+    from services.stack.demo import run_stack_demo
+    from services.stack.up import hardware_scenario
+
+    args.scenario = hardware_scenario()  # the demo flies the hardware scene, whatever the env
+    out = args.out.resolve()
+    result = run_stack_demo(_stack_options(args, out / "data"), out, model=args.model,
+                            table=not args.json, keep_up=args.keep_up)
+    if args.json:
+        print(json.dumps({"scenarios": result["scenarios"]}, allow_nan=False))
     return 0 if result["ok"] else 1
 
 

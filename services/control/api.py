@@ -104,10 +104,14 @@ def create_app(settings: ControlSettings, runtime: ControlRuntime,
             },
         }
 
+    def regions_body() -> dict[str, Any]:
+        return {"regions": [r.to_dict() for r in runtime.scenario.regions],
+                "goal": [float(v) for v in runtime.scenario.goal],
+                "mode": runtime.mode.value}
+
     @app.get("/v1/regions")
     async def get_regions() -> dict[str, Any]:
-        return {"regions": [r.to_dict() for r in runtime.scenario.regions],
-                "mode": runtime.mode.value}
+        return regions_body()
 
     @app.post("/v1/regions", dependencies=auth)
     async def post_regions(body: RegionsBody) -> dict[str, Any]:
@@ -121,8 +125,7 @@ def create_app(settings: ControlSettings, runtime: ControlRuntime,
                            "change only in nominal mode (POST /v1/reset first)", "mode") from None
         except ValueError as exc:
             raise ApiError(422, "invalid", str(exc), error_field(str(exc))) from None
-        return {"regions": [r.to_dict() for r in runtime.scenario.regions],
-                "mode": runtime.mode.value}
+        return regions_body()
 
     @app.post("/v1/reset", dependencies=auth)
     async def reset(body: ResetBody | None = None) -> dict[str, Any]:

@@ -29,4 +29,8 @@ class EmbeddingSettings(ServiceSettings):
     microbatch_max: int = Field(default=64, ge=1)
     snapshot_wal_bytes: int = Field(default=64 * 1024 * 1024, ge=0)
     zenoh_worker: bool = True
+    # torch intra-op threads; 0 keeps torch's default (one per core). One thread keeps a
+    # single observation's embedding at ~15 ms on a busy machine, where a pool of
+    # spinning threads stalled verdicts for 1-2 s (measured with `aesop bench bus`)
+    torch_threads: int = Field(default=1, ge=0, le=256)
     fsync: bool = True

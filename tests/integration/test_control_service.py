@@ -225,7 +225,9 @@ def test_silent_detector_raises_one_stale_alarm(stack: Stack) -> None:
 
 def test_regions_routes(stack: Stack) -> None:
     http = stack.http
-    before = http.get("/v1/regions").json()["regions"]
+    listing = http.get("/v1/regions").json()
+    assert len(listing["goal"]) == 3  # the nominal goal (m), for the dashboard
+    before = listing["regions"]
     assert [r["name"] for r in before] == ["hold", "roof", "lot"]
     assert http.post("/v1/regions", json={"regions": REGIONS}).status_code == 401
     bad = [({"regions": [{k: v for k, v in REGIONS[0].items() if k != "name"}]},

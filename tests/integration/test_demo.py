@@ -12,7 +12,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
 
 def test_demo_flags_the_papers_scenarios_as_expected() -> None:
-    r = subprocess.run([sys.executable, "-m", "services.cli", "demo", "--json"],
+    r = subprocess.run([sys.executable, "-m", "services.cli", "demo", "--detector-only", "--json"],
                        capture_output=True, text=True, timeout=540, stdin=subprocess.DEVNULL)
     assert r.returncode == 0, r.stderr[-3000:]
     result = json.loads(r.stdout)

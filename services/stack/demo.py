@@ -1,0 +1,336 @@
+"""``aesop demo``: the paper's hardware scenarios flown by the whole stack.
+
+It brings the stack up (:mod:`services.stack.up`, logs under ``<out>/logs``),
+builds the nominal cache of the hardware scene over REST (every combination of
+up to 4 nominal detections), calibrates tau for a 0.9 TPR (top-1 scores), then
+flies each scenario of :data:`services.stack.report.SCENARIOS`: reset the
+control loop at the start position, publish the scripted ``Observation``s at
+the loop rate, and record what comes back over Zenoh (states, requests,
+decisions, events) until the flight's time is up. Then it judges each flight,
+prints the summary table and writes the report.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import secrets
+import signal
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+from services.control.scenario import Scenario, load_scenario
+from shared import topics
+from shared.bus import Bus, Subscription
+from shared.messages import (
+    AnomalyVerdict,
+    ControlState,
+    Detection,
+    Event,
+    Observation,
+    ReasonerDecision,
+    ReasonerRequest,
+)
+from shared.settings import BusSettings
+
+from .report import (
+    SCENARIOS,
+    DemoScenario,
+    calibration_set,
+    count_violations,
+    ended_in,
+    judge,
+    nominal_texts,
+    observation_text,
+    summary_table,
+    write_report,
+)
+from .up import DETECTOR_CACHE, FAKE_LLM_LATENCY_S, Stack, StackOptions, file_sink, plan_stack
+
+FLIGHT_S = 12.0  # simulated seconds per scenario: T = 8 s after the anomaly, and settling
+ROUTE_TIMEOUT_S = 60.0
+CAMERA_PERIOD_S = 0.1  # observations at 10 Hz (the paper's detector ran at 18.8 Hz)
+
+
+def run_stack_demo(options: StackOptions, out: Path, *, model: str | None = None,
+                   table: bool = True, keep_up: bool = False) -> dict[str, Any]:
+    scenario = load_scenario(options.scenario)
+    plan = plan_stack(options, os.environ, secrets.token_urlsafe(24))
+    stack = Stack(plan, file_sink(out / "logs"))
+    signal.signal(signal.SIGTERM, _interrupt)
+    started = time.monotonic()
+    try:
+        _say(f"starting the stack (logs in {out / 'logs'}) ...")
+        stack.start()
+        dashboard = plan.url("dashboard")
+        if dashboard:
+            _say(f"dashboard: {dashboard}  (watch the flights live)")
+        settings = BusSettings(robot=os.environ.get("AESOP_ROBOT", "robot0"),
+                               zenoh_connect=[f"tcp/127.0.0.1:{plan.hub.port}"])
+        result, flights = asyncio.run(_demo(plan.url("embedding"), plan.url("control"),
+                                            plan.token, settings, scenario, model))
+        result.update(scene=scenario.name, rate_hz=1.0 / scenario.dt,
+                      llm=(f"the fake LLM, {FAKE_LLM_LATENCY_S:g} s per answer" if plan.fake_llm
+                           else "the configured LLM backend"),
+                      wall_s=round(time.monotonic() - started, 1), dashboard=dashboard)
+        report = write_report(out, result, flights, scenario)
+        if table:
+            print(f"\nAESOP demo — {scenario.name}, {result['llm']}\n")
+            print(summary_table(result["scenarios"]))
+            print(f"\n{'all scenarios ended as expected' if result['ok'] else 'SOME FAILED'}"
+                  f" ({result['wall_s']:.0f} s)\nreport: {report}")
+            if dashboard:
+                print(f"dashboard: {dashboard}" + ("" if keep_up else " (stopped with the demo;"
+                                                   " `aesop demo --keep-up` leaves it running)"))
+        else:
+            _say(f"report: {report}")
+        if keep_up:
+            _say("the stack stays up; Ctrl-C stops it")
+            stack.stopping.wait()
+        return result
+    except KeyboardInterrupt:
+        _say("interrupted")
+        raise
+    finally:
+        stack.stop()
+
+
+def _interrupt(*_: object) -> None:
+    raise KeyboardInterrupt
+
+
+def _say(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+# --------------------------------------------------------------------------- the flights
+
+
+@dataclass
+class Recorder:
+    """Everything of one flight that arrived over Zenoh."""
+
+    states: list[ControlState] = field(default_factory=list)
+    requests: list[ReasonerRequest] = field(default_factory=list)
+    decisions: list[ReasonerDecision] = field(default_factory=list)
+    events: list[Event] = field(default_factory=list)
+    detector_alarms: int = 0  # anomalous verdicts during the flight
+    recording: bool = False
+
+    @property
+    def t(self) -> float:
+        return self.states[-1].t if self.states else 0.0
+
+
+async def _demo(embedding_url: str | None, control_url: str | None, token: str,
+                settings: BusSettings, scenario: Scenario, model: str | None
+                ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    assert embedding_url and control_url
+    auth = {"Authorization": f"Bearer {token}"}
+    async with httpx.AsyncClient(base_url=embedding_url, timeout=300, headers=auth) as http:
+        detector = await build_cache(http, model)
+    rows, flights = [], {}
+    with Bus.open(settings, "demo") as bus:
+        robot = settings.robot
+        rec = Recorder()
+        verdicts = bus.subscribe(topics.anomaly(robot), AnomalyVerdict, maxsize=1024)
+        tasks = [
+            asyncio.create_task(_collect(bus.subscribe(topics.anomaly(robot), AnomalyVerdict,
+                                                       maxsize=1024), rec, _on_verdict)),
+            asyncio.create_task(_collect(bus.subscribe(topics.state(robot), ControlState,
+                                                       maxsize=4096), rec, _on_state)),
+            asyncio.create_task(_collect(bus.subscribe(topics.reasoner_request(robot),
+                                                       ReasonerRequest), rec, _on_request)),
+            asyncio.create_task(_collect(bus.subscribe(topics.reasoner_decision(robot),
+                                                       ReasonerDecision), rec, _on_decision)),
+            asyncio.create_task(_collect(bus.subscribe(topics.event(robot), Event, maxsize=1024),
+                                         rec, _on_event)),
+        ]
+        camera = Camera(bus, robot, CAMERA_PERIOD_S, rec)
+        tasks.append(asyncio.create_task(camera.run()))
+        try:
+            await _first_verdict(verdicts)
+            async with httpx.AsyncClient(base_url=control_url, timeout=60, headers=auth) as http:
+                for demo in SCENARIOS:
+                    row, states = await fly(http, camera, verdicts, rec, demo, scenario)
+                    rows.append(row)
+                    flights[demo.name] = states
+                    _say(f"  {demo.name}: {row['outcome']}")
+        finally:
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+    return {"ok": all(r["outcome"] == "ok" for r in rows), "scenarios": rows,
+            "detector": detector}, flights
+
+
+async def build_cache(http: httpx.AsyncClient, model: str | None) -> dict[str, Any]:
+    """The nominal cache of the hardware scene, calibrated for TPR 0.9 with top-1 scores."""
+    body: dict[str, Any] = {"k": 1} | ({"model": model} if model else {})
+    _check(await http.put(f"/v1/caches/{DETECTOR_CACHE}", json=body))
+    info = _check(await http.get(f"/v1/caches/{DETECTOR_CACHE}"))
+    texts = nominal_texts()
+    if info["size"] != len(texts):  # a cache kept from an earlier run is reused as is
+        if info["size"]:
+            raise RuntimeError(f"cache {DETECTOR_CACHE!r} holds {info['size']} experiences, "
+                               f"not the {len(texts)} of the scene: remove the demo's data dir")
+        _say(f"building the nominal cache: {len(texts)} combinations of up to 4 detections")
+        job = _check(await http.post(f"/v1/caches/{DETECTOR_CACHE}/experiences",
+                                     params={"wait": "false"},
+                                     json={"items": [{"text": t} for t in texts]}))
+        while (state := _check(await http.get(f"/v1/jobs/{job['job']}")))["state"] == "running":
+            await asyncio.sleep(0.5)
+        if state["state"] != "succeeded":
+            raise RuntimeError(f"building the cache failed: {state['error']}")
+    cal = _check(await http.post(f"/v1/caches/{DETECTOR_CACHE}/calibrate", json={
+        "method": "tpr-target", "tpr": 0.9, "calibration": calibration_set()}))
+    _say(f"calibrated: tau = {cal['threshold']:.4f}, TPR {cal['tpr']:.2f}, FPR {cal['fpr']:.2f}")
+    return {"size": len(texts), "k": 1, "calibration": cal}
+
+
+class Camera:
+    """Publishes the scene's detections as ``Observation``s once per control tick."""
+
+    def __init__(self, bus: Bus, robot: str, period_s: float, rec: Recorder) -> None:
+        self.bus, self.robot, self.period_s, self.rec = bus, robot, period_s, rec
+        self.scene: DemoScenario = SCENARIOS[0]
+        self.flying = False
+        self.seq = 0
+
+    def detections(self) -> tuple[str, ...]:
+        return self.scene.detections(self.rec.t if self.flying else 0.0)
+
+    async def run(self) -> None:
+        while True:
+            self.seq += 1
+            seen = self.detections()
+            self.bus.publish(topics.observation(self.robot), Observation(
+                robot=self.robot, seq=self.seq, task="landing on the red box",
+                text=observation_text(seen), detections=tuple(
+                    Detection(label=d.rsplit(" on ", 1)[0], where="on " + d.rsplit(" on ", 1)[1])
+                    for d in seen)))
+            await asyncio.sleep(self.period_s)
+
+
+async def fly(http: httpx.AsyncClient, camera: Camera, verdicts: Subscription[AnomalyVerdict],
+              rec: Recorder, demo: DemoScenario, scenario: Scenario
+              ) -> tuple[dict[str, Any], np.ndarray]:
+    camera.scene, camera.flying = demo, False
+    await _calm(camera, verdicts)
+    rec.recording = False
+    rec.states, rec.requests, rec.decisions, rec.events = [], [], [], []
+    rec.detector_alarms = 0
+    start = [float(v) for v in scenario.start_center]
+    _check(await http.post("/v1/reset", json={"start": start}))
+    rec.recording = True
+    camera.flying = True
+    wall = time.monotonic()
+    deadline = wall + 3 * FLIGHT_S + 30
+    while rec.t < FLIGHT_S:
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"{demo.name}: the control loop published no state for a while")
+        await asyncio.sleep(0.05)
+    camera.flying = False
+    rec.recording = False
+    return summarize(rec, demo, scenario, time.monotonic() - wall)
+
+
+def summarize(rec: Recorder, demo: DemoScenario, scenario: Scenario, wall_s: float
+              ) -> tuple[dict[str, Any], np.ndarray]:
+    states = np.array([s.x for s in rec.states])
+    inputs = np.array([s.u for s in rec.states])
+    # the anomaly behind the flight's last decision (a late verdict may have raised one before)
+    anomaly_at = next((s.t_anom for s in reversed(rec.states) if s.t_anom is not None), None)
+    ids = {r.request_id: r for r in rec.requests}
+    answered = [d for d in rec.decisions if d.request_id in ids]
+    decided = answered[-1] if answered else None  # the decision the flight ended with
+    decision, source = None, None
+    if decided is not None:
+        labels = {o.index: o.label for o in ids[decided.request_id].options}
+        decision, source = labels.get(decided.choice, str(decided.choice)), decided.source
+    fallback = next((e for e in rec.events if e.kind == "fallback"), None)
+    if fallback is not None:  # the loop committed at K without (or before) a decision
+        chosen = fallback.data.get("chosen")
+        decision = next((r.label for r in scenario.regions if r.index == chosen), str(chosen))
+        source = "control fallback at K"
+    ended = ended_in(states[-1], scenario) if len(states) else None
+    violations = count_violations(states, inputs, scenario)
+    problems = judge(demo, ended=ended, detector_alarms=rec.detector_alarms,
+                     anomaly_at_s=anomaly_at, decision=decision, violations=violations)
+    row = {"name": demo.name, "expected": demo.expected, "outcome": "; ".join(problems) or "ok",
+           "ended_in": ended, "anomaly_at_s": None if anomaly_at is None else round(anomaly_at, 2),
+           "decision": decision, "decision_source": source,
+           "constraint_violations": violations,
+           "duration_s": round(rec.states[-1].t, 2) if rec.states else 0.0,
+           "wall_s": round(wall_s, 2),
+           "decision_latency_ms": None if decided is None else round(decided.latency_ms, 1),
+           "reasoner_requests": len(rec.requests),
+           "stale_verdict_alarms": sum(e.kind == "verdict_stale" for e in rec.events),
+           "anomalous_verdicts": rec.detector_alarms,
+           "rationale": None if decided is None else decided.rationale[-300:]}
+    return row, states
+
+
+async def _calm(camera: Camera, verdicts: Subscription[AnomalyVerdict]) -> None:
+    """Wait for a nominal verdict on an observation published from now on."""
+    since = camera.seq
+    deadline = time.monotonic() + ROUTE_TIMEOUT_S
+    while time.monotonic() < deadline:
+        try:
+            got = await asyncio.wait_for(anext(verdicts), 1.0)
+        except TimeoutError:
+            continue
+        if got.message.seq > since and not got.message.is_anomaly:
+            return
+    raise RuntimeError("no nominal verdict for the nominal scene: is the cache calibrated?")
+
+
+async def _first_verdict(verdicts: Subscription[AnomalyVerdict]) -> None:
+    try:
+        await asyncio.wait_for(anext(verdicts), ROUTE_TIMEOUT_S)
+    except TimeoutError:
+        raise RuntimeError("no anomaly verdict over Zenoh: the embedding worker is not "
+                           "reachable") from None
+
+
+async def _collect(sub: Subscription[Any], rec: Recorder,
+                   on: Callable[[Recorder, Any], None]) -> None:
+    async for got in sub:
+        if rec.recording:
+            on(rec, got.message)
+
+
+def _on_state(rec: Recorder, msg: ControlState) -> None:
+    if rec.states or msg.t < 0.5:  # a tick from before the reset is not this flight's
+        rec.states.append(msg)
+
+
+def _on_verdict(rec: Recorder, msg: AnomalyVerdict) -> None:
+    rec.detector_alarms += int(msg.is_anomaly)
+
+
+def _on_request(rec: Recorder, msg: ReasonerRequest) -> None:
+    rec.requests.append(msg)
+
+
+def _on_decision(rec: Recorder, msg: ReasonerDecision) -> None:
+    rec.decisions.append(msg)
+
+
+def _on_event(rec: Recorder, msg: Event) -> None:
+    rec.events.append(msg)
+
+
+def _check(response: httpx.Response) -> dict[str, Any]:
+    if response.status_code >= 400:
+        raise RuntimeError(f"{response.request.method} {response.request.url.path} -> "
+                           f"{response.status_code}: {response.text[:500]}")
+    return response.json()
+

@@ -1,0 +1,243 @@
+"""The demo's scenarios, judging and report: pure logic, plus the HTML/PNG writer.
+
+* :data:`SCENARIOS` — the paper's hardware scenarios (Sec. V-C) as observation
+  scripts: the nominal clutter from the start, the anomalous detection from
+  ``anomaly_at_s`` of simulated time (when the camera would see it) until
+  ``anomaly_until_s`` (the keyboard leaves the field of view; a quadrotor on a
+  box stays).
+* :func:`observation_text` — one detection per line, canonical order: the text
+  the vector cache holds and the reasoner quotes line by line.
+* :func:`ended_in`, :func:`count_violations`, :func:`judge` — where a flight
+  ended and what went wrong, from the published ``ControlState``s.
+* :func:`summary_table`, :func:`write_report` — what a person reads.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.control.dynamics import QuadrotorParams
+from services.control.regions import Tolerance
+from services.control.scenario import Scenario
+from services.control.sim import LIMIT_TOLERANCE, TOLERANCE
+from services.embedding.domains import quadrotor_calibration, quadrotor_nominal
+from services.embedding.domains.quadrotor import (
+    ON_BLUE_BOX,
+    ON_RED_BOX,
+    TASK,
+    canonical,
+    detection,
+)
+
+GOAL = "red-box"  # the nominal landing site: the scenario's goal
+GOAL_REACH_M = 0.15  # within this of the goal, and at rest, counts as landed there
+AT_REST_M_S = 0.15
+
+
+@dataclass(frozen=True)
+class DemoScenario:
+    name: str
+    expected: str  # where the flight must end: GOAL or a region name
+    expected_decision: str | None  # the reasoner's choice (an option label); None: no anomaly
+    clutter: tuple[str, ...]  # nominal detections, seen throughout
+    anomalies: tuple[str, ...] = ()  # seen from anomaly_at_s to anomaly_until_s
+    anomaly_at_s: float = 1.0  # s of simulated flight
+    anomaly_until_s: float | None = None  # None: stays in view
+    description: str = ""
+
+    def detections(self, t: float) -> tuple[str, ...]:
+        """What the camera reports at simulated time ``t`` (s)."""
+        visible = bool(self.anomalies) and t >= self.anomaly_at_s and (
+            self.anomaly_until_s is None or t < self.anomaly_until_s)
+        return canonical(self.clutter + (self.anomalies if visible else ()))
+
+
+RED, BLUE = detection("a red box"), detection("a blue box")
+SCENARIOS: tuple[DemoScenario, ...] = (
+    DemoScenario("1-nominal", GOAL, None,
+                 (RED, detection("a bicycle tire"), detection("a soccer ball"),
+                  detection("a drill")),
+                 description="clutter on the ground only: land on the red box"),
+    DemoScenario("2a-quadrotor-on-red-box", "blue-box", "alternative landing site",
+                 (RED, BLUE, detection("a quadrotor")),
+                 (detection("a quadrotor", ON_RED_BOX),),
+                 description="another quadrotor on the red box: land on the blue box"),
+    DemoScenario("2b-both-boxes-occupied", "holding-zone", "holding zone",
+                 (RED, BLUE),
+                 (detection("a quadrotor", ON_RED_BOX), detection("a quadrotor", ON_BLUE_BOX)),
+                 description="quadrotors on both boxes: hold in the holding zone"),
+    DemoScenario("3-keyboard-on-ground", GOAL, "continue",
+                 (RED, detection("a bicycle tire"), detection("a drill")),
+                 (detection("a keyboard"),), anomaly_until_s=2.6,
+                 description="an unseen keyboard on the ground, in view for 1.6 s: "
+                             "anomalous but inconsequential; land on the red box"),
+)
+
+
+def observation_text(detections: Sequence[str]) -> str:
+    """The observation o_t: one detection per line, in the cache's canonical order."""
+    return "\n".join(canonical(detections))
+
+
+def nominal_texts() -> list[str]:
+    """D_e: every combination of 1..4 nominal detections, as observation texts."""
+    return [observation_text(s.concepts) for s in quadrotor_nominal()]
+
+
+def calibration_set(seed: int = 0) -> list[dict[str, str]]:
+    """D_c: labelled frames for the TPR-0.9 threshold of the hardware appendix."""
+    return [{"text": observation_text(s.concepts), "label": s.label}
+            for s in quadrotor_calibration(seed=seed)]
+
+
+# --------------------------------------------------------------------------- judging
+
+
+def ended_in(x: Sequence[float], scenario: Scenario,
+             tolerance: Tolerance = TOLERANCE) -> str | None:
+    """``GOAL`` when at rest on the goal, else the name of the region holding ``x``."""
+    x = np.asarray(x, dtype=float)
+    at_rest = float(np.linalg.norm(x[3:6])) <= AT_REST_M_S
+    if at_rest and float(np.linalg.norm(x[:3] - np.asarray(scenario.goal))) <= GOAL_REACH_M:
+        return GOAL
+    return next((r.name for r in scenario.regions if r.contains(x, tolerance)), None)
+
+
+def count_violations(states: Sequence[Sequence[float]], inputs: Sequence[Sequence[float]],
+                     scenario: Scenario, params: QuadrotorParams | None = None) -> int:
+    """Ticks at which a state or an input left the scenario's limits (sim's tolerances)."""
+    if not len(states):
+        return 0
+    lo, hi = scenario.limits.box()
+    slack = LIMIT_TOLERANCE.state()
+    x = np.asarray(states, dtype=float)
+    bad = np.any((x > hi + slack) | (x < lo - slack), axis=1)
+    if len(inputs):
+        u_lo, u_hi = (params or QuadrotorParams()).input_bounds()
+        u = np.asarray(inputs, dtype=float)
+        tol = LIMIT_TOLERANCE.input
+        bad = bad | np.any((u > u_hi + tol) | (u < u_lo - tol), axis=1)
+    return int(np.sum(bad))
+
+
+def judge(demo: DemoScenario, *, ended: str | None, detector_alarms: int,
+          anomaly_at_s: float | None, decision: str | None, violations: int) -> list[str]:
+    """What did not go as expected (empty: the scenario passed).
+
+    In the nominal scenario the detector must never flag the scene; an anomaly the
+    control loop raised because a verdict came late (fail-safe) is reported in the
+    row but is no failure as long as the flight ends where it should.
+    """
+    problems = []
+    if ended != demo.expected:
+        problems.append(f"ended in {ended or 'no region'}, expected {demo.expected}")
+    if demo.expected_decision is None and detector_alarms:
+        problems.append(f"the detector flagged the nominal scene {detector_alarms} times")
+    if demo.expected_decision is not None and anomaly_at_s is None:
+        problems.append("the anomaly was not detected")
+    if demo.expected_decision is not None and decision != demo.expected_decision:
+        problems.append(f"decision {decision!r}, expected {demo.expected_decision!r}")
+    if violations:
+        problems.append(f"{violations} ticks outside the limits")
+    return problems
+
+
+# --------------------------------------------------------------------------- output
+
+COLUMNS = (("name", "scenario"), ("anomaly_at_s", "anomaly at [s]"), ("decision", "decision"),
+           ("decision_source", "source"), ("ended_in", "ended in"),
+           ("constraint_violations", "violations"), ("duration_s", "duration [s]"),
+           ("stale_verdict_alarms", "stale alarms"),
+           ("outcome", "outcome"))
+
+
+def _cell(value: Any) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.1f}"
+    return str(value)
+
+
+def summary_table(rows: Sequence[dict[str, Any]]) -> str:
+    """A fixed-width text table of the scenario rows."""
+    cells = [[_cell(r.get(key)) for key, _ in COLUMNS] for r in rows]
+    widths = [max([len(title)] + [len(c[i]) for c in cells]) for i, (_, title) in
+              enumerate(COLUMNS)]
+    line = "  ".join(title.ljust(w) for (_, title), w in zip(COLUMNS, widths, strict=True))
+    out = [line, "-" * len(line)]
+    out += ["  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)) for row in cells]
+    return "\n".join(out)
+
+
+def plot_flights(flights: dict[str, np.ndarray], scenario: Scenario, path: Path) -> None:
+    """Top (x-y) and side (x-z) views of every flight over the regions and the goal."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5.5))
+    for ax, (i, j), title in ((axes[0], (0, 1), "top view"), (axes[1], (0, 2), "side view")):
+        for region in scenario.regions:
+            lo, hi = region.position_lo, region.position_hi
+            color = "tab:blue" if region.kind == "landing" else "tab:orange"
+            ax.add_patch(Rectangle((lo[i], lo[j]), hi[i] - lo[i], max(hi[j] - lo[j], 0.05),
+                                   alpha=0.25, color=color, label=region.name))
+        ax.plot(scenario.goal[i], scenario.goal[j], "s", color="tab:red", ms=12,
+                label="red box (goal)")
+        for name, states in flights.items():
+            if len(states):
+                ax.plot(states[:, i], states[:, j], lw=1.8, label=name)
+                ax.plot(states[-1, i], states[-1, j], "k.", ms=8)
+        lo, hi = scenario.limits.position_lo, scenario.limits.position_hi
+        ax.set_xlim(lo[i], hi[i])
+        ax.set_ylim(lo[j], hi[j])
+        ax.set_xlabel("xyz"[i] + " [m]")
+        ax.set_ylabel("xyz"[j] + " [m]")
+        ax.set_title(title)
+        ax.set_aspect("equal")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_report(out: Path, result: dict[str, Any], flights: dict[str, np.ndarray],
+                 scenario: Scenario) -> Path:
+    """``out/index.html`` (summary, detector, PNG of the flights) and ``out/result.json``."""
+    out.mkdir(parents=True, exist_ok=True)
+    plot_flights(flights, scenario, out / "flights.png")
+    (out / "result.json").write_text(json.dumps(result, indent=2, allow_nan=False))
+    head = "".join(f"<th>{html.escape(title)}</th>" for _, title in COLUMNS)
+    body = "".join(
+        "<tr>" + "".join(f"<td>{html.escape(_cell(r.get(key)))}</td>" for key, _ in COLUMNS)
+        + "</tr>" for r in result["scenarios"])
+    cal = result.get("detector", {})
+    detector = html.escape(json.dumps(cal, indent=1))
+    page = f"""<!doctype html>
+<html><head><meta charset="utf-8"><title>AESOP demo report</title>
+<style>body{{font-family:sans-serif;margin:2em}} table{{border-collapse:collapse}}
+td,th{{border:1px solid #ccc;padding:4px 8px}} th{{background:#eee}}</style></head>
+<body><h1>AESOP demo: the paper's quadrotor hardware scenarios, in simulation</h1>
+<p>Task: {html.escape(TASK)}. Scene: {html.escape(result['scene'])}; the whole stack ran as
+processes over Zenoh (vector cache, reasoner with {html.escape(result['llm'])}, control loop at
+{result['rate_hz']:g} Hz).</p>
+<table><tr>{head}</tr>{body}</table>
+<p>{'All scenarios ended as expected.' if result['ok'] else 'SOME SCENARIOS FAILED.'}</p>
+<h2>Flights</h2><img src="flights.png" alt="flights, top and side view" width="100%">
+<h2>Fast anomaly detector</h2><pre>{detector}</pre>
+</body></html>
+"""
+    path = out / "index.html"
+    path.write_text(page, encoding="utf-8")
+    return path

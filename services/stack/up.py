@@ -1,0 +1,380 @@
+"""``aesop up``: the whole stack on this machine as child processes.
+
+A Zenoh hub (:mod:`services.stack.hub`, router mode on loopback), then the
+fake LLM (unless ``AESOP_LLM_BASE_URL`` names a real backend), the vector-cache
+(embedding), the slow reasoner, the control loop with its simulated quadrotor
+and the dashboard, all as ``python -m services.cli serve ...`` peers of the hub.
+
+* :func:`plan_stack` is pure: environment and options in, the child specs out.
+* :class:`Stack` starts the children, each in its own process group, waits for
+  every ``/readyz`` (a TCP accept for the hub), forwards each line of their
+  output to a sink (``[control] ...``), and stops them all: SIGTERM to every
+  group, SIGKILL to what is left after a grace period, the hub last.
+* :func:`run_up` is the command: it generates an admin token when
+  ``AESOP_ADMIN_TOKEN`` is unset (kept in a 0600 file, not printed), prints the
+  URLs and serves until SIGINT/SIGTERM or until a child dies.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import secrets
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import IO, Literal
+
+import httpx
+
+from shared.process import free_port
+
+Sink = Callable[[str, str], None]  # (service name, one line of its output)
+DETECTOR_CACHE = "quadrotor"
+STALE_PERIODS = 5
+MPC_MAX_ITER = 4000
+FAKE_LLM_LATENCY_S = 3.1  # the paper's mean GPT-3.5-turbo CoT latency (Table "jetson timings")
+# Environment a child must not inherit: each service listens on its own port
+# and joins the hub, whatever the calling shell says.
+_DROPPED_ENV = ("AESOP_ZENOH_LISTEN", "AESOP_ZENOH_CONFIG", "AESOP_ZENOH_MODE", "AESOP_PORT")
+
+
+def hardware_scenario() -> Path:
+    """The bundled scene of the paper's hardware experiment."""
+    return Path(str(resources.files("services.control").joinpath("scenarios/hardware.yaml")))
+
+
+@dataclass(frozen=True)
+class Ports:
+    hub: int = 7447
+    embedding: int = 8001
+    reasoner: int = 8002
+    control: int = 8003
+    dashboard: int = 8080
+    fake_llm: int = 8010
+
+    @classmethod
+    def free(cls) -> Ports:
+        return cls(*(free_port() for _ in range(6)))
+
+    def busy(self) -> list[str]:
+        """``name:port`` of every port something on loopback already listens on."""
+        out = []
+        for name, port in vars(self).items():
+            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+                if sock.connect_ex(("127.0.0.1", port)) == 0:
+                    out.append(f"{name}:{port}")
+        return out
+
+
+@dataclass(frozen=True)
+class StackOptions:
+    data_dir: Path
+    ports: Ports = field(default_factory=Ports)
+    scenario: Path | None = None  # None: AESOP_SCENARIO, else the hardware scene
+    rate_hz: float | None = None  # None: AESOP_RATE_HZ, else the control default
+    goal: tuple[float, float, float] | None = None  # shown by the dashboard
+    dashboard: bool = True
+    python: str = sys.executable
+
+
+@dataclass(frozen=True)
+class ChildSpec:
+    name: str
+    argv: tuple[str, ...]
+    port: int
+    env: Mapping[str, str]
+    ready: Literal["http", "tcp"] = "http"
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+
+@dataclass(frozen=True)
+class StackPlan:
+    hub: ChildSpec
+    services: tuple[ChildSpec, ...]
+    token: str
+    token_generated: bool
+    fake_llm: bool
+
+    def url(self, name: str) -> str | None:
+        return next((s.url for s in self.services if s.name == name), None)
+
+
+def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str) -> StackPlan:
+    """The children of the stack and their environments (pure).
+
+    ``token`` is used when ``environ`` has no ``AESOP_ADMIN_TOKEN``.
+    """
+    ports, py = options.ports, options.python
+    given = environ.get("AESOP_ADMIN_TOKEN", "")
+    endpoint = f"tcp/127.0.0.1:{ports.hub}"
+    base = {k: v for k, v in environ.items() if k not in _DROPPED_ENV}
+    base.update(AESOP_ZENOH_CONNECT=endpoint, AESOP_ZENOH_MULTICAST="false",
+                AESOP_ADMIN_TOKEN=given or token)
+    base.setdefault("AESOP_DETECTOR_CACHE", DETECTOR_CACHE)
+    fake = not environ.get("AESOP_LLM_BASE_URL")
+    if fake:
+        base["AESOP_LLM_BASE_URL"] = f"http://127.0.0.1:{ports.fake_llm}/v1"
+        base.setdefault("AESOP_LLM_MODEL", "fake")
+        base.setdefault("AESOP_FAKE_LLM_PROFILE", "fixed")
+        base.setdefault("AESOP_FAKE_LLM_FIXED_S", str(FAKE_LLM_LATENCY_S))
+    scenario = options.scenario or Path(environ.get("AESOP_SCENARIO") or hardware_scenario())
+    base["AESOP_SCENARIO"] = str(scenario)
+    if options.rate_hz is not None:
+        base["AESOP_RATE_HZ"] = f"{options.rate_hz:g}"
+        # a verdict counts as stale after 5 loop periods (the service default, 0.5 s, is
+        # 5 periods of its default 10 Hz)
+        base.setdefault("AESOP_VERDICT_STALE_S", f"{STALE_PERIODS / options.rate_hz:g}")
+    # OSQP's default cap (1000 warm iterations) reads some solves of the 40-step hardware
+    # problem as infeasible, and every such tick spends consensus budget on a hold
+    base.setdefault("AESOP_MPC_MAX_ITER", str(MPC_MAX_ITER))
+    base.setdefault("AESOP_DASHBOARD_CONTROL_URL", f"http://127.0.0.1:{ports.control}")
+    if options.goal is not None:
+        base.setdefault("AESOP_DASHBOARD_GOAL", "[" + ", ".join(map(str, options.goal)) + "]")
+
+    def serve(name: str, port: int, data: bool = True) -> ChildSpec:
+        argv = [py, "-m", "services.cli", "serve", name, "--port", str(port)]
+        if data:
+            argv += ["--data-dir", str(options.data_dir / name)]
+        return ChildSpec(name, tuple(argv), port, dict(base))
+
+    hub = ChildSpec("hub", (py, "-m", "services.stack.hub", "--listen", endpoint), ports.hub,
+                    dict(base), ready="tcp")
+    services = [serve("fake-llm", ports.fake_llm, data=False)] if fake else []
+    services += [serve("embedding", ports.embedding), serve("reasoner", ports.reasoner),
+                 serve("control", ports.control)]
+    if options.dashboard:
+        services.append(serve("dashboard", ports.dashboard))
+    return StackPlan(hub, tuple(services), given or token, not given, fake)
+
+
+# --------------------------------------------------------------------------- processes
+
+
+class StackError(RuntimeError):
+    """A child exited or never became ready; the message says which and why."""
+
+
+class Child:
+    """One child process in its own process group, its output forwarded line by line."""
+
+    def __init__(self, spec: ChildSpec, sink: Sink) -> None:
+        self.spec, self.sink = spec, sink
+        self.proc: subprocess.Popen[bytes] | None = None
+        self._pump: threading.Thread | None = None
+        self.tail: list[str] = []
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    @property
+    def pid(self) -> int:
+        assert self.proc is not None
+        return self.proc.pid
+
+    def start(self) -> None:
+        self.proc = subprocess.Popen(list(self.spec.argv), env=dict(self.spec.env),
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                     stdin=subprocess.DEVNULL, start_new_session=True)
+        self._pump = threading.Thread(target=self._forward, args=(self.proc.stdout,),
+                                      name=f"log-{self.name}", daemon=True)
+        self._pump.start()
+
+    def _forward(self, stream: IO[bytes]) -> None:
+        for raw in stream:
+            line = raw.decode(errors="replace").rstrip()
+            self.tail = (self.tail + [line])[-20:]
+            self.sink(self.name, line)
+
+    def exited(self) -> int | None:
+        return None if self.proc is None else self.proc.poll()
+
+    def is_ready(self) -> bool:
+        if self.spec.ready == "tcp":
+            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+                sock.settimeout(0.5)
+                return sock.connect_ex(("127.0.0.1", self.spec.port)) == 0
+        try:
+            return httpx.get(f"{self.spec.url}/readyz", timeout=1.0).status_code == 200
+        except httpx.TransportError:
+            return False
+
+    def signal(self, sig: signal.Signals) -> None:
+        """Send ``sig`` to the child's whole process group."""
+        if self.proc is None:
+            return
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self.proc.pid, sig)
+
+    def wait(self, timeout_s: float) -> bool:
+        if self.proc is None:
+            return True
+        try:
+            self.proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            return False
+        if self._pump is not None:
+            self._pump.join(2.0)
+        return True
+
+
+class Stack:
+    """Starts a :class:`StackPlan`'s children, watches them and stops them all."""
+
+    def __init__(self, plan: StackPlan, sink: Sink, *, ready_timeout_s: float = 180.0,
+                 stop_event: threading.Event | None = None) -> None:
+        self.plan, self.sink = plan, sink
+        self.hub = Child(plan.hub, sink)
+        self.children = [Child(spec, sink) for spec in plan.services]
+        self.ready_timeout_s = ready_timeout_s
+        self.stopping = stop_event or threading.Event()
+
+    @property
+    def pids(self) -> dict[str, int]:
+        return {c.name: c.pid for c in [self.hub, *self.children] if c.proc is not None}
+
+    def start(self) -> None:
+        """Hub first, then every service at once; returns when all are ready."""
+        self.hub.start()
+        self._await_ready([self.hub])
+        for child in self.children:
+            child.start()
+        self._await_ready(self.children)
+
+    def _await_ready(self, children: Sequence[Child]) -> None:
+        waiting = list(children)
+        deadline = time.monotonic() + self.ready_timeout_s
+        while waiting:
+            if self.stopping.is_set():
+                raise StackError("interrupted while starting")
+            for child in list(waiting):
+                status = child.exited()
+                if status is not None:
+                    raise StackError(f"{child.name} exited with status {status} while "
+                                     "starting:\n" + "\n".join(child.tail[-10:]))
+                if child.is_ready():
+                    self.sink("up", f"{child.name} ready on port {child.spec.port}")
+                    waiting.remove(child)
+            if time.monotonic() > deadline:
+                names = ", ".join(c.name for c in waiting)
+                raise StackError(f"not ready after {self.ready_timeout_s:.0f} s: {names}")
+            time.sleep(0.1)
+
+    def watch(self) -> str | None:
+        """Block until ``stopping`` is set (None) or a child exits (its description)."""
+        while not self.stopping.wait(0.2):
+            for child in [self.hub, *self.children]:
+                status = child.exited()
+                if status is not None:
+                    return f"{child.name} exited with status {status}"
+        return None
+
+    def stop(self, grace_s: float = 10.0) -> None:
+        """SIGTERM every service group, SIGKILL what is left after ``grace_s``; hub last."""
+        for group in (self.children, [self.hub]):
+            for child in group:
+                child.signal(signal.SIGTERM)
+            deadline = time.monotonic() + grace_s
+            for child in group:
+                if not child.wait(max(0.0, deadline - time.monotonic())):
+                    self.sink("up", f"{child.name} did not stop in {grace_s:g} s: killing it")
+                    child.signal(signal.SIGKILL)
+                    child.wait(5.0)
+
+
+# --------------------------------------------------------------------------- the command
+
+
+def stderr_sink(width: int = 10) -> Sink:
+    lock = threading.Lock()
+
+    def write(name: str, line: str) -> None:
+        with lock:
+            print(f"[{name}]".ljust(width + 2) + line, file=sys.stderr, flush=True)
+
+    return write
+
+
+def file_sink(directory: Path) -> Sink:
+    """Each service's lines to ``directory/<name>.log`` (for the demo)."""
+    directory.mkdir(parents=True, exist_ok=True)
+    lock = threading.Lock()
+    files: dict[str, IO[str]] = {}
+
+    def write(name: str, line: str) -> None:
+        with lock:
+            if name not in files:
+                files[name] = open(directory / f"{name}.log", "a", encoding="utf-8")  # noqa: SIM115
+            files[name].write(line + "\n")
+            files[name].flush()
+
+    return write
+
+
+def write_token(data_dir: Path, token: str) -> Path:
+    """Keep a generated admin token in ``data_dir/admin-token``, readable by the owner only."""
+    data_dir.mkdir(parents=True, exist_ok=True)
+    path = data_dir / "admin-token"
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(token + "\n")
+    return path
+
+
+def urls_text(plan: StackPlan, token_file: Path | None) -> str:
+    lines = ["", "AESOP stack is up:"]
+    lines += [f"  {s.name:<10} {s.url}" for s in plan.services]
+    lines.append(f"  {'zenoh':<10} tcp/127.0.0.1:{plan.hub.port}  (router; services are peers)")
+    if plan.fake_llm:
+        lines.append("  LLM: the fake OpenAI-compatible server (set AESOP_LLM_BASE_URL for a "
+                     "real one)")
+    if token_file is not None:
+        lines.append(f"  admin token: generated, in {token_file} (export AESOP_ADMIN_TOKEN="
+                     f"$(cat {token_file}))")
+    else:
+        lines.append("  admin token: AESOP_ADMIN_TOKEN from the environment")
+    lines.append("Ctrl-C stops everything.")
+    return "\n".join(lines)
+
+
+def install_stop_handlers(stop: threading.Event) -> None:
+    """SIGINT and SIGTERM set ``stop`` (the main thread then shuts the stack down)."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+
+
+def run_up(options: StackOptions, environ: Mapping[str, str]) -> int:
+    plan = plan_stack(options, environ, secrets.token_urlsafe(24))
+    if not options.dashboard:
+        print("aesop up: the dashboard is off (--no-dashboard)", file=sys.stderr)
+    stop = threading.Event()
+    install_stop_handlers(stop)
+    stack = Stack(plan, stderr_sink(), stop_event=stop)
+    token_file = write_token(options.data_dir, plan.token) if plan.token_generated else None
+    status = 0
+    try:
+        stack.start()
+        print(urls_text(plan, token_file), flush=True)
+        died = stack.watch()
+        if died is not None:
+            print(f"aesop up: {died}; stopping the stack", file=sys.stderr)
+            status = 1
+    except StackError as exc:
+        print(f"aesop up: {exc}", file=sys.stderr)
+        status = 130 if stop.is_set() else 1
+    finally:
+        print("aesop up: stopping ...", file=sys.stderr, flush=True)
+        stack.stop()
+        print("aesop up: stopped", file=sys.stderr, flush=True)
+    return status

@@ -1,0 +1,74 @@
+"""`aesop up` as a real process: every service ready behind one Zenoh hub, and
+SIGINT stops them all (no orphan left)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import psutil
+import pytest
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
+
+SERVICES = ("fake-llm", "embedding", "reasoner", "control", "dashboard")
+
+
+def wait_for_urls(proc: subprocess.Popen[str], timeout_s: float = 240.0) -> dict[str, str]:
+    assert proc.stdout is not None
+    urls: dict[str, str] = {}
+    deadline = time.monotonic() + timeout_s
+    for line in proc.stdout:
+        parts = line.split()
+        if len(parts) == 2 and parts[0] in SERVICES:
+            urls[parts[0]] = parts[1]
+        if line.startswith("Ctrl-C stops everything"):
+            return urls
+        assert time.monotonic() < deadline, "aesop up did not come up in time"
+    raise AssertionError(f"aesop up exited early with status {proc.wait()}")
+
+
+def test_up_serves_every_service_and_sigint_stops_them_all(tmp_path: Path) -> None:
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("AESOP_ADMIN_TOKEN", "AESOP_LLM_BASE_URL")}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "up", "--random-ports", "--data-dir",
+         str(tmp_path / "data")], env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+        stdin=subprocess.DEVNULL, text=True)
+    try:
+        urls = wait_for_urls(proc)
+        assert set(urls) == set(SERVICES)
+        for name, url in urls.items():
+            assert httpx.get(f"{url}/readyz", timeout=5).status_code == 200, name
+        state = httpx.get(f"{urls['control']}/v1/state", timeout=5).json()
+        assert state["scenario"] == "paper-quadrotor-hardware"
+        token_file = tmp_path / "data" / "admin-token"
+        assert token_file.stat().st_mode & 0o777 == 0o600
+        children = psutil.Process(proc.pid).children(recursive=True)
+        assert len(children) >= 1 + len(SERVICES)  # the hub too
+        pids = [c.pid for c in children]
+
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(60) == 0
+        _, alive = psutil.wait_procs(children, timeout=10)
+        assert alive == [], f"orphans: {alive}"
+        for pid in pids:  # each child led its own process group: nothing is left in it
+            with pytest.raises(ProcessLookupError):
+                os.killpg(pid, 0)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_up_rejects_a_missing_scenario_file(tmp_path: Path) -> None:
+    r = subprocess.run([sys.executable, "-m", "services.cli", "up", "--random-ports",
+                        "--scenario", str(tmp_path / "nope.yaml")],
+                       capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+    assert r.returncode == 2
+    assert "--scenario" in r.stderr and "nope.yaml" in r.stderr
