@@ -250,6 +250,12 @@ class ControlRuntime:
         self._stale: bool | None = None  # None until the first tick
         self._stale_asked = False  # this stale episode already raised a request
         self._verdict_asked: float | None = None  # received_at of the verdict that asked
+        # scene texts the reasoner answered "continue" for: flagged again, they do not ask
+        # again (the keyboard stays on the ground) until the flight is reset
+        self._cleared: set[str] = set()
+        self._asked_about: str | None = None  # the observation text of the pending request
+        self._said_cleared: str | None = None  # the cleared scene the last event was about
+        self._seen: deque[Observation] = deque(maxlen=64)  # recent observations, by seq
         self._queued: list[Event] = []
         self.last: TickResult | None = None
 
@@ -284,6 +290,8 @@ class ControlRuntime:
                    observation: Observation | None = None) -> TickResult:
         """Run one tick whose deadline was ``deadline`` (scheduler clock, s)."""
         async with self.lock:
+            if observation is not None:
+                self._seen.append(observation)
             inputs = self._read_inputs(verdict, decision)
             x = self.plant.state
             started = time.perf_counter()
@@ -325,7 +333,25 @@ class ControlRuntime:
         if (decision is not None and self.pending is not None and not self._delivered
                 and decision.request_id == self.pending):
             chosen, self._delivered = decision.choice, True
+            if chosen == 0 and self._asked_about is not None:
+                self._cleared.add(self._asked_about)
+        scene = self._scene_of(verdict) if anomaly and not stale else None
+        if scene in self._cleared:
+            anomaly = False
+            if scene != self._said_cleared:  # once per run of flags on that scene
+                events.append(self._event(
+                    "anomaly_cleared", "info", "flagged scene already judged harmless by the "
+                    "reasoner: not asking again", seq=verdict.message.seq))
+        self._said_cleared = scene if scene in self._cleared else None
         return _Inputs(anomaly, chosen, stale, verdict, events)
+
+    def _scene_of(self, verdict: Received[AnomalyVerdict] | None) -> str | None:
+        """The text of the observation ``verdict`` judged; the newest one seen if that one
+        never reached a tick (a scene changes more slowly than the loop runs)."""
+        if verdict is None or not self._seen:
+            return None
+        seq = verdict.message.seq
+        return next((o.text for o in reversed(self._seen) if o.seq == seq), self._seen[-1].text)
 
     def _finish(self, x: np.ndarray, output: ControlOutput, inputs: _Inputs, step_ms: float,
                 deadline: float, observation: Observation | None) -> TickResult:
@@ -337,6 +363,7 @@ class ControlRuntime:
             request = self._request(output.request, inputs, observation, deadline,
                                     output.consensus_left)
             self.pending, self._delivered = request.request_id, False
+            self._asked_about = None if observation is None else observation.text
             if inputs.stale:
                 self._stale_asked = True
             elif inputs.verdict is not None:
@@ -432,6 +459,7 @@ class ControlRuntime:
             self.plant = SimulatedQuadrotor(x0, self.scenario.dt)
             self._k = self._k0 = 0
             self.mode, self.pending, self._delivered = Mode.NOMINAL, None, False
+            self._cleared.clear()
             self._queued.append(self._event(
                 "reset", "info", "flight restarted at (" +
                 ", ".join(f"{v:.2f}" for v in x0[POS]) + ") m"))

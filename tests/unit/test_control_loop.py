@@ -288,3 +288,37 @@ async def test_reset_restarts_the_flight() -> None:
     result = await tick(rt, clock, verdict(clock, 0, False))
     assert result.state.t == 0.0 and result.state.x[:3] == (0.5, 0.0, 1.0)
     assert "reset" in kinds(result) and result.state.mode == "nominal"
+
+
+async def test_a_scene_the_reasoner_cleared_does_not_ask_again_until_a_reset() -> None:
+    clock = FakeClock()
+    rt = runtime(clock)
+    keyboard = "a keyboard on the ground"
+    seen = [Observation(robot="drone1", seq=seq, text=keyboard) for seq in range(6)]
+    await tick(rt, clock, verdict(clock, 0, False), observation=seen[0])
+    asked = await tick(rt, clock, verdict(clock, 1, True), observation=seen[1])
+    assert asked.request is not None and asked.request.observation.text == keyboard
+    cont = ReasonerDecision(request_id=asked.request.request_id, choice=0, source="llm",
+                            latency_ms=1.0)
+    back = await tick(rt, clock, verdict(clock, 2, True), cont, observation=seen[2])
+    assert back.state.mode == "nominal" and back.request is None
+    assert "anomaly_cleared" in kinds(back) and not back.anomaly
+    for seq in (3, 4):  # still in view: flagged, not asked, said once
+        later = await tick(rt, clock, verdict(clock, seq, True), observation=seen[seq])
+        assert later.request is None and not later.anomaly
+        assert "anomaly_cleared" not in kinds(later)
+    hazard = Observation(robot="drone1", seq=5, text="a quadrotor on the red box")
+    other = await tick(rt, clock, verdict(clock, 5, True), observation=hazard)
+    assert other.request is not None and other.request.observation == hazard
+
+    rt2 = runtime(clock)
+    await tick(rt2, clock, verdict(clock, 10, False), observation=seen[0])
+    first = await tick(rt2, clock, verdict(clock, 11, True),
+                       observation=seen[1].model_copy(update={"seq": 11}))
+    cont = cont.model_copy(update={"request_id": first.request.request_id})
+    await tick(rt2, clock, verdict(clock, 12, True), cont,
+               observation=seen[1].model_copy(update={"seq": 12}))
+    await rt2.reset()
+    again = await tick(rt2, clock, verdict(clock, 13, True),
+                       observation=seen[1].model_copy(update={"seq": 13}))
+    assert again.request is not None  # a new flight judges the scene afresh
