@@ -260,7 +260,10 @@ def _split_label(text: str) -> tuple[str, str]:
     return parts[0].strip(), (parts[1].strip() if len(parts) > 1 else "")
 
 
-_ON = r"\b(?:on|onto|atop|on top of|landed on|sitting on|parked on)\s+(?:the\s+|a\s+)?"
+# "... is landing on the red box" states the task, not an obstruction: a bare "on" after a
+# form of "land" does not count (the robot's own landing), "landed on" does (another's)
+_ON = (r"(?<!landing )(?<!land )(?<!lands )"
+       r"\b(?:on|onto|atop|on top of|landed on|sitting on|parked on)\s+(?:the\s+|a\s+)?")
 _RED_OCCUPIED = re.compile(_ON + r"red\s+(?:box|landing)", re.IGNORECASE)
 _BLUE_OCCUPIED = re.compile(_ON + r"blue\s+(?:box|landing)", re.IGNORECASE)
 _DRONE = re.compile(r"\b(?:quadrotor|quadcopter|drone|uav)s?\b", re.IGNORECASE)

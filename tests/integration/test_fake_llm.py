@@ -76,6 +76,13 @@ def test_quadrotors_on_both_boxes_go_to_holding_zone() -> None:
     assert final_answers(text) == ["FINAL ANSWER: 2"]
 
 
+def test_the_task_phrase_landing_on_the_red_box_is_no_obstruction() -> None:
+    brief = "The quadrotor is landing on the red box and observes: a soccer ball on the ground"
+    assert decide(prompt(brief))[0] == 0
+    occupied = "The quadrotor is landing on the red box and observes: a drone landed on the red box"
+    assert decide(prompt(occupied))[0] == 1
+
+
 def test_keyboard_on_the_ground_continues() -> None:
     choice, _ = decide(prompt(*NOMINAL, "a keyboard on the ground"))
     assert choice == 0
