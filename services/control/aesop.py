@@ -218,6 +218,15 @@ class _Controller:
         u, used = self._follow(plan, plan.status in (SolveStatus.SOLVED, SolveStatus.INACCURATE))
         return u, used, status
 
+    def warm_up(self, x: np.ndarray) -> None:
+        """Build and cold-solve the problems of a first tick at ``x``, off the loop.
+
+        The first solve of a problem has no warm start (up to ``max_iter_cold``
+        iterations, a few hundred ms); after this the first tick at ``x`` is
+        answered by each chain's memo and later ones start warm. No memory
+        changes: the flight has not begun.
+        """
+
     def make_step(self, x: np.ndarray, anomaly: bool, decision: int | None = None
                   ) -> ControlOutput:
         """One tick: ``x`` measured, ``anomaly`` from the detector, the reasoner's
@@ -288,6 +297,9 @@ class AesopController(_Controller):
         self.selector = selector or SubsetSelector(model, x_bounds, u_bounds, config, regions,
                                                    min_size=min_size)
 
+    def warm_up(self, x: np.ndarray) -> None:
+        self.selector.select(np.asarray(x, dtype=float), self.goal)
+
     def _step(self, x: np.ndarray, anomaly: bool, decision: int | None) -> ControlOutput:
         mem = self.memory
         self._take_decision(decision)
@@ -342,6 +354,9 @@ class NaiveController(_Controller):
         super().__init__(*args, **kwargs)
         self._nominal = BranchProblem(self.model, self.x_bounds, self.u_bounds, self.config, 0)
 
+    def warm_up(self, x: np.ndarray) -> None:
+        self._nominal.solve(np.asarray(x, dtype=float), self.goal, [])
+
     def _nominal_step(self, x: np.ndarray) -> tuple[np.ndarray, Plan | None, SolveStatus,
                                                      tuple[int, ...]]:
         plan = self._nominal.solve(x, self.goal, [])
@@ -376,6 +391,9 @@ class FallbackSafeController(NaiveController):
         no_consensus = replace(config, consensus=0)
         self.selector = SubsetSelector(model, x_bounds, u_bounds, no_consensus, regions,
                                        min_size=min_size)
+
+    def warm_up(self, x: np.ndarray) -> None:
+        self.selector.select(np.asarray(x, dtype=float), self.goal)
 
     def _nominal_step(self, x):
         return (*self._select(self.selector, x), self._active)

@@ -240,8 +240,9 @@ class ControlRuntime:
         self.settings, self.scenario, self.clock = settings, scenario, clock
         self.lock = asyncio.Lock()
         self._rng = np.random.default_rng(settings.seed)
-        self.controller = self.build_controller(scenario)
-        self.plant = SimulatedQuadrotor(self._start_state(None), scenario.dt)
+        x0 = self._start_state(None)
+        self.controller = self.build_controller(scenario, x0)
+        self.plant = SimulatedQuadrotor(x0, scenario.dt)
         self._k = 0  # plant ticks since the flight (re)started
         self._k0 = 0  # plant tick at which the controller was built
         self.mode = Mode.NOMINAL
@@ -261,15 +262,19 @@ class ControlRuntime:
 
     # ----------------------------------------------------------------- building
 
-    def build_controller(self, scenario: Scenario) -> Any:
-        """A fresh controller of the configured method for ``scenario`` (pure CPU, no I/O)."""
+    def build_controller(self, scenario: Scenario, x0: np.ndarray | None = None) -> Any:
+        """A fresh controller of the configured method for ``scenario`` (pure CPU, no I/O),
+        warmed up at ``x0`` so that the first tick is not a cold solve (an overrun)."""
         fallback = self.settings.control_fallback
         if isinstance(fallback, int) and fallback not in {r.index for r in scenario.regions}:
             raise ValueError(f"control_fallback: region {fallback} is not one of the "
                              f"scenario's {len(scenario.regions)} recovery regions")
         config = mpc_config(scenario, **self.settings.mpc_overrides())
-        return make_controller(self.settings.control_method, scenario, config=config,
-                               fallback=fallback)
+        controller = make_controller(self.settings.control_method, scenario, config=config,
+                                     fallback=fallback)
+        if x0 is not None:
+            controller.warm_up(x0)
+        return controller
 
     def _start_state(self, start: Sequence[float] | None) -> np.ndarray:
         if start is None:
@@ -440,7 +445,7 @@ class ControlRuntime:
         scenario = self.scenario.with_regions(regions)
         if self.mode is not Mode.NOMINAL:
             raise NotNominal(self.mode.value)
-        controller = await asyncio.to_thread(self.build_controller, scenario)
+        controller = await asyncio.to_thread(self.build_controller, scenario, self.plant.state)
         async with self.lock:
             if self.mode is not Mode.NOMINAL:
                 raise NotNominal(self.mode.value)
@@ -453,7 +458,7 @@ class ControlRuntime:
     async def reset(self, start: Sequence[float] | None = None) -> np.ndarray:
         """Start the flight again, at rest at ``start`` (m) or a fresh draw; returns x0."""
         x0 = self._start_state(start)  # ValueError before anything changes
-        controller = await asyncio.to_thread(self.build_controller, self.scenario)
+        controller = await asyncio.to_thread(self.build_controller, self.scenario, x0)
         async with self.lock:
             self.controller = controller
             self.plant = SimulatedQuadrotor(x0, self.scenario.dt)

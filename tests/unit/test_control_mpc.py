@@ -193,3 +193,19 @@ def test_recovery_whose_region_is_out_of_reach_by_its_step_is_planned_to_reach_i
     assert out.mode is Mode.RECOVERING and out.status.value == "solved"
     assert out.plan is not None and out.plan.region_step > CONFIG.min_region_step
     assert any("out of reach by step 5" in e for e in out.events)
+
+
+@pytest.mark.parametrize("kind", ["aesop", "naive"])
+def test_warm_up_leaves_the_first_tick_nothing_to_solve(kind: str):
+    controller = aesop() if kind == "aesop" else NaiveController(
+        MODEL, X_BOUNDS, U_BOUNDS, CONFIG, REGIONS, GOAL)
+    x0 = state()
+    controller.warm_up(x0)
+    assert controller.memory.t == 0 and controller.mode is Mode.NOMINAL
+    first = controller.make_step(x0, False)
+    assert first.plan is not None and first.plan.iterations == 0  # answered by the memo
+    cold = aesop() if kind == "aesop" else NaiveController(
+        MODEL, X_BOUNDS, U_BOUNDS, CONFIG, REGIONS, GOAL)
+    same = cold.make_step(x0, False)
+    assert same.plan.iterations > 0
+    np.testing.assert_allclose(first.u, same.u, atol=1e-9)
