@@ -8,6 +8,9 @@ control loop at the start position, publish the scripted ``Observation``s at
 the loop rate, and record what comes back over Zenoh (states, requests,
 decisions, events) until the flight's time is up. Then it judges each flight,
 prints the summary table and writes the report.
+
+:func:`fly_scenarios` is the same cache building and flying against a stack
+that is already up (the browser test flies one scenario while a page watches).
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ import secrets
 import signal
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -52,7 +55,15 @@ from .report import (
     summary_table,
     write_report,
 )
-from .up import DETECTOR_CACHE, FAKE_LLM_LATENCY_S, Stack, StackOptions, file_sink, plan_stack
+from .up import (
+    DETECTOR_CACHE,
+    FAKE_LLM_LATENCY_S,
+    Stack,
+    StackOptions,
+    StackPlan,
+    file_sink,
+    plan_stack,
+)
 
 FLIGHT_S = 12.0  # simulated seconds per scenario: T = 8 s after the anomaly, and settling
 ROUTE_TIMEOUT_S = 60.0
@@ -72,10 +83,8 @@ def run_stack_demo(options: StackOptions, out: Path, *, model: str | None = None
         dashboard = plan.url("dashboard")
         if dashboard:
             _say(f"dashboard: {dashboard}  (watch the flights live)")
-        settings = BusSettings(robot=os.environ.get("AESOP_ROBOT", "robot0"),
-                               zenoh_connect=[f"tcp/127.0.0.1:{plan.hub.port}"])
-        result, flights = asyncio.run(_demo(plan.url("embedding"), plan.url("control"),
-                                            plan.token, settings, scenario, model))
+        result, flights = fly_scenarios(plan, scenario=scenario, model=model,
+                                        robot=os.environ.get("AESOP_ROBOT", "robot0"))
         result.update(scene=scenario.name, rate_hz=1.0 / scenario.dt,
                       llm=(f"the fake LLM, {FAKE_LLM_LATENCY_S:g} s per answer" if plan.fake_llm
                            else "the configured LLM backend"),
@@ -113,6 +122,34 @@ def _say(message: str) -> None:
 # --------------------------------------------------------------------------- the flights
 
 
+def demo_scenario(name: str) -> DemoScenario:
+    """The demo scenario called ``name``, or whose name starts with ``name-`` ("2a")."""
+    for demo in SCENARIOS:
+        if name in (demo.name, demo.name.split("-", 1)[0]):
+            return demo
+    raise KeyError(f"no demo scenario {name!r}: {', '.join(d.name for d in SCENARIOS)}")
+
+
+def fly_scenarios(plan: StackPlan, names: Sequence[str] | None = None, *,
+                  scenario: Scenario | None = None, model: str | None = None,
+                  robot: str | None = None) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Build and calibrate the cache on the running stack of ``plan``, then fly the named
+    demo scenarios (all of :data:`SCENARIOS` by default) in turn, as ``aesop demo`` does.
+
+    ``scenario`` defaults to the scene the stack's services were given, ``robot`` to the
+    one they serve. Returns the result (``ok``, one row per scenario, the detector's
+    calibration) and each flight's states.
+    """
+    env = plan.hub.env
+    if scenario is None:
+        scenario = load_scenario(env["AESOP_SCENARIO"])
+    demos = SCENARIOS if names is None else tuple(demo_scenario(n) for n in names)
+    settings = BusSettings(robot=robot or env.get("AESOP_ROBOT") or "robot0",
+                           zenoh_connect=[f"tcp/127.0.0.1:{plan.hub.port}"])
+    return asyncio.run(_demo(plan.url("embedding"), plan.url("control"), plan.token, settings,
+                             scenario, model, demos))
+
+
 @dataclass
 class Recorder:
     """Everything of one flight that arrived over Zenoh."""
@@ -130,7 +167,8 @@ class Recorder:
 
 
 async def _demo(embedding_url: str | None, control_url: str | None, token: str,
-                settings: BusSettings, scenario: Scenario, model: str | None
+                settings: BusSettings, scenario: Scenario, model: str | None,
+                demos: Sequence[DemoScenario] = SCENARIOS
                 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     assert embedding_url and control_url
     auth = {"Authorization": f"Bearer {token}"}
@@ -158,7 +196,7 @@ async def _demo(embedding_url: str | None, control_url: str | None, token: str,
         try:
             await _first_verdict(verdicts)
             async with httpx.AsyncClient(base_url=control_url, timeout=60, headers=auth) as http:
-                for demo in SCENARIOS:
+                for demo in demos:
                     row, states = await fly(http, camera, verdicts, rec, demo, scenario)
                     rows.append(row)
                     flights[demo.name] = states

@@ -1,0 +1,122 @@
+"""The dashboard page in real headless Chromium (Debian's, driven by Playwright) while the
+real stack flies one of `aesop demo`'s scenarios.
+
+The stack is the one `aesop demo --random-ports` brings up (:mod:`services.stack.up`: a
+Zenoh hub, the fake LLM, the vector cache, the reasoner, the control loop and the
+dashboard, as processes); the cache is built and calibrated and scenario 2a (another
+quadrotor on the red box) is flown by the demo's own code
+(:func:`services.stack.demo.fly_scenarios`) while the page watches. The page must stay
+connected, draw the flown trajectory and show the reasoner's decision: the LLM's choice
+of the alternative landing site.
+
+The screenshot goes to the test's tmp directory and, when ``AESOP_SCREENSHOT_DIR`` is
+set, there too (``dashboard-demo.png``).
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+import time
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+from playwright.sync_api import Browser, expect, sync_playwright
+
+from services.control.scenario import load_scenario
+from services.stack.demo import demo_scenario, fly_scenarios
+from services.stack.up import (
+    Ports,
+    Stack,
+    StackOptions,
+    StackPlan,
+    file_sink,
+    hardware_scenario,
+    plan_stack,
+)
+from tests.e2e.test_dashboard_browser import CHROMIUM, FLAGS, canvas_count, screenshot
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
+
+SCENARIO = "2a"  # another quadrotor on the red box: land on the blue box instead
+WAIT_MS = 30_000
+FLIGHT_TIMEOUT_S = 300  # the cache (385 texts, a CPU embedder), calibration, a 12 s flight
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Browser]:
+    assert Path(CHROMIUM).is_file(), f"{CHROMIUM} is missing: run `make setup` (apt chromium)"
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=FLAGS)
+        try:
+            yield browser
+        finally:
+            browser.close()
+
+
+@pytest.fixture
+def stack(tmp_path: Path) -> Iterator[StackPlan]:
+    """The demo's stack on free ports (as `aesop demo --random-ports` plans it), logs in
+    ``tmp_path/logs``; stopped whatever happens."""
+    path = hardware_scenario()
+    scene = load_scenario(path)
+    rate = None if os.environ.get("AESOP_RATE_HZ") else 1.0 / scene.dt
+    options = StackOptions(data_dir=tmp_path / "data", ports=Ports.free(), scenario=path,
+                           rate_hz=rate, goal=scene.goal)
+    plan = plan_stack(options, os.environ, secrets.token_urlsafe(24))
+    running = Stack(plan, file_sink(tmp_path / "logs"))
+    try:
+        running.start()
+        yield plan
+    finally:
+        running.stop()
+
+
+def test_the_page_follows_a_real_demo_scenario(browser: Browser, stack: StackPlan,
+                                               tmp_path: Path) -> None:
+    demo = demo_scenario(SCENARIO)
+    url = stack.url("dashboard")
+    assert url is not None
+    page = browser.new_page(viewport={"width": 1440, "height": 700})
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.on("console", lambda msg: errors.append(msg.text) if msg.type == "error" else None)
+    page.goto(url)
+    expect(page.locator("#status")).to_have_attribute("data-state", "connected",
+                                                      timeout=WAIT_MS)
+    expect(page.locator('#services [data-service="control"]')).to_have_attribute(
+        "data-alive", "true", timeout=WAIT_MS)
+    expect(page.locator("#top")).to_have_attribute("data-regions", "2", timeout=WAIT_MS)
+
+    # the demo's own code flies the scenario, in a thread: meanwhile Playwright keeps
+    # taking the page's events (and a failure of the flight ends the wait at once)
+    with ThreadPoolExecutor(1) as pool:
+        flying = pool.submit(fly_scenarios, stack, [SCENARIO])
+        deadline = time.monotonic() + FLIGHT_TIMEOUT_S
+        while not flying.done() and time.monotonic() < deadline:
+            page.wait_for_timeout(500)
+        result, flights = flying.result(timeout=1)
+
+    [row] = result["scenarios"]
+    assert row["outcome"] == "ok", row  # landed on the blue box, no constraint violated
+    assert (row["decision"], row["decision_source"]) == ("alternative landing site", "llm")
+    expect(page.locator("#status")).to_have_attribute("data-state", "connected")
+    # the flight's request (the control loop may have asked before, while the cache was
+    # being built and no verdict came: the stale-detector fail-safe) and its answer
+    [seen] = demo.anomalies
+    request = page.locator("#requests li").filter(has_text=seen).first
+    expect(request).to_have_attribute("data-status", "answered", timeout=WAIT_MS)
+    expect(request.locator(".countdown")).to_have_text("y=1 (llm)")
+    decision = page.locator('#decisions li[data-source="llm"][data-choice="1"]').first
+    expect(decision.locator(".choice")).to_have_text("y=1 alternative landing site")
+    flown = len(flights[demo.name])
+    assert flown >= 50  # 12 s at 5 Hz
+    page.wait_for_function(  # the whole flight is drawn (the dashboard saw its reset)
+        f"document.querySelector('#top').dataset.points >= {flown - 2}", timeout=WAIT_MS)
+    assert canvas_count(page, "side", "points") >= flown - 2
+    assert canvas_count(page, "score", "anomalies") >= 1
+    shot = screenshot(page, tmp_path, "dashboard-demo.png")
+    assert shot.stat().st_size > 10_000
+    assert errors == []
