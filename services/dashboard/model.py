@@ -89,6 +89,9 @@ class FlightModel:
 
     def _request(self, m: Json) -> Json:
         self.requests.append(m)
+        for decision in self.decisions:  # one that overtook its request on the bus
+            if decision["request_id"] == m["request_id"] and decision["label"] is None:
+                decision["label"] = self.label_of(m["request_id"], decision["choice"])
         return {}
 
     def _decision(self, m: Json) -> Json:

@@ -103,6 +103,13 @@ def test_a_decision_carries_the_label_of_the_option_it_chose() -> None:
     assert model.apply(decision("q1", 7))["label"] is None
 
 
+def test_a_decision_that_overtook_its_request_gets_its_label_when_the_request_comes() -> None:
+    model = FlightModel(ROBOT)
+    assert model.apply(decision("q2", 1))["label"] is None  # separate keys: no order between
+    model.apply(request("q2"))
+    assert model.snapshot()["decisions"][-1]["label"] == "rooftop"
+
+
 def test_requests_decisions_and_events_keep_the_latest() -> None:
     model = FlightModel(ROBOT, Limits(log=3))
     for i in range(5):
