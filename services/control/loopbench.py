@@ -5,8 +5,8 @@ The service's own loop (:class:`~.loop.FixedRateScheduler` driving
 number of simulated minutes at each rate, without Zenoh: a fresh nominal
 verdict every tick, an anomaly every ``cycle_s`` of flight, the reasoner's
 answer (the first region offered) ``answer_s`` later, and a reset to a new
-start once the recovery has had time to land. So every mode of Algorithm 1
-is timed, including the cold solves after each reset.
+start once the recovery has had time to land, run beside the loop as the
+``POST /v1/reset`` route runs it. So every mode of Algorithm 1 is timed.
 
 Jitter is a tick's start minus its deadline; an overrun is a tick whose work
 ended after the next deadline. The plant advances ``dt`` per tick whatever the
@@ -69,6 +69,7 @@ async def time_loop(scenario: Scenario, rate_hz: float, ticks: int, seed: int = 
     scheduler = FixedRateScheduler(settings.period_s, window=max(ticks, 10))
     script = script or FlightScript(scenario.dt)
     counts = {"requests": 0, "resets": 0}
+    resets: list[asyncio.Task] = []
     k = 0
 
     async def tick(deadline: float) -> None:
@@ -79,13 +80,14 @@ async def time_loop(scenario: Scenario, rate_hz: float, ticks: int, seed: int = 
         if result.request is not None:
             counts["requests"] += 1
             script.answered(k, result.request.request_id, result.request.options[1].index)
-        if script.reset_after(k):
-            await runtime.reset()
+        if script.reset_after(k):  # as `POST /v1/reset` would: beside the loop, not in a tick
+            resets.append(asyncio.create_task(runtime.reset()))
             counts["resets"] += 1
         k += 1
 
     started = time.monotonic()
     await scheduler.run(tick, max_ticks=ticks)
+    await asyncio.gather(*resets)
     summary = scheduler.stats.summary()
     return {"rate_hz": rate_hz, "wall_s": round(time.monotonic() - started, 1),
             "simulated_s": round(ticks * scenario.dt, 1), **counts, **summary}
