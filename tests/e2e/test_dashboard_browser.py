@@ -7,18 +7,17 @@ there too (``dashboard.png`` is the one the README shows).
 
 from __future__ import annotations
 
-import os
 import re
-import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from playwright.sync_api import Browser, Page, expect, sync_playwright
+from playwright.sync_api import Browser, expect
 
 from shared.bus import Bus
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
+from tests.e2e.browser import canvas_count, screenshot
 from tests.e2e.demo_flight import (
     DECISION_AT,
     REGIONS,
@@ -31,22 +30,8 @@ from tests.e2e.demo_flight import (
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
-CHROMIUM = "/usr/bin/chromium"  # Debian's package; `make setup` installs it
-FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-         "--disable-component-update", "--no-first-run"]
 ROBOT = "e2e"
 WAIT_MS = 15_000
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Browser]:
-    assert Path(CHROMIUM).is_file(), f"{CHROMIUM} is missing: run `make setup` (apt chromium)"
-    with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=FLAGS)
-        try:
-            yield browser
-        finally:
-            browser.close()
 
 
 class Live:
@@ -68,20 +53,6 @@ def live(tmp_path: Path) -> Iterator[Live]:
         with proc, Bus.open(BusSettings(zenoh_connect=[endpoint]), "control") as bus:
             wait_following(bus, ROBOT, proc.url)
             yield Live(proc, bus)
-
-
-def screenshot(page: Page, tmp_path: Path, name: str) -> Path:
-    path = tmp_path / name
-    page.screenshot(path=str(path))
-    out = os.environ.get("AESOP_SCREENSHOT_DIR")
-    if out:
-        Path(out).mkdir(parents=True, exist_ok=True)
-        shutil.copy(path, Path(out) / name)
-    return path
-
-
-def canvas_count(page: Page, canvas: str, attr: str) -> int:
-    return int(page.get_attribute(f"#{canvas}", f"data-{attr}") or 0)
 
 
 def test_the_page_draws_the_live_flight_and_shows_the_decision(

@@ -23,7 +23,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
-from playwright.sync_api import Browser, expect, sync_playwright
+from playwright.sync_api import Browser, expect
 
 from services.control.scenario import load_scenario
 from services.stack.demo import demo_scenario, fly_scenarios
@@ -36,24 +36,13 @@ from services.stack.up import (
     hardware_scenario,
     plan_stack,
 )
-from tests.e2e.test_dashboard_browser import CHROMIUM, FLAGS, canvas_count, screenshot
+from tests.e2e.browser import canvas_count, screenshot
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
 
 SCENARIO = "2a"  # another quadrotor on the red box: land on the blue box instead
 WAIT_MS = 30_000
 FLIGHT_TIMEOUT_S = 300  # the cache (385 texts, a CPU embedder), calibration, a 12 s flight
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Browser]:
-    assert Path(CHROMIUM).is_file(), f"{CHROMIUM} is missing: run `make setup` (apt chromium)"
-    with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=FLAGS)
-        try:
-            yield browser
-        finally:
-            browser.close()
 
 
 @pytest.fixture
