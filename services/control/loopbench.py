@@ -43,9 +43,9 @@ class FlightScript:
         self._decision: tuple[int, ReasonerDecision] | None = None
 
     def verdict(self, k: int) -> AnomalyVerdict:
-        return NOMINAL.model_copy(update={"seq": k, "is_anomaly": k % self.cycle == self.anomaly,
-                                          "score": -0.5 if k % self.cycle == self.anomaly
-                                          else -0.9})
+        flagged = k % self.cycle == self.anomaly
+        return NOMINAL.model_copy(update={"seq": k, "is_anomaly": flagged,
+                                          "score": -0.5 if flagged else -0.9})
 
     def decision(self, k: int) -> ReasonerDecision | None:
         if self._decision is not None and self._decision[0] == k:

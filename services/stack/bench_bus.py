@@ -50,8 +50,6 @@ import numpy as np
 
 from services.embedding.domains import (
     QUADROTOR_SCENARIOS,
-    quadrotor_calibration,
-    quadrotor_nominal,
 )
 from shared import topics
 from shared.bus import Bus, Received, Subscription
@@ -60,9 +58,10 @@ from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
 from shared.tables import table
 
-from .report import observation_text
+from .report import calibration_set, nominal_texts, observation_text
+from .up import DETECTOR_CACHE
 
-CACHE = "quadrotor"
+CACHE = DETECTOR_CACHE
 ROBOT = "robot0"
 DEFAULT_MODEL = "sentence-transformers/all-MiniLM-L6-v2"
 CONTROL_RATE_HZ = 10.0
@@ -113,31 +112,25 @@ def control_process(tmp: Path, endpoint: str, token: str, **env: str) -> Service
                           port=port, env=full, log_path=tmp / "control.log", ready_timeout_s=60)
 
 
-def scene_text(detections: tuple[str, ...]) -> str:
-    """The Observation text of a frame: one detection per line, as ``aesop demo`` sends."""
-    return observation_text(detections)
-
-
 async def build_scene_cache(http: httpx.AsyncClient, model: str,
                             max_detections: int = 4) -> dict[str, Any]:
-    """The quadrotor scene cache over REST: build, then calibrate (tpr-target 0.9, top-1)."""
+    """The quadrotor scene cache over REST: build, then calibrate (tpr-target 0.9, top-1),
+    from the demo's texts (:mod:`.report`)."""
     await checked(http.put(f"/v1/caches/{CACHE}", json={"model": model, "k": 1}))
-    nominal = quadrotor_nominal(max_detections)
+    nominal = nominal_texts(max_detections)
     say(f"building the scene cache: {len(nominal)} nominal experiences")
     await checked(http.post(f"/v1/caches/{CACHE}/experiences",
-                            json={"items": [{"text": scene_text(s.concepts)} for s in nominal]}))
-    calibration = [{"text": scene_text(s.concepts), "label": s.label}
-                   for s in quadrotor_calibration(seed=0)]
+                            json={"items": [{"text": t} for t in nominal]}))
     cal = await checked(http.post(f"/v1/caches/{CACHE}/calibrate", json={
-        "method": "tpr-target", "tpr": 0.9, "calibration": calibration}))
+        "method": "tpr-target", "tpr": 0.9, "calibration": calibration_set()}))
     say(f"calibrated: tau = {cal['threshold']:.4f}")
     return await checked(http.get(f"/v1/caches/{CACHE}"))
 
 
 async def pick_scenes(http: httpx.AsyncClient, cache_detections: int = 4) -> tuple[str, str]:
     """A nominal scene the cache holds and a test scene it flags: (nominal, anomalous)."""
-    nominal = scene_text(QUADROTOR_SCENARIOS["nominal"].detections[:cache_detections])
-    anomalous = [scene_text(s.detections) for s in QUADROTOR_SCENARIOS.values()
+    nominal = observation_text(QUADROTOR_SCENARIOS["nominal"].detections[:cache_detections])
+    anomalous = [observation_text(s.detections) for s in QUADROTOR_SCENARIOS.values()
                  if s.expected_anomaly]
     scored = await checked(http.post(f"/v1/caches/{CACHE}/score",
                                      json={"texts": [nominal, *anomalous]}))
@@ -352,7 +345,7 @@ async def _bench(observations: int, rate_hz: float, anomalies: int, model: str,
             try:
                 await warm_up(scene, verdicts)
                 await fresh_verdicts_at_control(stack.pilot, scene)
-                texts = [scene_text(s.detections) for s in QUADROTOR_SCENARIOS.values()]
+                texts = [observation_text(s.detections) for s in QUADROTOR_SCENARIOS.values()]
                 say(f"phase 1: {observations} observations at {rate_hz:g} Hz")
                 verdict_ms = await verdict_phase(scene, verdicts, texts, observations)
                 say(f"phase 2: {anomalies} anomalies, control at {CONTROL_RATE_HZ:g} Hz")
