@@ -33,6 +33,19 @@ subset is, the controller keeps the last feasible subset ``Y`` and solves
 Theorem 1 keeps feasible: the robot flies the shared recovery prefix and
 slows down until a full tree is feasible again. An anomaly during a hold
 has ``K - h`` ticks left, not ``K``: the consensus budget is already spent.
+A subset whose solve stopped at its iteration cap or time limit has not been
+shown infeasible (``SolveStatus.decided``): it is not used, but nothing is
+discarded for it either; the hold continues and the next tick resumes the
+solve from where it stopped.
+
+The measured state is the plant's 12-state ``x``; the controller plans in
+its model's coordinates (:mod:`.models`). A non-finite measurement never
+reaches a solver and a non-finite input never leaves a step: the step flies
+the last feasible plan's recovery branch (or hovers) and says so.
+
+The nominal task is a :class:`Route`: the approach waypoint above the goal,
+then the goal (the paper's hardware: "toward a waypoint a foot above the
+landing zone. Upon reaching the waypoint, it descends and lands.").
 """
 
 from __future__ import annotations
@@ -43,7 +56,7 @@ from enum import StrEnum
 
 import numpy as np
 
-from .dynamics import LinearModel
+from .models import PlanningModel
 from .mpc import BranchProblem, MPCConfig, Plan, SolveStatus, tightened_inputs
 from .regions import Region
 from .selection import SubsetSelector
@@ -55,9 +68,38 @@ class Mode(StrEnum):
     RECOVERING = "recovering"
 
 
+class Route:
+    """The nominal task's targets in order (model rest states); the next one takes over
+    once the robot is within ``reach`` (m) of the current one and slower than
+    ``settle`` (m/s). The last one is the goal."""
+
+    def __init__(self, stops: Sequence[np.ndarray], reach: float = 0.1,
+                 settle: float = 0.2) -> None:
+        if not stops:
+            raise ValueError("a route needs at least one stop")
+        self.stops = tuple(np.asarray(s, dtype=float) for s in stops)
+        self.reach, self.settle = reach, settle
+        self.index = 0
+
+    @property
+    def goal(self) -> np.ndarray:
+        return self.stops[-1]
+
+    def target(self, x: np.ndarray, model: PlanningModel) -> np.ndarray:
+        """The current target for the model state ``x`` (advances the route)."""
+        pos, vel = list(model.position), list(model.velocity)
+        while self.index < len(self.stops) - 1:
+            here = self.stops[self.index]
+            if (np.linalg.norm(x[pos] - here[pos]) > self.reach
+                    or np.linalg.norm(x[vel]) > self.settle):
+                break
+            self.index += 1
+        return self.stops[self.index]
+
+
 @dataclass(frozen=True)
 class ControlOutput:
-    u: np.ndarray  # absolute input to apply [N, N m]
+    u: np.ndarray  # absolute input to apply, in the model's input units
     mode: Mode
     status: SolveStatus
     plan: Plan | None  # None when the step fell back to the last plan
@@ -68,6 +110,7 @@ class ControlOutput:
     events: tuple[str, ...] = ()
     fallback: bool = False  # the recovery was committed without a decision
     consensus_left: int | None = None  # ticks until the fallback at K, while one is pending
+    alarms: tuple[str, ...] = ()  # what went wrong in this step (non-finite state or input)
 
 
 @dataclass
@@ -92,17 +135,18 @@ class _Controller:
 
     name = "base"
     soft_recovery = False  # baselines accept a least-violating recovery plan
+    commits_at_k = False  # AESOP commits its fallback when no decision has come by K
 
-    def __init__(self, model: LinearModel, x_bounds, u_bounds, config: MPCConfig,
-                 regions: Sequence[Region], goal: np.ndarray) -> None:
-        self.model, self.config, self.goal = model, config, goal
-        self.x_bounds, self.u_bounds = x_bounds, u_bounds
+    def __init__(self, model: PlanningModel, config: MPCConfig, regions: Sequence[Region],
+                 route: Route) -> None:
+        self.model, self.config, self.route = model, config, route
         self.regions = {r.index: r for r in regions}
         self._recover: dict[bool, BranchProblem] = {}  # the recovering problem, hard/soft
         self._active: tuple[int, ...] = ()  # the subset whose recovery plans are kept
         self.memory = _Memory()
-        self._x = np.zeros(model.n)
-        self._du_hi = tightened_inputs(model, u_bounds, config)[1]
+        self._x = np.zeros(12)  # the measured plant state of this step
+        self._du_hi = tightened_inputs(model, config)[1]
+        self.goal = route.goal  # this step's nominal target (model state)
 
     @property
     def mode(self) -> Mode:
@@ -144,8 +188,8 @@ class _Controller:
 
     def _recovery_problem(self, soft: bool) -> BranchProblem:
         if soft not in self._recover:
-            self._recover[soft] = BranchProblem(self.model, self.x_bounds, self.u_bounds,
-                                                self.config, 1, nominal=False, soft=soft)
+            self._recover[soft] = BranchProblem(self.model, self.config, 1, nominal=False,
+                                                soft=soft)
         return self._recover[soft]
 
     def _follow(self, plan: Plan | None, accept: bool) -> tuple[np.ndarray, Plan | None]:
@@ -156,21 +200,26 @@ class _Controller:
         the subset reachable, the safest thing to fly blind.
         """
         mem = self.memory
-        if plan is not None and accept:
+        if plan is not None and accept and np.all(np.isfinite(plan.u0)):
             mem.inputs = next(iter(plan.recovery_inputs.values()), plan.inputs)
             mem.age = 0
             return plan.u0, plan
+        return self._blind(), None
+
+    def _blind(self) -> np.ndarray:
+        """The last kept plan's next input (it ends at rest in its region), or hover."""
+        mem = self.memory
         if mem.inputs is None:
-            return self.model.u_hover.copy(), None
+            return self.model.linear.u_hover.copy()
         mem.age += 1
-        return mem.inputs[min(mem.age, len(mem.inputs) - 1)].copy(), None
+        return mem.inputs[min(mem.age, len(mem.inputs) - 1)].copy()
 
     def _select(self, selector: SubsetSelector, x: np.ndarray
                 ) -> tuple[np.ndarray, Plan | None, SolveStatus]:
         """One selection tick: keep the cheapest feasible subset active and follow its plan.
 
-        With no subset feasible, hold the last one with the consensus and
-        horizon shrunk by the ticks since it was (module docstring).
+        With no subset shown feasible, hold the last one with the consensus
+        and horizon shrunk by the ticks since it was (module docstring).
         """
         mem = self.memory
         selection = selector.select(x, self.goal)
@@ -180,12 +229,14 @@ class _Controller:
                 if mem.held:
                     mem.events.append(f"full tree feasible again with regions {self._active}")
                 mem.held, mem.region_step = 0, None
-            status = selection.plan.status if selection.plan else SolveStatus.INFEASIBLE
+            status = selection.plan.status if selection.plan else selection.status
             u, used = self._follow(selection.plan, selection.feasible)
             return u, used, status
         mem.held += 1
         if mem.held == 1:
-            mem.events.append(f"no subset feasible at full K and T: holding regions {self._active}")
+            why = ("no subset feasible" if selection.decided else
+                   "no subset shown feasible yet (a solve stopped at its cap)")
+            mem.events.append(f"{why} at full K and T: holding regions {self._active}")
         plan = selector.solve(self._active, x, self.goal,
                               max(0, selector.config.consensus - mem.held),
                               self._region_step(mem.held))
@@ -219,7 +270,8 @@ class _Controller:
         return u, used, status
 
     def warm_up(self, x: np.ndarray) -> None:
-        """Build and cold-solve the problems of a first tick at ``x``, off the loop.
+        """Build and cold-solve the problems of a first tick at the 12-state ``x``, off the
+        loop.
 
         The first solve of a problem has no warm start (up to ``max_iter_cold``
         iterations, a few hundred ms); after this the first tick at ``x`` is
@@ -229,36 +281,68 @@ class _Controller:
 
     def make_step(self, x: np.ndarray, anomaly: bool, decision: int | None = None
                   ) -> ControlOutput:
-        """One tick: ``x`` measured, ``anomaly`` from the detector, the reasoner's
-        ``decision`` for the pending anomaly (``None`` while it thinks)."""
+        """One tick: the plant's 12-state ``x`` measured, ``anomaly`` from the detector, the
+        reasoner's ``decision`` for the pending anomaly (``None`` while it thinks)."""
         self._x = np.asarray(x, dtype=float)
-        return self._step(self._x, anomaly, decision)
+        if not np.all(np.isfinite(self._x)):
+            return self._measurement_lost(anomaly, decision)
+        xm = self.model.measure(self._x)
+        self.goal = self.route.target(xm, self.model)
+        return self._step(xm, anomaly, decision)
+
+    def _measurement_lost(self, anomaly: bool, decision: int | None) -> ControlOutput:
+        """A non-finite state: no solver sees it. Fly the kept recovery branch (or hover),
+        take the decision, and raise an alarm; the next finite state resumes the loop."""
+        self._take_decision(decision)
+        mem = self.memory
+        if self.commits_at_k and mem.mode is Mode.PENDING and self._k() >= self.config.consensus:
+            self._commit_fallback(None)
+        return self._output(self._blind(), SolveStatus.FAILED, None, self._active,
+                            alarm="non-finite state measured: flying the last plan's "
+                                  "recovery branch")
+
+    def _k(self) -> int:
+        """Ticks of the consensus budget used since the anomaly (a hold's included)."""
+        mem = self.memory
+        return 0 if mem.t_anom is None else mem.t - mem.t_anom + mem.spent
 
     def _step(self, x: np.ndarray, anomaly: bool, decision: int | None) -> ControlOutput:
         raise NotImplementedError
 
-    def _tilt_compensated(self, u: np.ndarray) -> np.ndarray:
-        """Scale the collective thrust by ``1 / (cos phi cos theta)``.
+    def _commit_fallback(self, x: np.ndarray | None) -> None:
+        raise NotImplementedError
 
-        The hover model assumes all thrust is vertical; a tilted vehicle loses
-        that fraction of it and sinks below the plan. The standard remedy,
-        saturated at the thrust box the MPC plans in.
-        """
+    def _command(self, u: np.ndarray) -> np.ndarray:
+        """What the plant is sent. For the hover model, the collective thrust scaled by
+        ``1 / (cos phi cos theta)``: the model assumes all thrust is vertical, and a tilted
+        vehicle loses that fraction of it and sinks below the plan (saturated at the
+        thrust box the MPC plans in). An acceleration command goes as is."""
+        if self.model.name != "quadrotor":
+            return u
         phi, theta = self._x[6], self._x[7]
         u = u.copy()
-        hi = self.model.u_hover[0] + self._du_hi[0]
+        hi = self.model.linear.u_hover[0] + self._du_hi[0]
         u[0] = min(u[0] / max(np.cos(phi) * np.cos(theta), 0.5), hi)
         return u
 
-    def _output(self, u, status, plan, active, request=None) -> ControlOutput:
+    def _output(self, u, status, plan, active, request=None, alarm: str | None = None
+                ) -> ControlOutput:
         mem = self.memory
-        u = self._tilt_compensated(u)
-        left = (self.config.consensus - (mem.t - mem.t_anom + mem.spent)
-                if mem.mode is Mode.PENDING else None)
+        alarms = () if alarm is None else (alarm,)
+        u = np.asarray(u, dtype=float)
+        if np.all(np.isfinite(self._x)):
+            u = self._command(u)
+        if not np.all(np.isfinite(u)):
+            u, plan, status = self._blind(), None, SolveStatus.FAILED
+            if not np.all(np.isfinite(u)):
+                mem.inputs, u = None, self.model.linear.u_hover.copy()
+            alarms += ("non-finite input from the solver: flying the last plan's recovery "
+                       "branch",)
+        left = self.config.consensus - self._k() if mem.mode is Mode.PENDING else None
         out = ControlOutput(u=u, mode=mem.mode, status=status, plan=plan, active_regions=active,
                             t_anom=mem.t_anom, chosen=mem.chosen, request=request,
                             events=tuple(mem.events), fallback=mem.fallback,
-                            consensus_left=left)
+                            consensus_left=left, alarms=alarms)
         mem.events.clear()
         mem.t += 1
         return out
@@ -285,20 +369,21 @@ class AesopController(_Controller):
     """Algorithm 1 with subset selection and a fallback at ``k = K``."""
 
     name = "aesop"
+    commits_at_k = True
 
-    def __init__(self, model: LinearModel, x_bounds, u_bounds, config: MPCConfig,
-                 regions: Sequence[Region], goal: np.ndarray, fallback: str | int = "cheapest",
-                 min_size: int = 2, selector: SubsetSelector | None = None) -> None:
-        super().__init__(model, x_bounds, u_bounds, config, regions, goal)
+    def __init__(self, model: PlanningModel, config: MPCConfig, regions: Sequence[Region],
+                 route: Route, fallback: str | int = "cheapest", min_size: int = 2,
+                 selector: SubsetSelector | None = None) -> None:
+        super().__init__(model, config, regions, route)
         if not (fallback in ("cheapest", "first") or (isinstance(fallback, int)
                                                       and fallback in self.regions)):
             raise ValueError("fallback must be 'cheapest', 'first' or a region index")
         self.fallback = fallback
-        self.selector = selector or SubsetSelector(model, x_bounds, u_bounds, config, regions,
-                                                   min_size=min_size)
+        self.selector = selector or SubsetSelector(model, config, regions, min_size=min_size)
 
     def warm_up(self, x: np.ndarray) -> None:
-        self.selector.select(np.asarray(x, dtype=float), self.goal)
+        xm = self.model.measure(x)
+        self.selector.select(xm, self.route.target(xm, self.model))
 
     def _step(self, x: np.ndarray, anomaly: bool, decision: int | None) -> ControlOutput:
         mem = self.memory
@@ -323,23 +408,20 @@ class AesopController(_Controller):
             request = self._active
         return self._output(u, status, used, self._active, request)
 
-    def _k(self) -> int:
-        """Ticks of the consensus budget used since the anomaly (a hold's included)."""
-        mem = self.memory
-        return mem.t - mem.t_anom + mem.spent
-
-    def _commit_fallback(self, x: np.ndarray) -> None:
+    def _commit_fallback(self, x: np.ndarray | None) -> None:
+        """Commit to the fallback region: the configured one, or the cheapest feasible
+        recovery from ``x`` (the first offered when ``x`` is unknown or none is)."""
         mem = self.memory
         choice = self.fallback if isinstance(self.fallback, int) else mem.options[0]
-        if self.fallback == "cheapest":
+        if self.fallback == "cheapest" and x is not None:
             k = self._k()
             costs = {}
             for y in mem.options:
                 plan = self._recovery_problem(False).solve(x, self.goal, [self.regions[y]], 0,
-                                                      self._region_step(k))
+                                                           self._region_step(k))
                 if plan.feasible:
                     costs[y] = plan.cost
-            choice = min(costs, key=costs.get) if costs else mem.options[0]
+            choice = min(costs, key=costs.__getitem__) if costs else mem.options[0]
         mem.mode, mem.chosen, mem.fallback = Mode.RECOVERING, choice, True
         mem.events.append(f"no decision by K: fallback to region {choice}")
 
@@ -350,12 +432,14 @@ class NaiveController(_Controller):
     name = "naive"
     soft_recovery = True
 
-    def __init__(self, *args, **kwargs) -> None:
-        super().__init__(*args, **kwargs)
-        self._nominal = BranchProblem(self.model, self.x_bounds, self.u_bounds, self.config, 0)
+    def __init__(self, model: PlanningModel, config: MPCConfig, regions: Sequence[Region],
+                 route: Route) -> None:
+        super().__init__(model, config, regions, route)
+        self._nominal = BranchProblem(self.model, self.config, 0)
 
     def warm_up(self, x: np.ndarray) -> None:
-        self._nominal.solve(np.asarray(x, dtype=float), self.goal, [])
+        xm = self.model.measure(x)
+        self._nominal.solve(xm, self.route.target(xm, self.model), [])
 
     def _nominal_step(self, x: np.ndarray) -> tuple[np.ndarray, Plan | None, SolveStatus,
                                                      tuple[int, ...]]:
@@ -385,15 +469,15 @@ class FallbackSafeController(NaiveController):
 
     name = "fsmpc"
 
-    def __init__(self, model: LinearModel, x_bounds, u_bounds, config: MPCConfig,
-                 regions: Sequence[Region], goal: np.ndarray, min_size: int = 2) -> None:
-        super().__init__(model, x_bounds, u_bounds, config, regions, goal)
+    def __init__(self, model: PlanningModel, config: MPCConfig, regions: Sequence[Region],
+                 route: Route, min_size: int = 2) -> None:
+        super().__init__(model, config, regions, route)
         no_consensus = replace(config, consensus=0)
-        self.selector = SubsetSelector(model, x_bounds, u_bounds, no_consensus, regions,
-                                       min_size=min_size)
+        self.selector = SubsetSelector(model, no_consensus, regions, min_size=min_size)
 
     def warm_up(self, x: np.ndarray) -> None:
-        self.selector.select(np.asarray(x, dtype=float), self.goal)
+        xm = self.model.measure(x)
+        self.selector.select(xm, self.route.target(xm, self.model))
 
     def _nominal_step(self, x):
         return (*self._select(self.selector, x), self._active)

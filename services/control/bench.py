@@ -18,8 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .dynamics import LinearModel, QuadrotorParams
-from .plant import METHODS, SimulatedQuadrotor, make_controller, mpc_config
+from .plant import METHODS, make_controller, make_plant, mpc_config, planning_model
 from .reference import reference_solve
 from .scenario import Scenario, load_scenario
 from .sim import fly, run_case, sample_cases, summarize, time_lost
@@ -34,15 +33,14 @@ def bench_mpc(scenario: Scenario | None = None, flights: int = 3, ticks: int = 6
               reference_every: int = 10, seed: int = 0) -> dict:
     """Step time of AESOP's nominal tick and the CVXPY reference on the same states."""
     scenario = scenario or load_scenario()
-    params = QuadrotorParams()
-    model = LinearModel.hover(params, scenario.dt)
+    model = planning_model(scenario)
     config = mpc_config(scenario)
     rng = np.random.default_rng(seed)
     step_ms, reference_ms, rel_diffs, iterations = [], [], [], []
     infeasible = 0
     for _ in range(flights):
-        controller = make_controller("aesop", scenario, params, config)
-        plant = SimulatedQuadrotor(scenario.sample_start(rng), scenario.dt, params)
+        controller = make_controller("aesop", scenario, config)
+        plant = make_plant(scenario, scenario.sample_start(rng))
         for tick in range(ticks):
             x = plant.state
             start = time.perf_counter()
@@ -54,7 +52,7 @@ def bench_mpc(scenario: Scenario | None = None, flights: int = 3, ticks: int = 6
                     iterations.append(out.plan.iterations)
             infeasible += not out.status.feasible
             if tick % reference_every == 1:
-                ref_total, diffs = _reference_tick(model, scenario, params, config, x, controller)
+                ref_total, diffs = _reference_tick(model, scenario, config, x, controller)
                 reference_ms.append(ref_total)
                 rel_diffs += diffs
             plant.step(out.u)
@@ -74,16 +72,16 @@ def bench_mpc(scenario: Scenario | None = None, flights: int = 3, ticks: int = 6
     }
 
 
-def _reference_tick(model, scenario, params, config, x, controller) -> tuple[float, list[float]]:
+def _reference_tick(model, scenario, config, x, controller) -> tuple[float, list[float]]:
     """CVXPY on every pair at state ``x``; relative cost gap where both call it feasible."""
     total, diffs = 0.0, []
     selector = controller.selector
     for subset in selector.subsets:
         regions = [scenario.region(i) for i in subset]
-        ref = reference_solve(model, scenario.limits.box(), params.input_bounds(), config,
-                              regions, x, scenario.goal_state)
+        xm, goal = model.measure(x), controller.goal
+        ref = reference_solve(model, config, regions, xm, goal)
         total += ref.total_ms
-        plan = selector.solve(subset, x, scenario.goal_state)
+        plan = selector.solve(subset, xm, goal)
         if ref.status == "optimal" and plan.feasible:
             diffs.append(abs(plan.cost - ref.cost) / max(abs(ref.cost), 1e-9))
     return total, diffs
@@ -174,7 +172,7 @@ def plot_case(scenario: Scenario, case, path: Path) -> None:
 
 def _tree_at_anomaly(scenario: Scenario, case):
     controller = make_controller("aesop", scenario)
-    plant = SimulatedQuadrotor(case.x0, scenario.dt)
+    plant = make_plant(scenario, case.x0)
     anomaly_tick = int(round(case.anomaly_s / scenario.dt))
     for tick in range(anomaly_tick + 1):
         out = controller.make_step(plant.state, tick == anomaly_tick, None)

@@ -43,7 +43,7 @@ from shared.messages import (
 
 from .aesop import ControlOutput, Mode
 from .dynamics import N_STATE, POS
-from .plant import SimulatedQuadrotor, make_controller, mpc_config
+from .plant import make_controller, make_plant, mpc_config
 from .regions import Region
 from .scenario import Scenario
 from .settings import ControlSettings
@@ -242,7 +242,7 @@ class ControlRuntime:
         self._rng = np.random.default_rng(settings.seed)
         x0 = self._start_state(None)
         self.controller = self.build_controller(scenario, x0)
-        self.plant = SimulatedQuadrotor(x0, scenario.dt)
+        self.plant = make_plant(scenario, x0)
         self._k = 0  # plant ticks since the flight (re)started
         self._k0 = 0  # plant tick at which the controller was built
         self.mode = Mode.NOMINAL
@@ -461,7 +461,7 @@ class ControlRuntime:
         controller = await asyncio.to_thread(self.build_controller, self.scenario, x0)
         async with self.lock:
             self.controller = controller
-            self.plant = SimulatedQuadrotor(x0, self.scenario.dt)
+            self.plant = make_plant(self.scenario, x0)
             self._k = self._k0 = 0
             self.mode, self.pending, self._delivered = Mode.NOMINAL, None, False
             self._cleared.clear()

@@ -63,6 +63,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
@@ -70,7 +71,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from .dynamics import LinearModel
+from .models import PlanningModel
 from .regions import Region
 
 
@@ -79,25 +80,41 @@ class SolveStatus(StrEnum):
     INACCURATE = "solved_inaccurate"
     INFEASIBLE = "infeasible"
     MAX_ITER = "max_iter"
+    TIME_LIMIT = "time_limit"
     FAILED = "failed"
 
     @property
     def feasible(self) -> bool:
         return self is SolveStatus.SOLVED
 
+    @property
+    def decided(self) -> bool:
+        """Whether the solve settled feasibility: solved, or a certificate of infeasibility.
+
+        A solve stopped by its iteration cap or time limit (or an inaccurate one)
+        is no evidence either way: the problem may well be feasible.
+        """
+        return self in (SolveStatus.SOLVED, SolveStatus.INFEASIBLE)
+
 
 _OSQP_STATUS = {
     osqp.SolverStatus.OSQP_SOLVED: SolveStatus.SOLVED,
     osqp.SolverStatus.OSQP_SOLVED_INACCURATE: SolveStatus.INACCURATE,
     osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE: SolveStatus.INFEASIBLE,
-    osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE_INACCURATE: SolveStatus.INFEASIBLE,
+    # OSQP reports an inaccurate certificate only when it stopped at its cap
+    osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE_INACCURATE: SolveStatus.MAX_ITER,
     osqp.SolverStatus.OSQP_MAX_ITER_REACHED: SolveStatus.MAX_ITER,
+    osqp.SolverStatus.OSQP_TIME_LIMIT_REACHED: SolveStatus.TIME_LIMIT,
 }
+
+
+_NO_TIME_LIMIT = 1e10  # s, OSQP's default (it refuses 0)
 
 
 @dataclass(frozen=True)
 class Weights:
-    """Diagonal quadratic weights of the tracking cost (per unit of state/input)."""
+    """Diagonal quadratic weights of the tracking cost, per kind of coordinate
+    (:attr:`.models.PlanningModel.state_groups` and ``input_groups``)."""
 
     position: float = 1.0  # 1/m^2
     velocity: float = 0.2  # s^2/m^2
@@ -105,12 +122,13 @@ class Weights:
     rate: float = 0.1  # s^2/rad^2
     thrust: float = 0.05  # 1/N^2
     torque: float = 1.0  # 1/(N m)^2
+    acceleration: float = 0.5  # s^4/m^2
 
-    def state(self) -> np.ndarray:
-        return np.repeat([self.position, self.velocity, self.attitude, self.rate], 3)
+    def state(self, model: PlanningModel) -> np.ndarray:
+        return np.array([getattr(self, group) for group in model.state_groups])
 
-    def input(self) -> np.ndarray:
-        return np.array([self.thrust, self.torque, self.torque, self.torque])
+    def input(self, model: PlanningModel) -> np.ndarray:
+        return np.array([getattr(self, group) for group in model.input_groups])
 
 
 @dataclass(frozen=True)
@@ -119,15 +137,15 @@ class MPCConfig:
     consensus: int = 15  # K, steps
     weights: Weights = field(default_factory=Weights)
     recovery_weight: float = 0.01  # scale of the recovery branches' own tracking cost
-    shrink: float = 0.03  # fraction by which velocity/tilt/rate and input limits are tightened
+    shrink: float = 0.03  # fraction by which symmetric state limits and input limits tighten
     position_margin: float = 0.05  # m: fence and region boxes planned this far inside
-    # m/s: velocity limits planned this much further inside. The plant's horizontal
-    # acceleration is g tan(theta), not the model's g theta, and the attitude chain
-    # reverses slowly: a turn-around planned at the limit overshoots it by ~0.2 m/s.
+    # m/s: velocity limits planned this much further inside. On the paper's vehicle the
+    # plant's horizontal acceleration is g tan(theta), not the model's g theta, and the
+    # attitude chain reverses slowly: a turn-around planned at the limit overshoots ~0.2 m/s.
     velocity_margin: float = 0.25
-    input_margin: float = 0.005  # N, N m: least tightening of an input bound (OSQP is eps-exact)
-    relax_steps: int = 20  # steps over which an initial-state excess is tapered out (2 s: the
-    # attitude chain needs about 1 s before it can take off the velocity margin)
+    input_margin: float = 0.005  # least tightening of an input bound (OSQP is eps-exact)
+    relax_steps: int = 20  # steps over which an initial-state excess is tapered out (2 s at
+    # dt 0.1: the paper vehicle's attitude chain needs about 1 s to take off the margin)
     min_region_step: int = 5  # earliest step a shrinking horizon may pin a region to
     late_region_steps: int = 5  # how far an unreachable region deadline is pushed back per try
     slack_weight: float = 1000.0  # L1 price per unit of constraint violation
@@ -135,8 +153,12 @@ class MPCConfig:
     eps_abs: float = 1e-3
     eps_rel: float = 1e-3
     eps_prim_inf: float = 1e-3  # OSQP's primal-infeasibility tolerance (certificate accuracy)
-    max_iter: int = 1000  # per warm solve; a capped solve reads as infeasible (safe side)
-    max_iter_cold: int = 10000  # the first solve of a problem has no warm start
+    # A solve stopped by either cap has not decided feasibility (SolveStatus.decided): the
+    # selector does not count it as infeasible, and the next tick resumes from its iterate.
+    max_iter: int = 1000  # per warm solve
+    max_iter_cold: int = 50000  # the first solve of a problem (off the loop, in warm-up)
+    time_limit_s: float = 0.0  # per warm chain solve, 0: none (the tick's budget, not a verdict)
+    workers: int = 1  # threads solving the chains of one problem (OSQP releases the GIL)
 
     def __post_init__(self) -> None:
         if not 0 <= self.consensus < self.horizon:
@@ -145,19 +167,23 @@ class MPCConfig:
             raise ValueError("need 1 <= min_region_step <= horizon")
         if self.late_region_steps < 1:
             raise ValueError("need late_region_steps >= 1")
+        if self.max_iter < 1 or self.max_iter_cold < 1 or self.workers < 1:
+            raise ValueError("need max_iter, max_iter_cold and workers >= 1")
+        if self.time_limit_s < 0:
+            raise ValueError("need time_limit_s >= 0")
 
 
 @dataclass(frozen=True)
 class Plan:
-    """One solve of eq. 3. Trajectories are ``(T+1, 12)`` state arrays."""
+    """One solve of eq. 3. Trajectories are ``(T+1, n)`` arrays of model states."""
 
     status: SolveStatus
     cost: float
-    u0: np.ndarray  # absolute first input [N, N m]
-    inputs: np.ndarray  # (T, 4) absolute inputs of the branch the robot follows
+    u0: np.ndarray  # absolute first input
+    inputs: np.ndarray  # (T, m) absolute inputs of the branch the robot follows
     nominal: np.ndarray | None
     recovery: dict[int, np.ndarray]
-    recovery_inputs: dict[int, np.ndarray]  # (T, 4) absolute inputs per region
+    recovery_inputs: dict[int, np.ndarray]  # (T, m) absolute inputs per region
     consensus: int
     region_step: int
     iterations: int
@@ -211,39 +237,40 @@ class ChainSolution:
     solve_ms: float
 
 
-def tightened_states(x_bounds: tuple[np.ndarray, np.ndarray], config: MPCConfig
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """The state box the MPC plans in: symmetric limits (velocity, tilt, rates) scaled by
-    ``1 - shrink``, the position fence moved ``position_margin`` inward; yaw (bounded by
-    +-pi only to keep angles unwrapped) untouched."""
-    lo, hi = (np.asarray(v, dtype=float) for v in x_bounds)
-    span = np.where(np.isfinite(hi) & np.isfinite(lo) & (lo == -hi), 1.0 - config.shrink, 1.0)
-    span[8] = 1.0
-    lo, hi = lo * span, hi * span
-    lo[:3] += config.position_margin
-    hi[:3] -= config.position_margin
-    lo[3:6] += config.velocity_margin
-    hi[3:6] -= config.velocity_margin
+def tightened_states(model: PlanningModel, config: MPCConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The state box the MPC plans in: the model's symmetric limits (velocity, tilt, rates)
+    scaled by ``1 - shrink``, velocity ``velocity_margin`` further in, the position fence
+    moved ``position_margin`` inward; free coordinates (yaw) untouched."""
+    lo, hi = model.x_lo.copy(), model.x_hi.copy()
+    sym, vel, pos = list(model.symmetric), list(model.velocity), list(model.position)
+    lo[sym] *= 1.0 - config.shrink
+    hi[sym] *= 1.0 - config.shrink
+    lo[pos] += config.position_margin
+    hi[pos] -= config.position_margin
+    lo[vel] += config.velocity_margin
+    hi[vel] -= config.velocity_margin
     return lo, hi
 
 
-def planning_box(region: Region, config: MPCConfig) -> tuple[np.ndarray, np.ndarray]:
-    """A region's ``(lo, hi)`` as the MPC aims for it: its position box shrunk by
-    ``position_margin`` (at most to a quarter of its width), so that the nonlinear
-    truth, a little off the linear plan, still lands inside."""
-    lo, hi = region.lo.copy(), region.hi.copy()
-    margin = np.minimum(config.position_margin, (hi[:3] - lo[:3]) / 4)
-    lo[:3] += margin
-    hi[:3] -= margin
+def planning_box(model: PlanningModel, region: Region, config: MPCConfig
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """A region's ``(lo, hi)`` in model coordinates as the MPC aims for it: its position
+    box shrunk by ``position_margin`` (at most to a quarter of its width), so that the
+    plant, a little off the linear plan, still lands inside."""
+    lo, hi = model.region_box(region)
+    pos = list(model.position)
+    margin = np.minimum(config.position_margin, (hi[pos] - lo[pos]) / 4)
+    lo[pos] += margin
+    hi[pos] -= margin
     return lo, hi
 
 
-def tightened_inputs(model: LinearModel, u_bounds: tuple[np.ndarray, np.ndarray],
-                     config: MPCConfig) -> tuple[np.ndarray, np.ndarray]:
+def tightened_inputs(model: PlanningModel, config: MPCConfig) -> tuple[np.ndarray, np.ndarray]:
     """The input box the MPC plans in, relative to hover: each bound moved inward by
     ``shrink`` of its distance from hover, and at least ``input_margin``, so that a
-    solution accurate to OSQP's tolerance still respects the true actuator limits."""
-    du_lo, du_hi = u_bounds[0] - model.u_hover, u_bounds[1] - model.u_hover
+    solution accurate to OSQP's tolerance still respects the true limits."""
+    u_hover = model.linear.u_hover
+    du_lo, du_hi = model.u_lo - u_hover, model.u_hi - u_hover
     hi = du_hi - np.maximum(config.shrink * np.abs(du_hi), config.input_margin)
     lo = du_lo + np.maximum(config.shrink * np.abs(du_lo), config.input_margin)
     if np.any(lo >= hi):
@@ -285,6 +312,13 @@ class ChainQP:
     inputs. Built and factorized once; :meth:`solve` updates vectors only and
     warm-starts from the previous solution shifted one step. Recovery targets
     come as :class:`Box` es in slot order.
+
+    Variables, branch after branch: ``x_b[0..T]`` then ``du_b[0..T-1]``; then,
+    when ``soft``, ``sigma+`` and ``sigma-`` (``n`` each) per recovery slot.
+    Rows: initial states, dynamics, state boxes on steps ``1..T`` (region rows
+    are these rows with tighter bounds), input boxes, the first input shared
+    with the nominal branch, consecutive recovery branches' consensus on every
+    step (free from ``K'`` on), and the slacks' signs.
     """
 
     def __init__(self, chain: Chain, config: MPCConfig, n_recovery: int,
@@ -309,132 +343,117 @@ class ChainQP:
                           check_termination=5)
 
     # -- layout -----------------------------------------------------------------------------
-    def _x(self, branch: int, step: int) -> int:
-        return branch * self.branch_size + step * self.n
+    def _x_index(self) -> np.ndarray:
+        """Variable index of ``x_b[k][i]``, shape ``(branches, T+1, n)``."""
+        nb, horizon, n = self.n_branches, self.config.horizon, self.n
+        base = np.arange(nb)[:, None, None] * self.branch_size
+        return base + np.arange((horizon + 1) * n).reshape(1, horizon + 1, n)
 
-    def _u(self, branch: int, step: int) -> int:
-        n, horizon = self.n, self.config.horizon
-        return branch * self.branch_size + (horizon + 1) * n + step * self.m
+    def _u_index(self) -> np.ndarray:
+        """Variable index of ``du_b[k][j]``, shape ``(branches, T, m)``."""
+        nb, horizon, n, m = self.n_branches, self.config.horizon, self.n, self.m
+        base = np.arange(nb)[:, None, None] * self.branch_size + (horizon + 1) * n
+        return base + np.arange(horizon * m).reshape(1, horizon, m)
 
     def _sigma(self, slot: int) -> int:
         """First of ``2 n`` slack variables (sigma+, then sigma-) of recovery slot ``slot``."""
         return self.n_branches * self.branch_size + 2 * slot * self.n
 
-    def _slot_branch(self, slot: int) -> int:
-        """Branch number of recovery slot ``slot`` (0-based)."""
-        return slot + int(self.has_nominal)
-
     def _build(self) -> None:
-        n, m, horizon = self.n, self.m, self.config.horizon
+        n, m, horizon, nb = self.n, self.m, self.config.horizon, self.n_branches
         a_dyn, b_dyn = self.chain.a, self.chain.b
-        rows: list[sp.spmatrix] = []
-        lows: list[np.ndarray] = []
-        highs: list[np.ndarray] = []
-        n_var = self.n_var
+        xi, ui = self._x_index(), self._u_index()
+        self._xi, self._ui = xi, ui
+        rows: list[np.ndarray] = []
+        cols: list[np.ndarray] = []
+        vals: list[np.ndarray] = []
+        bounds: list[tuple[np.ndarray, np.ndarray]] = []
+        count = 0
 
-        def block(entries: list[tuple[int, np.ndarray]], height: int) -> sp.csc_matrix:
-            mat = sp.lil_matrix((height, n_var))
-            for col, values in entries:
-                mat[:, col:col + values.shape[1]] = values
-            return mat
+        def add(r: np.ndarray, c: np.ndarray, v: np.ndarray | float, height: int,
+                lo: np.ndarray | float = 0.0, hi: np.ndarray | float = 0.0) -> int:
+            """Append ``height`` rows (local row numbers ``r``); returns their first row."""
+            nonlocal count
+            rows.append(count + np.asarray(r).ravel())
+            cols.append(np.asarray(c).ravel())
+            vals.append(np.broadcast_to(v, np.shape(c)).ravel())
+            bounds.append((np.broadcast_to(lo, height).copy(), np.broadcast_to(hi, height).copy()))
+            first, count = count, count + height
+            return first
 
-        eye_n, eye_m = np.eye(n), np.eye(m)
-        # initial state: x_b[0] = x_t
-        self._init_rows = []
-        offset = 0
-        for b in range(self.n_branches):
-            rows.append(block([(self._x(b, 0), eye_n)], n))
-            self._init_rows.append(offset)
-            lows.append(np.zeros(n))
-            highs.append(np.zeros(n))
-            offset += n
-        # dynamics: x_b[j+1] - A x_b[j] - B du_b[j] = 0
-        dyn = []
-        for b in range(self.n_branches):
-            for j in range(horizon):
-                dyn.append(block([(self._x(b, j), -a_dyn), (self._u(b, j), -b_dyn),
-                                  (self._x(b, j + 1), eye_n)], n))
-        rows.append(sp.vstack(dyn))
-        lows.append(np.zeros(len(dyn) * n))
-        highs.append(np.zeros(len(dyn) * n))
-        offset += len(dyn) * n
-        # state boxes on steps 1..T (the region rows are these rows with tighter bounds)
-        self._state_rows = offset
-        r_idx, c_idx, vals = [], [], []
-        row = 0
-        for b in range(self.n_branches):
-            slot = b - int(self.has_nominal)
-            for j in range(1, horizon + 1):
-                for i in range(n):
-                    r_idx.append(row)
-                    c_idx.append(self._x(b, j) + i)
-                    vals.append(1.0)
-                    if self.soft and slot >= 0:  # x - sigma+ + sigma- within the box
-                        r_idx += [row, row]
-                        c_idx += [self._sigma(slot) + i, self._sigma(slot) + n + i]
-                        vals += [-1.0, 1.0]
-                    row += 1
-        rows.append(sp.csc_matrix((vals, (r_idx, c_idx)), shape=(row, n_var)))
-        lows.append(np.zeros(row))
-        highs.append(np.zeros(row))
-        offset += row
-        # input boxes
-        cols = [self._u(b, j) + i for b in range(self.n_branches)
-                for j in range(horizon) for i in range(m)]
-        rows.append(sp.csc_matrix((np.ones(len(cols)), (np.arange(len(cols)), cols)),
-                                  shape=(len(cols), n_var)))
-        lows.append(np.tile(self.chain.du_lo, self.n_branches * horizon))
-        highs.append(np.tile(self.chain.du_hi, self.n_branches * horizon))
-        offset += len(cols)
-        # first input shared with the nominal branch
-        if self.has_nominal:
-            for slot in range(self.n_rec):
-                rows.append(block([(self._u(0, 0), eye_m),
-                                   (self._u(self._slot_branch(slot), 0), -eye_m)], m))
-                lows.append(np.zeros(m))
-                highs.append(np.zeros(m))
-                offset += m
+        # initial state: x_b[0] = x_t (bounds set per solve)
+        init = np.arange(nb * n).reshape(nb, n)
+        self._init_rows = add(init, xi[:, 0, :], 1.0, nb * n)
+        # dynamics: x_b[k+1] - A x_b[k] - B du_b[k] = 0, row (b, k, i)
+        dyn = np.arange(nb * horizon * n).reshape(nb, horizon, n)
+        ai, aj = np.nonzero(a_dyn)
+        bi, bj = np.nonzero(b_dyn)
+        r = [dyn, dyn[..., ai], dyn[..., bi]]
+        c = [xi[:, 1:, :], xi[:, :-1, aj], ui[:, :, bj]]
+        v = [np.ones(dyn.shape), np.broadcast_to(-a_dyn[ai, aj], dyn[..., ai].shape),
+             np.broadcast_to(-b_dyn[bi, bj], dyn[..., bi].shape)]
+        add(np.concatenate([x.ravel() for x in r]), np.concatenate([x.ravel() for x in c]),
+            np.concatenate([x.ravel() for x in v]), nb * horizon * n)
+        # state boxes on steps 1..T, row (b, k-1, i); soft recovery rows: x - sigma+ + sigma-
+        box = np.arange(nb * horizon * n).reshape(nb, horizon, n)
+        r, c, v = [box], [xi[:, 1:, :]], [np.ones(box.shape)]
+        if self.soft and self.n_rec:
+            rec = box[int(self.has_nominal):]  # (n_rec, T, n)
+            sig = np.array([self._sigma(s) for s in range(self.n_rec)])[:, None, None] \
+                + np.arange(n)[None, None, :]
+            sig = np.broadcast_to(sig, rec.shape)
+            r += [rec, rec]
+            c += [sig, sig + n]
+            v += [np.full(rec.shape, -1.0), np.ones(rec.shape)]
+        self._state_rows = add(np.concatenate([x.ravel() for x in r]),
+                               np.concatenate([x.ravel() for x in c]),
+                               np.concatenate([x.ravel() for x in v]), nb * horizon * n)
+        # input boxes, row (b, k, j)
+        self._input_rows = add(np.arange(nb * horizon * m), ui, 1.0, nb * horizon * m,
+                               np.tile(self.chain.du_lo, nb * horizon),
+                               np.tile(self.chain.du_hi, nb * horizon))
+        # the first input shared with the nominal branch
+        if self.has_nominal and self.n_rec:
+            share = np.arange(self.n_rec * m).reshape(self.n_rec, m)
+            add(np.concatenate([share.ravel(), share.ravel()]),
+                np.concatenate([np.broadcast_to(ui[0, 0], share.shape).ravel(),
+                                ui[1:, 0, :].ravel()]),
+                np.concatenate([np.ones(share.size), -np.ones(share.size)]), share.size)
         # recovery consensus: consecutive recovery branches share inputs 0..K'-1
-        self._consensus_rows = offset
-        n_cons = max(0, self.n_rec - 1) * horizon
-        for slot in range(self.n_rec - 1):
-            b1, b2 = self._slot_branch(slot), self._slot_branch(slot + 1)
-            for j in range(horizon):
-                rows.append(block([(self._u(b1, j), eye_m), (self._u(b2, j), -eye_m)], m))
-        lows.append(np.zeros(n_cons * m))
-        highs.append(np.zeros(n_cons * m))
-        offset += n_cons * m
-        # slack: sigma+ >= 0 and sigma- >= 0 per recovery branch (columns in the state rows)
-        self._sigma_rows = offset
+        first = int(self.has_nominal)
+        n_pairs = max(0, self.n_rec - 1)
+        cons = np.arange(n_pairs * horizon * m).reshape(n_pairs, horizon, m)
+        left = ui[first:first + n_pairs]
+        right = ui[first + 1:first + 1 + n_pairs]
+        self._consensus_rows = add(np.concatenate([cons.ravel(), cons.ravel()]),
+                                   np.concatenate([left.ravel(), right.ravel()]),
+                                   np.concatenate([np.ones(cons.size), -np.ones(cons.size)]),
+                                   cons.size)
+        # slack: sigma+ >= 0 and sigma- >= 0
         n_sig = 2 * n * self.n_rec if self.soft else 0
-        if n_sig:
-            rows.append(block([(self._sigma(0), np.eye(n_sig))], n_sig))
-            lows.append(np.zeros(n_sig))
-            highs.append(np.full(n_sig, np.inf))
-            offset += n_sig
-        self._a = sp.vstack(rows, format="csc")
-        self._lower = np.concatenate(lows)
-        self._upper = np.concatenate(highs)
+        self._sigma_rows = add(np.arange(n_sig), self._sigma(0) + np.arange(n_sig), 1.0, n_sig,
+                               0.0, np.inf)
+        self._a = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows),
+                                                        np.concatenate(cols))),
+                                shape=(count, self.n_var))
+        self._lower = np.concatenate([lo for lo, _ in bounds])
+        self._upper = np.concatenate([hi for _, hi in bounds])
         self._build_cost()
 
     def _build_cost(self) -> None:
-        cfg, n, horizon = self.config, self.n, self.config.horizon
-        q_state, r_input = self.chain.q_state, self.chain.r_input
+        cfg, nb = self.config, self.n_branches
+        scale = np.array([1.0 if (b == 0) else cfg.recovery_weight for b in range(nb)])
+        self._branch_scale = scale
         diag = np.zeros(self.n_var)
-        self._branch_scale = []
-        for b in range(self.n_branches):
-            scale = 1.0 if (b == 0) else cfg.recovery_weight
-            self._branch_scale.append(scale)
-            start = self._x(b, 1)
-            diag[start:start + horizon * n] = np.tile(q_state, horizon) * scale
-            start = self._u(b, 0)
-            diag[start:start + horizon * self.m] = np.tile(r_input, horizon) * scale
+        diag[self._xi[:, 1:, :]] = scale[:, None, None] * self.chain.q_state
+        diag[self._ui] = scale[:, None, None] * self.chain.r_input
         q = np.zeros(self.n_var)
         if self.soft and self.n_rec:
-            start = self._sigma(0)
-            diag[start:start + 2 * n * self.n_rec] = 1e-6
-            q[start:start + 2 * n * self.n_rec] = cfg.slack_weight
+            sig = slice(self._sigma(0), self._sigma(0) + 2 * self.n * self.n_rec)
+            diag[sig] = 1e-6
+            q[sig] = cfg.slack_weight
         self._diag = diag
+        self._q_target = diag[self._xi[:, 1:, :]]  # (branches, T, n): sum w (x - t)^2
         # OSQP minimises 1/2 z'Pz + q'z: P = 2 diag gives sum(w * z^2)
         self._p = sp.diags(2 * diag, format="csc")
         self._q = q
@@ -443,18 +462,14 @@ class ChainQP:
         """Index maps that advance a solution by one step, for a shifted warm start.
 
         Entry ``i`` says which entry of the previous primal (dual) solution
-        initializes entry ``i`` now: step ``j`` takes step ``j + 1``, and the
+        initializes entry ``i`` now: step ``k`` takes step ``k + 1``, and the
         last step repeats.
         """
-        n, m, horizon, nb = self.n, self.m, self.config.horizon, self.n_branches
+        horizon = self.config.horizon
         var = np.arange(self.n_var)
-        for b in range(nb):
-            for j in range(horizon + 1):
-                src = self._x(b, min(j + 1, horizon))
-                var[self._x(b, j):self._x(b, j) + n] = np.arange(src, src + n)
-            for j in range(horizon):
-                src = self._u(b, min(j + 1, horizon - 1))
-                var[self._u(b, j):self._u(b, j) + m] = np.arange(src, src + m)
+        xi, ui = self._xi, self._ui
+        var[xi] = xi[:, np.minimum(np.arange(horizon + 1) + 1, horizon), :]
+        var[ui] = ui[:, np.minimum(np.arange(horizon) + 1, horizon - 1), :]
         con = np.arange(self._a.shape[0])
 
         def advance(base: int, groups: int, width: int) -> None:
@@ -462,10 +477,11 @@ class ChainQP:
             src = np.concatenate([idx[:, 1:], idx[:, -1:]], axis=1)
             con[base:base + idx.size] = base + src.ravel()
 
-        advance(nb * n, nb, n)  # dynamics rows
-        advance(self._state_rows, nb, n)
-        advance(self._state_rows + nb * horizon * n, nb, m)  # input rows
-        advance(self._consensus_rows, max(0, self.n_rec - 1), m)
+        nb = self.n_branches
+        advance(self._init_rows + nb * self.n, nb, self.n)  # dynamics rows
+        advance(self._state_rows, nb, self.n)
+        advance(self._input_rows, nb, self.m)
+        advance(self._consensus_rows, max(0, self.n_rec - 1), self.m)
         return var, con
 
     # -- solve ------------------------------------------------------------------------------
@@ -475,50 +491,47 @@ class ChainQP:
 
         ``boxes`` fill the recovery slots in order; ``consensus`` (K') and
         ``s`` (the step from which recovery branches lie in their box) are in
-        steps. The same call twice in a row returns the first answer.
+        steps. The same call twice in a row returns the first answer. A
+        non-finite ``x0`` or ``goal`` is refused (``FAILED``) without a solve.
         """
-        cfg, n, m, horizon = self.config, self.n, self.m, self.config.horizon
+        cfg, n, m, horizon, nb = self.config, self.n, self.m, self.config.horizon, self.n_branches
         if len(boxes) != self.n_rec:
             raise ValueError(f"expected {self.n_rec} regions, got {len(boxes)}")
+        if not (np.all(np.isfinite(x0)) and np.all(np.isfinite(goal))):
+            return ChainSolution(SolveStatus.FAILED, float("inf"), None, None, float("inf"), 0,
+                                 0.0)
         key = b"".join([x0.tobytes(), goal.tobytes(), np.array([consensus, s]).tobytes(),
                         *(box.key() for box in boxes)])
         if self._memo is not None and self._memo[0] == key:
             return replace(self._memo[1], iterations=0, solve_ms=0.0)
         chain = self.chain
         lo, hi = self._lower.copy(), self._upper.copy()
-        q = self._q.copy()
-        for r in self._init_rows:
-            lo[r:r + n] = x0
-            hi[r:r + n] = x0
+        init = slice(self._init_rows, self._init_rows + nb * n)
+        lo[init] = hi[init] = np.tile(x0, nb)
         # state boxes, widened early on by any excess of x0 over the tightened limits
         excess = np.maximum(np.maximum(x0 - chain.x_hi, chain.x_lo - x0), 0.0)
         taper = np.clip(1.0 - np.arange(horizon) / max(cfg.relax_steps, 1), 0.0, 1.0)
-        widen = taper[:, None] * excess[None, :]  # (T, n), step j = 1..T
-        box_lo = chain.x_lo[None, :] - widen
-        box_hi = chain.x_hi[None, :] + widen
-        targets = []
-        for b in range(self.n_branches):
-            b_lo, b_hi = box_lo.copy(), box_hi.copy()
-            if b == 0 and self.has_nominal:
-                target = goal
-            else:
-                box = boxes[b - int(self.has_nominal)]
-                target = box.center
-                b_lo[s - 1:] = np.maximum(b_lo[s - 1:], box.lo - widen[s - 1:])
-                b_hi[s - 1:] = np.minimum(b_hi[s - 1:], box.hi + widen[s - 1:])
-            targets.append(target)
-            start = self._state_rows + b * horizon * n
-            lo[start:start + horizon * n] = b_lo.ravel()
-            hi[start:start + horizon * n] = b_hi.ravel()
-            xs = self._x(b, 1)
-            q[xs:xs + horizon * n] = -2 * self._diag[xs:xs + horizon * n] * np.tile(target, horizon)
+        widen = taper[:, None] * excess[None, :]  # (T, n), step k = 1..T
+        box_lo = np.repeat((chain.x_lo - widen)[None], nb, axis=0)
+        box_hi = np.repeat((chain.x_hi + widen)[None], nb, axis=0)
+        targets = np.empty((nb, n))
+        if self.has_nominal:
+            targets[0] = goal
+        for slot, box in enumerate(boxes):
+            b = slot + int(self.has_nominal)
+            targets[b] = box.center
+            box_lo[b, s - 1:] = np.maximum(box_lo[b, s - 1:], box.lo - widen[s - 1:])
+            box_hi[b, s - 1:] = np.minimum(box_hi[b, s - 1:], box.hi + widen[s - 1:])
+        rows = slice(self._state_rows, self._state_rows + nb * horizon * n)
+        lo[rows], hi[rows] = box_lo.ravel(), box_hi.ravel()
+        q = self._q.copy()
+        q[self._xi[:, 1:, :]] = -2 * self._q_target * targets[:, None, :]
         # consensus: active for steps < K', free afterwards
-        for slot in range(self.n_rec - 1):
-            start = self._consensus_rows + slot * horizon * m
-            lo[start:start + horizon * m] = -np.inf
-            hi[start:start + horizon * m] = np.inf
-            lo[start:start + consensus * m] = 0.0
-            hi[start:start + consensus * m] = 0.0
+        n_pairs = max(0, self.n_rec - 1)
+        cons = slice(self._consensus_rows, self._consensus_rows + n_pairs * horizon * m)
+        free = np.full((n_pairs, horizon, m), np.inf)
+        free[:, :consensus] = 0.0
+        lo[cons], hi[cons] = -free.ravel(), free.ravel()
         if np.any(lo > hi):  # a region outside the state limits: nothing to solve
             solution = self._solution(None, SolveStatus.INFEASIBLE, targets, 0.0)
         else:
@@ -526,7 +539,8 @@ class ChainQP:
         self._memo = (key, solution)
         return solution
 
-    def _run(self, q: np.ndarray, lo: np.ndarray, hi: np.ndarray, targets) -> ChainSolution:
+    def _run(self, q: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+             targets: np.ndarray) -> ChainSolution:
         cfg = self.config
         infinity = osqp.constant("OSQP_INFTY")
         lo = np.where(np.isfinite(lo), lo, -infinity)
@@ -538,33 +552,39 @@ class ChainQP:
             self.solver.warm_start(x=z_prev[self._var_shift], y=y_prev[self._con_shift])
         warm = self._previous is not None
         if warm != self._warm:
-            self.solver.update_settings(max_iter=cfg.max_iter if warm else cfg.max_iter_cold)
+            limit = cfg.time_limit_s if warm and cfg.time_limit_s > 0 else _NO_TIME_LIMIT
+            self.solver.update_settings(max_iter=cfg.max_iter if warm else cfg.max_iter_cold,
+                                        time_limit=limit)
             self._warm = warm
         result = self.solver.solve(raise_error=False)
         solve_ms = (time.perf_counter() - start_time) * 1e3
         status = _OSQP_STATUS.get(result.info.status_val, SolveStatus.FAILED)
-        if status in (SolveStatus.SOLVED, SolveStatus.INACCURATE, SolveStatus.MAX_ITER):
+        if status in (SolveStatus.SOLVED, SolveStatus.INACCURATE, SolveStatus.MAX_ITER,
+                      SolveStatus.TIME_LIMIT) and np.all(np.isfinite(result.x)):
+            # a capped iterate is kept too: the next tick resumes from it, shifted
             self._previous = (result.x.copy(), result.y.copy())
         return self._solution(result, status, targets, solve_ms)
 
-    def _solution(self, result, status: SolveStatus, targets, solve_ms: float) -> ChainSolution:
-        n, m, horizon, nb = self.n, self.m, self.config.horizon, self.n_branches
+    def _solution(self, result, status: SolveStatus, targets: np.ndarray,
+                  solve_ms: float) -> ChainSolution:
+        horizon = self.config.horizon
         z = None if result is None else result.x
         iterations = 0 if result is None else int(result.info.iter)
         if status not in (SolveStatus.SOLVED, SolveStatus.INACCURATE) or z is None \
                 or not np.all(np.isfinite(z)):
+            if status in (SolveStatus.SOLVED, SolveStatus.INACCURATE):
+                status = SolveStatus.FAILED  # "solved" with a non-finite answer
             return ChainSolution(status, float("inf"), None, None, float("inf"), iterations,
                                  solve_ms)
         cost = float(result.info.obj_val)
-        for b, target in enumerate(targets):  # the constants OSQP leaves out
-            cost += self._branch_scale[b] * horizon * float(target @ (self.chain.q_state * target))
-        states = np.stack([z[self._x(b, 0):self._x(b, 0) + (horizon + 1) * n]
-                           .reshape(horizon + 1, n) for b in range(nb)])
-        inputs = np.stack([z[self._u(b, 0):self._u(b, 0) + horizon * m].reshape(horizon, m)
-                           for b in range(nb)])
+        # the constants OSQP leaves out: sum over branches of w_b * T * t_b' Q t_b
+        cost += float(np.sum(self._branch_scale * horizon
+                             * np.einsum("bi,i,bi->b", targets, self.chain.q_state, targets)))
+        states = z[self._xi]
+        inputs = z[self._ui]
         slack = 0.0
         if self.soft and self.n_rec:
-            sig = z[self._sigma(0):self._sigma(0) + 2 * n * self.n_rec]
+            sig = z[self._sigma(0):self._sigma(0) + 2 * self.n * self.n_rec]
             slack = float(np.max(np.abs(sig)))
             cost -= self.config.slack_weight * float(np.sum(sig))  # report the task cost
         return ChainSolution(status, cost, states, inputs, slack, iterations, solve_ms)
@@ -579,28 +599,31 @@ class BranchProblem:
     ``nominal=False`` is the recovering problem ``J({y}, 0, .)``: the recovery
     branch is the one followed, with full tracking weight toward its region.
     Problems that pass the same ``cache`` share chain QPs: two subsets whose
-    regions agree on a chain solve that chain once per state.
+    regions agree on a chain solve that chain once per state. With an
+    ``executor``, the chains of one solve run in its threads (OSQP releases
+    the GIL while it iterates).
     """
 
-    def __init__(self, model: LinearModel, x_bounds: tuple[np.ndarray, np.ndarray],
-                 u_bounds: tuple[np.ndarray, np.ndarray], config: MPCConfig,
-                 n_recovery: int, nominal: bool = True, soft: bool = False,
-                 cache: ChainCache | None = None) -> None:
+    def __init__(self, model: PlanningModel, config: MPCConfig, n_recovery: int,
+                 nominal: bool = True, soft: bool = False, cache: ChainCache | None = None,
+                 executor: Executor | None = None) -> None:
         if n_recovery < 0 or (not nominal and n_recovery != 1):
             raise ValueError("a problem without a nominal branch has exactly one recovery branch")
         self.model, self.config = model, config
         self.n_rec, self.has_nominal, self.soft = n_recovery, nominal, soft
         self.n_branches = n_recovery + int(nominal)
-        self.x_lo, self.x_hi = tightened_states(x_bounds, config)
-        du_lo, du_hi = tightened_inputs(model, u_bounds, config)
-        q_state, r_input = config.weights.state(), config.weights.input()
+        self.x_lo, self.x_hi = tightened_states(model, config)
+        du_lo, du_hi = tightened_inputs(model, config)
+        q_state, r_input = config.weights.state(model), config.weights.input(model)
+        a, b = model.linear.a, model.linear.b
         self.chains = []
-        for states, inputs in decouple(model.a, model.b):
+        for states, inputs in decouple(a, b):
             s, i = list(states), list(inputs)
-            self.chains.append(Chain(states, inputs, model.a[np.ix_(s, s)], model.b[np.ix_(s, i)],
+            self.chains.append(Chain(states, inputs, a[np.ix_(s, s)], b[np.ix_(s, i)],
                                      self.x_lo[s], self.x_hi[s], du_lo[i], du_hi[i],
                                      q_state[s], r_input[i]))
         self._cache: ChainCache = {} if cache is None else cache
+        self._executor = executor
 
     def _qp(self, number: int, keys: tuple[bytes, ...]) -> ChainQP:
         key = (number, self.n_rec, self.has_nominal, self.soft, self.config, keys)
@@ -612,58 +635,81 @@ class BranchProblem:
     def solve(self, x0: np.ndarray, goal: np.ndarray, regions: Sequence[Region],
               consensus: int | None = None, region_step: int | None = None,
               stop_early: bool = False) -> Plan:
-        """Solve for the measured state ``x0``; ``regions`` fill the recovery slots in order.
+        """Solve for the measured model state ``x0``; ``regions`` fill the recovery slots.
 
         ``consensus`` (K' steps) and ``region_step`` (s) default to the
         configured K and T; ``region_step = T + 1`` drops the region constraints
         (recovery branches only track their region's centre). ``goal`` is the
-        nominal target state (12,).
-        ``stop_early`` skips the remaining chains once one is infeasible
-        (selection needs only the verdict then, not the least-violating plan).
+        nominal target (a model state). ``stop_early`` stops at the first chain
+        that is not feasible (selection needs only the verdict then, not the
+        least-violating plan); with an executor all chains run anyway.
         """
-        cfg, horizon = self.config, self.config.horizon
+        cfg, horizon, model = self.config, self.config.horizon, self.model
         if len(regions) != self.n_rec:
             raise ValueError(f"expected {self.n_rec} regions, got {len(regions)}")
         consensus = cfg.consensus if consensus is None else consensus
         s = min(max(horizon if region_step is None else region_step, 1), horizon + 1)
-        nb, n, m = self.n_branches, self.model.n, self.model.m
+        nb, n, m = self.n_branches, model.n, model.m
+        planned = [planning_box(model, r, cfg) for r in regions]
+        centers = [model.region_center(r) for r in regions]
+        jobs = []
+        for number, chain in enumerate(self.chains):
+            idx = list(chain.states)
+            boxes = [Box(lo[idx], hi[idx], c[idx]) for (lo, hi), c in zip(planned, centers,
+                                                                           strict=True)]
+            order = sorted(range(len(boxes)), key=lambda i: boxes[i].key())
+            qp = self._qp(number, tuple(boxes[i].key() for i in order))
+            jobs.append((chain, order, qp, (x0[idx], goal[idx], [boxes[i] for i in order],
+                                            consensus, s)))
+        if self._executor is not None and len(jobs) > 1:
+            futures = [self._executor.submit(qp.solve, *args) for _, _, qp, args in jobs]
+            solutions = [f.result() for f in futures]
+        else:
+            solutions = []
+            for _, _, qp, args in jobs:
+                solutions.append(qp.solve(*args))
+                last = solutions[-1]
+                if stop_early and (not last.status.feasible or last.slack > cfg.slack_tolerance):
+                    break
         states = np.zeros((nb, horizon + 1, n))
         du = np.zeros((nb, horizon, m))
         cost, slack, iterations, solve_ms = 0.0, 0.0, 0, 0.0
         status = SolveStatus.SOLVED
-        planned = [planning_box(r, cfg) for r in regions]
-        for number, chain in enumerate(self.chains):
-            idx = list(chain.states)
-            boxes = [Box(lo[idx], hi[idx], r.center[idx]) for r, (lo, hi) in zip(regions, planned,
-                                                                                  strict=True)]
-            order = sorted(range(len(boxes)), key=lambda i: boxes[i].key())
-            qp = self._qp(number, tuple(boxes[i].key() for i in order))
-            sol = qp.solve(x0[idx], goal[idx], [boxes[i] for i in order], consensus, s)
+        for (chain, order, _, _), sol in zip(jobs, solutions, strict=False):
             iterations += sol.iterations
             solve_ms += sol.solve_ms
             if sol.states is None:
-                status = sol.status
-                break
+                status = _worse(status, sol.status)
+                continue
             if status is SolveStatus.SOLVED:
                 status = sol.status
             # QP branch of each region: nominal first, then the regions in key order
             branch = list(range(int(self.has_nominal))) + [
                 int(self.has_nominal) + order.index(i) for i in range(len(regions))]
-            states[:, :, idx] = sol.states[branch]
+            states[:, :, list(chain.states)] = sol.states[branch]
             du[:, :, list(chain.inputs)] = sol.du[branch]
             cost += sol.cost
             slack = max(slack, sol.slack)
-            if stop_early and (not sol.status.feasible or sol.slack > cfg.slack_tolerance):
-                status = SolveStatus.INFEASIBLE
-                break
+        if len(solutions) < len(jobs) and status.feasible:
+            status = SolveStatus.INFEASIBLE  # stopped early on a slack-violating chain
         if not status.feasible and status is not SolveStatus.INACCURATE:
             empty = np.zeros((horizon, m))
-            return Plan(status, float("inf"), self.model.u_hover.copy(), empty, None, {}, {},
+            return Plan(status, float("inf"), model.linear.u_hover.copy(), empty, None, {}, {},
                         consensus, s, iterations, solve_ms)
-        inputs = du + self.model.u_hover
+        inputs = du + model.linear.u_hover
         offset = int(self.has_nominal)
         recovery = {r.index: states[offset + i] for i, r in enumerate(regions)}
         recovery_inputs = {r.index: inputs[offset + i] for i, r in enumerate(regions)}
         return Plan(status, cost, inputs[0][0].copy(), inputs[0],
                     states[0] if self.has_nominal else None, recovery, recovery_inputs,
                     consensus, s, iterations, solve_ms, slack, cfg.slack_tolerance)
+
+
+_SEVERITY = {SolveStatus.SOLVED: 0, SolveStatus.INACCURATE: 1, SolveStatus.MAX_ITER: 2,
+             SolveStatus.TIME_LIMIT: 2, SolveStatus.INFEASIBLE: 3, SolveStatus.FAILED: 4}
+
+
+def _worse(a: SolveStatus, b: SolveStatus) -> SolveStatus:
+    """The plan's status from its chains': one infeasible chain makes it infeasible; a
+    chain that has not decided makes it undecided (unless another proved infeasibility)."""
+    return a if _SEVERITY[a] >= _SEVERITY[b] else b

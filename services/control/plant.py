@@ -1,23 +1,49 @@
-"""The simulated quadrotor plant and a controller factory for a scenario.
+"""The simulated vehicle, and the planning model and controller a scenario implies.
 
-The plant is the nonlinear model of :mod:`.dynamics` integrated with RK4
-sub-steps: the truth the MPC's linear model only approximates. Inputs are
-clipped to what the rotors can produce, as real motors would.
+The truth is always the nonlinear 12-state quadrotor of :mod:`.dynamics`,
+integrated with RK4. What the controller's input means depends on the
+scenario's planning model (:mod:`.models`):
+
+* ``quadrotor``: thrust and torques, applied to the motors
+  (:class:`SimulatedQuadrotor`), clipped to what the rotors can produce;
+* ``point-mass``: an acceleration command, tracked by the vehicle's own flight
+  controller (:class:`FlightController`, a PX4-style cascade run at
+  ``hz`` inside each tick) that turns it into thrust and torques
+  (:class:`TrackedQuadrotor`). This is how the paper's hardware flew: its MPC
+  sent acceleration set-points and "relies on the PX4's internal PID
+  controllers to track" them.
+
+Both plants have the same ``step(u) -> x`` shape, so the closed loop does
+not care which one it drives.
 """
 
 from __future__ import annotations
 
-from typing import Literal
+import math
+from dataclasses import dataclass, fields
+from typing import Literal, Protocol
 
 import numpy as np
 
-from .aesop import AesopController, FallbackSafeController, NaiveController, _Controller
-from .dynamics import LinearModel, QuadrotorParams, simulate_step
+from .aesop import AesopController, FallbackSafeController, NaiveController, Route, _Controller
+from .dynamics import QuadrotorParams, rotation, simulate_step
+from .models import PlanningModel, point_mass_model, quadrotor_model
 from .mpc import MPCConfig
 from .scenario import Scenario
 
 Method = Literal["naive", "fsmpc", "aesop"]
 METHODS: tuple[Method, ...] = ("naive", "fsmpc", "aesop")
+
+
+class Plant(Protocol):
+    """A simulated vehicle advanced ``dt`` per step under the controller's input."""
+
+    dt: float
+
+    @property
+    def state(self) -> np.ndarray: ...
+
+    def step(self, u: np.ndarray) -> np.ndarray: ...
 
 
 class SimulatedQuadrotor:
@@ -43,20 +69,124 @@ class SimulatedQuadrotor:
         return self.state
 
 
+@dataclass(frozen=True)
+class FlightControllerGains:
+    """A PX4-style cascade: acceleration -> attitude -> body rates -> torques."""
+
+    position: float = 1.0  # 1/s^2: acceleration per metre off the tick's reference
+    velocity: float = 2.5  # 1/s: acceleration per m/s off the reference
+    attitude: float = 6.0  # 1/s: body-rate set-point per radian of attitude error
+    rate: float = 25.0  # 1/s: angular acceleration per rad/s of rate error
+    max_tilt: float = 0.3  # rad, roll and pitch set-points are clipped here
+    max_rate: tuple[float, float, float] = (1.2, 1.2, 0.8)  # rad/s, rate set-point limits
+    hz: float = 250.0  # inner-loop rate
+
+
+class FlightController:
+    """Thrust and torques that track a world-frame acceleration, yaw held at 0.
+
+    The desired thrust vector ``m (a + g e_z)`` gives the attitude set-point
+    (clipped at ``max_tilt``) and the collective thrust (its projection on the
+    body z axis); a P attitude loop gives saturated body-rate set-points, and a
+    P rate loop with gyroscopic compensation the torques, clipped to the
+    rotors' box.
+    """
+
+    def __init__(self, params: QuadrotorParams, gains: FlightControllerGains) -> None:
+        self.params, self.gains = params, gains
+        self._lo, self._hi = params.input_bounds()
+        self._inertia = np.asarray(params.inertia)
+        self._max_rate = np.asarray(gains.max_rate)
+
+    def command(self, x: np.ndarray, accel: np.ndarray) -> np.ndarray:
+        p, g = self.params, self.gains
+        force = p.mass * (np.asarray(accel, dtype=float) + np.array([0.0, 0.0, p.gravity]))
+        norm = max(float(np.linalg.norm(force)), 1e-6)
+        phi_d = float(np.clip(math.asin(np.clip(-force[1] / norm, -1.0, 1.0)),
+                              -g.max_tilt, g.max_tilt))
+        theta_d = float(np.clip(math.atan2(force[0], force[2]), -g.max_tilt, g.max_tilt))
+        thrust = float(force @ rotation(*x[6:9])[:, 2])
+        error = np.array([phi_d, theta_d, 0.0]) - x[6:9]
+        rate_sp = np.clip(g.attitude * error, -self._max_rate, self._max_rate)
+        omega = x[9:12]
+        torque = self._inertia * g.rate * (rate_sp - omega) + np.cross(omega,
+                                                                       self._inertia * omega)
+        return np.clip(np.concatenate([[thrust], torque]), self._lo, self._hi)
+
+
+class TrackedQuadrotor:
+    """The quadrotor with its flight controller, tracking an acceleration per tick.
+
+    Within a tick the reference is the double integrator from the measured
+    state under the commanded acceleration (what the point-mass plan
+    predicts); the controller adds position and velocity feedback toward it.
+    """
+
+    def __init__(self, x0: np.ndarray, dt: float, params: QuadrotorParams | None = None,
+                 gains: FlightControllerGains | None = None) -> None:
+        self.params = params or QuadrotorParams()
+        self.gains = gains or FlightControllerGains()
+        self.controller = FlightController(self.params, self.gains)
+        self.dt = dt
+        self.inner = max(1, math.ceil(dt * self.gains.hz - 1e-9))
+        self._x = np.asarray(x0, dtype=float).copy()
+        self.t = 0.0
+
+    @property
+    def state(self) -> np.ndarray:
+        return self._x.copy()
+
+    def step(self, u: np.ndarray) -> np.ndarray:
+        accel = np.asarray(u, dtype=float)
+        g = self.gains
+        x = self._x
+        p0, v0 = x[0:3].copy(), x[3:6].copy()
+        h = self.dt / self.inner
+        for i in range(self.inner):
+            tau = i * h
+            p_ref = p0 + v0 * tau + 0.5 * accel * tau * tau
+            v_ref = v0 + accel * tau
+            desired = accel + g.position * (p_ref - x[0:3]) + g.velocity * (v_ref - x[3:6])
+            x = simulate_step(x, self.controller.command(x, desired), h, self.params, 1)
+        self._x = x
+        self.t += self.dt
+        return self.state
+
+
+def planning_model(scenario: Scenario) -> PlanningModel:
+    """The linear model the scenario's MPC plans with (:mod:`.models`)."""
+    if scenario.model == "point-mass":
+        lim = scenario.limits
+        return point_mass_model(scenario.dt, lim.position_lo, lim.position_hi, lim.velocity,
+                                lim.acceleration)
+    return quadrotor_model(scenario.vehicle, scenario.dt, scenario.limits.box())
+
+
+def make_plant(scenario: Scenario, x0: np.ndarray) -> Plant:
+    """The simulated vehicle at ``x0`` (12-state), driven the way the scenario's model
+    commands it."""
+    if scenario.model == "point-mass":
+        return TrackedQuadrotor(x0, scenario.dt, scenario.vehicle)
+    return SimulatedQuadrotor(x0, scenario.dt, scenario.vehicle)
+
+
+_INT_FIELDS = {f.name for f in fields(MPCConfig) if f.type in ("int", int)}
+
+
 def mpc_config(scenario: Scenario, **overrides) -> MPCConfig:
-    """The MPC settings a scenario implies (T and K in steps)."""
-    return MPCConfig(horizon=scenario.horizon, consensus=scenario.consensus, **overrides)
+    """The MPC settings a scenario implies: T and K in steps, its ``mpc`` overrides, then
+    ``overrides``."""
+    merged = {**dict(scenario.mpc), **overrides}
+    merged = {k: int(v) if k in _INT_FIELDS else v for k, v in merged.items()}
+    return MPCConfig(horizon=scenario.horizon, consensus=scenario.consensus, **merged)
 
 
-def make_controller(method: Method, scenario: Scenario, params: QuadrotorParams | None = None,
-                    config: MPCConfig | None = None, fallback: str | int = "cheapest"
-                    ) -> _Controller:
-    """A fresh controller of ``method`` for ``scenario`` on its hover model."""
-    params = params or QuadrotorParams()
-    model = LinearModel.hover(params, scenario.dt)
+def make_controller(method: Method, scenario: Scenario, config: MPCConfig | None = None,
+                    fallback: str | int = "cheapest") -> _Controller:
+    """A fresh controller of ``method`` for ``scenario`` on its planning model."""
+    model = planning_model(scenario)
     config = config or mpc_config(scenario)
-    args = (model, scenario.limits.box(), params.input_bounds(), config, scenario.regions,
-            scenario.goal_state)
+    args = (model, config, scenario.regions, route(scenario, model))
     if method == "aesop":
         return AesopController(*args, fallback=fallback)
     if method == "fsmpc":
@@ -64,3 +194,10 @@ def make_controller(method: Method, scenario: Scenario, params: QuadrotorParams 
     if method == "naive":
         return NaiveController(*args)
     raise ValueError(f"unknown method {method!r}: use one of {', '.join(METHODS)}")
+
+
+def route(scenario: Scenario, model: PlanningModel) -> Route:
+    """The nominal task of a scenario: its approach waypoint (if any), then its goal."""
+    stops = [scenario.goal] if scenario.approach_height <= 0 else [scenario.approach,
+                                                                    scenario.goal]
+    return Route(tuple(model.rest_state(p) for p in stops))

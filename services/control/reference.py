@@ -46,7 +46,7 @@ from dataclasses import dataclass
 import cvxpy as cp
 import numpy as np
 
-from .dynamics import LinearModel
+from .models import PlanningModel
 from .mpc import MPCConfig, planning_box, tightened_inputs, tightened_states
 from .regions import Region
 
@@ -75,8 +75,7 @@ def _within(expr: cp.Expression, lo: np.ndarray, hi: np.ndarray) -> list[cp.Cons
     return out
 
 
-def reference_solve(model: LinearModel, x_bounds: tuple[np.ndarray, np.ndarray],
-                    u_bounds: tuple[np.ndarray, np.ndarray], config: MPCConfig,
+def reference_solve(model: PlanningModel, config: MPCConfig,
                     regions: Sequence[Region], x0: np.ndarray, goal: np.ndarray,
                     consensus: int | None = None, region_step: int | None = None,
                     nominal: bool = True, soft: bool = False,
@@ -89,11 +88,12 @@ def reference_solve(model: LinearModel, x_bounds: tuple[np.ndarray, np.ndarray],
     k = config.consensus if consensus is None else consensus
     s = min(max(horizon if region_step is None else region_step, 1), horizon)
     x0, goal = np.asarray(x0, dtype=float), np.asarray(goal, dtype=float)
-    du_lo, du_hi = tightened_inputs(model, u_bounds, config)
-    q_state, r_input = config.weights.state(), config.weights.input()
+    du_lo, du_hi = tightened_inputs(model, config)
+    q_state, r_input = config.weights.state(model), config.weights.input(model)
+    a_dyn, b_dyn = model.linear.a, model.linear.b
 
     # the state box of steps 1..T (rows), tightened and then widened by the tapered excess
-    x_lo, x_hi = tightened_states(x_bounds, config)
+    x_lo, x_hi = tightened_states(model, config)
     excess = np.maximum(np.maximum(x0 - x_hi, x_lo - x0), 0.0)
     steps = np.arange(1, horizon + 1)
     taper = np.clip(1.0 - (steps - 1) / max(config.relax_steps, 1), 0.0, 1.0)
@@ -106,7 +106,7 @@ def reference_solve(model: LinearModel, x_bounds: tuple[np.ndarray, np.ndarray],
         branches.append((goal, 1.0, None))
     for region in regions:
         weight = config.recovery_weight if nominal else 1.0
-        branches.append((region.center, weight, region))
+        branches.append((model.region_center(region), weight, region))
 
     constraints: list[cp.Constraint] = []
     tracking = 0
@@ -116,13 +116,13 @@ def reference_solve(model: LinearModel, x_bounds: tuple[np.ndarray, np.ndarray],
         du = cp.Variable((horizon, m))
         xs.append(x)
         dus.append(du)
-        constraints += [x[0] == x0, x[1:] == x[:-1] @ model.a.T + du @ model.b.T]
+        constraints += [x[0] == x0, x[1:] == x[:-1] @ a_dyn.T + du @ b_dyn.T]
         constraints += _within(du, np.tile(du_lo, (horizon, 1)), np.tile(du_hi, (horizon, 1)))
         lo, hi = box_lo.copy(), box_hi.copy()
         shifted = x[1:]
         if region is not None:
             # steps s..T are rows s-1..T-1
-            r_lo, r_hi = planning_box(region, config)
+            r_lo, r_hi = planning_box(model, region, config)
             lo[s - 1:] = np.maximum(lo[s - 1:], r_lo - widen[s - 1:])
             hi[s - 1:] = np.minimum(hi[s - 1:], r_hi + widen[s - 1:])
             if soft:
@@ -159,4 +159,4 @@ def reference_solve(model: LinearModel, x_bounds: tuple[np.ndarray, np.ndarray],
                                total_ms)
     slack = max((float(np.max(np.abs(sig.value))) for sig in sigmas), default=0.0)
     return ReferenceResult(float(reported.value), problem.status,
-                           dus[0].value[0] + model.u_hover, solve_ms, total_ms, slack)
+                           dus[0].value[0] + model.linear.u_hover, solve_ms, total_ms, slack)

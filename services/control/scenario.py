@@ -1,15 +1,26 @@
 """A flight scenario: limits, goal, start box and recovery regions, from YAML or JSON.
 
-The bundled ``scenarios/paper.yaml`` is the paper's quadrotor simulation
-(appendix "Additional Results: Quadrotor Simulation"): start near
-(10, 2, 2) m, two grassy fields near x = 8 m, a rooftop and a parking lot near
-x = 3 m, |v| <= 1.5 m/s per axis, T = 4 s, dt = 0.1 s, K = 1.5 s.
+Two ship with the package and load by name (:data:`BUNDLED`):
+
+* ``paper`` (``scenarios/paper.yaml``), the paper's quadrotor simulation
+  (appendix "Additional Results: Quadrotor Simulation"): start near
+  (10, 2, 2) m, two grassy fields near x = 8 m, a rooftop and a parking lot
+  near x = 3 m, |v| <= 1.5 m/s per axis, T = 4 s, dt = 0.1 s, K = 1.5 s, the
+  12-state hover model commanding the motors;
+* ``hardware`` (``scenarios/hardware.yaml``), the paper's hardware scene at
+  its MPC's grid (dt 0.05 s, T 10 s, K 4.3 s), planned with the point-mass
+  model whose accelerations the vehicle's flight controller tracks.
+
+Besides limits and regions a scenario names its planning ``model``
+(:mod:`.models`), its ``vehicle`` (:class:`.dynamics.QuadrotorParams`), an
+``approach_height`` (the nominal task flies to a waypoint that far above the
+goal, then descends) and ``mpc`` overrides of :class:`.mpc.MPCConfig` fields.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -17,8 +28,15 @@ from typing import Any
 import numpy as np
 import yaml
 
-from .dynamics import N_STATE, POS, RATE, VEL
+from .dynamics import N_STATE, POS, RATE, VEL, QuadrotorParams
+from .models import MODEL_NAMES, ModelName
 from .regions import Region, check_regions
+
+BUNDLED = ("paper", "hardware")  # scenario names that load the packaged files
+# MPCConfig fields a scenario may set (numbers only; the rest belongs to the code)
+MPC_FIELDS = ("velocity_margin", "position_margin", "shrink", "input_margin", "relax_steps",
+              "min_region_step", "late_region_steps", "recovery_weight", "max_iter",
+              "max_iter_cold", "time_limit_s", "workers", "eps_abs", "eps_rel")
 
 
 class ScenarioError(ValueError):
@@ -34,10 +52,14 @@ class Limits:
     rates: tuple[float, float, float] = (1.5, 1.5, 1.0)  # rad/s
     position_lo: tuple[float, float, float] = (-3.0, -4.0, 0.0)  # m; z >= 0 is the ground
     position_hi: tuple[float, float, float] = (14.0, 8.0, 6.0)  # m
+    # m/s^2 per axis: the accelerations the point-mass planner may command
+    acceleration: tuple[float, float, float] = (2.0, 2.0, 2.0)
 
     def __post_init__(self) -> None:
         if self.velocity <= 0 or self.tilt <= 0 or min(self.rates) <= 0:
             raise ScenarioError("limits: velocity, tilt and rates must be positive")
+        if len(self.acceleration) != 3 or min(self.acceleration) <= 0:
+            raise ScenarioError("limits.acceleration: expected 3 positive numbers (m/s^2)")
         if np.any(np.asarray(self.position_lo) >= np.asarray(self.position_hi)):
             raise ScenarioError("limits: position_lo must be below position_hi")
 
@@ -66,13 +88,24 @@ class Scenario:
     dt: float = 0.1  # s
     horizon_s: float = 4.0  # T
     consensus_s: float = 1.5  # K
+    model: ModelName = "quadrotor"  # what the MPC plans with (models.py)
+    vehicle: QuadrotorParams = field(default_factory=QuadrotorParams)
+    approach_height: float = 0.0  # m: fly to this far above the goal first, then descend
+    mpc: tuple[tuple[str, float], ...] = ()  # MPCConfig overrides, (field, value)
 
     def __post_init__(self) -> None:
         check = ScenarioError
-        if self.dt <= 0:
+        if not self.dt > 0:
             raise check("dt must be positive")
         if not self.consensus_s < self.horizon_s:
             raise check("consensus_s (K) must be shorter than horizon_s (T)")
+        if self.model not in MODEL_NAMES:
+            raise check(f"model: expected one of {', '.join(MODEL_NAMES)}")
+        if not 0.0 <= self.approach_height <= 10.0:
+            raise check("approach_height: expected 0..10 m")
+        unknown = [k for k, _ in self.mpc if k not in MPC_FIELDS]
+        if unknown:
+            raise check(f"mpc.{unknown[0]}: unknown; one of {', '.join(MPC_FIELDS)}")
         try:
             check_regions(self.regions)
         except ValueError as exc:
@@ -101,8 +134,13 @@ class Scenario:
         raise KeyError(index)
 
     def with_regions(self, regions: tuple[Region, ...]) -> Scenario:
-        return Scenario(self.name, self.goal, self.start_center, self.start_half_width,
-                        regions, self.limits, self.dt, self.horizon_s, self.consensus_s)
+        return replace(self, regions=regions)
+
+    @property
+    def approach(self) -> tuple[float, float, float]:
+        """The waypoint the nominal task flies to before it descends onto the goal (m)."""
+        x, y, z = self.goal
+        return (x, y, z + self.approach_height)
 
     def sample_start(self, rng: np.random.Generator) -> np.ndarray:
         x = np.zeros(N_STATE)
@@ -142,7 +180,7 @@ def scenario_from_dict(data: Any) -> Scenario:
         raise ScenarioError("scenario: expected a mapping at the top level")
     try:
         limits = Limits(**{k: tuple(v) if isinstance(v, list) else v
-                           for k, v in (data.get("limits") or {}).items()})
+                           for k, v in _mapping(data, "limits").items()})
         start = data["start"]
         return Scenario(
             name=str(data.get("name", "scenario")),
@@ -154,19 +192,69 @@ def scenario_from_dict(data: Any) -> Scenario:
             dt=float(data.get("dt", 0.1)),
             horizon_s=float(data.get("horizon_s", 4.0)),
             consensus_s=float(data.get("consensus_s", 1.5)),
+            model=str(data.get("model", "quadrotor")),  # type: ignore[arg-type]
+            vehicle=_vehicle(_mapping(data, "vehicle")),
+            approach_height=float(data.get("approach_height", 0.0)),
+            mpc=_mpc_overrides(_mapping(data, "mpc")),
         )
     except KeyError as exc:
         raise ScenarioError(f"{exc.args[0]}: required") from None
-    except TypeError as exc:
+    except (TypeError, ValueError) as exc:
+        if isinstance(exc, ScenarioError):
+            raise
         raise ScenarioError(f"scenario: {exc}") from None
 
 
-def load_scenario(path: Path | str | None = None) -> Scenario:
-    """Load a YAML or JSON scenario; ``None`` gives the bundled paper scenario."""
-    if path is None:
-        text = resources.files(__package__).joinpath("scenarios/paper.yaml").read_text()
-        return scenario_from_dict(yaml.safe_load(text))
-    path = Path(path)
+def _mapping(data: dict, key: str) -> dict:
+    value = data.get(key) or {}
+    if not isinstance(value, dict):
+        raise ScenarioError(f"{key}: expected a mapping")
+    return value
+
+
+def _vehicle(data: dict) -> QuadrotorParams:
+    """``vehicle:`` fields of :class:`QuadrotorParams` (mass, arm, inertia, rotor_max, ...)."""
+    known = {f.name for f in fields(QuadrotorParams)}
+    for key in data:
+        if key not in known:
+            raise ScenarioError(f"vehicle.{key}: unknown; one of {', '.join(sorted(known))}")
+    try:
+        return QuadrotorParams(**{k: tuple(float(x) for x in v) if isinstance(v, list)
+                                  else float(v) for k, v in data.items()})
+    except (TypeError, ValueError) as exc:
+        raise ScenarioError(f"vehicle: {exc}") from None
+
+
+def _mpc_overrides(data: dict) -> tuple[tuple[str, float], ...]:
+    out = []
+    for key, value in data.items():
+        if key not in MPC_FIELDS:
+            raise ScenarioError(f"mpc.{key}: unknown; one of {', '.join(MPC_FIELDS)}")
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ScenarioError(f"mpc.{key}: expected a number")
+        out.append((key, value))
+    return tuple(sorted(out))
+
+
+def bundled_path(name: str) -> Path:
+    """The packaged file of a bundled scenario (``paper`` or ``hardware``)."""
+    if name not in BUNDLED:
+        raise ScenarioError(f"no bundled scenario {name!r}: {', '.join(BUNDLED)}")
+    return Path(str(resources.files(__package__).joinpath(f"scenarios/{name}.yaml")))
+
+
+def resolve_scenario(name_or_path: Path | str | None) -> Path:
+    """The file behind a bundled name, a path, or ``None`` (the paper scenario)."""
+    if name_or_path is None:
+        return bundled_path("paper")
+    if str(name_or_path) in BUNDLED:
+        return bundled_path(str(name_or_path))
+    return Path(name_or_path)
+
+
+def load_scenario(name_or_path: Path | str | None = None) -> Scenario:
+    """Load a YAML or JSON scenario by bundled name or path; ``None`` gives ``paper``."""
+    path = resolve_scenario(name_or_path)
     try:
         text = path.read_text()
     except OSError as exc:

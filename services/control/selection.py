@@ -13,6 +13,10 @@ So the selector solves the subsets of size ``min_size`` only, each with its
 own warm solver (:class:`~.mpc.BranchProblem`), and, when ``screen`` is on,
 first solves the cheaper single-region problems to skip subsets that contain
 an infeasible region. ``aesop bench mpc`` measures what each of these buys.
+
+A subset whose solve stopped at its cap is neither chosen nor counted as
+infeasible: :attr:`Selection.decided` says whether every candidate was
+settled, so the controller can say why it holds.
 """
 
 from __future__ import annotations
@@ -25,8 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .dynamics import LinearModel
-from .mpc import BranchProblem, ChainCache, MPCConfig, Plan
+from .models import PlanningModel
+from .mpc import BranchProblem, ChainCache, MPCConfig, Plan, SolveStatus
 from .regions import Region
 
 
@@ -43,13 +47,29 @@ class Selection:
     def feasible(self) -> bool:
         return self.plan is not None
 
+    @property
+    def decided(self) -> bool:
+        """Every candidate either solved or was shown infeasible (none stopped at a cap)."""
+        return all(p.status.decided for p in self.candidates.values())
+
+    @property
+    def status(self) -> SolveStatus:
+        """The chosen plan's status, else ``INFEASIBLE`` if every candidate was shown
+        infeasible, else the status of one that did not decide."""
+        if self.plan is not None:
+            return self.plan.status
+        undecided = [p.status for p in self.candidates.values() if not p.status.decided]
+        return undecided[0] if undecided else SolveStatus.INFEASIBLE
+
 
 class SubsetSelector:
-    def __init__(self, model: LinearModel, x_bounds, u_bounds, config: MPCConfig,
-                 regions: Sequence[Region], min_size: int = 2, screen: bool = False,
-                 workers: int = 1, soft: bool = False) -> None:
+    """Chooses ``Y_t``. ``workers`` > 1 solves the candidate subsets in threads; the
+    config's ``workers`` solve the chains of each problem in threads."""
+
+    def __init__(self, model: PlanningModel, config: MPCConfig, regions: Sequence[Region],
+                 min_size: int = 2, screen: bool = False, workers: int = 1,
+                 soft: bool = False) -> None:
         self.model, self.config = model, config
-        self.x_bounds, self.u_bounds = x_bounds, u_bounds
         self.regions = {r.index: r for r in regions}
         self.size = max(1, min(min_size, len(self.regions)))
         self.screen = screen and self.size > 1
@@ -58,13 +78,14 @@ class SubsetSelector:
         self._problems: dict[tuple[int, ...], BranchProblem] = {}
         self._cache: ChainCache = {}  # chain QPs shared by subsets that agree on a chain
         self._pool = ThreadPoolExecutor(workers) if workers > 1 else None
+        self._chains = ThreadPoolExecutor(config.workers) if config.workers > 1 else None
 
     def problem(self, subset: tuple[int, ...]) -> BranchProblem:
         """The warm solver kept for ``subset`` (built on first use)."""
         if subset not in self._problems:
-            self._problems[subset] = BranchProblem(self.model, self.x_bounds, self.u_bounds,
-                                                   self.config, len(subset), soft=self.soft,
-                                                   cache=self._cache)
+            self._problems[subset] = BranchProblem(self.model, self.config, len(subset),
+                                                   soft=self.soft, cache=self._cache,
+                                                   executor=self._chains)
         return self._problems[subset]
 
     def solve(self, subset: tuple[int, ...], x0: np.ndarray, goal: np.ndarray,
@@ -94,5 +115,6 @@ class SubsetSelector:
         return {s: f.result() for s, f in futures.items()}
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
+        for pool in (self._pool, self._chains):
+            if pool is not None:
+                pool.shutdown(wait=True)

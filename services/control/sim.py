@@ -23,9 +23,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .aesop import Mode
-from .dynamics import QuadrotorParams
 from .mpc import MPCConfig
-from .plant import METHODS, Method, SimulatedQuadrotor, make_controller
+from .plant import METHODS, Method, make_controller, make_plant, planning_model
 from .regions import Tolerance
 from .scenario import Scenario
 
@@ -41,7 +40,8 @@ class LimitTolerance:
     velocity: float = 0.05  # m/s
     tilt: float = 0.02  # rad
     rate: float = 0.05  # rad/s
-    input: float = 1e-6  # N, N m (the plant clips; the controller must not ask beyond)
+    input: float = 1e-6  # the model's input units (the plant clips; the controller must
+    # not ask beyond)
 
     def state(self) -> np.ndarray:
         return np.repeat([self.position, self.velocity, self.tilt, self.rate], 3)
@@ -87,16 +87,10 @@ class Flight:
     events: list[str] = field(default_factory=list)
     solve_ms: list[float] = field(default_factory=list)
 
-    def violations(self, scenario: Scenario, params: QuadrotorParams,
-                   tol: LimitTolerance = LIMIT_TOLERANCE) -> int:
-        """Ticks at which a state or an input exceeded its limit beyond ``tol``."""
-        lo, hi = scenario.limits.box()
-        slack = tol.state()
-        x = self.states[1:]
-        bad_x = np.any((x > hi + slack) | (x < lo - slack), axis=1)
-        u_lo, u_hi = params.input_bounds()
-        bad_u = np.any((self.inputs > u_hi + tol.input) | (self.inputs < u_lo - tol.input), axis=1)
-        return int(np.sum(bad_x | bad_u))
+    def violations(self, scenario: Scenario, tol: LimitTolerance = LIMIT_TOLERANCE) -> int:
+        """Ticks at which the plant's state or the controller's input exceeded its limit
+        beyond ``tol`` (states on the 12-state truth, inputs in the model's units)."""
+        return count_violations(self.states[1:], self.inputs, scenario, tol)
 
     def in_region(self, scenario: Scenario) -> np.ndarray:
         """Per tick, whether the state is inside the chosen region (with TOLERANCE)."""
@@ -118,12 +112,30 @@ class Flight:
         return float(np.mean(np.linalg.norm(self.states[:, 3:6], axis=1)))
 
 
-def fly(method: Method, scenario: Scenario, case: Case, params: QuadrotorParams | None = None,
-        config: MPCConfig | None = None, duration_s: float | None = None) -> Flight:
-    """One closed-loop flight of ``method`` on the nonlinear plant."""
-    params = params or QuadrotorParams()
-    controller = make_controller(method, scenario, params, config)
-    plant = SimulatedQuadrotor(case.x0, scenario.dt, params)
+def count_violations(states: np.ndarray, inputs: np.ndarray, scenario: Scenario,
+                     tol: LimitTolerance = LIMIT_TOLERANCE) -> int:
+    """Ticks at which a 12-state ``states`` row left the scenario's limits or an ``inputs``
+    row the planning model's input box, beyond ``tol``."""
+    states, inputs = np.asarray(states, dtype=float), np.asarray(inputs, dtype=float)
+    if not len(states):
+        return 0
+    lo, hi = scenario.limits.box()
+    slack = tol.state()
+    bad = np.any((states > hi + slack) | (states < lo - slack) | ~np.isfinite(states), axis=1)
+    if len(inputs):
+        model = planning_model(scenario)
+        bad_u = np.any((inputs > model.u_hi + tol.input) | (inputs < model.u_lo - tol.input),
+                       axis=1)
+        n = min(len(bad), len(bad_u))
+        bad[:n] |= bad_u[:n]
+    return int(np.sum(bad))
+
+
+def fly(method: Method, scenario: Scenario, case: Case, config: MPCConfig | None = None,
+        duration_s: float | None = None) -> Flight:
+    """One closed-loop flight of ``method`` on the simulated vehicle."""
+    controller = make_controller(method, scenario, config)
+    plant = make_plant(scenario, case.x0)
     dt = scenario.dt
     anomaly_tick = int(round(case.anomaly_s / dt))
     latency_ticks = max(1, math.ceil(case.latency_s / dt - 1e-9))
@@ -170,9 +182,8 @@ class Outcome:
     fallback: bool
 
 
-def judge(flight: Flight, scenario: Scenario, params: QuadrotorParams | None = None) -> Outcome:
-    params = params or QuadrotorParams()
-    violations = flight.violations(scenario, params)
+def judge(flight: Flight, scenario: Scenario) -> Outcome:
+    violations = flight.violations(scenario)
     final = flight.states[-1]
     ended_in = next((r.index for r in scenario.regions if r.contains(final, TOLERANCE)), None)
     success = flight.chosen is not None and ended_in == flight.chosen and violations == 0
@@ -202,14 +213,15 @@ def summarize(outcomes: Sequence[Outcome]) -> dict:
     }
 
 
-def time_lost(scenario: Scenario, case: Case, params: QuadrotorParams | None = None,
-              reach_m: float = 0.2, duration_s: float = 16.0) -> dict:
+def time_lost(scenario: Scenario, case: Case, reach_m: float = 0.2,
+              duration_s: float | None = None) -> dict:
     """The inconsequential case: AESOP slows for the K window, resumes after ``y = 0``.
 
     Time to come within ``reach_m`` of the goal with the anomaly, against the
     same start with no anomaly (``anomaly_s`` beyond the flight).
     """
     goal = np.asarray(scenario.goal)
+    duration_s = duration_s or max(16.0, 4 * scenario.horizon_s)
 
     def arrival(flight: Flight) -> float | None:
         near = np.flatnonzero(np.linalg.norm(flight.states[:, :3] - goal, axis=1) <= reach_m)
@@ -217,11 +229,11 @@ def time_lost(scenario: Scenario, case: Case, params: QuadrotorParams | None = N
 
     quiet = Case(case.index, case.x0, duration_s + 1.0, case.latency_s, case.pick)
     noisy = Case(case.index, case.x0, case.anomaly_s, case.latency_s, case.pick, continue_=True)
-    base = arrival(fly("aesop", scenario, quiet, params, duration_s=duration_s))
-    with_anomaly = arrival(fly("aesop", scenario, noisy, params, duration_s=duration_s))
+    base = arrival(fly("aesop", scenario, quiet, duration_s=duration_s))
+    with_anomaly = arrival(fly("aesop", scenario, noisy, duration_s=duration_s))
     lost = None if base is None or with_anomaly is None else with_anomaly - base
     return {"arrival_s": with_anomaly, "arrival_no_anomaly_s": base, "time_lost_s": lost}
 
 
-__all__ = ["METHODS", "SETTLE_S", "Case", "Flight", "Outcome", "fly", "judge", "run_case",
-           "sample_cases", "summarize", "time_lost"]
+__all__ = ["METHODS", "SETTLE_S", "Case", "Flight", "Outcome", "count_violations", "fly",
+           "judge", "run_case", "sample_cases", "summarize", "time_lost"]

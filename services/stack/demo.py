@@ -30,6 +30,7 @@ import httpx
 import numpy as np
 
 from services.control.scenario import Scenario, load_scenario
+from services.control.sim import count_violations
 from shared import topics
 from shared.bus import Bus, Subscription
 from shared.messages import (
@@ -47,7 +48,6 @@ from .report import (
     SCENARIOS,
     DemoScenario,
     calibration_set,
-    count_violations,
     ended_in,
     judge,
     nominal_texts,

@@ -7,7 +7,7 @@
   box stays).
 * :func:`observation_text` — one detection per line, canonical order: the text
   the vector cache holds and the reasoner quotes line by line.
-* :func:`ended_in`, :func:`count_violations`, :func:`judge` — where a flight
+* :func:`ended_in`, :func:`judge` — where a flight
   ended and what went wrong, from the published ``ControlState``s.
 * :func:`summary_table`, :func:`write_report` — what a person reads.
 """
@@ -23,10 +23,9 @@ from typing import Any
 
 import numpy as np
 
-from services.control.dynamics import QuadrotorParams
 from services.control.regions import Tolerance
 from services.control.scenario import Scenario
-from services.control.sim import LIMIT_TOLERANCE, TOLERANCE
+from services.control.sim import TOLERANCE
 from services.embedding.domains import quadrotor_calibration, quadrotor_nominal
 from services.embedding.domains.quadrotor import (
     ON_BLUE_BOX,
@@ -111,21 +110,6 @@ def ended_in(x: Sequence[float], scenario: Scenario,
     return next((r.name for r in scenario.regions if r.contains(x, tolerance)), None)
 
 
-def count_violations(states: Sequence[Sequence[float]], inputs: Sequence[Sequence[float]],
-                     scenario: Scenario, params: QuadrotorParams | None = None) -> int:
-    """Ticks at which a state or an input left the scenario's limits (sim's tolerances)."""
-    if not len(states):
-        return 0
-    lo, hi = scenario.limits.box()
-    slack = LIMIT_TOLERANCE.state()
-    x = np.asarray(states, dtype=float)
-    bad = np.any((x > hi + slack) | (x < lo - slack), axis=1)
-    if len(inputs):
-        u_lo, u_hi = (params or QuadrotorParams()).input_bounds()
-        u = np.asarray(inputs, dtype=float)
-        tol = LIMIT_TOLERANCE.input
-        bad = bad | np.any((u > u_hi + tol) | (u < u_lo - tol), axis=1)
-    return int(np.sum(bad))
 
 
 def judge(demo: DemoScenario, *, ended: str | None, detector_alarms: int,

@@ -7,15 +7,15 @@ few tens of centimetres away and a 3 s horizon keep every solve small.
 import numpy as np
 import pytest
 
-from services.control.aesop import AesopController, Mode, NaiveController
-from services.control.dynamics import LinearModel, QuadrotorParams, simulate_step
+from services.control.aesop import AesopController, Mode, NaiveController, Route
+from services.control.dynamics import QuadrotorParams, simulate_step
+from services.control.models import quadrotor_model
 from services.control.mpc import BranchProblem, MPCConfig
 from services.control.regions import Region
 from services.control.scenario import Limits
 
 PARAMS = QuadrotorParams()
-MODEL = LinearModel.hover(PARAMS)
-X_BOUNDS = Limits().box()
+MODEL = quadrotor_model(PARAMS, 0.1, Limits().box())
 U_BOUNDS = PARAMS.input_bounds()
 CONFIG = MPCConfig(horizon=30, consensus=8)
 REGIONS = (
@@ -38,7 +38,7 @@ TOL = 5e-3  # OSQP's eps is 1e-3: equalities and bounds hold to a few thousandth
 
 
 def test_tree_plan_keeps_dynamics_consensus_bounds_and_regions():
-    problem = BranchProblem(MODEL, X_BOUNDS, U_BOUNDS, CONFIG, 2)
+    problem = BranchProblem(MODEL, CONFIG, 2)
     x0 = state(vel=(0.2, 0.0, 0.0))
     plan = problem.solve(x0, GOAL, [REGIONS[0], REGIONS[2]])
     assert plan.feasible, plan.status
@@ -46,8 +46,8 @@ def test_tree_plan_keeps_dynamics_consensus_bounds_and_regions():
         (plan.recovery[i], plan.recovery_inputs[i]) for i in (1, 3)]
     for states, inputs in branches:
         assert np.allclose(states[0], x0, atol=TOL)
-        du = inputs - MODEL.u_hover
-        predicted = states[:-1] @ MODEL.a.T + du @ MODEL.b.T
+        du = inputs - MODEL.linear.u_hover
+        predicted = states[:-1] @ MODEL.linear.a.T + du @ MODEL.linear.b.T
         assert np.allclose(predicted, states[1:], atol=TOL)
         assert np.all(states[1:] <= problem.x_hi + TOL) and np.all(states[1:] >= problem.x_lo - TOL)
         assert np.all(inputs <= U_BOUNDS[1] + TOL) and np.all(inputs >= U_BOUNDS[0] - TOL)
@@ -63,7 +63,7 @@ def test_tree_plan_keeps_dynamics_consensus_bounds_and_regions():
 
 
 def test_shrunk_horizon_pins_the_region_earlier():
-    problem = BranchProblem(MODEL, X_BOUNDS, U_BOUNDS, CONFIG, 1, nominal=False)
+    problem = BranchProblem(MODEL, CONFIG, 1, nominal=False)
     plan = problem.solve(state(), GOAL, [REGIONS[0]], 0, region_step=20)
     assert plan.feasible and plan.region_step == 20
     region = REGIONS[0]
@@ -72,10 +72,10 @@ def test_shrunk_horizon_pins_the_region_earlier():
 
 
 def test_hard_problem_reports_an_unreachable_region_and_soft_returns_the_least_violating_plan():
-    hard = BranchProblem(MODEL, X_BOUNDS, U_BOUNDS, CONFIG, 1, nominal=False)
+    hard = BranchProblem(MODEL, CONFIG, 1, nominal=False)
     assert not hard.solve(state(), GOAL, [FAR]).feasible
     assert hard.solve(state(), GOAL, [OUTSIDE]).status.value == "infeasible"  # beyond the fence
-    soft = BranchProblem(MODEL, X_BOUNDS, U_BOUNDS, CONFIG, 1, nominal=False, soft=True)
+    soft = BranchProblem(MODEL, CONFIG, 1, nominal=False, soft=True)
     plan = soft.solve(state(), GOAL, [FAR])
     assert plan.status.value == "solved" and not plan.feasible
     assert plan.slack > 1.0
@@ -95,7 +95,7 @@ def fly(controller, script, ticks):
 
 
 def aesop(**kwargs) -> AesopController:
-    return AesopController(MODEL, X_BOUNDS, U_BOUNDS, CONFIG, REGIONS, GOAL, **kwargs)
+    return AesopController(MODEL, CONFIG, REGIONS, Route([GOAL]), **kwargs)
 
 
 def test_decision_zero_returns_to_nominal():
@@ -147,7 +147,7 @@ def test_bad_fallback_is_refused():
 
 
 def test_naive_flies_on_while_waiting_and_plans_the_recovery_afterwards():
-    naive = NaiveController(MODEL, X_BOUNDS, U_BOUNDS, CONFIG, REGIONS, GOAL)
+    naive = NaiveController(MODEL, CONFIG, REGIONS, Route([GOAL]))
     _, outs = fly(naive, lambda t: (t == 1, 2 if t == 4 else None), 8)
     assert outs[1].request == (1, 2, 3)
     assert all(o.active_regions == () for o in outs[:4])  # it keeps no recovery plan
@@ -155,7 +155,7 @@ def test_naive_flies_on_while_waiting_and_plans_the_recovery_afterwards():
 
 
 def test_region_step_past_the_horizon_drops_the_region_but_keeps_the_limits():
-    problem = BranchProblem(MODEL, X_BOUNDS, U_BOUNDS, CONFIG, 1, nominal=False)
+    problem = BranchProblem(MODEL, CONFIG, 1, nominal=False)
     plan = problem.solve(state(), GOAL, [FAR], 0, region_step=CONFIG.horizon + 1)
     assert plan.feasible and plan.region_step == CONFIG.horizon + 1
     path = plan.recovery[4]
@@ -165,9 +165,9 @@ def test_region_step_past_the_horizon_drops_the_region_but_keeps_the_limits():
 
 
 def test_velocity_margin_tightens_the_planned_velocity_limits():
-    loose = BranchProblem(MODEL, X_BOUNDS, U_BOUNDS, MPCConfig(horizon=30, consensus=8,
+    loose = BranchProblem(MODEL, MPCConfig(horizon=30, consensus=8,
                                                                velocity_margin=0.0), 0)
-    tight = BranchProblem(MODEL, X_BOUNDS, U_BOUNDS, MPCConfig(horizon=30, consensus=8,
+    tight = BranchProblem(MODEL, MPCConfig(horizon=30, consensus=8,
                                                                velocity_margin=0.3), 0)
     assert np.allclose(tight.x_hi[3:6], loose.x_hi[3:6] - 0.3)
     assert np.allclose(tight.x_lo[3:6], loose.x_lo[3:6] + 0.3)
@@ -198,14 +198,14 @@ def test_recovery_whose_region_is_out_of_reach_by_its_step_is_planned_to_reach_i
 @pytest.mark.parametrize("kind", ["aesop", "naive"])
 def test_warm_up_leaves_the_first_tick_nothing_to_solve(kind: str):
     controller = aesop() if kind == "aesop" else NaiveController(
-        MODEL, X_BOUNDS, U_BOUNDS, CONFIG, REGIONS, GOAL)
+        MODEL, CONFIG, REGIONS, Route([GOAL]))
     x0 = state()
     controller.warm_up(x0)
     assert controller.memory.t == 0 and controller.mode is Mode.NOMINAL
     first = controller.make_step(x0, False)
     assert first.plan is not None and first.plan.iterations == 0  # answered by the memo
     cold = aesop() if kind == "aesop" else NaiveController(
-        MODEL, X_BOUNDS, U_BOUNDS, CONFIG, REGIONS, GOAL)
+        MODEL, CONFIG, REGIONS, Route([GOAL]))
     same = cold.make_step(x0, False)
     assert same.plan.iterations > 0
     np.testing.assert_allclose(first.u, same.u, atol=1e-9)

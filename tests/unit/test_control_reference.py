@@ -25,15 +25,16 @@ import dataclasses
 import numpy as np
 import pytest
 
-from services.control.dynamics import LinearModel, QuadrotorParams
+from services.control.dynamics import QuadrotorParams
+from services.control.models import quadrotor_model
 from services.control.mpc import BranchProblem, MPCConfig, Plan
 from services.control.reference import reference_solve
 from services.control.scenario import load_scenario
 
 SCENARIO = load_scenario()
 PARAMS = QuadrotorParams()
-MODEL = LinearModel.hover(PARAMS)
 X_BOUNDS = SCENARIO.limits.box()
+MODEL = quadrotor_model(PARAMS, SCENARIO.dt, X_BOUNDS)
 U_BOUNDS = PARAMS.input_bounds()
 GOAL = SCENARIO.goal_state
 # every iteration cap (max_iter, and max_iter_cold where the config has it) lifted
@@ -118,9 +119,9 @@ GRID = [(state, n, False) for state in STATES for n in (0, 1, 2)] + [
                          ids=[f"{st}-{n}-{'soft' if s else 'hard'}" for st, n, s in GRID])
 def test_branch_problem_matches_reference(state: str, n_recovery: int, soft: bool) -> None:
     x0, regions = STATES[state], GRASS[:n_recovery]
-    plan = BranchProblem(MODEL, X_BOUNDS, U_BOUNDS, CONFIG, n_recovery, soft=soft).solve(
+    plan = BranchProblem(MODEL, CONFIG, n_recovery, soft=soft).solve(
         x0, GOAL, regions)
-    ref = reference_solve(MODEL, X_BOUNDS, U_BOUNDS, CONFIG, regions, x0, GOAL, soft=soft)
+    ref = reference_solve(MODEL, CONFIG, regions, x0, GOAL, soft=soft)
     assert ref.status == "optimal"
     assert plan.feasible, (plan.status, plan.slack)
     assert _rel(plan, ref.cost) <= REL_TOL, (plan.cost, ref.cost)
@@ -131,7 +132,7 @@ def test_branch_problem_matches_reference(state: str, n_recovery: int, soft: boo
 @pytest.mark.parametrize("soft", [False, True], ids=["hard", "soft"])
 def test_shrunk_horizon_and_consensus_on_one_warm_problem(soft: bool) -> None:
     """Bound updates between solves (``s``, ``K'``, ``x0``) give the reference optimum each time."""
-    problem = BranchProblem(MODEL, X_BOUNDS, U_BOUNDS, CONFIG, 2, soft=soft)
+    problem = BranchProblem(MODEL, CONFIG, 2, soft=soft)
     cases = [("start-at-rest", None, None), ("moving", 5, 30), ("start-at-rest", 0, 30),
              ("over-limit", 10, 35), ("moving", None, None)]
     if soft:  # soft branches from rest crawl at eps 1e-5 (see GRID)
@@ -139,7 +140,7 @@ def test_shrunk_horizon_and_consensus_on_one_warm_problem(soft: bool) -> None:
     for state, consensus, region_step in cases:
         x0 = STATES[state]
         plan = problem.solve(x0, GOAL, GRASS, consensus, region_step)
-        ref = reference_solve(MODEL, X_BOUNDS, U_BOUNDS, CONFIG, GRASS, x0, GOAL,
+        ref = reference_solve(MODEL, CONFIG, GRASS, x0, GOAL,
                               consensus=consensus, region_step=region_step, soft=soft)
         assert ref.status == "optimal", (state, consensus, region_step)
         assert plan.feasible, (state, consensus, region_step, plan.status, plan.slack)
@@ -153,27 +154,27 @@ def test_shrunk_horizon_and_consensus_on_one_warm_problem(soft: bool) -> None:
 def test_soft_problem_prices_an_unreachable_region_like_the_reference() -> None:
     """A region pinned to step 3 is out of reach: slack is used, and both agree on it."""
     x0 = STATES["start-at-rest"]
-    plan = BranchProblem(MODEL, X_BOUNDS, U_BOUNDS, CONFIG, 2, soft=True).solve(
+    plan = BranchProblem(MODEL, CONFIG, 2, soft=True).solve(
         x0, GOAL, GRASS, consensus=0, region_step=3)
-    ref = reference_solve(MODEL, X_BOUNDS, U_BOUNDS, CONFIG, GRASS, x0, GOAL, consensus=0,
+    ref = reference_solve(MODEL, CONFIG, GRASS, x0, GOAL, consensus=0,
                           region_step=3, soft=True)
     assert ref.status == "optimal" and ref.slack > 0.1
     assert not plan.feasible and plan.slack == pytest.approx(ref.slack, rel=1e-2)
     assert _rel(plan, ref.cost) <= REL_TOL, (plan.cost, ref.cost)
-    hard = reference_solve(MODEL, X_BOUNDS, U_BOUNDS, CONFIG, GRASS, x0, GOAL, consensus=0,
+    hard = reference_solve(MODEL, CONFIG, GRASS, x0, GOAL, consensus=0,
                            region_step=3)
     assert hard.status == "infeasible" and hard.cost == float("inf")
-    hard_plan = BranchProblem(MODEL, X_BOUNDS, U_BOUNDS, CONFIG, 2).solve(
+    hard_plan = BranchProblem(MODEL, CONFIG, 2).solve(
         x0, GOAL, GRASS, consensus=0, region_step=3)
     assert hard_plan.status == "infeasible" and hard_plan.cost == float("inf")
 
 
 def test_recovering_problem_without_nominal_matches_reference() -> None:
     x0, regions = STATES["moving"], GRASS[:1]
-    problem = BranchProblem(MODEL, X_BOUNDS, U_BOUNDS, CONFIG, 1, nominal=False, soft=True)
+    problem = BranchProblem(MODEL, CONFIG, 1, nominal=False, soft=True)
     for region_step in (None, 30):
         plan = problem.solve(x0, GOAL, regions, region_step=region_step)
-        ref = reference_solve(MODEL, X_BOUNDS, U_BOUNDS, CONFIG, regions, x0, GOAL,
+        ref = reference_solve(MODEL, CONFIG, regions, x0, GOAL,
                               region_step=region_step, nominal=False, soft=True)
         assert plan.feasible and ref.status == "optimal"
         assert _rel(plan, ref.cost) <= REL_TOL, (plan.cost, ref.cost)

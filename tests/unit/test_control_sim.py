@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from services.control.dynamics import QuadrotorParams
+from services.control.plant import planning_model
 from services.control.scenario import load_scenario
-from services.control.sim import Case, Flight, fly, judge, sample_cases
+from services.control.sim import Case, Flight, count_violations, fly, judge, sample_cases
 
 SCENARIO = load_scenario()
 CASES = sample_cases(SCENARIO, 10, 0)
@@ -52,17 +53,17 @@ def test_judge_counts_state_and_input_violations():
     inputs = np.tile(params.hover_input, (3, 1))
     case = Case(0, rest, 1.0, 0.5, 0.0)
     ok = Flight("aesop", case, states, inputs, ["recovering"] * 3, t_anom_s=0.0, chosen=1)
-    assert judge(ok, SCENARIO, params).success
+    assert judge(ok, SCENARIO).success
     fast = states.copy()
     fast[2, 3] = SCENARIO.limits.velocity + 0.2  # m/s over the limit at one tick
     pushed = inputs.copy()
     pushed[0, 1] = params.input_bounds()[1][1] + 0.01  # a torque beyond the rotors
     bad = Flight("aesop", case, fast, pushed, ["recovering"] * 3, t_anom_s=0.0, chosen=1)
-    assert bad.violations(SCENARIO, params) == 2
-    assert not judge(bad, SCENARIO, params).success
+    assert bad.violations(SCENARIO) == 2
+    assert not judge(bad, SCENARIO).success
     elsewhere = Flight("aesop", case, states, inputs, ["recovering"] * 3, t_anom_s=0.0, chosen=2)
-    assert judge(elsewhere, SCENARIO, params).ended_in == 1
-    assert not judge(elsewhere, SCENARIO, params).success
+    assert judge(elsewhere, SCENARIO).ended_in == 1
+    assert not judge(elsewhere, SCENARIO).success
 
 
 def test_golden_closed_loop_run():
@@ -74,3 +75,28 @@ def test_golden_closed_loop_run():
     assert flight.t_anom_s == pytest.approx(float(golden["t_anom_s"]))
     np.testing.assert_allclose(flight.states, golden["states"], atol=2e-2)
     np.testing.assert_allclose(flight.inputs, golden["inputs"], atol=5e-2)
+
+
+@pytest.mark.parametrize("name", ["paper", "hardware"])
+def test_count_violations_judges_the_truth_and_the_models_inputs(name: str) -> None:
+    """States against the scene's limits on the 12-state truth; inputs against the box of
+    the scene's planning model (motor commands for the hover model, accelerations for the
+    point mass)."""
+    scene = load_scenario(name)
+    model = planning_model(scene)
+    rest = np.zeros(12)
+    rest[:3] = np.asarray(scene.start_center)
+    inside = [rest] * 3
+    hover = [model.linear.u_hover] * 3
+    assert count_violations(inside, hover, scene) == 0
+    fast = rest.copy()
+    fast[3] = scene.limits.velocity + 0.5
+    outside = rest.copy()
+    outside[0] = scene.limits.position_hi[0] + 0.5  # beyond the fence
+    assert count_violations([rest, fast, outside], hover, scene) == 2
+    pushed = np.array(hover)
+    pushed[1] = model.u_hi + 0.01
+    assert count_violations(inside, pushed, scene) == 1
+    lost = rest.copy()
+    lost[2] = np.nan  # a non-finite state counts too
+    assert count_violations([lost], [], scene) == 1

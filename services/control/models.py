@@ -1,0 +1,143 @@
+"""Planning models: what the MPC of eq. 3 plans with, in its own coordinates.
+
+The plant is always the 12-state quadrotor of :mod:`.dynamics` (its state is
+what the robot measures and what flights are judged on). The MPC plans with
+one of two linear models of it:
+
+* :class:`QuadrotorModel`, the paper's simulation: the 12-state hover
+  linearization, inputs thrust and body torques. The MPC commands the motors.
+* :class:`PointMassModel`, the paper's hardware: "a simple kinematic model
+  ... [that] uses acceleration commands as its inputs", with the vehicle's own
+  flight controller tracking them (:class:`.plant.FlightController`). State
+  ``(p, v)`` (6), input ``a`` (3, m/s^2), a double integrator per axis.
+
+A model gives the MPC its linear dynamics, the true state and input boxes in
+its coordinates, its state layout (which limits are symmetric and tightened,
+which coordinate a region leaves free) and the maps from the plant's state:
+:meth:`PlanningModel.measure` (12-state truth to model state) and the rest
+states at a position (goals and the centres of recovery regions).
+
+Why two: at the paper's hardware grid (dt 0.05 s, T 10 s, 200 steps) the
+hover model's x/pitch and y/roll chains are fourth-order integrator chains
+whose ADMM iterations run into the tens of thousands (measured, see the
+README); the double integrator converges in tens.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from .dynamics import N_STATE, LinearModel, QuadrotorParams, discretize_zoh
+from .regions import Region
+
+ModelName = Literal["quadrotor", "point-mass"]
+MODEL_NAMES: tuple[ModelName, ...] = ("quadrotor", "point-mass")
+
+
+@dataclass(frozen=True)
+class PlanningModel:
+    """A linear model with its boxes and layout (see the module docstring).
+
+    ``x_lo``/``x_hi`` and ``u_lo``/``u_hi`` are the true limits; the MPC
+    tightens them (:func:`.mpc.tightened_states`). ``symmetric`` are the
+    coordinates whose limits are ``+-limit`` and shrink by a fraction;
+    ``velocity`` get the extra velocity margin; ``free`` are left to the state
+    limits inside a recovery region (yaw); every other non-position coordinate
+    is pinned to zero there (at rest, level).
+    """
+
+    name: ModelName
+    linear: LinearModel
+    x_lo: np.ndarray
+    x_hi: np.ndarray
+    u_lo: np.ndarray  # absolute input bounds [N, N m] or [m/s^2]
+    u_hi: np.ndarray
+    state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+    # the kind of each coordinate, which picks its weight (:class:`.mpc.Weights`)
+    state_groups: tuple[str, ...]
+    input_groups: tuple[str, ...]
+    position: tuple[int, int, int] = (0, 1, 2)
+    velocity: tuple[int, int, int] = (3, 4, 5)
+    symmetric: tuple[int, ...] = (3, 4, 5)
+    free: tuple[int, ...] = ()
+
+    @property
+    def n(self) -> int:
+        return self.linear.n
+
+    @property
+    def m(self) -> int:
+        return self.linear.m
+
+    @property
+    def dt(self) -> float:
+        return self.linear.dt
+
+    def measure(self, x: np.ndarray) -> np.ndarray:
+        """The model state of a measured 12-state ``x`` (p, v, attitude, rates)."""
+        x = np.asarray(x, dtype=float)
+        return x.copy() if self.n == N_STATE else x[: self.n].copy()
+
+    def rest_state(self, position: np.ndarray | tuple[float, ...]) -> np.ndarray:
+        """At rest (and level) at ``position`` (m)."""
+        out = np.zeros(self.n)
+        out[list(self.position)] = position
+        return out
+
+    def region_box(self, region: Region) -> tuple[np.ndarray, np.ndarray]:
+        """``X_R^i`` in model coordinates: the position box, ``free`` coordinates
+        unbounded, everything else at zero (rest states are equilibria)."""
+        lo, hi = np.zeros(self.n), np.zeros(self.n)
+        lo[list(self.position)] = region.position_lo
+        hi[list(self.position)] = region.position_hi
+        lo[list(self.free)] = -np.inf
+        hi[list(self.free)] = np.inf
+        return lo, hi
+
+    def region_center(self, region: Region) -> np.ndarray:
+        return self.rest_state((np.asarray(region.position_lo)
+                                + np.asarray(region.position_hi)) / 2)
+
+
+def quadrotor_model(params: QuadrotorParams, dt: float, x_bounds: tuple[np.ndarray, np.ndarray]
+                    ) -> PlanningModel:
+    """The paper's simulation model: the 12-state hover linearization (ZOH at ``dt``).
+
+    ``x_bounds`` is the 12-state box of the scenario's limits.
+    """
+    u_lo, u_hi = params.input_bounds()
+    return PlanningModel(
+        name="quadrotor", linear=LinearModel.hover(params, dt),
+        x_lo=np.asarray(x_bounds[0], dtype=float), x_hi=np.asarray(x_bounds[1], dtype=float),
+        u_lo=u_lo, u_hi=u_hi,
+        state_names=("px", "py", "pz", "vx", "vy", "vz", "phi", "theta", "psi", "p", "q", "r"),
+        input_names=("F", "tau_x", "tau_y", "tau_z"),
+        state_groups=("position",) * 3 + ("velocity",) * 3 + ("attitude",) * 3 + ("rate",) * 3,
+        input_groups=("thrust", "torque", "torque", "torque"),
+        symmetric=(3, 4, 5, 6, 7, 9, 10, 11), free=(8,))
+
+
+def point_mass_model(dt: float, position_lo, position_hi, velocity: float,
+                     acceleration: tuple[float, float, float]) -> PlanningModel:
+    """The paper's hardware model: ``p'' = a`` per axis, ZOH at ``dt``.
+
+    Limits: the position fence, ``|v| <= velocity`` and ``|a_i| <= acceleration[i]``
+    per axis (m, m/s, m/s^2).
+    """
+    a = np.zeros((6, 6))
+    a[0:3, 3:6] = np.eye(3)
+    b = np.zeros((6, 3))
+    b[3:6, :] = np.eye(3)
+    ad, bd = discretize_zoh(a, b, dt)
+    accel = np.asarray(acceleration, dtype=float)
+    x_lo = np.concatenate([np.asarray(position_lo, dtype=float), np.full(3, -velocity)])
+    x_hi = np.concatenate([np.asarray(position_hi, dtype=float), np.full(3, velocity)])
+    return PlanningModel(
+        name="point-mass", linear=LinearModel(a=ad, b=bd, dt=dt, u_hover=np.zeros(3)),
+        x_lo=x_lo, x_hi=x_hi, u_lo=-accel, u_hi=accel,
+        state_names=("px", "py", "pz", "vx", "vy", "vz"), input_names=("ax", "ay", "az"),
+        state_groups=("position",) * 3 + ("velocity",) * 3, input_groups=("acceleration",) * 3)
