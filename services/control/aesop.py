@@ -57,7 +57,7 @@ from enum import StrEnum
 import numpy as np
 
 from .models import PlanningModel
-from .mpc import BranchProblem, MPCConfig, Plan, SolveStatus, tightened_inputs
+from .mpc import BranchProblem, MPCConfig, Plan, SolveStatus, promised_step, tightened_inputs
 from .regions import Region
 from .selection import SubsetSelector
 
@@ -145,8 +145,10 @@ class _Controller:
         self._active: tuple[int, ...] = ()  # the subset whose recovery plans are kept
         self.memory = _Memory()
         self._x = np.zeros(12)  # the measured plant state of this step
+        self._lag = np.zeros(model.n_lag)  # the model's lag states, from the commands sent
         self._du_hi = tightened_inputs(model, config)[1]
         self.goal = route.goal  # this step's nominal target (model state)
+        self.measured = model.rest_state(np.zeros(3))  # the model state of the last step
 
     @property
     def mode(self) -> Mode:
@@ -158,6 +160,13 @@ class _Controller:
         s = max(self.config.min_region_step, self.config.horizon - k)
         last = self.memory.region_step
         return s if last is None else min(max(s, last - 1), self.config.horizon)
+
+    def _promise(self, k: int) -> int:
+        """While the reasoner thinks (or a hold lasts), ``k`` ticks into the consensus
+        budget: the tree's relaxing promise (:func:`.mpc.promised_step`), never later than
+        :meth:`_region_step`."""
+        return min(max(self.config.min_region_step, promised_step(self.config, k)),
+                   self._region_step(k))
 
     def _late(self, solve: Callable[[int], Plan], s: int, what: str) -> Plan:
         """``solve(s)``; if infeasible, ``solve`` again with the region due later.
@@ -175,8 +184,10 @@ class _Controller:
         plan = solve(s)
         first = s
         while not plan.feasible and s <= cfg.horizon:
-            s = cfg.horizon + 1 if s == cfg.horizon else min(cfg.horizon,
-                                                             s + cfg.late_region_steps)
+            if not plan.status.decided or s == cfg.horizon:
+                s = cfg.horizon + 1  # a rung that did not decide: straight to the last one
+            else:
+                s = min(cfg.horizon, s + cfg.late_region_steps)
             plan = solve(s)
         if plan.feasible:
             if s > first and (mem.region_step is None or s > mem.region_step):
@@ -239,16 +250,18 @@ class _Controller:
             mem.events.append(f"{why} at full K and T: holding regions {self._active}")
         plan = selector.solve(self._active, x, self.goal,
                               max(0, selector.config.consensus - mem.held),
-                              self._region_step(mem.held))
+                              self._promise(mem.held))
         u, used = self._follow(plan, plan.feasible)
         return u, used, plan.status
 
     def _recovering(self, x: np.ndarray) -> tuple[np.ndarray, Plan | None, SolveStatus]:
         """Fly toward the chosen region: ``J({y}, 0, T - k)``.
 
-        If the hard problem is infeasible (the nonlinear plant has drifted from
-        the linear plan), fly the least-violating plan rather than blind: it
-        is still closed-loop. The status reported is the hard problem's.
+        If the hard problem is infeasible even with no deadline (the nonlinear
+        plant has drifted from the linear plan), fly the least-violating plan
+        rather than blind: it is still closed-loop. If it did not decide within
+        its budget, fly the last verified plan. The status reported is the hard
+        problem's.
         """
         mem = self.memory
         k = mem.t - (mem.t_anom or 0) + mem.spent
@@ -261,6 +274,9 @@ class _Controller:
                 x, self.goal, region, 0, s), self._region_step(k), "recovering")
         status = plan.status
         if not plan.feasible and not self.soft_recovery:
+            if not status.decided:  # no verdict within the budget: the last verified plan
+                u, used = self._follow(None, False)
+                return u, used, status
             plan = self._recovery_problem(True).solve(x, self.goal, region, 0, self.config.horizon)
             if not mem.degraded:
                 mem.events.append(f"recovery to region {mem.chosen} infeasible ({status}): "
@@ -279,6 +295,15 @@ class _Controller:
         changes: the flight has not begun.
         """
 
+    def _warm_recovery(self, x: np.ndarray, goal: np.ndarray) -> None:
+        """Cold-solve the recovering problems (the hard one, and the least-violating one it
+        falls back to) toward each region from ``x``, so that the first recovering tick
+        starts warm: a cold solve at 200 steps is a few hundred ms."""
+        kinds = (True,) if self.soft_recovery else (False, True)
+        for soft in kinds:
+            for region in self.regions.values():
+                self._recovery_problem(soft).solve(x, goal, [region], 0, self.config.horizon)
+
     def make_step(self, x: np.ndarray, anomaly: bool, decision: int | None = None
                   ) -> ControlOutput:
         """One tick: the plant's 12-state ``x`` measured, ``anomaly`` from the detector, the
@@ -286,7 +311,8 @@ class _Controller:
         self._x = np.asarray(x, dtype=float)
         if not np.all(np.isfinite(self._x)):
             return self._measurement_lost(anomaly, decision)
-        xm = self.model.measure(self._x)
+        xm = self.model.measure(self._x, self._lag)
+        self.measured = xm
         self.goal = self.route.target(xm, self.model)
         return self._step(xm, anomaly, decision)
 
@@ -338,6 +364,7 @@ class _Controller:
                 mem.inputs, u = None, self.model.linear.u_hover.copy()
             alarms += ("non-finite input from the solver: flying the last plan's recovery "
                        "branch",)
+        self._lag = self.model.advance(self._lag, u)
         left = self.config.consensus - self._k() if mem.mode is Mode.PENDING else None
         out = ControlOutput(u=u, mode=mem.mode, status=status, plan=plan, active_regions=active,
                             t_anom=mem.t_anom, chosen=mem.chosen, request=request,
@@ -382,8 +409,10 @@ class AesopController(_Controller):
         self.selector = selector or SubsetSelector(model, config, regions, min_size=min_size)
 
     def warm_up(self, x: np.ndarray) -> None:
-        xm = self.model.measure(x)
-        self.selector.select(xm, self.route.target(xm, self.model))
+        xm = self.model.measure(x, self._lag)
+        goal = self.route.target(xm, self.model)
+        self.selector.select(xm, goal)
+        self._warm_recovery(xm, goal)
 
     def _step(self, x: np.ndarray, anomaly: bool, decision: int | None) -> ControlOutput:
         mem = self.memory
@@ -396,7 +425,7 @@ class AesopController(_Controller):
         if mem.mode is Mode.PENDING:
             k = self._k()
             plan = self.selector.solve(mem.options, x, self.goal, self.config.consensus - k,
-                                       self._region_step(k))
+                                       self._promise(k))
             u, used = self._follow(plan, plan.feasible)
             return self._output(u, plan.status, used, mem.options)
         u, used, status = self._select(self.selector, x)
@@ -438,8 +467,10 @@ class NaiveController(_Controller):
         self._nominal = BranchProblem(self.model, self.config, 0)
 
     def warm_up(self, x: np.ndarray) -> None:
-        xm = self.model.measure(x)
-        self._nominal.solve(xm, self.route.target(xm, self.model), [])
+        xm = self.model.measure(x, self._lag)
+        goal = self.route.target(xm, self.model)
+        self._nominal.solve(xm, goal, [])
+        self._warm_recovery(xm, goal)
 
     def _nominal_step(self, x: np.ndarray) -> tuple[np.ndarray, Plan | None, SolveStatus,
                                                      tuple[int, ...]]:
@@ -476,8 +507,10 @@ class FallbackSafeController(NaiveController):
         self.selector = SubsetSelector(model, no_consensus, regions, min_size=min_size)
 
     def warm_up(self, x: np.ndarray) -> None:
-        xm = self.model.measure(x)
-        self.selector.select(xm, self.route.target(xm, self.model))
+        xm = self.model.measure(x, self._lag)
+        goal = self.route.target(xm, self.model)
+        self.selector.select(xm, goal)
+        self._warm_recovery(xm, goal)
 
     def _nominal_step(self, x):
         return (*self._select(self.selector, x), self._active)

@@ -78,7 +78,7 @@ def _reference_tick(model, scenario, config, x, controller) -> tuple[float, list
     selector = controller.selector
     for subset in selector.subsets:
         regions = [scenario.region(i) for i in subset]
-        xm, goal = model.measure(x), controller.goal
+        xm, goal = controller.measured, controller.goal
         ref = reference_solve(model, config, regions, xm, goal)
         total += ref.total_ms
         plan = selector.solve(subset, xm, goal)

@@ -4,37 +4,42 @@ The plant is always the 12-state quadrotor of :mod:`.dynamics` (its state is
 what the robot measures and what flights are judged on). The MPC plans with
 one of two linear models of it:
 
-* :class:`QuadrotorModel`, the paper's simulation: the 12-state hover
-  linearization, inputs thrust and body torques. The MPC commands the motors.
-* :class:`PointMassModel`, the paper's hardware: "a simple kinematic model
-  ... [that] uses acceleration commands as its inputs", with the vehicle's own
-  flight controller tracking them (:class:`.plant.FlightController`). State
-  ``(p, v)`` (6), input ``a`` (3, m/s^2), a double integrator per axis.
+* the hover model (:func:`quadrotor_model`), the paper's simulation: the
+  12-state hover linearization, inputs thrust and body torques. The MPC
+  commands the motors.
+* the point mass (:func:`point_mass_model`), the paper's hardware: "a simple
+  kinematic model ... [that] uses acceleration commands as its inputs", with
+  the vehicle's own flight controller tracking them
+  (:class:`.plant.FlightController`). State ``(p, v)`` plus, per axis whose
+  flight controller lags, the realized acceleration ``a`` with
+  ``a' = (u - a) / tau``; input ``u``, the commanded acceleration (m/s^2).
+  The controller knows ``a`` without measuring it: it is its own past
+  commands filtered by the lag (:meth:`PlanningModel.advance`). Without the
+  lag the plan is always a little ahead of the vehicle, and a plan at the
+  edge of feasibility (where AESOP flies) turns infeasible on the next tick.
 
 A model gives the MPC its linear dynamics, the true state and input boxes in
 its coordinates, its state layout (which limits are symmetric and tightened,
 which coordinate a region leaves free) and the maps from the plant's state:
-:meth:`PlanningModel.measure` (12-state truth to model state) and the rest
-states at a position (goals and the centres of recovery regions).
+:meth:`PlanningModel.measure` (12-state truth, plus the lag states, to model
+state) and the rest states at a position (goals and the centres of regions).
 
 Why two: at the paper's hardware grid (dt 0.05 s, T 10 s, 200 steps) the
 hover model's x/pitch and y/roll chains are fourth-order integrator chains
 whose ADMM iterations run into the tens of thousands (measured, see the
-README); the double integrator converges in tens.
+README); the point mass converges in tens.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 
 from .dynamics import N_STATE, LinearModel, QuadrotorParams, discretize_zoh
 from .regions import Region
 
-ModelName = Literal["quadrotor", "point-mass"]
-MODEL_NAMES: tuple[ModelName, ...] = ("quadrotor", "point-mass")
+MODEL_NAMES = ("quadrotor", "point-mass")
 
 
 @dataclass(frozen=True)
@@ -46,10 +51,11 @@ class PlanningModel:
     coordinates whose limits are ``+-limit`` and shrink by a fraction;
     ``velocity`` get the extra velocity margin; ``free`` are left to the state
     limits inside a recovery region (yaw); every other non-position coordinate
-    is pinned to zero there (at rest, level).
+    is pinned to zero there (at rest, level). The last ``len(lag_decay)``
+    coordinates are lag states that :meth:`advance` keeps from the commands.
     """
 
-    name: ModelName
+    name: str
     linear: LinearModel
     x_lo: np.ndarray
     x_hi: np.ndarray
@@ -64,6 +70,8 @@ class PlanningModel:
     velocity: tuple[int, int, int] = (3, 4, 5)
     symmetric: tuple[int, ...] = (3, 4, 5)
     free: tuple[int, ...] = ()
+    lag_inputs: tuple[int, ...] = ()  # the input each lag state follows
+    lag_decay: tuple[float, ...] = ()  # exp(-dt / tau) per lag state
 
     @property
     def n(self) -> int:
@@ -77,10 +85,22 @@ class PlanningModel:
     def dt(self) -> float:
         return self.linear.dt
 
-    def measure(self, x: np.ndarray) -> np.ndarray:
-        """The model state of a measured 12-state ``x`` (p, v, attitude, rates)."""
+    @property
+    def n_lag(self) -> int:
+        return len(self.lag_decay)
+
+    def measure(self, x: np.ndarray, lag: np.ndarray | None = None) -> np.ndarray:
+        """The model state of a measured 12-state ``x`` and the lag states ``lag``."""
         x = np.asarray(x, dtype=float)
-        return x.copy() if self.n == N_STATE else x[: self.n].copy()
+        if self.n == N_STATE:
+            return x.copy()
+        lag = np.zeros(self.n_lag) if lag is None else np.asarray(lag, dtype=float)
+        return np.concatenate([x[:6], lag])
+
+    def advance(self, lag: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The lag states one step on, with ``u`` held (exact for the first-order lag)."""
+        decay = np.asarray(self.lag_decay)
+        return decay * lag + (1.0 - decay) * np.asarray(u, dtype=float)[list(self.lag_inputs)]
 
     def rest_state(self, position: np.ndarray | tuple[float, ...]) -> np.ndarray:
         """At rest (and level) at ``position`` (m)."""
@@ -122,22 +142,40 @@ def quadrotor_model(params: QuadrotorParams, dt: float, x_bounds: tuple[np.ndarr
 
 
 def point_mass_model(dt: float, position_lo, position_hi, velocity: float,
-                     acceleration: tuple[float, float, float]) -> PlanningModel:
+                     acceleration: tuple[float, float, float],
+                     lag: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> PlanningModel:
     """The paper's hardware model: ``p'' = a`` per axis, ZOH at ``dt``.
 
-    Limits: the position fence, ``|v| <= velocity`` and ``|a_i| <= acceleration[i]``
-    per axis (m, m/s, m/s^2).
+    Limits: the position fence, ``|v| <= velocity`` and ``|u_i| <= acceleration[i]``
+    (m, m/s, m/s^2). ``lag[i] > 0`` (s) adds the realized acceleration of axis ``i``
+    as a state with ``a' = (u - a) / lag[i]``; the velocity then integrates ``a``.
     """
-    a = np.zeros((6, 6))
+    axes = [i for i in range(3) if lag[i] > 0]
+    n = 6 + len(axes)
+    a = np.zeros((n, n))
+    b = np.zeros((n, 3))
     a[0:3, 3:6] = np.eye(3)
-    b = np.zeros((6, 3))
-    b[3:6, :] = np.eye(3)
+    for axis in range(3):
+        if axis in axes:
+            j = 6 + axes.index(axis)
+            a[3 + axis, j] = 1.0
+            a[j, j] = -1.0 / lag[axis]
+            b[j, axis] = 1.0 / lag[axis]
+        else:
+            b[3 + axis, axis] = 1.0
     ad, bd = discretize_zoh(a, b, dt)
+    ad[np.abs(ad) < 1e-14] = 0.0  # keep the axes' chains apart (decouple reads sparsity)
+    bd[np.abs(bd) < 1e-14] = 0.0
     accel = np.asarray(acceleration, dtype=float)
-    x_lo = np.concatenate([np.asarray(position_lo, dtype=float), np.full(3, -velocity)])
-    x_hi = np.concatenate([np.asarray(position_hi, dtype=float), np.full(3, velocity)])
+    x_lo = np.concatenate([np.asarray(position_lo, dtype=float), np.full(3, -velocity),
+                           np.full(len(axes), -np.inf)])
+    x_hi = np.concatenate([np.asarray(position_hi, dtype=float), np.full(3, velocity),
+                           np.full(len(axes), np.inf)])
+    names = ("px", "py", "pz", "vx", "vy", "vz") + tuple(f"a{'xyz'[i]}" for i in axes)
     return PlanningModel(
         name="point-mass", linear=LinearModel(a=ad, b=bd, dt=dt, u_hover=np.zeros(3)),
         x_lo=x_lo, x_hi=x_hi, u_lo=-accel, u_hi=accel,
-        state_names=("px", "py", "pz", "vx", "vy", "vz"), input_names=("ax", "ay", "az"),
-        state_groups=("position",) * 3 + ("velocity",) * 3, input_groups=("acceleration",) * 3)
+        state_names=names, input_names=("ax", "ay", "az"),
+        state_groups=("position",) * 3 + ("velocity",) * 3 + ("lag",) * len(axes),
+        input_groups=("acceleration",) * 3,
+        lag_inputs=tuple(axes), lag_decay=tuple(float(np.exp(-dt / lag[i])) for i in axes))

@@ -69,6 +69,7 @@ from enum import StrEnum
 
 import numpy as np
 import osqp
+import piqp
 import scipy.sparse as sp
 
 from .models import PlanningModel
@@ -122,7 +123,8 @@ class Weights:
     rate: float = 0.1  # s^2/rad^2
     thrust: float = 0.05  # 1/N^2
     torque: float = 1.0  # 1/(N m)^2
-    acceleration: float = 0.5  # s^4/m^2
+    acceleration: float = 0.5  # s^4/m^2, on the commanded acceleration
+    lag: float = 0.0  # s^4/m^2, on the realized acceleration (a lag state)
 
     def state(self, model: PlanningModel) -> np.ndarray:
         return np.array([getattr(self, group) for group in model.state_groups])
@@ -136,7 +138,11 @@ class MPCConfig:
     horizon: int = 40  # T, steps
     consensus: int = 15  # K, steps
     weights: Weights = field(default_factory=Weights)
-    recovery_weight: float = 0.01  # scale of the recovery branches' own tracking cost
+    recovery_weight: float = 0.01  # scale of the recovery branches' own cost
+    # share of that cost that tracks the region's centre (the rest is input effort). Eq. 3
+    # prices only the nominal branch; input effort alone keeps recovery plans unique. Over a
+    # long horizon with regions far away, tracking them pulls the robot back from its goal.
+    recovery_tracking: float = 1.0
     shrink: float = 0.03  # fraction by which symmetric state limits and input limits tighten
     position_margin: float = 0.05  # m: fence and region boxes planned this far inside
     # m/s: velocity limits planned this much further inside. On the paper's vehicle the
@@ -146,6 +152,21 @@ class MPCConfig:
     input_margin: float = 0.005  # least tightening of an input bound (OSQP is eps-exact)
     relax_steps: int = 20  # steps over which an initial-state excess is tapered out (2 s at
     # dt 0.1: the paper vehicle's attitude chain needs about 1 s to take off the margin)
+    # steps before the taper starts: the excess is allowed in full up to step relax_lag. The
+    # hover model cannot change velocity in one step (1); a point mass can (0), and with a
+    # lag it would keep the excess forever, braking only "from the next step" every tick.
+    relax_lag: int = 1
+    # least widening of the symmetric limits (m/s, rad, rad/s) in those first steps: a
+    # state just inside its box can be carried over it by dynamics no input can stop at
+    # once (a point mass's acceleration lag); this keeps such a state feasible. It spends
+    # part of the margin between the planned and the true limits, so it must be smaller.
+    relax_floor: float = 0.0
+    # R, steps: nominal selection promises the regions R steps before T, and while the
+    # reasoner thinks (or a hold lasts) the promise relaxes linearly to T at k = K. A plan
+    # sits on the edge of its promise (the nominal branch pulls it there), and a plant that
+    # lags its plan a little would push it over; the relaxing promise gives each tick R/K
+    # steps of slack to absorb that. Theorem 1's deadline, T after the anomaly, still holds.
+    reserve_steps: int = 0
     min_region_step: int = 5  # earliest step a shrinking horizon may pin a region to
     late_region_steps: int = 5  # how far an unreachable region deadline is pushed back per try
     slack_weight: float = 1000.0  # L1 price per unit of constraint violation
@@ -156,17 +177,25 @@ class MPCConfig:
     # A solve stopped by either cap has not decided feasibility (SolveStatus.decided): the
     # selector does not count it as infeasible, and the next tick resumes from its iterate.
     max_iter: int = 1000  # per warm solve
-    max_iter_cold: int = 50000  # the first solve of a problem (off the loop, in warm-up)
+    max_iter_cold: int = 2000  # the first solve of a problem (off the loop, in warm-up)
     time_limit_s: float = 0.0  # per warm chain solve, 0: none (the tick's budget, not a verdict)
+    # PIQP iterations to settle what OSQP left undecided at its cap (0: no referee)
+    referee_max_iter: int = 80
     workers: int = 1  # threads solving the chains of one problem (OSQP releases the GIL)
 
     def __post_init__(self) -> None:
         if not 0 <= self.consensus < self.horizon:
             raise ValueError("need 0 <= consensus < horizon")
+        if not 0.0 <= self.recovery_tracking <= 1.0:
+            raise ValueError("need 0 <= recovery_tracking <= 1")
         if not 1 <= self.min_region_step <= self.horizon:
             raise ValueError("need 1 <= min_region_step <= horizon")
+        if not 0 <= self.reserve_steps <= self.horizon - self.consensus:
+            raise ValueError("need 0 <= reserve_steps <= horizon - consensus")
         if self.late_region_steps < 1:
             raise ValueError("need late_region_steps >= 1")
+        if self.relax_steps < 1 or self.relax_lag < 0:
+            raise ValueError("need relax_steps >= 1 and relax_lag >= 0")
         if self.max_iter < 1 or self.max_iter_cold < 1 or self.workers < 1:
             raise ValueError("need max_iter, max_iter_cold and workers >= 1")
         if self.time_limit_s < 0:
@@ -210,6 +239,7 @@ class Chain:
     du_hi: np.ndarray
     q_state: np.ndarray  # diagonal weights
     r_input: np.ndarray
+    floor: np.ndarray  # least early widening per state (relax_floor on symmetric limits)
 
 
 @dataclass(frozen=True)
@@ -237,6 +267,17 @@ class ChainSolution:
     solve_ms: float
 
 
+@dataclass(frozen=True)
+class _Raw:
+    """What a solver returned: primal, OSQP-convention duals, objective, iterations."""
+
+    status: SolveStatus
+    x: np.ndarray
+    y: np.ndarray
+    objective: float
+    iterations: int
+
+
 def tightened_states(model: PlanningModel, config: MPCConfig) -> tuple[np.ndarray, np.ndarray]:
     """The state box the MPC plans in: the model's symmetric limits (velocity, tilt, rates)
     scaled by ``1 - shrink``, velocity ``velocity_margin`` further in, the position fence
@@ -250,6 +291,23 @@ def tightened_states(model: PlanningModel, config: MPCConfig) -> tuple[np.ndarra
     lo[vel] += config.velocity_margin
     hi[vel] -= config.velocity_margin
     return lo, hi
+
+
+def promised_step(config: MPCConfig, k: int) -> int:
+    """The step, counted from now, by which a tree promises its regions ``k`` ticks after
+    the promise was made at full K and T: ``T - R`` at first, relaxing linearly to
+    Algorithm 1's ``T - k`` at ``k = K`` (``R = reserve_steps``)."""
+    r, big_k = config.reserve_steps, max(config.consensus, 1)
+    reserve = r - (r * min(k, big_k)) // big_k
+    return config.horizon - k - reserve
+
+
+def relax_taper(config: MPCConfig) -> np.ndarray:
+    """``(T,)``: the share of an initial-state excess over the tightened box that the bounds
+    of steps ``k = 1..T`` allow: 1 up to step ``relax_lag``, then falling linearly to 0
+    over ``relax_steps`` steps."""
+    steps = np.arange(1, config.horizon + 1)
+    return np.clip(1.0 - (steps - config.relax_lag) / config.relax_steps, 0.0, 1.0)
 
 
 def planning_box(model: PlanningModel, region: Region, config: MPCConfig
@@ -329,7 +387,8 @@ class ChainQP:
         self.n_branches = n_recovery + int(nominal)
         horizon = config.horizon
         self.branch_size = (horizon + 1) * self.n + horizon * self.m
-        self.n_var = self.n_branches * self.branch_size + (2 * self.n * n_recovery if soft else 0)
+        self._n_sigma = 2 * self.n * n_recovery if soft else 0
+        self.n_var = self.n_branches * self.branch_size + self._n_sigma
         self._build()
         self._var_shift, self._con_shift = self._shift_maps()
         self._previous: tuple[np.ndarray, np.ndarray] | None = None
@@ -430,7 +489,7 @@ class ChainQP:
                                    np.concatenate([np.ones(cons.size), -np.ones(cons.size)]),
                                    cons.size)
         # slack: sigma+ >= 0 and sigma- >= 0
-        n_sig = 2 * n * self.n_rec if self.soft else 0
+        n_sig = self._n_sigma
         self._sigma_rows = add(np.arange(n_sig), self._sigma(0) + np.arange(n_sig), 1.0, n_sig,
                                0.0, np.inf)
         self._a = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows),
@@ -438,18 +497,27 @@ class ChainQP:
                                 shape=(count, self.n_var))
         self._lower = np.concatenate([lo for lo, _ in bounds])
         self._upper = np.concatenate([hi for _, hi in bounds])
+        # rows that bound one variable (state, input and slack boxes): PIQP's variable bounds
+        self._rows = self._a.tocsr()
+        single = np.diff(self._rows.indptr) == 1
+        single[self._init_rows:self._init_rows + nb * n] = False
+        first = self._rows.indptr[:-1].clip(max=max(self._rows.nnz - 1, 0))
+        self._bound_rows = single & (self._rows.data[first] == 1.0)
+        self._bound_vars = self._rows.indices[first[self._bound_rows]]
         self._build_cost()
 
     def _build_cost(self) -> None:
         cfg, nb = self.config, self.n_branches
         scale = np.array([1.0 if (b == 0) else cfg.recovery_weight for b in range(nb)])
-        self._branch_scale = scale
+        tracking = scale * np.array([1.0 if (b == 0) else cfg.recovery_tracking
+                                     for b in range(nb)])
+        self._branch_scale = tracking  # of the state cost, for the constant OSQP leaves out
         diag = np.zeros(self.n_var)
-        diag[self._xi[:, 1:, :]] = scale[:, None, None] * self.chain.q_state
+        diag[self._xi[:, 1:, :]] = tracking[:, None, None] * self.chain.q_state
         diag[self._ui] = scale[:, None, None] * self.chain.r_input
         q = np.zeros(self.n_var)
-        if self.soft and self.n_rec:
-            sig = slice(self._sigma(0), self._sigma(0) + 2 * self.n * self.n_rec)
+        if self._n_sigma:
+            sig = slice(self._sigma(0), self._sigma(0) + self._n_sigma)
             diag[sig] = 1e-6
             q[sig] = cfg.slack_weight
         self._diag = diag
@@ -491,8 +559,9 @@ class ChainQP:
 
         ``boxes`` fill the recovery slots in order; ``consensus`` (K') and
         ``s`` (the step from which recovery branches lie in their box) are in
-        steps. The same call twice in a row returns the first answer. A
-        non-finite ``x0`` or ``goal`` is refused (``FAILED``) without a solve.
+        steps. The same decided call twice in a row returns the first answer;
+        an undecided one resumes from where it stopped. A non-finite ``x0`` or
+        ``goal`` is refused (``FAILED``) without a solve.
         """
         cfg, n, m, horizon, nb = self.config, self.n, self.m, self.config.horizon, self.n_branches
         if len(boxes) != self.n_rec:
@@ -509,9 +578,8 @@ class ChainQP:
         init = slice(self._init_rows, self._init_rows + nb * n)
         lo[init] = hi[init] = np.tile(x0, nb)
         # state boxes, widened early on by any excess of x0 over the tightened limits
-        excess = np.maximum(np.maximum(x0 - chain.x_hi, chain.x_lo - x0), 0.0)
-        taper = np.clip(1.0 - np.arange(horizon) / max(cfg.relax_steps, 1), 0.0, 1.0)
-        widen = taper[:, None] * excess[None, :]  # (T, n), step k = 1..T
+        excess = np.maximum(np.maximum(x0 - chain.x_hi, chain.x_lo - x0), chain.floor)
+        widen = relax_taper(cfg)[:, None] * excess[None, :]  # (T, n), step k = 1..T
         box_lo = np.repeat((chain.x_lo - widen)[None], nb, axis=0)
         box_hi = np.repeat((chain.x_hi + widen)[None], nb, axis=0)
         targets = np.empty((nb, n))
@@ -533,20 +601,21 @@ class ChainQP:
         free[:, :consensus] = 0.0
         lo[cons], hi[cons] = -free.ravel(), free.ravel()
         if np.any(lo > hi):  # a region outside the state limits: nothing to solve
-            solution = self._solution(None, SolveStatus.INFEASIBLE, targets, 0.0)
+            solution = self._solution(None, targets, 0.0)
         else:
             solution = self._run(q, lo, hi, targets)
-        self._memo = (key, solution)
+        # an undecided answer is not remembered: the same call again resumes the solve
+        self._memo = (key, solution) if solution.status.decided else None
         return solution
 
     def _run(self, q: np.ndarray, lo: np.ndarray, hi: np.ndarray,
              targets: np.ndarray) -> ChainSolution:
+        """OSQP, warm-started; if it stops at its cap without deciding, PIQP referees."""
         cfg = self.config
         infinity = osqp.constant("OSQP_INFTY")
-        lo = np.where(np.isfinite(lo), lo, -infinity)
-        hi = np.where(np.isfinite(hi), hi, infinity)
         start_time = time.perf_counter()
-        self.solver.update(q=q, l=lo, u=hi)
+        self.solver.update(q=q, l=np.where(np.isfinite(lo), lo, -infinity),
+                           u=np.where(np.isfinite(hi), hi, infinity))
         if self._previous is not None:
             z_prev, y_prev = self._previous
             self.solver.warm_start(x=z_prev[self._var_shift], y=y_prev[self._con_shift])
@@ -557,34 +626,72 @@ class ChainQP:
                                         time_limit=limit)
             self._warm = warm
         result = self.solver.solve(raise_error=False)
+        raw = _Raw(_OSQP_STATUS.get(result.info.status_val, SolveStatus.FAILED), result.x,
+                   result.y, float(result.info.obj_val), int(result.info.iter))
+        if not raw.status.decided and cfg.referee_max_iter > 0:
+            judged = self._referee(q, lo, hi)
+            raw = replace(judged, iterations=raw.iterations + judged.iterations)
         solve_ms = (time.perf_counter() - start_time) * 1e3
-        status = _OSQP_STATUS.get(result.info.status_val, SolveStatus.FAILED)
-        if status in (SolveStatus.SOLVED, SolveStatus.INACCURATE, SolveStatus.MAX_ITER,
-                      SolveStatus.TIME_LIMIT) and np.all(np.isfinite(result.x)):
+        if raw.status is not SolveStatus.FAILED and raw.status is not SolveStatus.INFEASIBLE \
+                and np.all(np.isfinite(raw.x)) and np.all(np.isfinite(raw.y)):
             # a capped iterate is kept too: the next tick resumes from it, shifted
-            self._previous = (result.x.copy(), result.y.copy())
-        return self._solution(result, status, targets, solve_ms)
+            self._previous = (raw.x.copy(), raw.y.copy())
+        return self._solution(raw, targets, solve_ms)
 
-    def _solution(self, result, status: SolveStatus, targets: np.ndarray,
-                  solve_ms: float) -> ChainSolution:
+    def _referee(self, q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> _Raw:
+        """The same QP by PIQP, an interior-point method that settles feasibility (a
+        solution or a certificate) in a few tens of iterations where ADMM can take
+        thousands. Single-variable box rows become variable bounds; its duals are mapped
+        to OSQP's (``y = z_u - z_l``) so that its answer warm-starts the next tick."""
+        cfg = self.config
+        bound = self._bound_rows
+        eq = (lo == hi) & ~bound
+        ineq = ~eq & ~bound & (np.isfinite(lo) | np.isfinite(hi))
+        x_lo = np.full(self.n_var, -np.inf)
+        x_hi = np.full(self.n_var, np.inf)
+        x_lo[self._bound_vars] = lo[bound]
+        x_hi[self._bound_vars] = hi[bound]
+        solver = piqp.SparseSolver()
+        settings = solver.settings
+        settings.verbose = False
+        settings.max_iter = cfg.referee_max_iter
+        settings.eps_abs, settings.eps_rel = cfg.eps_abs / 10, cfg.eps_rel / 10
+        a = self._rows
+        solver.setup(self._p, q, a[eq].tocsc(), lo[eq], a[ineq].tocsc(), lo[ineq], hi[ineq],
+                     x_lo, x_hi)
+        code = solver.solve()
+        out = solver.result
+        status = {piqp.PIQP_SOLVED: SolveStatus.SOLVED,
+                  piqp.PIQP_PRIMAL_INFEASIBLE: SolveStatus.INFEASIBLE,
+                  piqp.PIQP_MAX_ITER_REACHED: SolveStatus.MAX_ITER}.get(code, SolveStatus.FAILED)
+        y = np.zeros(len(lo))
+        y[eq] = out.y
+        y[ineq] = out.z_u - out.z_l
+        y[bound] = (out.z_bu - out.z_bl)[self._bound_vars]
+        return _Raw(status, np.asarray(out.x), y, float(out.info.primal_obj),
+                    int(out.info.iter))
+
+    def _solution(self, raw: _Raw | None, targets: np.ndarray, solve_ms: float
+                  ) -> ChainSolution:
         horizon = self.config.horizon
-        z = None if result is None else result.x
-        iterations = 0 if result is None else int(result.info.iter)
+        status = SolveStatus.INFEASIBLE if raw is None else raw.status
+        z = None if raw is None else raw.x
+        iterations = 0 if raw is None else raw.iterations
         if status not in (SolveStatus.SOLVED, SolveStatus.INACCURATE) or z is None \
                 or not np.all(np.isfinite(z)):
             if status in (SolveStatus.SOLVED, SolveStatus.INACCURATE):
                 status = SolveStatus.FAILED  # "solved" with a non-finite answer
             return ChainSolution(status, float("inf"), None, None, float("inf"), iterations,
                                  solve_ms)
-        cost = float(result.info.obj_val)
+        cost = raw.objective
         # the constants OSQP leaves out: sum over branches of w_b * T * t_b' Q t_b
         cost += float(np.sum(self._branch_scale * horizon
                              * np.einsum("bi,i,bi->b", targets, self.chain.q_state, targets)))
         states = z[self._xi]
         inputs = z[self._ui]
         slack = 0.0
-        if self.soft and self.n_rec:
-            sig = z[self._sigma(0):self._sigma(0) + 2 * self.n * self.n_rec]
+        if self._n_sigma:
+            sig = z[self._sigma(0):self._sigma(0) + self._n_sigma]
             slack = float(np.max(np.abs(sig)))
             cost -= self.config.slack_weight * float(np.sum(sig))  # report the task cost
         return ChainSolution(status, cost, states, inputs, slack, iterations, solve_ms)
@@ -616,12 +723,14 @@ class BranchProblem:
         du_lo, du_hi = tightened_inputs(model, config)
         q_state, r_input = config.weights.state(model), config.weights.input(model)
         a, b = model.linear.a, model.linear.b
+        floor = np.zeros(model.n)
+        floor[list(model.symmetric)] = config.relax_floor
         self.chains = []
         for states, inputs in decouple(a, b):
             s, i = list(states), list(inputs)
             self.chains.append(Chain(states, inputs, a[np.ix_(s, s)], b[np.ix_(s, i)],
                                      self.x_lo[s], self.x_hi[s], du_lo[i], du_hi[i],
-                                     q_state[s], r_input[i]))
+                                     q_state[s], r_input[i], floor[s]))
         self._cache: ChainCache = {} if cache is None else cache
         self._executor = executor
 

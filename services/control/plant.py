@@ -73,10 +73,8 @@ class SimulatedQuadrotor:
 class FlightControllerGains:
     """A PX4-style cascade: acceleration -> attitude -> body rates -> torques."""
 
-    position: float = 1.0  # 1/s^2: acceleration per metre off the tick's reference
-    velocity: float = 2.5  # 1/s: acceleration per m/s off the reference
-    attitude: float = 6.0  # 1/s: body-rate set-point per radian of attitude error
-    rate: float = 25.0  # 1/s: angular acceleration per rad/s of rate error
+    attitude: float = 12.0  # 1/s: body-rate set-point per radian of attitude error
+    rate: float = 45.0  # 1/s: angular acceleration per rad/s of rate error
     max_tilt: float = 0.3  # rad, roll and pitch set-points are clipped here
     max_rate: tuple[float, float, float] = (1.2, 1.2, 0.8)  # rad/s, rate set-point limits
     hz: float = 250.0  # inner-loop rate
@@ -115,11 +113,14 @@ class FlightController:
 
 
 class TrackedQuadrotor:
-    """The quadrotor with its flight controller, tracking an acceleration per tick.
+    """The quadrotor with its flight controller tracking an acceleration command.
 
-    Within a tick the reference is the double integrator from the measured
-    state under the commanded acceleration (what the point-mass plan
-    predicts); the controller adds position and velocity feedback toward it.
+    As PX4 does with an acceleration set-point, the flight controller runs no
+    position or velocity loop of its own: the MPC closes that loop at the
+    control rate. Horizontally the realized acceleration follows the command
+    with a first-order lag (about 0.08 s with the default gains and the
+    hardware scene's vehicle; the scene's ``acceleration_lag``), vertically at
+    once.
     """
 
     def __init__(self, x0: np.ndarray, dt: float, params: QuadrotorParams | None = None,
@@ -137,17 +138,12 @@ class TrackedQuadrotor:
         return self._x.copy()
 
     def step(self, u: np.ndarray) -> np.ndarray:
+        """Track the acceleration ``u`` (m/s^2, world frame) for ``dt``."""
         accel = np.asarray(u, dtype=float)
-        g = self.gains
         x = self._x
-        p0, v0 = x[0:3].copy(), x[3:6].copy()
         h = self.dt / self.inner
-        for i in range(self.inner):
-            tau = i * h
-            p_ref = p0 + v0 * tau + 0.5 * accel * tau * tau
-            v_ref = v0 + accel * tau
-            desired = accel + g.position * (p_ref - x[0:3]) + g.velocity * (v_ref - x[3:6])
-            x = simulate_step(x, self.controller.command(x, desired), h, self.params, 1)
+        for _ in range(self.inner):
+            x = simulate_step(x, self.controller.command(x, accel), h, self.params, 1)
         self._x = x
         self.t += self.dt
         return self.state
@@ -158,7 +154,7 @@ def planning_model(scenario: Scenario) -> PlanningModel:
     if scenario.model == "point-mass":
         lim = scenario.limits
         return point_mass_model(scenario.dt, lim.position_lo, lim.position_hi, lim.velocity,
-                                lim.acceleration)
+                                lim.acceleration, scenario.acceleration_lag)
     return quadrotor_model(scenario.vehicle, scenario.dt, scenario.limits.box())
 
 

@@ -10,7 +10,7 @@ solver (CLARABEL by default). It shares no matrices or index maps with
 Every branch ``b`` has states ``x_b[0..T]`` and input deviations
 ``du_b[0..T-1]`` (``u = u_hover + du``)::
 
-    minimise   sum_b w_b [ sum_{j=1..T} |x_b[j] - t_b|_Q^2 + sum_{j=0..T-1} |du_b[j]|_R^2 ]
+    minimise   sum_b w_b [ c_b sum_{j=1..T} |x_b[j] - t_b|_Q^2 + sum_{j=0..T-1} |du_b[j]|_R^2 ]
                + slack_weight * sum(sigma+ + sigma-) + 1e-6 |sigma|^2            (soft only)
     s.t.       x_b[0] = x0,   x_b[j+1] = A x_b[j] + B du_b[j]
                du_lo <= du_b[j] <= du_hi
@@ -18,9 +18,9 @@ Every branch ``b`` has states ``x_b[0..T]`` and input deviations
                du_r[0] = du_nominal[0]              (each recovery branch r, with a nominal)
                du_r[j] = du_r'[j] for j < K         (consecutive recovery branches r, r')
 
-with ``w_b = 1`` and ``t_b = goal`` for the nominal branch (index 0), and
-``w_b = recovery_weight`` and ``t_b`` = its region's centre for a recovery
-branch (weight 1 when there is no nominal branch). ``d_b`` exists only for
+with ``w_b = c_b = 1`` and ``t_b = goal`` for the nominal branch (index 0), and
+``w_b = recovery_weight``, ``c_b = recovery_tracking`` and ``t_b`` = its region's
+centre for a recovery branch (both 1 when there is no nominal branch). ``d_b`` exists only for
 recovery branches of a soft problem and is zero otherwise; ``sigma+, sigma-
 >= 0``, one pair per state component, shared by all steps of the branch.
 
@@ -28,8 +28,9 @@ The state box ``[lo_b[j], hi_b[j]]``:
 
 * the state, input and region boxes are tightened as the OSQP problem does
   (``tightened_states``, ``tightened_inputs``, ``planning_box``);
-* an excess of ``x0`` over the tightened box widens the box of step ``j`` by
-  ``excess * clip(1 - (j - 1) / relax_steps, 0, 1)``;
+* an excess of ``x0`` over the tightened box (at least ``relax_floor`` on the
+  symmetric limits) widens the box of step ``j`` by
+  ``excess * clip(1 - (j - relax_lag) / relax_steps, 0, 1)``;
 * a recovery branch's box is intersected, on steps ``j >= s``, with its
   region's box widened by the same amount.
 
@@ -94,24 +95,27 @@ def reference_solve(model: PlanningModel, config: MPCConfig,
 
     # the state box of steps 1..T (rows), tightened and then widened by the tapered excess
     x_lo, x_hi = tightened_states(model, config)
-    excess = np.maximum(np.maximum(x0 - x_hi, x_lo - x0), 0.0)
+    floor = np.zeros(n)
+    floor[list(model.symmetric)] = config.relax_floor
+    excess = np.maximum(np.maximum(x0 - x_hi, x_lo - x0), floor)
     steps = np.arange(1, horizon + 1)
-    taper = np.clip(1.0 - (steps - 1) / max(config.relax_steps, 1), 0.0, 1.0)
+    taper = np.clip(1.0 - (steps - config.relax_lag) / config.relax_steps, 0.0, 1.0)
     widen = taper[:, None] * excess[None, :]
     box_lo, box_hi = x_lo - widen, x_hi + widen
 
-    # branches: (target, weight, region or None)
-    branches: list[tuple[np.ndarray, float, Region | None]] = []
+    # branches: (target, weight, share of it on tracking the target, region or None)
+    branches: list[tuple[np.ndarray, float, float, Region | None]] = []
     if nominal:
-        branches.append((goal, 1.0, None))
+        branches.append((goal, 1.0, 1.0, None))
     for region in regions:
-        weight = config.recovery_weight if nominal else 1.0
-        branches.append((model.region_center(region), weight, region))
+        weight, share = (config.recovery_weight, config.recovery_tracking) if nominal \
+            else (1.0, 1.0)
+        branches.append((model.region_center(region), weight, share, region))
 
     constraints: list[cp.Constraint] = []
     tracking = 0
     xs, dus, sigmas = [], [], []
-    for target, weight, region in branches:
+    for target, weight, share, region in branches:
         x = cp.Variable((horizon + 1, n))
         du = cp.Variable((horizon, m))
         xs.append(x)
@@ -134,7 +138,7 @@ def reference_solve(model: PlanningModel, config: MPCConfig,
         state_cost = cp.sum(cp.multiply(np.tile(q_state, (horizon, 1)),
                                         cp.square(x[1:] - target[None, :])))
         input_cost = cp.sum(cp.multiply(np.tile(r_input, (horizon, 1)), cp.square(du)))
-        tracking = tracking + weight * (state_cost + input_cost)
+        tracking = tracking + weight * (share * state_cost + input_cost)
 
     # consensus: recovery branches follow the nominal's first input and each other's first K
     first_recovery = int(nominal)

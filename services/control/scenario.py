@@ -29,12 +29,14 @@ import numpy as np
 import yaml
 
 from .dynamics import N_STATE, POS, RATE, VEL, QuadrotorParams
-from .models import MODEL_NAMES, ModelName
+from .models import MODEL_NAMES
 from .regions import Region, check_regions
 
 BUNDLED = ("paper", "hardware")  # scenario names that load the packaged files
 # MPCConfig fields a scenario may set (numbers only; the rest belongs to the code)
 MPC_FIELDS = ("velocity_margin", "position_margin", "shrink", "input_margin", "relax_steps",
+              "recovery_tracking", "relax_lag", "relax_floor", "referee_max_iter",
+              "reserve_steps",
               "min_region_step", "late_region_steps", "recovery_weight", "max_iter",
               "max_iter_cold", "time_limit_s", "workers", "eps_abs", "eps_rel")
 
@@ -88,9 +90,15 @@ class Scenario:
     dt: float = 0.1  # s
     horizon_s: float = 4.0  # T
     consensus_s: float = 1.5  # K
-    model: ModelName = "quadrotor"  # what the MPC plans with (models.py)
+    model: str = "quadrotor"  # what the MPC plans with: "quadrotor" or "point-mass" (models.py)
+    # s per axis: how far the vehicle's flight controller lags an acceleration command
+    # (point-mass planning only; 0: none)
+    acceleration_lag: tuple[float, float, float] = (0.0, 0.0, 0.0)
     vehicle: QuadrotorParams = field(default_factory=QuadrotorParams)
     approach_height: float = 0.0  # m: fly to this far above the goal first, then descend
+    # s: when the closed-loop ablation's consequential anomalies come (uniform), the paper's
+    # 1..4 s by default
+    anomaly_window: tuple[float, float] = (1.0, 4.0)
     mpc: tuple[tuple[str, float], ...] = ()  # MPCConfig overrides, (field, value)
 
     def __post_init__(self) -> None:
@@ -101,6 +109,12 @@ class Scenario:
             raise check("consensus_s (K) must be shorter than horizon_s (T)")
         if self.model not in MODEL_NAMES:
             raise check(f"model: expected one of {', '.join(MODEL_NAMES)}")
+        if len(self.acceleration_lag) != 3 or not all(0.0 <= v <= 2.0
+                                                        for v in self.acceleration_lag):
+            raise check("acceleration_lag: expected 3 numbers in 0..2 s")
+        lo, hi = self.anomaly_window
+        if not 0.0 <= lo <= hi:
+            raise check("anomaly_window: expected [from, to] s with 0 <= from <= to")
         if not 0.0 <= self.approach_height <= 10.0:
             raise check("approach_height: expected 0..10 m")
         unknown = [k for k, _ in self.mpc if k not in MPC_FIELDS]
@@ -192,9 +206,11 @@ def scenario_from_dict(data: Any) -> Scenario:
             dt=float(data.get("dt", 0.1)),
             horizon_s=float(data.get("horizon_s", 4.0)),
             consensus_s=float(data.get("consensus_s", 1.5)),
-            model=str(data.get("model", "quadrotor")),  # type: ignore[arg-type]
+            model=str(data.get("model", "quadrotor")),
+            acceleration_lag=tuple(float(v) for v in data.get("acceleration_lag", (0, 0, 0))),
             vehicle=_vehicle(_mapping(data, "vehicle")),
             approach_height=float(data.get("approach_height", 0.0)),
+            anomaly_window=tuple(float(v) for v in data.get("anomaly_window", (1.0, 4.0))),
             mpc=_mpc_overrides(_mapping(data, "mpc")),
         )
     except KeyError as exc:

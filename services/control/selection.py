@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .models import PlanningModel
-from .mpc import BranchProblem, ChainCache, MPCConfig, Plan, SolveStatus
+from .mpc import BranchProblem, ChainCache, MPCConfig, Plan, SolveStatus, promised_step
 from .regions import Region
 
 
@@ -90,11 +90,15 @@ class SubsetSelector:
 
     def solve(self, subset: tuple[int, ...], x0: np.ndarray, goal: np.ndarray,
               consensus: int | None = None, region_step: int | None = None) -> Plan:
+        """``J(subset, K', s)``, by default at K and the full promise (``T`` less the
+        reserve, :func:`~.mpc.promised_step`)."""
+        if region_step is None:
+            region_step = promised_step(self.config, 0)
         return self.problem(subset).solve(x0, goal, [self.regions[i] for i in subset],
                                           consensus, region_step, stop_early=True)
 
     def select(self, x0: np.ndarray, goal: np.ndarray) -> Selection:
-        """Solve every candidate subset at full K and T; keep the cheapest feasible."""
+        """Solve every candidate subset at full K and promise; keep the cheapest feasible."""
         start = time.perf_counter()
         subsets = self.subsets
         if self.screen:

@@ -66,9 +66,10 @@ class Case:
 
 
 def sample_cases(scenario: Scenario, n: int, seed: int) -> list[Case]:
-    """The paper's distribution: start uniform around the centre, anomaly in [1 s, 4 s]."""
+    """The paper's distribution: start uniform around the centre, anomaly uniform in the
+    scene's ``anomaly_window`` (the paper's [1 s, 4 s] by default)."""
     rng = np.random.default_rng(seed)
-    return [Case(i, scenario.sample_start(rng), float(rng.uniform(1.0, 4.0)),
+    return [Case(i, scenario.sample_start(rng), float(rng.uniform(*scenario.anomaly_window)),
                  float(rng.uniform(0.2, 1.0) * scenario.consensus_s), float(rng.uniform()))
             for i in range(n)]
 

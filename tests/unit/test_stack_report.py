@@ -53,9 +53,9 @@ def test_ended_in_names_the_goal_the_regions_or_nothing() -> None:
     moving = rest_at(*SCENE.goal)
     moving[3] = 0.5
     assert ended_in(moving, SCENE) is None
-    assert ended_in(rest_at(1.5, 1.2, 0.1), SCENE) == "blue-box"
-    assert ended_in(rest_at(0.5, -1.1, 1.2), SCENE) == "holding-zone"
-    assert ended_in(rest_at(-2.0, 0.0, 1.5), SCENE) is None
+    for region in SCENE.regions:
+        assert ended_in(rest_at(*region.center[:3]), SCENE) == region.name
+    assert ended_in(rest_at(0.0, 0.0, 1.5), SCENE) is None  # mid-arena, in no region
 
 
 def test_judge_accepts_the_expected_ending_and_names_each_problem() -> None:
