@@ -100,7 +100,10 @@ def build_parser() -> argparse.ArgumentParser:
     bm.add_argument("--ticks", type=int, default=60, help="ticks per flight (default 60)")
     bm.add_argument("--reference-every", type=int, default=10,
                     help="solve the CVXPY reference every N ticks (default 10)")
-    bm.add_argument("--scenario", type=Path, default=None, help="scenario file (default: paper)")
+    bm.add_argument("--scenario", type=Path, default=None,
+                    help="a bundled scenario (paper, hardware) or a file (default: paper)")
+    bm.add_argument("--horizons", type=int, nargs="+", default=[],
+                    help="also re-grid the scene to these N at the same T (e.g. 40 100 200 400)")
     bm.add_argument("--seed", type=int, default=0)
     bm.add_argument("--json", action="store_true")
     bm.set_defaults(func=cmd_bench_mpc)
@@ -346,18 +349,33 @@ def cmd_bench_mpc(args: argparse.Namespace) -> int:
 
     if args.flights < 1 or args.ticks < 2 or args.reference_every < 1:
         raise CliError("--flights and --reference-every must be >= 1, --ticks >= 2")
+    if any(n < 10 or n > 2000 for n in args.horizons):
+        raise CliError("--horizons: each N must be in 10..2000")
     result = bench_mpc(_control_scenario(args.scenario), flights=args.flights, ticks=args.ticks,
-                       reference_every=args.reference_every, seed=args.seed)
+                       reference_every=args.reference_every, seed=args.seed,
+                       horizons=args.horizons)
     if args.json:
         emit(result, True)
         return 0
-    rows = [{"solver": name, **{k: result[key][k] for k in ("p50", "p99", "max", "n")}}
-            for name, key in (("OSQP, per-chain (AESOP step)", "step_ms"),
-                              ("CVXPY/Clarabel reference", "reference_step_ms"))]
-    print(table("per-tick control step [ms] (selection over every pair + solve)", rows))
-    print(f"speedup p50: {result['speedup_p50']:.1f}x   objective rel. diff max: "
-          f"{result['objective_rel_diff_max']}   infeasible ticks: {result['infeasible_ticks']}")
+    rows = [_mpc_row(result)] + [_mpc_row(r) for r in result.get("horizons", [])]
+    print(table("per-tick AESOP control step (selection over every pair + solve) [ms], and the "
+                "CVXPY/Clarabel reference on the same states", rows))
+    if "growth_exponent_p50" in result:
+        print(f"growth of the step's p50 in N: N^{result['growth_exponent_p50']:.2f}")
     return 0
+
+
+def _mpc_row(run: dict) -> dict:
+    step, ref = run["step_ms"], run["reference_step_ms"]
+    diff = run["objective_rel_diff_max"]
+    return {"N": run["problem"]["horizon"], "dt [s]": run["problem"]["dt_s"],
+            "p50": step["p50"], "p99": step["p99"], "max": step["max"],
+            "warm-up": run["warm_up_ms"]["p50"], "first tick": run["first_tick_ms"]["max"],
+            "iters p50": run["iterations"]["p50"] if run["iterations"] else None,
+            "refereed": run["refereed_chains"], "infeasible": run["infeasible_ticks"],
+            "undecided": run["undecided_ticks"], "ticks": run["ticks"],
+            "CVXPY p50": ref["p50"], "speed-up": f"{run['speedup_p50']:.0f}x",
+            "obj. diff": "-" if diff is None else f"{diff:.1e}"}
 
 
 def cmd_bench_closed_loop(args: argparse.Namespace) -> int:

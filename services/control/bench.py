@@ -1,9 +1,10 @@
 """``aesop bench mpc`` and ``aesop bench closed-loop``.
 
 * ``mpc``: the per-tick control step (subset selection over every pair of
-  the paper's four regions, plus the solve) on nominal flights of the
-  nonlinear plant, against a straightforward CVXPY/Clarabel statement of
-  the same eq. 3 solving the same pairs at sampled ticks of the same run.
+  the scene's regions, plus the solve) on nominal flights of the simulated
+  vehicle, against a straightforward CVXPY/Clarabel statement of the same
+  eq. 3 solving the same pairs at sampled ticks of the same run; optionally
+  swept over horizons N at the same T, with the growth exponent in N.
 * ``closed-loop``: the paper's ablation (naive, FS-MPC, AESOP) over seeded
   cases, in worker processes, plus the inconsequential case's time loss.
 """
@@ -13,11 +14,13 @@ from __future__ import annotations
 import itertools
 import sys
 import time
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
+from .mpc import SolveStatus, promised_step
 from .plant import METHODS, make_controller, make_plant, mpc_config, planning_model
 from .reference import reference_solve
 from .scenario import Scenario, load_scenario
@@ -30,56 +33,97 @@ def _pct(values: list[float]) -> dict:
 
 
 def bench_mpc(scenario: Scenario | None = None, flights: int = 3, ticks: int = 60,
-              reference_every: int = 10, seed: int = 0) -> dict:
-    """Step time of AESOP's nominal tick and the CVXPY reference on the same states."""
+              reference_every: int = 10, seed: int = 0,
+              horizons: Sequence[int] = ()) -> dict:
+    """Step time of AESOP's nominal tick and the CVXPY reference on the same states.
+
+    The scene's own grid first; then, for each of ``horizons``, the scene re-gridded to
+    that many steps of the same T (``Scenario.regridded``), its flights as long in seconds,
+    and the growth exponent of the step's p50 in N fitted over them.
+    """
     scenario = scenario or load_scenario()
+    result = _mpc_run(scenario, flights, ticks, reference_every, seed)
+    if horizons:
+        runs = []
+        for n in horizons:
+            scale = scenario.dt * n / scenario.horizon_s  # ticks per tick of the scene's grid
+            runs.append(_mpc_run(scenario.regridded(n), flights, max(2, round(ticks * scale)),
+                                 max(1, round(reference_every * scale)), seed))
+        result["horizons"] = runs
+        result["growth_exponent_p50"] = _exponent([r["problem"]["horizon"] for r in runs],
+                                                  [r["step_ms"]["p50"] for r in runs])
+    return result
+
+
+def _exponent(ns: Sequence[int], values: Sequence[float]) -> float | None:
+    """The least-squares slope of log(value) in log(N): 1 is linear growth."""
+    if len(ns) < 2:
+        return None
+    return float(np.polyfit(np.log(ns), np.log(values), 1)[0])
+
+
+def _mpc_run(scenario: Scenario, flights: int, ticks: int, reference_every: int,
+             seed: int) -> dict:
     model = planning_model(scenario)
     config = mpc_config(scenario)
     rng = np.random.default_rng(seed)
-    step_ms, reference_ms, rel_diffs, iterations = [], [], [], []
-    infeasible = 0
+    step_ms, first_ms, warm_up_ms, reference_ms, rel_diffs, iterations = [], [], [], [], [], []
+    infeasible = undecided = referee = 0
+    print(f"bench mpc: {scenario.name}, N = {config.horizon}, dt = {scenario.dt:g} s",
+          file=sys.stderr, flush=True)
     for _ in range(flights):
         controller = make_controller("aesop", scenario, config)
         plant = make_plant(scenario, scenario.sample_start(rng))
+        start = time.perf_counter()
+        controller.warm_up(plant.state)  # as the service does, off the loop
+        warm_up_ms.append((time.perf_counter() - start) * 1e3)
         for tick in range(ticks):
             x = plant.state
             start = time.perf_counter()
             out = controller.make_step(x, False)
             elapsed = (time.perf_counter() - start) * 1e3
-            if tick > 0:  # the first tick builds and cold-solves every problem
-                step_ms.append(elapsed)
-                if out.plan is not None:
-                    iterations.append(out.plan.iterations)
-            infeasible += not out.status.feasible
+            (first_ms if tick == 0 else step_ms).append(elapsed)
+            if out.plan is not None:
+                iterations.append(out.plan.iterations)
+                referee += out.plan.refereed
+            infeasible += out.status is SolveStatus.INFEASIBLE
+            undecided += not out.status.decided
             if tick % reference_every == 1:
-                ref_total, diffs = _reference_tick(model, scenario, config, x, controller)
+                ref_total, diffs = _reference_tick(model, scenario, config, controller)
                 reference_ms.append(ref_total)
                 rel_diffs += diffs
             plant.step(out.u)
-        print(f"bench mpc: flight done ({len(step_ms)} ticks)", file=sys.stderr)
     return {
         "problem": {"horizon": config.horizon, "consensus": config.consensus,
                     "regions": len(scenario.regions), "subsets": len(list(
-                        itertools.combinations(scenario.regions, 2))), "dt_s": scenario.dt},
+                        itertools.combinations(scenario.regions, 2))), "dt_s": scenario.dt,
+                    "model": scenario.model},
         "step_ms": _pct(step_ms),
+        "first_tick_ms": _pct(first_ms),
+        "warm_up_ms": _pct(warm_up_ms),
         "reference_step_ms": _pct(reference_ms),
         "speedup_p50": float(np.percentile(reference_ms, 50) / np.percentile(step_ms, 50)),
         "objective_rel_diff_max": float(max(rel_diffs)) if rel_diffs else None,
         "objective_compared": len(rel_diffs),
-        "osqp_iterations": _pct(iterations) if iterations else None,
+        "iterations": _pct(iterations) if iterations else None,
+        "refereed_chains": referee,
         "infeasible_ticks": infeasible,
+        "undecided_ticks": undecided,
+        "ticks": len(step_ms) + len(first_ms),
         "eps": config.eps_abs,
     }
 
 
-def _reference_tick(model, scenario, config, x, controller) -> tuple[float, list[float]]:
-    """CVXPY on every pair at state ``x``; relative cost gap where both call it feasible."""
+def _reference_tick(model, scenario, config, controller) -> tuple[float, list[float]]:
+    """CVXPY on every candidate subset at the controller's last state; the relative cost
+    gap where both call it feasible."""
     total, diffs = 0.0, []
     selector = controller.selector
+    xm, goal = controller.measured, controller.goal
     for subset in selector.subsets:
         regions = [scenario.region(i) for i in subset]
-        xm, goal = controller.measured, controller.goal
-        ref = reference_solve(model, config, regions, xm, goal)
+        ref = reference_solve(model, config, regions, xm, goal,
+                              region_step=promised_step(config, 0))
         total += ref.total_ms
         plan = selector.solve(subset, xm, goal)
         if ref.status == "optimal" and plan.feasible:

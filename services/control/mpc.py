@@ -219,6 +219,7 @@ class Plan:
     solve_ms: float
     slack: float = 0.0  # largest constraint violation of a recovery branch
     slack_tolerance: float = 1e-2
+    refereed: int = 0  # chains whose verdict came from the PIQP referee
 
     @property
     def feasible(self) -> bool:
@@ -265,6 +266,7 @@ class ChainSolution:
     slack: float
     iterations: int
     solve_ms: float
+    refereed: bool = False
 
 
 @dataclass(frozen=True)
@@ -276,6 +278,7 @@ class _Raw:
     y: np.ndarray
     objective: float
     iterations: int
+    refereed: bool = False
 
 
 def tightened_states(model: PlanningModel, config: MPCConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -630,7 +633,7 @@ class ChainQP:
                    result.y, float(result.info.obj_val), int(result.info.iter))
         if not raw.status.decided and cfg.referee_max_iter > 0:
             judged = self._referee(q, lo, hi)
-            raw = replace(judged, iterations=raw.iterations + judged.iterations)
+            raw = replace(judged, iterations=raw.iterations + judged.iterations, refereed=True)
         solve_ms = (time.perf_counter() - start_time) * 1e3
         if raw.status is not SolveStatus.FAILED and raw.status is not SolveStatus.INFEASIBLE \
                 and np.all(np.isfinite(raw.x)) and np.all(np.isfinite(raw.y)):
@@ -677,12 +680,13 @@ class ChainQP:
         status = SolveStatus.INFEASIBLE if raw is None else raw.status
         z = None if raw is None else raw.x
         iterations = 0 if raw is None else raw.iterations
+        refereed = raw is not None and raw.refereed
         if status not in (SolveStatus.SOLVED, SolveStatus.INACCURATE) or z is None \
                 or not np.all(np.isfinite(z)):
             if status in (SolveStatus.SOLVED, SolveStatus.INACCURATE):
                 status = SolveStatus.FAILED  # "solved" with a non-finite answer
             return ChainSolution(status, float("inf"), None, None, float("inf"), iterations,
-                                 solve_ms)
+                                 solve_ms, refereed)
         cost = raw.objective
         # the constants OSQP leaves out: sum over branches of w_b * T * t_b' Q t_b
         cost += float(np.sum(self._branch_scale * horizon
@@ -694,7 +698,7 @@ class ChainQP:
             sig = z[self._sigma(0):self._sigma(0) + self._n_sigma]
             slack = float(np.max(np.abs(sig)))
             cost -= self.config.slack_weight * float(np.sum(sig))  # report the task cost
-        return ChainSolution(status, cost, states, inputs, slack, iterations, solve_ms)
+        return ChainSolution(status, cost, states, inputs, slack, iterations, solve_ms, refereed)
 
 
 ChainCache = dict[tuple, ChainQP]
@@ -782,11 +786,12 @@ class BranchProblem:
                     break
         states = np.zeros((nb, horizon + 1, n))
         du = np.zeros((nb, horizon, m))
-        cost, slack, iterations, solve_ms = 0.0, 0.0, 0, 0.0
+        cost, slack, iterations, solve_ms, refereed = 0.0, 0.0, 0, 0.0, 0
         status = SolveStatus.SOLVED
         for (chain, order, _, _), sol in zip(jobs, solutions, strict=False):
             iterations += sol.iterations
             solve_ms += sol.solve_ms
+            refereed += int(sol.refereed)
             if sol.states is None:
                 status = _worse(status, sol.status)
                 continue
@@ -804,14 +809,14 @@ class BranchProblem:
         if not status.feasible and status is not SolveStatus.INACCURATE:
             empty = np.zeros((horizon, m))
             return Plan(status, float("inf"), model.linear.u_hover.copy(), empty, None, {}, {},
-                        consensus, s, iterations, solve_ms)
+                        consensus, s, iterations, solve_ms, refereed=refereed)
         inputs = du + model.linear.u_hover
         offset = int(self.has_nominal)
         recovery = {r.index: states[offset + i] for i, r in enumerate(regions)}
         recovery_inputs = {r.index: inputs[offset + i] for i, r in enumerate(regions)}
         return Plan(status, cost, inputs[0][0].copy(), inputs[0],
                     states[0] if self.has_nominal else None, recovery, recovery_inputs,
-                    consensus, s, iterations, solve_ms, slack, cfg.slack_tolerance)
+                    consensus, s, iterations, solve_ms, slack, cfg.slack_tolerance, refereed)
 
 
 _SEVERITY = {SolveStatus.SOLVED: 0, SolveStatus.INACCURATE: 1, SolveStatus.MAX_ITER: 2,

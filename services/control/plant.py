@@ -26,7 +26,7 @@ from typing import Literal, Protocol
 import numpy as np
 
 from .aesop import AesopController, FallbackSafeController, NaiveController, Route, _Controller
-from .dynamics import QuadrotorParams, rotation, simulate_step
+from .dynamics import QuadrotorParams, body_z, cross, simulate_step
 from .models import PlanningModel, point_mass_model, quadrotor_model
 from .mpc import MPCConfig
 from .scenario import Scenario
@@ -103,12 +103,11 @@ class FlightController:
         phi_d = float(np.clip(math.asin(np.clip(-force[1] / norm, -1.0, 1.0)),
                               -g.max_tilt, g.max_tilt))
         theta_d = float(np.clip(math.atan2(force[0], force[2]), -g.max_tilt, g.max_tilt))
-        thrust = float(force @ rotation(*x[6:9])[:, 2])
+        thrust = float(force @ body_z(*x[6:9]))
         error = np.array([phi_d, theta_d, 0.0]) - x[6:9]
         rate_sp = np.clip(g.attitude * error, -self._max_rate, self._max_rate)
         omega = x[9:12]
-        torque = self._inertia * g.rate * (rate_sp - omega) + np.cross(omega,
-                                                                       self._inertia * omega)
+        torque = self._inertia * g.rate * (rate_sp - omega) + cross(omega, self._inertia * omega)
         return np.clip(np.concatenate([[thrust], torque]), self._lo, self._hi)
 
 

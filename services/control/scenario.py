@@ -33,6 +33,8 @@ from .models import MODEL_NAMES
 from .regions import Region, check_regions
 
 BUNDLED = ("paper", "hardware")  # scenario names that load the packaged files
+# MPCConfig fields counted in steps of dt (so they scale when the grid changes)
+STEP_FIELDS = ("relax_steps", "min_region_step", "late_region_steps", "reserve_steps")
 # MPCConfig fields a scenario may set (numbers only; the rest belongs to the code)
 MPC_FIELDS = ("velocity_margin", "position_margin", "shrink", "input_margin", "relax_steps",
               "recovery_tracking", "relax_lag", "relax_floor", "referee_max_iter",
@@ -149,6 +151,18 @@ class Scenario:
 
     def with_regions(self, regions: tuple[Region, ...]) -> Scenario:
         return replace(self, regions=regions)
+
+    def regridded(self, horizon: int) -> Scenario:
+        """The same scene planned over ``horizon`` steps of T: ``dt = T / horizon``, with K
+        and T kept in seconds and the step-valued ``mpc`` settings kept in seconds too
+        (for ``aesop bench mpc --horizons``)."""
+        if horizon < 2:
+            raise ScenarioError("horizon: need at least 2 steps")
+        dt = self.horizon_s / horizon
+        scale = self.dt / dt
+        mpc = tuple((k, max(1, round(v * scale)) if k in STEP_FIELDS else v)
+                    for k, v in self.mpc)
+        return replace(self, dt=dt, mpc=mpc)
 
     @property
     def approach(self) -> tuple[float, float, float]:
