@@ -396,6 +396,7 @@ class ChainQP:
         self._var_shift, self._con_shift = self._shift_maps()
         self._previous: tuple[np.ndarray, np.ndarray] | None = None
         self._memo: tuple[bytes, ChainSolution] | None = None
+        self._pending_key: bytes | None = None  # the last call, if it did not decide
         self._warm = False
         self.solver = osqp.OSQP()
         self.solver.setup(self._p, self._q.copy(), self._a, self._lower.copy(), self._upper.copy(),
@@ -606,14 +607,19 @@ class ChainQP:
         if np.any(lo > hi):  # a region outside the state limits: nothing to solve
             solution = self._solution(None, targets, 0.0)
         else:
-            solution = self._run(q, lo, hi, targets)
+            resume = self._pending_key == key
+            solution = self._run(q, lo, hi, targets, shift=not resume)
         # an undecided answer is not remembered: the same call again resumes the solve
-        self._memo = (key, solution) if solution.status.decided else None
+        # from its iterate as it stands (not shifted: no tick has passed)
+        decided = solution.status.decided
+        self._memo = (key, solution) if decided else None
+        self._pending_key = None if decided else key
         return solution
 
     def _run(self, q: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-             targets: np.ndarray) -> ChainSolution:
-        """OSQP, warm-started; if it stops at its cap without deciding, PIQP referees."""
+             targets: np.ndarray, shift: bool = True) -> ChainSolution:
+        """OSQP, warm-started from the last iterate (``shift``: advanced one step); if it
+        stops at its cap without deciding, PIQP referees."""
         cfg = self.config
         infinity = osqp.constant("OSQP_INFTY")
         start_time = time.perf_counter()
@@ -621,7 +627,9 @@ class ChainQP:
                            u=np.where(np.isfinite(hi), hi, infinity))
         if self._previous is not None:
             z_prev, y_prev = self._previous
-            self.solver.warm_start(x=z_prev[self._var_shift], y=y_prev[self._con_shift])
+            if shift:
+                z_prev, y_prev = z_prev[self._var_shift], y_prev[self._con_shift]
+            self.solver.warm_start(x=z_prev, y=y_prev)
         warm = self._previous is not None
         if warm != self._warm:
             limit = cfg.time_limit_s if warm and cfg.time_limit_s > 0 else _NO_TIME_LIMIT

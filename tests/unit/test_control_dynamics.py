@@ -15,7 +15,7 @@ from services.control.dynamics import (
     simulate_step,
 )
 from services.control.regions import Region, Tolerance
-from services.control.scenario import Limits, ScenarioError, load_scenario
+from services.control.scenario import Limits, ScenarioError, bundled_path, load_scenario
 
 PARAMS = QuadrotorParams()
 
@@ -101,6 +101,29 @@ def test_bundled_scenario_is_the_papers_setup():
     assert np.all(np.abs(x[:3] - np.array([10.0, 2.0, 2.0])) <= 1.0) and not x[3:].any()
 
 
+def test_bundled_hardware_scene_is_the_papers_hardware_mpc_grid():
+    """dt 0.05 s, T 10 s, K 4.3 s (the paper's hardware MPC), planned as a point mass;
+    both names and paths load."""
+    scene = load_scenario("hardware")
+    assert (scene.horizon, scene.consensus) == (200, 86)
+    assert scene.dt == pytest.approx(0.05) and scene.model == "point-mass"
+    assert scene.limits.velocity == 1.0
+    assert scene.approach == pytest.approx((scene.goal[0], scene.goal[1], scene.goal[2] + 0.3))
+    assert [r.label for r in scene.regions] == ["alternative landing site", "holding zone"]
+    assert load_scenario("paper") == load_scenario()
+    assert load_scenario(bundled_path("hardware")) == scene
+
+
+def test_regridding_keeps_seconds():
+    scene = load_scenario("hardware")
+    coarse = scene.regridded(40)
+    assert coarse.dt == pytest.approx(0.25) and coarse.horizon == 40
+    assert coarse.consensus == round(4.3 / 0.25)
+    steps, coarse_steps = dict(scene.mpc), dict(coarse.mpc)
+    assert coarse_steps["reserve_steps"] == steps["reserve_steps"] // 5  # 1 s either way
+    assert coarse_steps["relax_floor"] == steps["relax_floor"]  # not a step count
+
+
 def test_limits_tighten_only_the_symmetric_bounds():
     lo, hi = Limits().box(shrink=0.1)
     assert hi[3] == pytest.approx(1.35) and lo[3] == pytest.approx(-1.35)
@@ -113,6 +136,16 @@ def test_limits_tighten_only_the_symmetric_bounds():
     (lambda d: d["regions"][1].update(index=7), "regions"),
     (lambda d: d.update(consensus_s=5.0), "consensus_s"),
     (lambda d: d["regions"][0].update(position_lo=[9, 9, 9]), "regions[0]"),
+    (lambda d: d.update(model="helicopter"), "model"),
+    (lambda d: d.update(mpc={"velocity_margin": 0.1, "eps_prim": 1}), "mpc.eps_prim"),
+    (lambda d: d.update(mpc={"velocity_margin": "fast"}), "mpc.velocity_margin"),
+    (lambda d: d.update(mpc=[1, 2]), "mpc"),
+    (lambda d: d.update(vehicle={"inertia": [0.01, 0.01, 0.02], "wings": 2}), "vehicle.wings"),
+    (lambda d: d.update(vehicle={"mass": -1}), "vehicle"),
+    (lambda d: d.update(acceleration_lag=[0.1, 0.1]), "acceleration_lag"),
+    (lambda d: d.update(anomaly_window=[5, 1]), "anomaly_window"),
+    (lambda d: d.update(approach_height=-1), "approach_height"),
+    (lambda d: d.update(limits={"acceleration": [1, 0, 1]}), "limits.acceleration"),
 ])
 def test_bad_scenario_files_name_the_field(tmp_path, mutate, field):
     data = {"goal": [0, 0, 1], "start": {"center": [1, 1, 1]}, "regions": [
@@ -128,6 +161,8 @@ def test_bad_scenario_files_name_the_field(tmp_path, mutate, field):
 def test_missing_or_garbled_scenario_file(tmp_path):
     with pytest.raises(ScenarioError, match="No such file"):
         load_scenario(tmp_path / "absent.yaml")
+    with pytest.raises(ScenarioError, match="no bundled scenario 'moon'"):
+        bundled_path("moon")
     bad = tmp_path / "bad.yaml"
     bad.write_text("goal: [1, 2\n")
     with pytest.raises(ScenarioError, match="not valid yaml"):
