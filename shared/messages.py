@@ -126,15 +126,17 @@ class ReasonerDecision(Message):
     model: str = ""
 
 
-Mode = Literal["nominal", "anomaly_pending", "recovering"]
+# "waiting": the flight has not started (the detector has not answered yet)
+Mode = Literal["waiting", "nominal", "anomaly_pending", "recovering"]
 
 
 class ControlState(Message):
-    """Closed-loop state at time ``t`` (s): x (12 states), u (4 inputs), Algorithm 1 mode."""
+    """Closed-loop state at time ``t`` (s): x (12 states) and u, the controller's input in
+    its planning model's units (thrust and torques, or 3 accelerations), Algorithm 1 mode."""
 
     t: float
     x: tuple[float, ...] = Field(min_length=12, max_length=12)
-    u: tuple[float, ...] = Field(min_length=4, max_length=4)
+    u: tuple[float, ...] = Field(min_length=1, max_length=12)
     mode: Mode
     t_anom: float | None = None
     chosen: int | None = None

@@ -63,6 +63,7 @@ from .selection import SubsetSelector
 
 
 class Mode(StrEnum):
+    WAITING = "waiting"  # the runtime's, before a flight starts (the controller never is)
     NOMINAL = "nominal"
     PENDING = "anomaly_pending"
     RECOVERING = "recovering"
@@ -149,6 +150,7 @@ class _Controller:
         self._du_hi = tightened_inputs(model, config)[1]
         self.goal = route.goal  # this step's nominal target (model state)
         self.measured = model.rest_state(np.zeros(3))  # the model state of the last step
+        self._alarms: list[str] = []  # what went wrong in this step
 
     @property
     def mode(self) -> Mode:
@@ -211,10 +213,13 @@ class _Controller:
         the subset reachable, the safest thing to fly blind.
         """
         mem = self.memory
-        if plan is not None and accept and np.all(np.isfinite(plan.u0)):
-            mem.inputs = next(iter(plan.recovery_inputs.values()), plan.inputs)
-            mem.age = 0
-            return plan.u0, plan
+        if plan is not None and accept:
+            if np.all(np.isfinite(plan.u0)) and np.all(np.isfinite(plan.inputs)):
+                mem.inputs = next(iter(plan.recovery_inputs.values()), plan.inputs)
+                mem.age = 0
+                return plan.u0, plan
+            self._alarms.append("non-finite plan from the solver: flying the last plan's "
+                                "recovery branch")
         return self._blind(), None
 
     def _blind(self) -> np.ndarray:
@@ -323,9 +328,9 @@ class _Controller:
         mem = self.memory
         if self.commits_at_k and mem.mode is Mode.PENDING and self._k() >= self.config.consensus:
             self._commit_fallback(None)
-        return self._output(self._blind(), SolveStatus.FAILED, None, self._active,
-                            alarm="non-finite state measured: flying the last plan's "
-                                  "recovery branch")
+        self._alarms.append("non-finite state measured: flying the last plan's recovery "
+                            "branch")
+        return self._output(self._blind(), SolveStatus.FAILED, None, self._active)
 
     def _k(self) -> int:
         """Ticks of the consensus budget used since the anomaly (a hold's included)."""
@@ -351,10 +356,11 @@ class _Controller:
         u[0] = min(u[0] / max(np.cos(phi) * np.cos(theta), 0.5), hi)
         return u
 
-    def _output(self, u, status, plan, active, request=None, alarm: str | None = None
-                ) -> ControlOutput:
+    def _output(self, u, status, plan, active, request=None) -> ControlOutput:
         mem = self.memory
-        alarms = () if alarm is None else (alarm,)
+        alarms, self._alarms = tuple(self._alarms), []
+        if alarms:
+            status = SolveStatus.FAILED
         u = np.asarray(u, dtype=float)
         if np.all(np.isfinite(self._x)):
             u = self._command(u)

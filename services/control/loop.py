@@ -42,13 +42,17 @@ from shared.messages import (
 )
 
 from .aesop import ControlOutput, Mode
+from .detector import Cause, Sightings, directive, verdict_age
 from .dynamics import N_STATE, POS
+from .mpc import SolveStatus
 from .plant import make_controller, make_plant, mpc_config
 from .regions import Region
 from .scenario import Scenario
 from .settings import ControlSettings
 
 SOURCE = "control"
+SILENT = ("the anomaly detector has gone silent: no verdict answers a recent observation, "
+          "so the scene is unmonitored and continuing is not an option")
 Clock = Callable[[], float]
 Sleep = Callable[[float], Awaitable[Any]]
 
@@ -161,6 +165,9 @@ class NotNominal(Exception):
     """The flight is not in nominal mode, so its recovery regions cannot change now."""
 
 
+CALM = (Mode.NOMINAL, Mode.WAITING)  # modes in which the regions may change
+
+
 @dataclass(frozen=True)
 class TickResult:
     """What one tick produced: the messages to publish and how long the step took."""
@@ -182,12 +189,17 @@ class _Inputs:
     stale: bool
     verdict: Received[AnomalyVerdict] | None
     events: list[Event] = field(default_factory=list)
+    cause: Cause | None = None  # of the request this tick may raise
+    waiting: bool = False  # the flight has not started: nothing is stepped
 
 
-def options_for(regions: Sequence[Region], offered: Sequence[int]) -> tuple[Option, ...]:
-    """Option 0 (continue) plus one option per offered region, for the reasoner."""
+def options_for(regions: Sequence[Region], offered: Sequence[int], *,
+                continue_: bool = True) -> tuple[Option, ...]:
+    """Option 0 (continue, unless ``continue_`` is false) plus one option per offered
+    region, for the reasoner."""
     by_index = {r.index: r for r in regions}
-    options = [Option(index=0, label="continue", description="keep flying the nominal task")]
+    options = [Option(index=0, label="continue", description="keep flying the nominal task")
+               ] if continue_ else []
     for index in offered:
         region = by_index[index]
         center = (np.asarray(region.position_lo) + np.asarray(region.position_hi)) / 2
@@ -231,8 +243,12 @@ def check_fence(scenario: Scenario, regions: Sequence[Region]) -> None:
 class ControlRuntime:
     """One robot's closed loop: verdict and decision in, messages out, one tick at a time.
 
-    ``tick`` holds ``lock`` while it runs; ``replace_regions`` and ``reset``
-    take it too, so a controller is only ever swapped between two ticks.
+    A flight starts ``waiting``: the robot holds its start state until a fresh
+    verdict shows the detector is watching, then flies (the same after a reset).
+    The detector is read by :mod:`.detector`'s rules: freshness from the
+    observation a verdict answers, silence as an anomaly that "continue" cannot
+    end. ``tick`` holds ``lock`` while it runs; ``replace_regions`` and
+    ``reset`` take it too, so a controller is only ever swapped between ticks.
     """
 
     def __init__(self, settings: ControlSettings, scenario: Scenario, *,
@@ -243,21 +259,24 @@ class ControlRuntime:
         x0 = self._start_state(None)
         self.controller = self.build_controller(scenario, x0)
         self.plant = make_plant(scenario, x0)
+        self._last_x = x0  # the newest finite measurement
         self._k = 0  # plant ticks since the flight (re)started
         self._k0 = 0  # plant tick at which the controller was built
-        self.mode = Mode.NOMINAL
+        self.mode = Mode.WAITING
+        self._queued: list[Event] = [self._waiting_event()]
         self.pending: str | None = None  # request_id the next decision must carry
+        self._cause: Cause | None = None  # what the pending request is about
         self._delivered = False
-        self._stale: bool | None = None  # None until the first tick
-        self._stale_asked = False  # this stale episode already raised a request
-        self._verdict_asked: float | None = None  # received_at of the verdict that asked
+        self._stale: bool | None = None  # None until the flight's first tick
+        self._silence_asked = False  # this silent spell has raised its request
+        self._verdict_asked: int | None = None  # seq of the verdict that asked
         # scene texts the reasoner answered "continue" for: flagged again, they do not ask
         # again (the keyboard stays on the ground) until the flight is reset
         self._cleared: set[str] = set()
         self._asked_about: str | None = None  # the observation text of the pending request
         self._said_cleared: str | None = None  # the cleared scene the last event was about
         self._seen: deque[Observation] = deque(maxlen=64)  # recent observations, by seq
-        self._queued: list[Event] = []
+        self._sightings = Sightings()
         self.last: TickResult | None = None
 
     # ----------------------------------------------------------------- building
@@ -292,19 +311,37 @@ class ControlRuntime:
 
     async def tick(self, *, deadline: float, verdict: Received[AnomalyVerdict] | None,
                    decision: ReasonerDecision | None = None,
-                   observation: Observation | None = None) -> TickResult:
+                   observation: Received[Observation] | Observation | None = None
+                   ) -> TickResult:
         """Run one tick whose deadline was ``deadline`` (scheduler clock, s)."""
         async with self.lock:
-            if observation is not None:
-                self._seen.append(observation)
+            seen = self._see(observation)
             inputs = self._read_inputs(verdict, decision)
             x = self.plant.state
+            if inputs.waiting:
+                result = self._finish(x, self._hold(x), inputs, 0.0, deadline, seen)
+                self.last = result
+                return result
             started = time.perf_counter()
             output = await asyncio.to_thread(self._step, x, inputs.anomaly, inputs.decision)
             step_ms = (time.perf_counter() - started) * 1000.0
-            result = self._finish(x, output, inputs, step_ms, deadline, observation)
+            result = self._finish(x, output, inputs, step_ms, deadline, seen)
             self.last = result
             return result
+
+    def _see(self, observation: Received[Observation] | Observation | None
+             ) -> Observation | None:
+        """Remember an observation and when it was first seen (for verdict freshness)."""
+        if observation is None:
+            return None
+        if isinstance(observation, Received):
+            message, at = observation.message, observation.received_at
+        else:
+            message, at = observation, self.clock()
+        if not self._seen or self._seen[-1].seq != message.seq:
+            self._seen.append(message)
+        self._sightings.record(message.seq, at)
+        return message
 
     def _step(self, x: np.ndarray, anomaly: bool, decision: int | None) -> ControlOutput:
         """Off the event loop: the controller's step, then the plant's."""
@@ -312,43 +349,66 @@ class ControlRuntime:
         self.plant.step(output.u)
         return output
 
+    def _hold(self, x: np.ndarray) -> ControlOutput:
+        """While waiting: nothing is solved and the simulated robot holds its start."""
+        u = self.controller.model.linear.u_hover.copy()
+        return ControlOutput(u=u, mode=Mode.WAITING, status=SolveStatus.SOLVED, plan=None,
+                             active_regions=(), t_anom=None, chosen=None)
+
     def _read_inputs(self, verdict: Received[AnomalyVerdict] | None,
                      decision: ReasonerDecision | None) -> _Inputs:
         events, self._queued = self._queued, []
-        age = None if verdict is None else self.clock() - verdict.received_at
-        stale = age is None or age > self.settings.verdict_stale_s
-        if stale and self._stale is not True:
-            why = "no anomaly verdict has arrived" if age is None else \
-                f"the newest anomaly verdict is {age:.2f} s old"
+        now, limit = self.clock(), self.settings.verdict_stale_s
+        age = None if verdict is None else verdict_age(
+            self._sightings, verdict.message.seq, verdict.received_at, now)
+        fresh = age is not None and age <= limit
+        if self.mode is Mode.WAITING:
+            if not fresh:
+                return _Inputs(False, None, True, verdict, events, waiting=True)
+            events.append(self._event("flight_started", "info", "the anomaly detector is "
+                                      "answering: the flight starts", age_s=round(age, 3)))
+        if not fresh and self._stale is not True:
+            why = ("no anomaly verdict has arrived" if verdict is None else
+                   "the newest anomaly verdict answers an observation older than anything "
+                   "remembered" if age is None else
+                   f"the newest anomaly verdict answers an observation {age:.2f} s old")
             events.append(self._event(
                 "verdict_stale", "alarm",
-                f"{why} (limit {self.settings.verdict_stale_s:g} s): counting it as an anomaly",
+                f"{why} (limit {limit:g} s): the detector is silent, counted as an anomaly",
                 age_s=None if age is None else round(age, 3)))
-            self._stale_asked = False
-        elif not stale and self._stale is True:
-            events.append(self._event("verdict_fresh", "info", "anomaly verdicts are arriving "
-                                      "again", age_s=round(age or 0.0, 3)))
-        self._stale = stale
-        if stale:
-            anomaly = not self._stale_asked
-        else:
-            assert verdict is not None
-            anomaly = verdict.message.is_anomaly and verdict.received_at != self._verdict_asked
-        chosen = None
+            self._silence_asked = False
+        elif fresh and self._stale is True:
+            events.append(self._event("verdict_fresh", "info", "anomaly verdicts are answering "
+                                      "fresh observations again", age_s=round(age or 0.0, 3)))
+        self._stale = not fresh
+        routed = None
         if (decision is not None and self.pending is not None and not self._delivered
                 and decision.request_id == self.pending):
-            chosen, self._delivered = decision.choice, True
-            if chosen == 0 and self._asked_about is not None:
-                self._cleared.add(self._asked_about)
-        scene = self._scene_of(verdict) if anomaly and not stale else None
+            routed, self._delivered = decision.choice, True
+        pending = self._cause if self.mode is Mode.PENDING else None
+        if fresh and routed == 0 and pending is Cause.ANOMALY and self._asked_about:
+            self._cleared.add(self._asked_about)  # before this tick's verdict is judged
+        flagged = fresh and verdict is not None and verdict.message.is_anomaly \
+            and verdict.message.seq != self._verdict_asked
+        scene = self._scene_of(verdict) if flagged else None
         if scene in self._cleared:
-            anomaly = False
+            flagged = False
             if scene != self._said_cleared:  # once per run of flags on that scene
                 events.append(self._event(
                     "anomaly_cleared", "info", "flagged scene already judged harmless by the "
-                    "reasoner: not asking again", seq=verdict.message.seq))
+                    "reasoner: not asking again", seq=verdict.message.seq if verdict else None))
         self._said_cleared = scene if scene in self._cleared else None
-        return _Inputs(anomaly, chosen, stale, verdict, events)
+        act = directive(fresh=fresh, flagged=flagged, pending=pending,
+                        silence_asked=self._silence_asked, decision=routed)
+        if act.refused_continue:
+            self._delivered = False  # a later region answer to this request still counts
+            events.append(self._event("continue_refused", "warning", "the reasoner said "
+                                      "continue, but the detector is silent: still waiting "
+                                      "for a region or the fallback at K"))
+        if act.ended_silence:
+            events.append(self._event("silence_ended", "info", "the detector answers again: "
+                                      "the silent spell's episode ends"))
+        return _Inputs(act.anomaly, act.decision, not fresh, verdict, events, cause=act.cause)
 
     def _scene_of(self, verdict: Received[AnomalyVerdict] | None) -> str | None:
         """The text of the observation ``verdict`` judged; the newest one seen if that one
@@ -368,18 +428,23 @@ class ControlRuntime:
             request = self._request(output.request, inputs, observation, deadline,
                                     output.consensus_left)
             self.pending, self._delivered = request.request_id, False
-            self._asked_about = None if observation is None else observation.text
-            if inputs.stale:
-                self._stale_asked = True
+            self._cause = inputs.cause
+            silent = inputs.cause is Cause.SILENCE
+            self._asked_about = None if observation is None or silent else observation.text
+            if silent:
+                self._silence_asked = True
             elif inputs.verdict is not None:
-                self._verdict_asked = inputs.verdict.received_at
+                self._verdict_asked = inputs.verdict.message.seq
         elif self._delivered:
             self.pending = None  # answered: a later duplicate is ignored
+        events.extend(self._event("non_finite", "alarm", alarm) for alarm in output.alarms)
         events.extend(self._output_events(output, request))
         self.mode = output.mode
         t_anom = None if output.t_anom is None else (self._k0 + output.t_anom) * dt
-        state = ControlState(
-            robot=self.settings.robot, t=t, x=tuple(float(v) for v in x),
+        if np.all(np.isfinite(x)):
+            self._last_x = x
+        state = ControlState(  # a non-finite measurement is not news: the last finite one
+            robot=self.settings.robot, t=t, x=tuple(float(v) for v in self._last_x),
             u=tuple(float(v) for v in output.u), mode=output.mode.value, t_anom=t_anom,
             chosen=output.chosen, active_regions=tuple(int(i) for i in output.active_regions))
         plan = None
@@ -391,7 +456,8 @@ class ControlRuntime:
                 recovery={int(i): points(s) for i, s in p.recovery.items()},
                 consensus_steps=int(p.consensus), solve_ms=max(0.0, float(p.solve_ms)),
                 status=str(p.status.value))
-        self._k += 1
+        if not inputs.waiting:
+            self._k += 1
         return TickResult(state, plan, request, tuple(events), output, step_ms,
                           inputs.anomaly, inputs.stale)
 
@@ -399,9 +465,14 @@ class ControlRuntime:
                  observation: Observation | None, deadline: float,
                  consensus_left: int | None) -> ReasonerRequest:
         robot = self.settings.robot
-        if observation is None:
-            text = ("the anomaly detector has gone silent" if inputs.stale else
-                    "the anomaly detector flagged the scene; no observation text was received")
+        silent = inputs.cause is Cause.SILENCE
+        if silent:  # the reasoner is told, and may not answer "continue"
+            last = "" if observation is None else f"; the last observation:\n{observation.text}"
+            seq = observation.seq if observation is not None else (
+                0 if inputs.verdict is None else inputs.verdict.message.seq)
+            observation = Observation(robot=robot, seq=seq, text=SILENT + last)
+        elif observation is None:
+            text = "the anomaly detector flagged the scene; no observation text was received"
             seq = 0 if inputs.verdict is None else inputs.verdict.message.seq
             observation = Observation(robot=robot, seq=seq, text=text)
         # The decision must be here by the tick at k = K: the controller says how many
@@ -411,7 +482,8 @@ class ControlRuntime:
         deadline_s = max(due - self.clock() - self.settings.decision_margin_s, 1e-3)
         return ReasonerRequest(robot=robot, request_id=uuid.uuid4().hex,
                                observation=observation,
-                               options=options_for(self.scenario.regions, offered),
+                               options=options_for(self.scenario.regions, offered,
+                                                   continue_=not silent),
                                deadline_s=deadline_s)
 
     def _output_events(self, output: ControlOutput, request: ReasonerRequest | None
@@ -428,6 +500,10 @@ class ControlRuntime:
                                "chosen": output.chosen, "fallback": output.fallback,
                                "request_id": request.request_id if request else self.pending})]
 
+    def _waiting_event(self) -> Event:
+        return self._event("waiting", "info", "holding the start state until the anomaly "
+                           "detector answers a fresh observation")
+
     def _event(self, kind: str, severity: Severity, message: str,
                **data: str | int | float | bool | None) -> Event:
         return Event(robot=self.settings.robot, source=SOURCE, kind=kind, severity=severity,
@@ -443,11 +519,11 @@ class ControlRuntime:
         """
         check_fence(self.scenario, regions)
         scenario = self.scenario.with_regions(regions)
-        if self.mode is not Mode.NOMINAL:
+        if self.mode not in CALM:
             raise NotNominal(self.mode.value)
         controller = await asyncio.to_thread(self.build_controller, scenario, self.plant.state)
         async with self.lock:
-            if self.mode is not Mode.NOMINAL:
+            if self.mode not in CALM:
                 raise NotNominal(self.mode.value)
             self.scenario, self.controller, self._k0 = scenario, controller, self._k
             self.pending = None
@@ -463,8 +539,11 @@ class ControlRuntime:
             self.controller = controller
             self.plant = make_plant(self.scenario, x0)
             self._k = self._k0 = 0
-            self.mode, self.pending, self._delivered = Mode.NOMINAL, None, False
+            self.mode, self.pending, self._delivered = Mode.WAITING, None, False
+            self._cause, self._stale, self._silence_asked = None, None, False
+            self._verdict_asked = None
             self._cleared.clear()
+            self._queued.append(self._waiting_event())
             self._queued.append(self._event(
                 "reset", "info", "flight restarted at (" +
                 ", ".join(f"{v:.2f}" for v in x0[POS]) + ") m"))

@@ -771,6 +771,9 @@ class BranchProblem:
         consensus = cfg.consensus if consensus is None else consensus
         s = min(max(horizon if region_step is None else region_step, 1), horizon + 1)
         nb, n, m = self.n_branches, model.n, model.m
+        if not (np.all(np.isfinite(x0)) and np.all(np.isfinite(goal))):  # nothing to solve
+            return Plan(SolveStatus.FAILED, float("inf"), model.linear.u_hover.copy(),
+                        np.zeros((horizon, m)), None, {}, {}, consensus, s, 0, 0.0)
         planned = [planning_box(model, r, cfg) for r in regions]
         centers = [model.region_center(r) for r in regions]
         jobs = []

@@ -57,7 +57,7 @@ class ControlMetrics:
         self.errors = Counter("aesop_control_tick_errors", "Ticks that raised",
                               registry=registry)
         for mode in Mode:
-            self.mode.labels(mode.value).set(1.0 if mode is Mode.NOMINAL else 0.0)
+            self.mode.labels(mode.value).set(1.0 if mode is Mode.WAITING else 0.0)
 
     def timing(self, timing: TickTiming) -> None:
         self.ticks.inc()
@@ -111,8 +111,7 @@ class ControlService:
             observation = self.observations.get() if self.observations else None
             result = await self.runtime.tick(
                 deadline=deadline, verdict=verdict,
-                decision=None if decision is None else decision.message,
-                observation=None if observation is None else observation.message)
+                decision=None if decision is None else decision.message, observation=observation)
             self._publish(result)
             self.metrics.result(result)
         except Exception:  # one bad tick must not stop the loop; it is counted and logged

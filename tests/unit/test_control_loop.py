@@ -144,33 +144,116 @@ def kinds(result: TickResult) -> list[str]:
     return [e.kind for e in result.events]
 
 
-async def test_a_missing_or_stale_verdict_is_an_anomaly_with_one_alarm_per_episode() -> None:
+async def test_the_flight_waits_for_the_detector_then_starts_without_an_alarm() -> None:
     clock = FakeClock()
     rt = runtime(clock)
-    first = await tick(rt, clock, None)
-    assert first.stale and first.anomaly
-    stale = [e for e in first.events if e.kind == "verdict_stale"]
-    assert len(stale) == 1 and stale[0].severity == "alarm" and stale[0].source == "control"
-    assert first.request is not None  # fail-safe: the reasoner is asked
-    assert "gone silent" in first.request.observation.text
-    later = [await tick(rt, clock, None) for _ in range(3)]
-    assert all(r.stale for r in later)
-    assert not any("verdict_stale" in kinds(r) for r in later)
-    assert not any(r.anomaly for r in later)  # this episode has asked already
+    waiting = [await tick(rt, clock, None) for _ in range(3)]
+    assert all(r.state.mode == "waiting" and r.request is None for r in waiting)
+    assert all(r.state.t == 0.0 and r.state.x[:3] == (0.0, 0.0, 1.0) for r in waiting)
+    assert kinds(waiting[0]) == ["waiting"] and not any(kinds(r) for r in waiting[1:])
+    started = await tick(rt, clock, verdict(clock, 1, False))
+    assert started.state.mode == "nominal" and started.state.t == 0.0
+    assert "flight_started" in kinds(started) and "verdict_stale" not in kinds(started)
+    moved = await tick(rt, clock, verdict(clock, 2, False))
+    assert moved.state.t == pytest.approx(SCENARIO.dt)
 
-    clock2 = FakeClock()
-    rt2 = runtime(clock2)
-    await tick(rt2, clock2, verdict(clock2, 1, False))
-    old = verdict(clock2, 2, False)
-    fresh = await tick(rt2, clock2, old)
-    assert not fresh.stale and not fresh.anomaly
-    assert not [k for k in kinds(fresh) if k.startswith("verdict")]
-    clock2.now += 0.5  # the detector stops talking
-    gone = await tick(rt2, clock2, old)
-    assert gone.stale and gone.anomaly and kinds(gone).count("verdict_stale") == 1
-    assert "0.60 s old" in gone.events[0].message
-    back = await tick(rt2, clock2, verdict(clock2, 3, False))
-    assert not back.stale and "verdict_fresh" in kinds(back)
+
+async def started(clock: FakeClock, **kw: object) -> ControlRuntime:
+    rt = runtime(clock, **kw)
+    await tick(rt, clock, verdict(clock, 0, False))
+    return rt
+
+
+async def test_silence_is_an_anomaly_the_reasoner_cannot_continue_out_of() -> None:
+    """Stale verdicts: one alarm and one request per silent spell, the reasoner told the
+    detector is silent and not offered "continue"; a "continue" is refused; with no region
+    by K the fallback is committed as for any anomaly."""
+    clock = FakeClock()
+    rt = await started(clock)
+    old = verdict(clock, 0, False)
+    clock.now += 0.6  # the detector stops answering
+    silent = await tick(rt, clock, old)
+    assert silent.stale and silent.anomaly and silent.state.mode == "anomaly_pending"
+    alarm = [e for e in silent.events if e.kind == "verdict_stale"]
+    assert len(alarm) == 1 and alarm[0].severity == "alarm" and "silent" in alarm[0].message
+    request = silent.request
+    assert request is not None and "gone silent" in request.observation.text
+    assert 0 not in [o.index for o in request.options]
+    cont = ReasonerDecision(request_id=request.request_id, choice=0, source="llm",
+                            latency_ms=1.0)
+    refused = await tick(rt, clock, old, cont)
+    assert refused.state.mode == "anomaly_pending" and "continue_refused" in kinds(refused)
+    later = [await tick(rt, clock, old) for _ in range(K - 2)]
+    assert not any(r.request for r in later) and not any("verdict_stale" in kinds(r)
+                                                         for r in later)
+    committed = await tick(rt, clock, old)
+    assert committed.state.mode == "recovering" and committed.output.fallback
+    assert committed.state.chosen in [o.index for o in request.options]
+
+
+async def test_a_region_answer_to_the_silence_is_taken() -> None:
+    clock = FakeClock()
+    rt = await started(clock)
+    old = verdict(clock, 0, False)
+    clock.now += 0.6
+    request = (await tick(rt, clock, old)).request
+    region = request.options[0].index
+    chosen = ReasonerDecision(request_id=request.request_id, choice=region, source="llm",
+                              latency_ms=1.0)
+    taken = await tick(rt, clock, old, chosen)
+    assert taken.state.mode == "recovering" and taken.state.chosen == region
+
+
+async def test_fresh_verdicts_end_the_silent_spells_episode() -> None:
+    clock = FakeClock()
+    rt = await started(clock)
+    old = verdict(clock, 0, False)
+    clock.now += 0.6
+    assert (await tick(rt, clock, old)).state.mode == "anomaly_pending"
+    back = await tick(rt, clock, verdict(clock, 1, False))
+    assert back.state.mode == "nominal" and not back.stale
+    assert {"verdict_fresh", "silence_ended"} <= set(kinds(back))
+    last = verdict(clock, 2, False)
+    await tick(rt, clock, last)
+    clock.now += 0.6  # a new silent spell: a new alarm, a new request
+    again = await tick(rt, clock, last)
+    assert again.request is not None and "verdict_stale" in kinds(again)
+
+
+async def test_fresh_verdicts_flagging_the_scene_turn_the_silence_into_an_anomaly() -> None:
+    clock = FakeClock()
+    rt = await started(clock)
+    old = verdict(clock, 0, False)
+    clock.now += 0.6
+    silent = await tick(rt, clock, old)
+    flagged = await tick(rt, clock, verdict(clock, 1, True))
+    assert "silence_ended" in kinds(flagged) and flagged.request is not None
+    assert flagged.request.request_id != silent.request.request_id
+    assert flagged.request.options[0].index == 0  # continue is an option again
+
+
+async def test_a_backlog_of_verdicts_on_old_observations_is_not_fresh() -> None:
+    """A verdict is as old as the observation it answers, however recently it arrived."""
+    clock = FakeClock()
+    rt = runtime(clock)
+    scene = "a red box on the ground"
+    for seq in range(3):
+        obs = Received("aesop/drone1/observation",
+                       Observation(robot="drone1", seq=seq, text=scene), clock.now)
+        result = await tick(rt, clock, verdict(clock, seq, False), observation=obs)
+    assert result.state.mode == "nominal" and not result.stale
+    backlog = []
+    for seq in range(3, 12):  # observations go on; the verdicts that arrive are for seq 2
+        obs = Received("aesop/drone1/observation",
+                       Observation(robot="drone1", seq=seq, text=scene), clock.now)
+        backlog.append(await tick(rt, clock, verdict(clock, 2, False), observation=obs))
+    assert not backlog[0].stale  # 0.1 s old
+    assert backlog[-1].stale and any("verdict_stale" in kinds(r) for r in backlog)
+    late = await tick(rt, clock, verdict(clock, 11, False),
+                      observation=Received("aesop/drone1/observation",
+                                           Observation(robot="drone1", seq=12, text=scene),
+                                           clock.now))
+    assert not late.stale  # a verdict on a recent observation
 
 
 async def test_an_anomaly_asks_the_reasoner_and_the_decision_is_routed_by_request_id() -> None:
@@ -278,16 +361,21 @@ async def test_regions_change_only_in_nominal_mode_and_a_bad_set_changes_nothing
 
 async def test_reset_restarts_the_flight() -> None:
     clock = FakeClock()
-    rt = runtime(clock)
-    await tick(rt, clock, None)  # stale: asks the reasoner, mode pending
+    rt = await started(clock)
+    old = verdict(clock, 0, False)
+    clock.now += 0.6
+    await tick(rt, clock, old)  # silent: asks the reasoner, mode pending
     assert rt.mode.value == "anomaly_pending"
     with pytest.raises(ValueError, match="start"):
         await rt.reset((0.0, 0.0, 99.0))
     x0 = await rt.reset((0.5, 0.0, 1.0))
-    assert np.allclose(x0[:3], (0.5, 0.0, 1.0)) and rt.mode.value == "nominal"
-    result = await tick(rt, clock, verdict(clock, 0, False))
+    assert np.allclose(x0[:3], (0.5, 0.0, 1.0)) and rt.mode.value == "waiting"
+    held = await tick(rt, clock, old)  # the old verdict does not start the new flight
+    assert held.state.mode == "waiting" and "reset" in kinds(held)
+    assert "verdict_stale" not in kinds(held)
+    result = await tick(rt, clock, verdict(clock, 1, False))
     assert result.state.t == 0.0 and result.state.x[:3] == (0.5, 0.0, 1.0)
-    assert "reset" in kinds(result) and result.state.mode == "nominal"
+    assert result.state.mode == "nominal" and "flight_started" in kinds(result)
 
 
 async def test_a_scene_the_reasoner_cleared_does_not_ask_again_until_a_reset() -> None:
@@ -322,3 +410,37 @@ async def test_a_scene_the_reasoner_cleared_does_not_ask_again_until_a_reset() -
     again = await tick(rt2, clock, verdict(clock, 13, True),
                        observation=seen[1].model_copy(update={"seq": 13}))
     assert again.request is not None  # a new flight judges the scene afresh
+
+
+class LostEstimate:
+    """A plant whose state estimate reads NaN for one tick, then recovers."""
+
+    def __init__(self, plant) -> None:
+        self.plant, self.dt, self.lost = plant, plant.dt, True
+
+    @property
+    def state(self) -> np.ndarray:
+        x = self.plant.state
+        if self.lost:
+            self.lost = False
+            x[0] = np.nan
+        return x
+
+    def step(self, u: np.ndarray) -> np.ndarray:
+        assert np.all(np.isfinite(u))  # nothing non-finite reaches the plant
+        return self.plant.step(u)
+
+
+async def test_a_lost_estimate_raises_an_alarm_and_the_loop_goes_on() -> None:
+    clock = FakeClock()
+    rt = await started(clock)
+    before = await tick(rt, clock, verdict(clock, 1, False))
+    rt.plant = LostEstimate(rt.plant)
+    lost = await tick(rt, clock, verdict(clock, 2, False))
+    alarm = [e for e in lost.events if e.kind == "non_finite"]
+    assert alarm and alarm[0].severity == "alarm" and "non-finite state" in alarm[0].message
+    assert lost.state.x == before.state.x  # the last finite state is published
+    assert lost.state.encode() and lost.state.mode == "nominal"
+    after = await tick(rt, clock, verdict(clock, 3, False))
+    assert not [e for e in after.events if e.kind == "non_finite"]
+    assert after.state.x != before.state.x and after.plan is not None

@@ -86,7 +86,8 @@
     const mode = $("mode");
     mode.dataset.mode = s ? s.mode : "";
     mode.textContent = !s ? "no state yet"
-      : s.mode === "recovering" ? `recovering → y=${s.chosen}` : s.mode.replace("_", " ");
+      : s.mode === "recovering" ? `recovering → y=${s.chosen}`
+      : s.mode === "waiting" ? "waiting for the detector" : s.mode.replace("_", " ");
     const v = flight.verdict;
     const verdict = $("verdict");
     verdict.dataset.anomaly = v ? String(v.is_anomaly) : "";
