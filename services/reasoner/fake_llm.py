@@ -280,6 +280,8 @@ HAZARDS: dict[str, tuple[str, tuple[str, ...]]] = {
                      ("person", "medical", "emergency", "help")),
     "blocked": (r"\bblock(?:ed|ing|s)?\b|obstruct", ("reroute", "detour", "alternative route",
                                                       "blocked", "obstruct")),
+    # the control loop asks this when the anomaly detector stops answering
+    "unmonitored": (r"detector has gone silent|\bunmonitored\b", ("holding", "hover")),
 }
 
 

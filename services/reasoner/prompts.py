@@ -151,10 +151,11 @@ def quote_observation(text: str) -> str:
 
 
 def render_options(options: Sequence[Option]) -> str:
-    """Option lines sorted by index; option 0 always reads ``continue nominal operation``."""
+    """Option lines sorted by index; option 0, when offered, always reads ``continue
+    nominal operation`` (the control loop withholds it while the detector is silent)."""
     checked = validate_options(options)
-    lines = [CONTINUE_LINE]
-    for opt in checked[1:]:
+    lines = [CONTINUE_LINE] if checked[0].index == 0 else []
+    for opt in checked[1:] if checked[0].index == 0 else checked:
         label = _single_line(opt.label, f"options[{opt.index}].label")
         description = " ".join(opt.description.split())
         lines.append(
@@ -164,7 +165,8 @@ def render_options(options: Sequence[Option]) -> str:
 
 
 def validate_options(options: Sequence[Option]) -> tuple[Option, ...]:
-    """Options sorted by index; unique indices, 0 (continue) present, else ValueError."""
+    """Options sorted by index; not empty, unique indices, else ValueError. Option 0
+    (continue) may be withheld, never anything else required."""
     if not options:
         raise ValueError("options: must not be empty")
     seen: set[int] = set()
@@ -174,8 +176,6 @@ def validate_options(options: Sequence[Option]) -> tuple[Option, ...]:
         if opt.index in seen:
             raise ValueError(f"options: duplicate index {opt.index}")
         seen.add(opt.index)
-    if 0 not in seen:
-        raise ValueError("options: index 0 (continue nominal operation) is missing")
     return tuple(sorted(options, key=lambda o: o.index))
 
 

@@ -283,11 +283,12 @@ def test_a_failing_llm_gives_a_labelled_fallback_decision(stack: Stack, failure:
         stack.show(stack.nominal)
 
 
-def test_a_dead_detector_is_an_anomaly_until_it_comes_back_with_its_cache(
+def test_a_dead_detector_is_an_anomaly_the_robot_cannot_continue_out_of(
         stack: Stack) -> None:
-    """Killed: verdicts go stale, control raises an alarm and asks the reasoner (whose
-    LLM says continue). Restarted on the same data: verdicts resume, the flight is
-    nominal, and the cache is the one it had."""
+    """Killed: verdicts go stale, control raises an alarm and asks the reasoner, telling it
+    the detector is silent and not offering "continue"; it picks a region and the robot
+    recovers there. Restarted on the same data: verdicts resume and the cache is the one it
+    had, and the robot stays committed to its recovery until a reset."""
     with stack.reasoner("--profile", "fixed", "--fixed-s", "0.05"), stack.detector() as http:
         before = http.get(f"/v1/caches/{CACHE}").json()
         stack.nominal_flight()
@@ -300,9 +301,14 @@ def test_a_dead_detector_is_an_anomaly_until_it_comes_back_with_its_cache(
         assert alarm.severity == "alarm" and alarm.source == "control"
         stack.states.wait_for(lambda s: s.mode == "anomaly_pending", "the anomaly", since[1])
         request = stack.requests.wait_for(lambda r: True, "a reasoner request", since[2])
+        assert "gone silent" in request.observation.text
+        assert 0 not in [o.index for o in request.options]
         decision = stack.decisions.wait_for(lambda d: d.request_id == request.request_id,
                                             "the decision", since[3])
-        assert decision.source == "llm" and decision.choice == 0  # the scene is harmless
+        assert decision.source == "llm" and decision.choice in [o.index for o in
+                                                               request.options]
+        stack.states.wait_for(lambda s: s.mode == "recovering" and s.chosen == decision.choice,
+                              "the recovery", since[1])
 
     stack.embedding = embedding_process(stack.tmp / "embedding", stack.endpoint, stack.token)
     stack.embedding.start()
@@ -317,7 +323,7 @@ def test_a_dead_detector_is_an_anomaly_until_it_comes_back_with_its_cache(
     assert after["calibration"] == before["calibration"]
     states = stack.states.mark()
     state = stack.states.wait_for(lambda s: True, "a tick", states)
-    assert state.mode == "nominal"
+    assert state.mode == "recovering"  # committed: fresh verdicts do not undo a recovery
     with stack.pilot() as http:
         body = http.get("/v1/state").json()
-    assert body["verdict_stale"] is False and body["mode"] == "nominal"
+    assert body["verdict_stale"] is False and body["mode"] == "recovering"

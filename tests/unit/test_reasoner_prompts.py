@@ -126,11 +126,17 @@ def test_option_order_and_empty_description() -> None:
     assert "Options:\n0: continue nominal operation\n1: a\n2: b\n\n" in text
 
 
+def test_continue_may_be_withheld():
+    """While the detector is silent the control loop does not offer 0: no continue line,
+    and the model's "0" would not parse as an offered option."""
+    text = prompt(options=(Option(index=2, label="b"), Option(index=1, label="a")))
+    assert "Options:\n1: a\n2: b\n\n" in text and CONTINUE_LINE not in text
+
+
 @pytest.mark.parametrize(
     ("options", "field"),
     [
         ((), "options"),
-        ((Option(index=1, label="a"),), "index 0"),
         (
             (Option(index=0, label="c"), Option(index=1, label="a"), Option(index=1, label="b")),
             "duplicate index 1",
