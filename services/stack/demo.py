@@ -49,6 +49,7 @@ from .report import (
     DemoScenario,
     calibration_set,
     ended_in,
+    flight_measures,
     judge,
     nominal_texts,
     observation_text,
@@ -65,7 +66,7 @@ from .up import (
     plan_stack,
 )
 
-FLIGHT_S = 12.0  # simulated seconds per scenario: T = 8 s after the anomaly, and settling
+FLIGHT_S = 22.0  # simulated seconds per scenario: the way in, T = 10 s after the anomaly, settling
 ROUTE_TIMEOUT_S = 60.0
 CAMERA_PERIOD_S = 0.1  # observations at 10 Hz (the paper's detector ran at 18.8 Hz)
 
@@ -191,7 +192,7 @@ async def _demo(embedding_url: str | None, control_url: str | None, token: str,
             asyncio.create_task(_collect(bus.subscribe(topics.event(robot), Event, maxsize=1024),
                                          rec, _on_event)),
         ]
-        camera = Camera(bus, robot, CAMERA_PERIOD_S, rec)
+        camera = Camera(bus, robot, CAMERA_PERIOD_S, rec, scenario.start_center)
         tasks.append(asyncio.create_task(camera.run()))
         try:
             await _first_verdict(verdicts)
@@ -201,6 +202,7 @@ async def _demo(embedding_url: str | None, control_url: str | None, token: str,
                     rows.append(row)
                     flights[demo.name] = states
                     _say(f"  {demo.name}: {row['outcome']}")
+            add_time_lost(rows)
         finally:
             for task in tasks:
                 task.cancel()
@@ -236,14 +238,18 @@ async def build_cache(http: httpx.AsyncClient, model: str | None) -> dict[str, A
 class Camera:
     """Publishes the scene's detections as ``Observation``s once per control tick."""
 
-    def __init__(self, bus: Bus, robot: str, period_s: float, rec: Recorder) -> None:
+    def __init__(self, bus: Bus, robot: str, period_s: float, rec: Recorder,
+                 home: Sequence[float]) -> None:
         self.bus, self.robot, self.period_s, self.rec = bus, robot, period_s, rec
+        self.home = tuple(home)
         self.scene: DemoScenario = SCENARIOS[0]
         self.flying = False
         self.seq = 0
 
     def detections(self) -> tuple[str, ...]:
-        return self.scene.detections(self.rec.t if self.flying else 0.0)
+        """What the camera sees from where the robot is (before a flight: its start)."""
+        here = self.rec.states[-1].x if self.flying and self.rec.states else self.home
+        return self.scene.detections(here)
 
     async def run(self) -> None:
         while True:
@@ -280,6 +286,15 @@ async def fly(http: httpx.AsyncClient, camera: Camera, verdicts: Subscription[An
     return summarize(rec, demo, scenario, time.monotonic() - wall)
 
 
+def add_time_lost(rows: list[dict[str, Any]]) -> None:
+    """Scenario 3's landing against the nominal flight's (same start, same route)."""
+    landed = {r["name"].split("-", 1)[0]: r.get("landed_s") for r in rows}
+    for row in rows:
+        if row["name"].startswith("3-") and landed.get("3") is not None \
+                and landed.get("1") is not None:
+            row["time_lost_s"] = round(landed["3"] - landed["1"], 2)
+
+
 def summarize(rec: Recorder, demo: DemoScenario, scenario: Scenario, wall_s: float
               ) -> tuple[dict[str, Any], np.ndarray]:
     states = np.array([s.x for s in rec.states])
@@ -302,6 +317,8 @@ def summarize(rec: Recorder, demo: DemoScenario, scenario: Scenario, wall_s: flo
     violations = count_violations(states, inputs, scenario)
     problems = judge(demo, ended=ended, detector_alarms=rec.detector_alarms,
                      anomaly_at_s=anomaly_at, decision=decision, violations=violations)
+    measures = flight_measures([s.t for s in rec.states], states, [s.mode for s in rec.states],
+                               scenario.goal, anomaly_at)
     row = {"name": demo.name, "expected": demo.expected, "outcome": "; ".join(problems) or "ok",
            "ended_in": ended, "anomaly_at_s": None if anomaly_at is None else round(anomaly_at, 2),
            "decision": decision, "decision_source": source,
@@ -311,6 +328,12 @@ def summarize(rec: Recorder, demo: DemoScenario, scenario: Scenario, wall_s: flo
            "decision_latency_ms": None if decided is None else round(decided.latency_ms, 1),
            "reasoner_requests": len(rec.requests),
            "stale_verdict_alarms": sum(e.kind == "verdict_stale" for e in rec.events),
+           "approach_altitude_m": _round(measures.approach_altitude_m),
+           "landed_s": _round(measures.landed_s),
+           "speeds": [_round(measures.speed_before_m_s), _round(measures.speed_waiting_m_s),
+                      _round(measures.speed_after_m_s)],
+           "closest_to_goal_m": _round(measures.closest_to_goal_m),
+           "time_lost_s": None,
            "anomalous_verdicts": rec.detector_alarms,
            "rationale": None if decided is None else decided.rationale[-300:]}
     return row, states
@@ -364,6 +387,10 @@ def _on_decision(rec: Recorder, msg: ReasonerDecision) -> None:
 
 def _on_event(rec: Recorder, msg: Event) -> None:
     rec.events.append(msg)
+
+
+def _round(value: float | None) -> float | None:
+    return None if value is None else round(value, 2)
 
 
 def _check(response: httpx.Response) -> dict[str, Any]:

@@ -1,10 +1,16 @@
 """The demo's scenarios, judging and report: pure logic, plus the HTML/PNG writer.
 
 * :data:`SCENARIOS` — the paper's hardware scenarios (Sec. V-C) as observation
-  scripts: the nominal clutter from the start, the anomalous detection from
-  ``anomaly_at_s`` of simulated time (when the camera would see it) until
-  ``anomaly_until_s`` (the keyboard leaves the field of view; a quadrotor on a
-  box stays).
+  scripts for a downward camera: the nominal clutter throughout, the anomalous
+  detections while the robot is within ``seen_within_m`` (horizontally) of
+  their spot. A quadrotor on the red box comes into view as the robot nears
+  the landing area (in 2b the landing area's report names both boxes'
+  occupants, as the paper's scene had them in view together); the keyboard
+  lies on the ground along the way and leaves the view behind the robot.
+* :func:`flight_measures` — what the paper's hardware appendix describes, per
+  flight: the approach altitude, the speed before the detector fires, the
+  slowest while the reasoner thinks and the fastest after it answers, and the
+  closest approach to the red box once the detector has fired.
 * :func:`observation_text` — one detection per line, canonical order: the text
   the vector cache holds and the reasoner quotes line by line.
 * :func:`ended_in`, :func:`judge` — where a flight
@@ -46,19 +52,21 @@ class DemoScenario:
     expected: str  # where the flight must end: GOAL or a region name
     expected_decision: str | None  # the reasoner's choice (an option label); None: no anomaly
     clutter: tuple[str, ...]  # nominal detections, seen throughout
-    anomalies: tuple[str, ...] = ()  # seen from anomaly_at_s to anomaly_until_s
-    anomaly_at_s: float = 1.0  # s of simulated flight
-    anomaly_until_s: float | None = None  # None: stays in view
+    anomalies: tuple[str, ...] = ()  # seen while the robot is near ``spot``
+    spot: tuple[float, float] | None = None  # m, (x, y) of the anomalous objects
+    seen_within_m: float = 1.2  # m: horizontal distance from which the camera sees them
     description: str = ""
 
-    def detections(self, t: float) -> tuple[str, ...]:
-        """What the camera reports at simulated time ``t`` (s)."""
-        visible = bool(self.anomalies) and t >= self.anomaly_at_s and (
-            self.anomaly_until_s is None or t < self.anomaly_until_s)
+    def detections(self, position: Sequence[float]) -> tuple[str, ...]:
+        """What the camera reports with the robot at ``position`` (m, x y z)."""
+        visible = bool(self.anomalies) and self.spot is not None and float(np.hypot(
+            position[0] - self.spot[0], position[1] - self.spot[1])) <= self.seen_within_m
         return canonical(self.clutter + (self.anomalies if visible else ()))
 
 
 RED, BLUE = detection("a red box"), detection("a blue box")
+RED_BOX_SPOT = (2.8, 0.0)  # the hardware scene's goal
+KEYBOARD_SPOT = (0.0, 0.0)  # on the ground, under the way in
 SCENARIOS: tuple[DemoScenario, ...] = (
     DemoScenario("1-nominal", GOAL, None,
                  (RED, detection("a bicycle tire"), detection("a soccer ball"),
@@ -66,17 +74,18 @@ SCENARIOS: tuple[DemoScenario, ...] = (
                  description="clutter on the ground only: land on the red box"),
     DemoScenario("2a-quadrotor-on-red-box", "blue-box", "alternative landing site",
                  (RED, BLUE, detection("a quadrotor")),
-                 (detection("a quadrotor", ON_RED_BOX),),
+                 (detection("a quadrotor", ON_RED_BOX),), RED_BOX_SPOT,
                  description="another quadrotor on the red box: land on the blue box"),
     DemoScenario("2b-both-boxes-occupied", "holding-zone", "holding zone",
                  (RED, BLUE),
                  (detection("a quadrotor", ON_RED_BOX), detection("a quadrotor", ON_BLUE_BOX)),
+                 RED_BOX_SPOT,
                  description="quadrotors on both boxes: hold in the holding zone"),
     DemoScenario("3-keyboard-on-ground", GOAL, "continue",
                  (RED, detection("a bicycle tire"), detection("a drill")),
-                 (detection("a keyboard"),), anomaly_until_s=2.6,
-                 description="an unseen keyboard on the ground, in view for 1.6 s: "
-                             "anomalous but inconsequential; land on the red box"),
+                 (detection("a keyboard"),), KEYBOARD_SPOT,
+                 description="an unseen keyboard on the ground under the way in: anomalous "
+                             "but inconsequential; land on the red box"),
 )
 
 
@@ -112,6 +121,53 @@ def ended_in(x: Sequence[float], scenario: Scenario,
 
 
 
+@dataclass(frozen=True)
+class FlightMeasures:
+    """A flight as the paper's hardware appendix describes it (SI units, None: n/a)."""
+
+    approach_altitude_m: float | None  # median height while 0.5..2.5 m from the goal, before it
+    landed_s: float | None  # when it came to rest on the goal
+    speed_before_m_s: float | None  # mean horizontal speed in the second before the detection
+    speed_waiting_m_s: float | None  # the slowest from the detection to the decision
+    speed_after_m_s: float | None  # the fastest in the 2 s after the decision
+    closest_to_goal_m: float | None  # horizontal distance to the goal, least after detection
+
+
+def flight_measures(t: Sequence[float], states: Sequence[Sequence[float]],
+                    modes: Sequence[str], goal: Sequence[float],
+                    anomaly_at_s: float | None) -> FlightMeasures:
+    """:class:`FlightMeasures` of one flight from its published states (``t`` in s)."""
+    t = np.asarray(t, dtype=float)
+    x = np.asarray(states, dtype=float)
+    if not len(t):
+        return FlightMeasures(None, None, None, None, None, None)
+    goal = np.asarray(goal, dtype=float)
+    reach = np.linalg.norm(x[:, :2] - goal[:2], axis=1)
+    speed = np.linalg.norm(x[:, 3:5], axis=1)
+    on_goal = (np.linalg.norm(x[:, :3] - goal, axis=1) <= GOAL_REACH_M) & \
+        (np.linalg.norm(x[:, 3:6], axis=1) <= AT_REST_M_S)
+    landed = float(t[np.argmax(on_goal)]) if on_goal.any() else None
+    before_goal = t < (landed if landed is not None else np.inf)
+    near = (reach > 0.5) & (reach < 2.5) & before_goal
+    altitude = float(np.median(x[near, 2])) if near.any() else None
+
+    def over(mask: np.ndarray, how=np.mean) -> float | None:
+        return float(how(speed[mask])) if mask.any() else None
+
+    if anomaly_at_s is None:
+        return FlightMeasures(altitude, landed, None, None, None, None)
+    pending = np.array([m == "anomaly_pending" for m in modes])
+    after = t >= anomaly_at_s
+    decided = after & ~pending
+    decided_s = float(t[np.argmax(decided)]) if decided.any() else None
+    waiting = after & (t < (decided_s if decided_s is not None else np.inf))
+    return FlightMeasures(
+        altitude, landed,
+        over((t >= anomaly_at_s - 1.0) & (t < anomaly_at_s)), over(waiting, np.min),
+        None if decided_s is None else over((t >= decided_s) & (t < decided_s + 2.0), np.max),
+        float(np.min(reach[after])) if after.any() else None)
+
+
 def judge(demo: DemoScenario, *, ended: str | None, detector_alarms: int,
           anomaly_at_s: float | None, decision: str | None, violations: int) -> list[str]:
     """What did not go as expected (empty: the scenario passed).
@@ -138,8 +194,10 @@ def judge(demo: DemoScenario, *, ended: str | None, detector_alarms: int,
 
 COLUMNS = (("name", "scenario"), ("anomaly_at_s", "anomaly at [s]"), ("decision", "decision"),
            ("decision_source", "source"), ("ended_in", "ended in"),
-           ("constraint_violations", "violations"), ("duration_s", "duration [s]"),
-           ("stale_verdict_alarms", "stale alarms"),
+           ("constraint_violations", "violations"), ("approach_altitude_m", "approach alt. [m]"),
+           ("speeds", "speed before / slowest waiting / fastest after [m/s]"),
+           ("closest_to_goal_m", "closest to red box after [m]"),
+           ("time_lost_s", "time lost [s]"), ("stale_verdict_alarms", "stale alarms"),
            ("outcome", "outcome"))
 
 
@@ -147,7 +205,9 @@ def _cell(value: Any) -> str:
     if value is None:
         return "-"
     if isinstance(value, float):
-        return f"{value:.1f}"
+        return f"{value:.2f}"
+    if isinstance(value, list | tuple):
+        return " / ".join(_cell(v) for v in value)
     return str(value)
 
 

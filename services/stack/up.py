@@ -38,8 +38,6 @@ from shared.process import free_port
 
 Sink = Callable[[str, str], None]  # (service name, one line of its output)
 DETECTOR_CACHE = "quadrotor"
-STALE_PERIODS = 5
-MPC_MAX_ITER = 4000
 FAKE_LLM_LATENCY_S = 3.1  # the paper's mean GPT-3.5-turbo CoT latency (Table "jetson timings")
 # Environment a child must not inherit: each service listens on its own port
 # and joins the hub, whatever the calling shell says.
@@ -132,12 +130,6 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str) ->
     base["AESOP_SCENARIO"] = str(scenario)
     if options.rate_hz is not None:
         base["AESOP_RATE_HZ"] = f"{options.rate_hz:g}"
-        # a verdict counts as stale after 5 loop periods (the service default, 0.5 s, is
-        # 5 periods of its default 10 Hz)
-        base.setdefault("AESOP_VERDICT_STALE_S", f"{STALE_PERIODS / options.rate_hz:g}")
-    # OSQP's default cap (1000 warm iterations) reads some solves of the 40-step hardware
-    # problem as infeasible, and every such tick spends consensus budget on a hold
-    base.setdefault("AESOP_MPC_MAX_ITER", str(MPC_MAX_ITER))
     base.setdefault("AESOP_DASHBOARD_CONTROL_URL", f"http://127.0.0.1:{ports.control}")
     if options.goal is not None:
         base.setdefault("AESOP_DASHBOARD_GOAL", "[" + ", ".join(map(str, options.goal)) + "]")
