@@ -9,7 +9,6 @@ admin token), and ``/healthz``, ``/readyz``, ``/metrics``.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from typing import Any
@@ -64,14 +63,11 @@ def create_app(settings: ControlSettings, runtime: ControlRuntime,
         bus = bus_factory() if bus_factory is not None else None
         service = ControlService(settings, runtime, bus, metrics, owns_bus=bus is not None)
         holder["service"] = service
-        task = asyncio.create_task(service.run())
+        service.start()
         try:
             yield
         finally:
-            service.stop()
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+            await asyncio.to_thread(service.stop)
             service.close()
 
     app = FastAPI(title="AESOP control-loop service", version="1", lifespan=lifespan)

@@ -1,28 +1,35 @@
-"""The fixed-rate control loop: a deadline scheduler and the per-tick runtime.
+"""The fixed-rate control loop: a real-time deadline scheduler and the per-tick runtime.
 
 Nothing here touches Zenoh or HTTP; the service (:mod:`.service`) feeds each
 tick the newest verdict, decision and observation and publishes what it
 returns.
 
 * :class:`FixedRateScheduler` runs a tick at ``start + k * period`` (never
-  ``previous + period``, so it cannot drift). It records each tick's jitter
-  (actual start minus its deadline) and, when a tick's work ends after the
-  next deadline, counts an overrun and skips to the first deadline still in
-  the future, counting the ticks missed. Clock and sleep are injectable.
-* :class:`ControlRuntime` is one robot's closed loop: fail-safe anomaly flag
-  from the verdict's age, reasoner decisions routed by ``request_id``, the
-  controller's ``make_step`` run off the event loop, the simulated plant
-  advanced by ``dt``, and the messages of the tick.
+  ``previous + period``, so it cannot drift) on the thread that calls
+  :meth:`~FixedRateScheduler.run`, the service's tick thread: it sleeps until
+  ``spin_s`` before the deadline and spins the rest, so a tick starts within
+  tens of microseconds of its deadline (asyncio's timer wakes about 1 ms late,
+  measured in ``aesop bench loop``). It records each tick's jitter (start minus
+  deadline) and, when a tick's work ends after the next deadline, counts an
+  overrun and skips to the first deadline still in the future, counting the
+  ticks missed. Clock and sleep are injectable.
+* :class:`ControlRuntime` is one robot's closed loop: the detector read by
+  :mod:`.detector`'s rules, reasoner decisions routed by ``request_id``, the
+  controller's ``make_step``, the simulated plant advanced by ``dt``, and the
+  messages of the tick. A tick holds its ``lock``; a reset or a change of
+  regions builds the new controller off the tick and swaps it in under the
+  lock, between two ticks.
 """
 
 from __future__ import annotations
 
 import asyncio
 import math
+import threading
 import time
 import uuid
 from collections import deque
-from collections.abc import Awaitable, Callable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -51,10 +58,11 @@ from .scenario import Scenario
 from .settings import ControlSettings
 
 SOURCE = "control"
+SPIN_S = 0.0005  # s: the scheduler spins, rather than sleeps, this close to a deadline
 SILENT = ("the anomaly detector has gone silent: no verdict answers a recent observation, "
           "so the scene is unmonitored and continuing is not an option")
 Clock = Callable[[], float]
-Sleep = Callable[[float], Awaitable[Any]]
+Sleep = Callable[[float], Any]
 
 # --------------------------------------------------------------------------- scheduling
 
@@ -120,34 +128,34 @@ class LoopStats:
 
 
 class FixedRateScheduler:
-    """Calls ``tick(deadline)`` at ``start + k * period`` until ``stop()`` or cancellation."""
+    """Calls ``tick(deadline)`` at ``start + k * period`` on the calling thread, until
+    ``stop()`` (from any thread) or ``max_ticks``."""
 
     def __init__(self, period_s: float, *, clock: Clock = time.monotonic,
-                 sleep: Sleep = asyncio.sleep, window: int = 1000) -> None:
+                 sleep: Sleep = time.sleep, spin_s: float = SPIN_S, window: int = 1000) -> None:
         if not period_s > 0:
             raise ValueError("period_s must be positive")
-        self.period = period_s
+        if spin_s < 0:
+            raise ValueError("spin_s must be >= 0")
+        self.period, self.spin_s = period_s, spin_s
         self.clock, self.sleep = clock, sleep
         self.stats = LoopStats(window)
-        self._stopping = False
+        self._stopping = threading.Event()
 
     def stop(self) -> None:
         """End the loop after the tick in progress."""
-        self._stopping = True
+        self._stopping.set()
 
-    async def run(self, tick: Callable[[float], Awaitable[object]], *,
-                  on_tick: Callable[[TickTiming], None] | None = None,
-                  max_ticks: int | None = None) -> None:
+    def run(self, tick: Callable[[float], object], *,
+            on_tick: Callable[[TickTiming], None] | None = None,
+            max_ticks: int | None = None) -> None:
         start = self.clock()
         index = 0
         done = 0
-        while not self._stopping and (max_ticks is None or done < max_ticks):
+        while not self._stopping.is_set() and (max_ticks is None or done < max_ticks):
             deadline = start + index * self.period
-            now = self.clock()
-            if now < deadline:
-                await self.sleep(deadline - now)
-                now = self.clock()
-            await tick(deadline)
+            now = self._wait(deadline)
+            tick(deadline)
             ended = self.clock()
             following, missed = next_index(start, self.period, index, ended)
             timing = TickTiming(index, deadline, now, ended, missed > 0, missed)
@@ -156,6 +164,16 @@ class FixedRateScheduler:
                 on_tick(timing)
             index = following
             done += 1
+
+    def _wait(self, deadline: float) -> float:
+        """Sleep until ``spin_s`` before ``deadline``, spin the rest; the time it starts."""
+        now = self.clock()
+        while deadline - now > self.spin_s:
+            self.sleep(deadline - now - self.spin_s)
+            now = self.clock()
+        while now < deadline and self.spin_s > 0:
+            now = self.clock()
+        return now
 
 
 # --------------------------------------------------------------------------- the runtime
@@ -254,7 +272,7 @@ class ControlRuntime:
     def __init__(self, settings: ControlSettings, scenario: Scenario, *,
                  clock: Clock = time.monotonic) -> None:
         self.settings, self.scenario, self.clock = settings, scenario, clock
-        self.lock = asyncio.Lock()
+        self.lock = threading.Lock()
         self._rng = np.random.default_rng(settings.seed)
         x0 = self._start_state(None)
         self.controller = self.build_controller(scenario, x0)
@@ -309,12 +327,12 @@ class ControlRuntime:
 
     # ----------------------------------------------------------------- one tick
 
-    async def tick(self, *, deadline: float, verdict: Received[AnomalyVerdict] | None,
-                   decision: ReasonerDecision | None = None,
-                   observation: Received[Observation] | Observation | None = None
-                   ) -> TickResult:
-        """Run one tick whose deadline was ``deadline`` (scheduler clock, s)."""
-        async with self.lock:
+    def tick(self, *, deadline: float, verdict: Received[AnomalyVerdict] | None,
+             decision: ReasonerDecision | None = None,
+             observation: Received[Observation] | Observation | None = None) -> TickResult:
+        """Run one tick whose deadline was ``deadline`` (scheduler clock, s); on the tick
+        thread (it blocks for the controller's and the plant's step)."""
+        with self.lock:
             seen = self._see(observation)
             inputs = self._read_inputs(verdict, decision)
             x = self.plant.state
@@ -323,7 +341,7 @@ class ControlRuntime:
                 self.last = result
                 return result
             started = time.perf_counter()
-            output = await asyncio.to_thread(self._step, x, inputs.anomaly, inputs.decision)
+            output = self._step(x, inputs.anomaly, inputs.decision)
             step_ms = (time.perf_counter() - started) * 1000.0
             result = self._finish(x, output, inputs, step_ms, deadline, seen)
             self.last = result
@@ -344,7 +362,7 @@ class ControlRuntime:
         return message
 
     def _step(self, x: np.ndarray, anomaly: bool, decision: int | None) -> ControlOutput:
-        """Off the event loop: the controller's step, then the plant's."""
+        """The controller's step, then the plant's."""
         output = self.controller.make_step(x, anomaly, decision)
         self.plant.step(output.u)
         return output
@@ -522,11 +540,15 @@ class ControlRuntime:
         if self.mode not in CALM:
             raise NotNominal(self.mode.value)
         controller = await asyncio.to_thread(self.build_controller, scenario, self.plant.state)
-        async with self.lock:
+        await asyncio.to_thread(self._swap_regions, scenario, controller)
+
+    def _swap_regions(self, scenario: Scenario, controller: Any) -> None:
+        with self.lock:  # between two ticks
             if self.mode not in CALM:
                 raise NotNominal(self.mode.value)
             self.scenario, self.controller, self._k0 = scenario, controller, self._k
             self.pending = None
+            regions = scenario.regions
             self._queued.append(self._event(
                 "regions_updated", "info", f"{len(regions)} recovery regions: "
                 + ", ".join(r.name for r in regions), count=len(regions)))
@@ -535,7 +557,11 @@ class ControlRuntime:
         """Start the flight again, at rest at ``start`` (m) or a fresh draw; returns x0."""
         x0 = self._start_state(start)  # ValueError before anything changes
         controller = await asyncio.to_thread(self.build_controller, self.scenario, x0)
-        async with self.lock:
+        await asyncio.to_thread(self._swap_flight, controller, x0)
+        return x0
+
+    def _swap_flight(self, controller: Any, x0: np.ndarray) -> None:
+        with self.lock:  # between two ticks
             self.controller = controller
             self.plant = make_plant(self.scenario, x0)
             self._k = self._k0 = 0
@@ -547,4 +573,3 @@ class ControlRuntime:
             self._queued.append(self._event(
                 "reset", "info", "flight restarted at (" +
                 ", ".join(f"{v:.2f}" for v in x0[POS]) + ") m"))
-        return x0

@@ -1,12 +1,13 @@
 """``aesop bench loop``: the fixed-rate control loop's timing over simulated flights.
 
 The service's own loop (:class:`~.loop.FixedRateScheduler` driving
-:class:`~.loop.ControlRuntime`, the MPC step off the event loop) runs for a
-number of simulated minutes at each rate, without Zenoh: a fresh nominal
-verdict every tick, an anomaly every ``cycle_s`` of flight, the reasoner's
-answer (the first region offered) ``answer_s`` later, and a reset to a new
-start once the recovery has had time to land, run beside the loop as the
-``POST /v1/reset`` route runs it. So every mode of Algorithm 1 is timed.
+:class:`~.loop.ControlRuntime` on its tick thread) runs for a number of
+simulated minutes at each rate, without Zenoh: a fresh nominal verdict every
+tick, an anomaly every ``cycle_s`` of flight (in the middle of the scene's
+anomaly window), the reasoner's answer (the first region offered) ``answer_s``
+later, and a reset to a new start once the recovery has had time to land, run
+beside the loop on the event loop as the ``POST /v1/reset`` route runs it. So
+every mode of Algorithm 1 is timed, resets included.
 
 Jitter is a tick's start minus its deadline; an overrun is a tick whose work
 ended after the next deadline. The plant advances ``dt`` per tick whatever the
@@ -19,6 +20,7 @@ import asyncio
 import sys
 import time
 from collections.abc import Sequence
+from concurrent.futures import Future
 from typing import Any
 
 from shared.bus import Received
@@ -62,35 +64,53 @@ class FlightScript:
 
 async def time_loop(scenario: Scenario, rate_hz: float, ticks: int, seed: int = 0,
                     script: FlightScript | None = None) -> dict[str, Any]:
-    """Run ``ticks`` ticks of the loop at ``rate_hz``; the scheduler's statistics."""
+    """Run ``ticks`` ticks of the loop at ``rate_hz``; the scheduler's statistics.
+
+    As in the service, the ticks run on their own thread, and the resets (as
+    ``POST /v1/reset`` would) on this event loop, beside them.
+    """
     settings = ControlSettings(rate_hz=rate_hz, seed=seed, stats_window=max(ticks, 10),
                                verdict_stale_s=max(0.5, 5.0 / rate_hz))
     runtime = ControlRuntime(settings, scenario)
     scheduler = FixedRateScheduler(settings.period_s, window=max(ticks, 10))
-    script = script or FlightScript(scenario.dt)
+    script = script or FlightScript(scenario.dt, **_timeline(scenario))
     counts = {"requests": 0, "resets": 0}
-    resets: list[asyncio.Task] = []
+    resets: list[Future] = []
+    loop = asyncio.get_running_loop()
     k = 0
 
-    async def tick(deadline: float) -> None:
+    def tick(deadline: float) -> None:
         nonlocal k
         verdict = Received("bench", script.verdict(k), time.monotonic())
-        result = await runtime.tick(deadline=deadline, verdict=verdict,
-                                    decision=script.decision(k))
+        result = runtime.tick(deadline=deadline, verdict=verdict, decision=script.decision(k))
         if result.request is not None:
             counts["requests"] += 1
             script.answered(k, result.request.request_id, result.request.options[1].index)
-        if script.reset_after(k):  # as `POST /v1/reset` would: beside the loop, not in a tick
-            resets.append(asyncio.create_task(runtime.reset()))
+        if script.reset_after(k):
+            resets.append(asyncio.run_coroutine_threadsafe(runtime.reset(), loop))
             counts["resets"] += 1
         k += 1
 
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(settings.switch_interval_s)
     started = time.monotonic()
-    await scheduler.run(tick, max_ticks=ticks)
-    await asyncio.gather(*resets)
+    try:
+        await asyncio.to_thread(scheduler.run, tick, max_ticks=ticks)
+    finally:
+        sys.setswitchinterval(switch)
+    for reset in resets:
+        await asyncio.wrap_future(reset)
     summary = scheduler.stats.summary()
     return {"rate_hz": rate_hz, "wall_s": round(time.monotonic() - started, 1),
             "simulated_s": round(ticks * scenario.dt, 1), **counts, **summary}
+
+
+def _timeline(scenario: Scenario) -> dict[str, float]:
+    """An anomaly in the middle of the scene's anomaly window; the flight reset once the
+    recovery has had T and 5 s more."""
+    lo, hi = scenario.anomaly_window
+    anomaly_s = (lo + hi) / 2
+    return {"anomaly_s": anomaly_s, "cycle_s": max(20.0, anomaly_s + scenario.horizon_s + 5.0)}
 
 
 def bench_loop(rates: Sequence[float] = (10.0, 20.0), minutes: float = 10.0,

@@ -1,34 +1,40 @@
 """The AESOP multi-branch MPC, eq. 3 of the paper, on OSQP.
 
 ``J_t(Y, K, T)``: one nominal branch (index 0) and one recovery branch per
-region in ``Y``, each a trajectory of the hover model over ``T`` steps:
+region in ``Y``, each a trajectory of the planning model (:mod:`.models`: the
+12-state hover model, or the point mass the hardware scene plans with) over
+``T`` steps:
 
 * every branch starts at the measured state ``x_t``;
 * every recovery branch shares its first input with the nominal branch;
 * the recovery branches share their first ``K`` inputs with each other;
 * recovery branch ``i`` lies in region ``X_R^i`` from step ``s`` on (``s = T``
-  in nominal operation, ``T - k`` while a decision is pending); regions are
-  sets of equilibria, so holding them to the end of the horizon changes no
+  in nominal operation, ``T - k`` while a decision is pending, or the
+  relaxing promise of :func:`promised_step`); regions are sets of
+  equilibria, so holding them to the end of the horizon changes no
   feasibility and keeps the problem's shape fixed;
 * state and input boxes on every step of every branch.
 
 The cost is the nominal task cost ``C`` (quadratic tracking of the goal plus
-input effort) plus a small, ``recovery``-weighted tracking cost on each
-recovery branch toward its region's centre, which makes the recovery plans
-unique and smooth without moving the optimum of ``C`` noticeably.
+input effort) plus a small, ``recovery_weight``-scaled cost on each recovery
+branch: input effort, and (``recovery_tracking``) tracking of its region's
+centre. Either makes the recovery plans unique; tracking also pulls the
+shared first input toward the regions, which at 200 steps with regions far
+away holds the robot back from its goal, so the hardware scene uses effort
+only.
 
-The hover model splits into chains that do not interact: ``(x, vx, theta,
-q)`` driven by the pitch torque, ``(y, vy, phi, p)`` by the roll torque,
-``(z, vz)`` by thrust and ``(psi, r)`` by the yaw torque. The weights are
-diagonal, the constraints are boxes and the consensus equalities hold input
-by input, so eq. 3 separates *exactly* into one small QP per chain: the cost
-is the sum of the chains' costs and the plan is feasible when every chain is.
-:func:`decouple` finds the chains from the model's sparsity (nothing is
-hard-coded), and :class:`BranchProblem` solves one :class:`ChainQP` per chain
-and stitches the plan together. Small QPs converge in fewer, cheaper ADMM
-iterations than the coupled one, and many subsets share a chain problem
-(both grass fields lie at the same ``x``), which a shared cache of chain QPs
-turns into one solve.
+The linear model splits into chains that do not interact (for the hover
+model ``(x, vx, theta, q)``, ``(y, vy, phi, p)``, ``(z, vz)``, ``(psi, r)``;
+for the point mass one per axis). The weights are diagonal, the constraints
+are boxes and the consensus equalities hold input by input, so eq. 3
+separates *exactly* into one small QP per chain: the cost is the sum of the
+chains' costs and the plan is feasible when every chain is. :func:`decouple`
+finds the chains from the model's sparsity (nothing is hard-coded), and
+:class:`BranchProblem` solves one :class:`ChainQP` per chain (on threads with
+``workers > 1``; OSQP releases the GIL) and stitches the plan together. Many
+subsets share a chain problem (both grass fields lie at the same ``x``),
+which a shared cache of chain QPs turns into one solve. A chain's cost per
+ADMM iteration grows linearly with ``T``.
 
 A :class:`ChainQP` has a fixed shape (number of branches, horizon) and is
 built and factorized once; each tick only vectors change (initial state,
@@ -36,16 +42,31 @@ bounds that encode ``s`` and ``K``, targets), and OSQP warm-starts from the
 previous solution shifted one step. Shrinking horizons and consensus are
 bound updates, not new problems.
 
-Two robustness details for a plant that is not the linear model:
+Feasibility is decided, not guessed (``SolveStatus.decided``): a solve that
+stops at its iteration cap or time limit is no evidence either way. Such a
+chain goes to a referee, PIQP, an interior-point method that settles it (a
+solution, or a certificate of infeasibility) in a few tens of iterations
+where ADMM near the edge of feasibility can take thousands; its answer
+warm-starts OSQP's next tick. What neither settles within its budget is
+reported as undecided, not infeasible, and the same call again resumes from
+where it stopped.
+
+Robustness details for a plant that is not the linear model:
 
 * constraints on velocity, tilt and rates are tightened by ``shrink`` (3 %),
-  and velocity by ``velocity_margin`` more (0.25 m/s, the overshoot measured
-  on the nonlinear plant when a turn-around is planned at the limit), so
-  model errors do not violate the true limits;
+  and velocity by ``velocity_margin`` more (0.25 m/s on the paper's vehicle,
+  the overshoot measured when a turn-around is planned at the limit; 0.1 m/s
+  for the point mass), so model errors do not violate the true limits;
 * if the measured state already exceeds a tightened bound (model error), the
-  bounds of the first ``relax_steps`` steps are widened by that excess,
+  bounds of the first ``relax_steps`` steps (after ``relax_lag``) are widened
+  by that excess, at least by ``relax_floor`` on the symmetric limits,
   tapering linearly to zero, so the problem stays feasible while the plan
-  brings the state back.
+  brings the state back;
+* AESOP's plans sit on the edge of feasibility (the nominal branch pulls them
+  there), where a plant a hair off its plan turns the next tick infeasible.
+  With ``reserve_steps = R`` the tree promises its regions ``R`` steps before
+  ``T``, and the promise relaxes to ``T`` while the reasoner thinks
+  (:func:`promised_step`): every tick brings ``R / K`` steps of slack.
 
 With ``soft=True`` every recovery branch carries an L1-priced slack per
 state component that shifts its state box (limits and region alike; the
@@ -53,10 +74,9 @@ shift moves the box, it does not widen it, and the nominal branch has none).
 A region out of reach then costs slack instead of making the problem
 infeasible; a plan is *feasible* when the solver converged and the largest
 slack is below ``slack_tolerance``. The baselines need this (their
-least-violating plan); AESOP's selector uses it so that an inexact solve at
-the edge of feasibility does not read as "infeasible" on the next tick.
-Caveat, measured against the CVXPY reference: OSQP's slack estimate at
-``eps = 1e-3`` runs at about ``10 eps``, as large as the default tolerance.
+least-violating plan), and AESOP flies it only when even the hard recovery
+without a deadline is shown infeasible. Caveat, measured against the CVXPY
+reference: OSQP's slack estimate at ``eps = 1e-3`` runs at about ``10 eps``.
 """
 
 from __future__ import annotations

@@ -1,8 +1,10 @@
 """The control loop as a service: Zenoh in and out around :class:`.loop.ControlRuntime`.
 
-Each tick reads the newest ``AnomalyVerdict``, ``ReasonerDecision`` and
-``Observation`` of its robot from ``Latest`` slots (nothing queues up behind a
-slow tick), runs the runtime, then publishes ``ControlState`` (every tick),
+The loop runs on its own thread (the tick thread), not on the event loop, so
+that a tick starts on time whatever the HTTP side is doing. Each tick reads
+the newest ``AnomalyVerdict``, ``ReasonerDecision`` and ``Observation`` of its
+robot from ``Latest`` slots (thread-safe; nothing queues up behind a slow
+tick), runs the runtime, then publishes ``ControlState`` (every tick),
 ``PlanSnapshot`` (when the step produced a plan), ``ReasonerRequest`` (on the
 detection tick) and ``Event``s. The bus declares ``aesop/health/control``.
 """
@@ -10,6 +12,8 @@ detection tick) and ``Event``s. The bus declares ``aesop/health/control``.
 from __future__ import annotations
 
 import logging
+import sys
+import threading
 import time
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
@@ -100,16 +104,26 @@ class ControlService:
             self.observations = bus.latest(topics.observation(robot), Observation)
         self.scheduler = FixedRateScheduler(settings.period_s, window=settings.stats_window)
         self._last_error_log: float | None = None
+        self._thread: threading.Thread | None = None
+        self._switch = sys.getswitchinterval()
 
-    async def run(self) -> None:
-        await self.scheduler.run(self._tick, on_tick=self.metrics.timing)
+    def start(self) -> None:
+        """Run the loop on its own thread (the tick thread); Python hands that thread the
+        GIL within ``switch_interval_s`` of its wake-up (the default, 5 ms, is a tenth of a
+        20 Hz period)."""
+        self._switch = sys.getswitchinterval()
+        sys.setswitchinterval(self.settings.switch_interval_s)
+        self._thread = threading.Thread(target=self.scheduler.run, args=(self._tick,),
+                                        kwargs={"on_tick": self.metrics.timing},
+                                        name="control-tick", daemon=True)
+        self._thread.start()
 
-    async def _tick(self, deadline: float) -> None:
+    def _tick(self, deadline: float) -> None:
         try:
             verdict = self.verdicts.get() if self.verdicts else None
             decision = self.decisions.get() if self.decisions else None
             observation = self.observations.get() if self.observations else None
-            result = await self.runtime.tick(
+            result = self.runtime.tick(
                 deadline=deadline, verdict=verdict,
                 decision=None if decision is None else decision.message, observation=observation)
             self._publish(result)
@@ -133,9 +147,13 @@ class ControlService:
         for event in result.events:
             self.bus.publish(topics.event(robot), event)
 
-    def stop(self) -> None:
-        """End the loop after the tick in progress."""
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """End the loop after the tick in progress and wait for its thread."""
         self.scheduler.stop()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+            self._thread = None
+            sys.setswitchinterval(self._switch)
 
     def close(self) -> None:
         """Close the bus if it is ours (after the loop has ended)."""

@@ -31,6 +31,8 @@ class ControlSettings(ServiceSettings):
     mpc_max_iter: int | None = Field(default=None, ge=1)  # OSQP iterations per warm solve
     mpc_max_iter_cold: int | None = Field(default=None, ge=1)
     stats_window: int = Field(default=1000, ge=10)  # ticks behind the jitter percentiles
+    # s: how soon Python hands the GIL to the tick thread once it wakes (sys.setswitchinterval)
+    switch_interval_s: float = Field(default=0.0002, gt=0.0, le=0.01)
 
     @field_validator("scenario", "start_position", "mpc_max_iter", "mpc_max_iter_cold",
                      mode="before")

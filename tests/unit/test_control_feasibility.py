@@ -128,3 +128,14 @@ def test_from_rest_at_the_papers_grid_the_robot_flies():
     assert all(s is SolveStatus.SOLVED for s in statuses)
     assert out.mode is Mode.NOMINAL and out.active_regions == PAIR
     assert plant.state[3] > 0.5  # m/s toward the red box
+
+
+def test_a_solve_stopped_by_its_time_limit_is_undecided_too():
+    """A warm solve given 1 us: OSQP stops at its time limit, which decides nothing."""
+    timed = dataclasses.replace(CONFIG, time_limit_s=1e-6, referee_max_iter=0)
+    selector = SubsetSelector(MODEL, timed, REGIONS)
+    state = at_rest(-4.0)
+    assert selector.select(state, goal()).feasible  # the cold solve has no limit
+    moved = selector.select(at_rest(-3.9), goal())  # warm, cut at once
+    assert not moved.feasible and not moved.decided
+    assert moved.status is SolveStatus.TIME_LIMIT

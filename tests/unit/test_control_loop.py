@@ -3,6 +3,9 @@ tick (fail-safe verdicts, decisions routed by request_id, the messages it builds
 
 from __future__ import annotations
 
+import threading
+import time
+
 import numpy as np
 import pytest
 
@@ -41,28 +44,28 @@ class FakeClock:
     def __call__(self) -> float:
         return self.now
 
-    async def sleep(self, seconds: float) -> None:
+    def sleep(self, seconds: float) -> None:
         self.now += seconds
 
 
 # --------------------------------------------------------------------------- scheduler
 
 
-async def test_deadlines_never_drift_and_jitter_is_the_lateness() -> None:
+def test_deadlines_never_drift_and_jitter_is_the_lateness() -> None:
     clock = FakeClock()
-    late = 0.0007  # every wake-up oversleeps a little, as a real loop does
+    late = 0.0007  # every wake-up oversleeps a little, as a real thread does
 
-    async def sleep(seconds: float) -> None:
-        await clock.sleep(seconds + late)
+    def sleep(seconds: float) -> None:
+        clock.sleep(seconds + late)
 
-    scheduler = FixedRateScheduler(0.1, clock=clock, sleep=sleep)
+    scheduler = FixedRateScheduler(0.1, clock=clock, sleep=sleep, spin_s=0.0)
     start = clock.now
     timings: list[TickTiming] = []
 
-    async def tick(deadline: float) -> None:
+    def tick(deadline: float) -> None:
         clock.now += 0.03  # work
 
-    await scheduler.run(tick, on_tick=timings.append, max_ticks=1000)
+    scheduler.run(tick, on_tick=timings.append, max_ticks=1000)
     assert [t.index for t in timings] == list(range(1000))
     for t in timings:  # deadline k is start + k * period, whatever the lateness before
         assert t.deadline == pytest.approx(start + t.index * 0.1, abs=1e-9)
@@ -75,17 +78,39 @@ async def test_deadlines_never_drift_and_jitter_is_the_lateness() -> None:
     assert stats["tick_p50_ms"] == pytest.approx(30.0, abs=1e-3)
 
 
-async def test_an_overrun_is_counted_and_skips_to_the_next_future_deadline() -> None:
+def test_the_last_stretch_before_a_deadline_is_spun_not_slept() -> None:
+    """Sleep would oversleep by as much again; the scheduler sleeps until ``spin_s`` before
+    the deadline and then only reads the clock, which advances by itself here."""
+    ticks = iter(range(10**6))
+    now = {"t": 0.0}
+    slept: list[float] = []
+
+    def clock() -> float:
+        now["t"] += 0.0001 if next(ticks) else 0.0  # each reading takes 0.1 ms
+        return now["t"]
+
+    def sleep(seconds: float) -> None:
+        slept.append(seconds)
+        now["t"] += seconds
+
+    scheduler = FixedRateScheduler(0.05, clock=clock, sleep=sleep, spin_s=0.0005)
+    starts: list[float] = []
+    scheduler.run(lambda deadline: starts.append(now["t"]), max_ticks=3)
+    assert all(s <= 0.05 - 0.0005 + 1e-9 for s in slept)  # never slept into the last 0.5 ms
+    assert starts[1] == pytest.approx(0.05, abs=2e-4) and starts[2] == pytest.approx(0.1, abs=2e-4)
+
+
+def test_an_overrun_is_counted_and_skips_to_the_next_future_deadline() -> None:
     clock = FakeClock()
-    scheduler = FixedRateScheduler(0.1, clock=clock, sleep=clock.sleep)
+    scheduler = FixedRateScheduler(0.1, clock=clock, sleep=clock.sleep, spin_s=0.0)
     start = clock.now
     timings: list[TickTiming] = []
 
-    async def tick(deadline: float) -> None:
+    def tick(deadline: float) -> None:
         index = round((deadline - start) / 0.1)
         clock.now += 0.35 if index == 5 else 0.01  # tick 5 runs past deadlines 6, 7 and 8
 
-    await scheduler.run(tick, on_tick=timings.append, max_ticks=10)
+    scheduler.run(tick, on_tick=timings.append, max_ticks=10)
     indices = [t.index for t in timings]
     assert indices == [0, 1, 2, 3, 4, 5, 9, 10, 11, 12]
     five = timings[5]
@@ -94,6 +119,16 @@ async def test_an_overrun_is_counted_and_skips_to_the_next_future_deadline() -> 
     assert timings[6].deadline == pytest.approx(start + 0.9)
     assert timings[6].jitter_s == pytest.approx(0.0, abs=1e-9)  # it waited for tick 9
     assert scheduler.stats.overruns == 1 and scheduler.stats.missed == 3
+
+
+def test_stop_ends_the_loop_from_another_thread() -> None:
+    scheduler = FixedRateScheduler(0.005)
+    thread = threading.Thread(target=scheduler.run, args=(lambda deadline: None,))
+    thread.start()
+    time.sleep(0.05)
+    scheduler.stop()
+    thread.join(2.0)
+    assert not thread.is_alive() and scheduler.stats.ticks > 1
 
 
 def test_next_index() -> None:
@@ -133,9 +168,8 @@ def verdict(clock: FakeClock, seq: int, anomaly: bool) -> Received[AnomalyVerdic
 
 async def tick(rt: ControlRuntime, clock: FakeClock, v: Received[AnomalyVerdict] | None,
                decision: ReasonerDecision | None = None,
-               observation: Observation | None = None) -> TickResult:
-    result = await rt.tick(deadline=clock.now, verdict=v, decision=decision,
-                           observation=observation)
+               observation: Received[Observation] | Observation | None = None) -> TickResult:
+    result = rt.tick(deadline=clock.now, verdict=v, decision=decision, observation=observation)
     clock.now += 0.1
     return result
 
