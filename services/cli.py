@@ -114,7 +114,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="worker processes (default: every CPU)")
     bc.add_argument("--inconsequential", type=int, default=5,
                     help="cases flown again with y = 0 to measure the time lost (default 5)")
-    bc.add_argument("--scenario", type=Path, default=None, help="scenario file (default: paper)")
+    bc.add_argument("--scenario", type=Path, default=None,
+                    help="a bundled scenario (paper, hardware) or a file (default: paper)")
     bc.add_argument("--plot", type=Path, default=None, help="write a figure of case 0 (PNG)")
     bc.add_argument("--json", action="store_true")
     bc.set_defaults(func=cmd_bench_closed_loop)
@@ -124,7 +125,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="loop rates in Hz, run one after the other (default 10 20)")
     bl.add_argument("--minutes", type=float, default=10.0,
                     help="simulated flight per rate, in minutes (default 10)")
-    bl.add_argument("--scenario", type=Path, default=None, help="scenario file (default: paper)")
+    bl.add_argument("--scenario", type=Path, default=None,
+                    help="a bundled scenario (paper, hardware) or a file (default: paper)")
     bl.add_argument("--seed", type=int, default=0)
     bl.add_argument("--json", action="store_true")
     bl.set_defaults(func=cmd_bench_loop)
@@ -154,7 +156,8 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--data-dir", type=Path, default=Path("aesop-data"),
                     help="one subdirectory per service (default ./aesop-data)")
     up.add_argument("--scenario", type=Path, default=None,
-                    help="control scenario (default: AESOP_SCENARIO or the hardware scene)")
+                    help="control scenario: a bundled name (paper, hardware) or a file "
+                         "(default: AESOP_SCENARIO or the hardware scene)")
     up.add_argument("--random-ports", action="store_true",
                     help="free ports instead of 7447 (Zenoh) and 8001-8003, 8010, 8080")
     up.add_argument("--no-dashboard", action="store_true")
@@ -429,10 +432,11 @@ def cmd_bench_bus(args: argparse.Namespace) -> int:
 def _stack_options(args: argparse.Namespace, data_dir: Path):
     import importlib.util
 
+    from services.control.scenario import resolve_scenario
     from services.stack.up import Ports, StackOptions, hardware_scenario
 
-    scenario_path = args.scenario or Path(os.environ.get("AESOP_SCENARIO") or
-                                          hardware_scenario())
+    scenario_path = resolve_scenario(args.scenario or os.environ.get("AESOP_SCENARIO")
+                                     or hardware_scenario())
     scenario = _control_scenario(scenario_path)
     dashboard = not getattr(args, "no_dashboard", False)
     if dashboard and importlib.util.find_spec("services.dashboard") is None:

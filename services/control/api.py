@@ -93,7 +93,7 @@ def create_app(settings: ControlSettings, runtime: ControlRuntime,
             "verdict_stale": None if last is None else last.stale,
             "pending_request": runtime.pending,
             "loop": {
-                "rate_hz": settings.rate_hz,
+                "rate_hz": 1.0 / runtime.period_s,
                 **(service.scheduler.stats.summary() if service else {}),
                 "last_step_ms": None if last is None else round(last.step_ms, 3),
                 "last_solve_ms": None if plan is None else round(float(plan.solve_ms), 3),

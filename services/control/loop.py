@@ -321,6 +321,11 @@ class ControlRuntime:
         return self.scenario.sample_start(self._rng)
 
     @property
+    def period_s(self) -> float:
+        """Wall seconds between ticks: the configured rate's, else the scene's dt."""
+        return self.settings.period_s(self.scenario.dt)
+
+    @property
     def t(self) -> float:
         """Simulated time of the next tick (s)."""
         return self._k * self.scenario.dt
@@ -496,7 +501,7 @@ class ControlRuntime:
         # The decision must be here by the tick at k = K: the controller says how many
         # ticks are left (fewer than K when a hold had already spent some).
         left = max(self.scenario.consensus if consensus_left is None else consensus_left, 0)
-        due = deadline + left * self.settings.period_s
+        due = deadline + left * self.period_s
         deadline_s = max(due - self.clock() - self.settings.decision_margin_s, 1e-3)
         return ReasonerRequest(robot=robot, request_id=uuid.uuid4().hex,
                                observation=observation,

@@ -72,7 +72,7 @@ async def time_loop(scenario: Scenario, rate_hz: float, ticks: int, seed: int = 
     settings = ControlSettings(rate_hz=rate_hz, seed=seed, stats_window=max(ticks, 10),
                                verdict_stale_s=max(0.5, 5.0 / rate_hz))
     runtime = ControlRuntime(settings, scenario)
-    scheduler = FixedRateScheduler(settings.period_s, window=max(ticks, 10))
+    scheduler = FixedRateScheduler(runtime.period_s, window=max(ticks, 10))
     script = script or FlightScript(scenario.dt, **_timeline(scenario))
     counts = {"requests": 0, "resets": 0}
     resets: list[Future] = []

@@ -84,7 +84,8 @@ class ControlMetrics:
 
 
 class ControlService:
-    """The runtime driven at ``rate_hz`` with its inputs and outputs on the bus.
+    """The runtime driven at its rate (``rate_hz``, else the scene's 1 / dt) with its inputs
+    and outputs on the bus.
 
     ``bus`` may be None (no Zenoh): every tick then sees no verdict, which is
     the fail-safe anomaly, and nothing is published.
@@ -102,7 +103,7 @@ class ControlService:
             self.verdicts = bus.latest(topics.anomaly(robot), AnomalyVerdict)
             self.decisions = bus.latest(topics.reasoner_decision(robot), ReasonerDecision)
             self.observations = bus.latest(topics.observation(robot), Observation)
-        self.scheduler = FixedRateScheduler(settings.period_s, window=settings.stats_window)
+        self.scheduler = FixedRateScheduler(runtime.period_s, window=settings.stats_window)
         self._last_error_log: float | None = None
         self._thread: threading.Thread | None = None
         self._switch = sys.getswitchinterval()

@@ -17,7 +17,8 @@ from shared.settings import ServiceSettings
 
 class ControlSettings(ServiceSettings):
     port: int = Field(default=8003, ge=0, le=65535)
-    rate_hz: float = Field(default=10.0, gt=0.0, le=1000.0)  # ticks per second of wall time
+    # ticks per second of wall time; None: the scene's own, 1 / dt (its plant advances dt a tick)
+    rate_hz: float | None = Field(default=None, gt=0.0, le=1000.0)
     scenario: Path | None = None  # YAML/JSON scenario file; None: the packaged paper scenario
     control_method: Literal["aesop", "fsmpc", "naive"] = "aesop"
     # the recovery committed at k = K without a decision: cheapest, first, or a region index
@@ -34,7 +35,7 @@ class ControlSettings(ServiceSettings):
     # s: how soon Python hands the GIL to the tick thread once it wakes (sys.setswitchinterval)
     switch_interval_s: float = Field(default=0.0002, gt=0.0, le=0.01)
 
-    @field_validator("scenario", "start_position", "mpc_max_iter", "mpc_max_iter_cold",
+    @field_validator("scenario", "start_position", "mpc_max_iter", "mpc_max_iter_cold", "rate_hz",
                      mode="before")
     @classmethod
     def _empty_is_none(cls, v: object) -> object:
@@ -54,9 +55,9 @@ class ControlSettings(ServiceSettings):
             raise ValueError("a fallback region index is >= 1 (0 means continue)")
         return v
 
-    @property
-    def period_s(self) -> float:
-        return 1.0 / self.rate_hz
+    def period_s(self, dt: float) -> float:
+        """Seconds between ticks for a scene stepped by ``dt``."""
+        return dt if self.rate_hz is None else 1.0 / self.rate_hz
 
     def mpc_overrides(self) -> dict[str, int]:
         """``MPCConfig`` fields the settings override (for ``plant.mpc_config``)."""

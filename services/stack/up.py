@@ -28,12 +28,12 @@ import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import IO, Literal
 
 import httpx
 
+from services.control.scenario import bundled_path, resolve_scenario
 from shared.process import free_port
 
 Sink = Callable[[str, str], None]  # (service name, one line of its output)
@@ -46,7 +46,7 @@ _DROPPED_ENV = ("AESOP_ZENOH_LISTEN", "AESOP_ZENOH_CONFIG", "AESOP_ZENOH_MODE", 
 
 def hardware_scenario() -> Path:
     """The bundled scene of the paper's hardware experiment."""
-    return Path(str(resources.files("services.control").joinpath("scenarios/hardware.yaml")))
+    return bundled_path("hardware")
 
 
 @dataclass(frozen=True)
@@ -126,7 +126,8 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str) ->
         base.setdefault("AESOP_LLM_MODEL", "fake")
         base.setdefault("AESOP_FAKE_LLM_PROFILE", "fixed")
         base.setdefault("AESOP_FAKE_LLM_FIXED_S", str(FAKE_LLM_LATENCY_S))
-    scenario = options.scenario or Path(environ.get("AESOP_SCENARIO") or hardware_scenario())
+    scenario = options.scenario or resolve_scenario(environ.get("AESOP_SCENARIO")
+                                                    or hardware_scenario())
     base["AESOP_SCENARIO"] = str(scenario)
     if options.rate_hz is not None:
         base["AESOP_RATE_HZ"] = f"{options.rate_hz:g}"
