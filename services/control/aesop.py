@@ -56,6 +56,7 @@ from enum import StrEnum
 
 import numpy as np
 
+from .dynamics import N_STATE
 from .models import PlanningModel
 from .mpc import BranchProblem, MPCConfig, Plan, SolveStatus, promised_step, tightened_inputs
 from .regions import Region
@@ -145,7 +146,7 @@ class _Controller:
         self._recover: dict[bool, BranchProblem] = {}  # the recovering problem, hard/soft
         self._active: tuple[int, ...] = ()  # the subset whose recovery plans are kept
         self.memory = _Memory()
-        self._x = np.zeros(12)  # the measured plant state of this step
+        self._x = np.zeros(N_STATE)  # the measured plant state of this step
         self._lag = np.zeros(model.n_lag)  # the model's lag states, from the commands sent
         self._du_hi = tightened_inputs(model, config)[1]
         self.goal = route.goal  # this step's nominal target (model state)
