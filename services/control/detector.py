@@ -5,7 +5,8 @@ Pure logic: no clock, no I/O (the runtime in :mod:`.loop` feeds it).
 * :class:`Sightings` — when this service first saw each observation, by ``seq``.
   A verdict is as old as the observation it answers: a backlog of verdicts on old
   observations is not fresh, however recently it arrived. With no observations on
-  the bus at all, the verdict's own arrival is all there is to go by.
+  the bus at all, the verdict's own arrival is all there is to go by. A count that
+  starts again (the camera restarted) starts the record again.
 * :func:`directive` — the fail-safe policy, one tick at a time. Silence is an
   anomaly: while verdicts are stale the reasoner is asked once per silent spell,
   told that the detector is silent and not offered "continue"; a "continue" for
@@ -36,7 +37,11 @@ class Sightings:
         self._seen: deque[tuple[int, float]] = deque(maxlen=size)
 
     def record(self, seq: int, at: float) -> None:
-        """Observation ``seq`` was first seen at ``at`` (the runtime's clock, s)."""
+        """Observation ``seq`` was first seen at ``at`` (the runtime's clock, s). A number
+        below the newest means the publisher counts again from the start (it restarted):
+        what was seen before is forgotten."""
+        if self._seen and seq < self._seen[-1][0]:
+            self._seen.clear()
         if not self._seen or seq > self._seen[-1][0]:
             self._seen.append((seq, at))
 

@@ -48,7 +48,7 @@ def test_a_verdict_is_as_old_as_the_observation_it_answers():
     sightings = Sightings()
     for seq in range(5):
         sightings.record(seq, 100.0 + seq * 0.1)
-    sightings.record(2, 500.0)  # a repeat does not make an old observation new
+    sightings.record(4, 500.0)  # a repeat does not make an observation new
     assert verdict_age(sightings, 4, arrived_at=101.0, now=101.0) == pytest.approx(0.6)
     # the verdict for seq 1 arrives now, but answers what was seen at 100.1
     assert verdict_age(sightings, 1, arrived_at=101.0, now=101.0) == pytest.approx(0.9)
@@ -66,3 +66,13 @@ def test_sightings_forget_the_oldest():
     for seq in range(10):
         sightings.record(seq, float(seq))
     assert sightings.seen_at(6) is None and sightings.seen_at(9) == 9.0
+
+
+def test_a_count_that_starts_again_is_a_restart():
+    sightings = Sightings()
+    for seq in range(100, 110):
+        sightings.record(seq, float(seq))
+    sightings.record(1, 500.0)  # the publisher restarted: what came before is forgotten
+    assert sightings.seen_at(1) == 500.0 and sightings.seen_at(105) == 500.0
+    sightings.record(2, 501.0)
+    assert sightings.seen_at(2) == 501.0 and sightings.seen_at(0) is None
