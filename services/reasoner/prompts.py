@@ -45,6 +45,9 @@ Variant = Literal["cot", "single"]
 DOMAINS: tuple[str, ...] = ("quadrotor", "vtol", "warehouse", "vehicle")
 
 CONTINUE_LINE = "0: continue nominal operation"
+# in place of CONTINUE_LINE when the caller withholds 0 (the control loop, while the
+# anomaly detector is silent): the instructions' "choose 0 only if ..." does not apply
+CONTINUE_WITHHELD = "(0, continue nominal operation, is not available now: choose one of these)"
 FINAL_INSTRUCTION = "End your answer with one line exactly: FINAL ANSWER: <option number>"
 QUOTE = "> "
 DASH = "\u2014"  # em dash between an option's label and its description
@@ -151,11 +154,13 @@ def quote_observation(text: str) -> str:
 
 
 def render_options(options: Sequence[Option]) -> str:
-    """Option lines sorted by index; option 0, when offered, always reads ``continue
-    nominal operation`` (the control loop withholds it while the detector is silent)."""
+    """Option lines sorted by index; option 0 always reads ``continue nominal operation``,
+    or, withheld (the control loop, while the detector is silent), says it is not
+    available."""
     checked = validate_options(options)
-    lines = [CONTINUE_LINE] if checked[0].index == 0 else []
-    for opt in checked[1:] if checked[0].index == 0 else checked:
+    offered = checked[0].index == 0
+    lines = [CONTINUE_LINE if offered else CONTINUE_WITHHELD]
+    for opt in checked[1:] if offered else checked:
         label = _single_line(opt.label, f"options[{opt.index}].label")
         description = " ".join(opt.description.split())
         lines.append(

@@ -8,6 +8,7 @@ import pytest
 
 from services.reasoner.prompts import (
     CONTINUE_LINE,
+    CONTINUE_WITHHELD,
     DOMAINS,
     FINAL_INSTRUCTION,
     Template,
@@ -128,9 +129,11 @@ def test_option_order_and_empty_description() -> None:
 
 def test_continue_may_be_withheld():
     """While the detector is silent the control loop does not offer 0: no continue line,
-    and the model's "0" would not parse as an offered option."""
+    the model is told so where the options are (the instruction's "choose 0 only if ..."
+    would otherwise invite it), and its "0" would not parse as an offered option."""
     text = prompt(options=(Option(index=2, label="b"), Option(index=1, label="a")))
-    assert "Options:\n1: a\n2: b\n\n" in text and CONTINUE_LINE not in text
+    assert f"Options:\n{CONTINUE_WITHHELD}\n1: a\n2: b\n\n" in text
+    assert CONTINUE_LINE not in text
 
 
 @pytest.mark.parametrize(
