@@ -56,6 +56,9 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--host")
     serve.add_argument("--port", type=int)
     serve.add_argument("--data-dir", type=Path)
+    serve.add_argument("--scenario", default=None,
+                       help="control only: a bundled scenario (paper, hardware) or a file "
+                            "(default: AESOP_SCENARIO, else paper)")
     serve.set_defaults(func=cmd_serve)
 
     detector = sub.add_parser("detector", help="offline tools for the fast anomaly detector")
@@ -188,10 +191,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     overrides = {k: v for k, v in (("host", args.host), ("port", args.port),
                                    ("data_dir", args.data_dir)) if v is not None}
+    if args.scenario is not None and args.service != "control":
+        raise CliError("--scenario: only `aesop serve control` flies a scenario")
     if args.service == "reasoner":
         return serve_reasoner(overrides)
     if args.service == "control":
-        return serve_control(overrides)
+        return serve_control(overrides, args.scenario)
     if args.service == "dashboard":
         return serve_dashboard(overrides)
 
@@ -229,20 +234,24 @@ def serve_reasoner(overrides: dict[str, Any]) -> int:
     return 0
 
 
-def serve_control(overrides: dict[str, Any]) -> int:
+def serve_control(overrides: dict[str, Any], scenario: str | None = None) -> int:
     from services.control.api import create_app
     from services.control.loop import ControlRuntime
-    from services.control.scenario import load_scenario
+    from services.control.scenario import ScenarioError, load_scenario
     from services.control.service import SERVICE
     from services.control.settings import ControlSettings
     from shared.bus import Bus
     from shared.http import serve
 
+    if scenario is not None:
+        overrides = {**overrides, "scenario": scenario}
     settings = ControlSettings(**overrides)
     try:
         settings.check_exposure()
         runtime = ControlRuntime(settings, load_scenario(settings.scenario))
-    except ValueError as exc:  # ScenarioError included: the message names the field
+    except ScenarioError as exc:  # the message names the file and the field
+        raise CliError(f"--scenario: {exc}" if scenario is not None else str(exc)) from None
+    except ValueError as exc:
         raise CliError(str(exc)) from None
     app = create_app(settings, runtime, bus_factory=lambda: Bus.open(settings, SERVICE))
     serve(app, settings)
