@@ -115,17 +115,16 @@ def _mpc_run(scenario: Scenario, flights: int, ticks: int, reference_every: int,
 
 
 def _reference_tick(model, scenario, config, controller) -> tuple[float, list[float]]:
-    """CVXPY on every candidate subset at the controller's last state; the relative cost
-    gap where both call it feasible."""
+    """CVXPY on every candidate subset of the controller's last selection, at its state;
+    the relative cost gap where both call it feasible. (The plans are the ones that tick
+    solved: nothing is solved again here, so the next tick's timing is untouched.)"""
     total, diffs = 0.0, []
-    selector = controller.selector
     xm, goal = controller.measured, controller.goal
-    for subset in selector.subsets:
+    for subset, plan in controller.selector.last.candidates.items():
         regions = [scenario.region(i) for i in subset]
         ref = reference_solve(model, config, regions, xm, goal,
                               region_step=promised_step(config, 0))
         total += ref.total_ms
-        plan = selector.solve(subset, xm, goal)
         if ref.status == "optimal" and plan.feasible:
             diffs.append(abs(plan.cost - ref.cost) / max(abs(ref.cost), 1e-9))
     return total, diffs

@@ -175,6 +175,7 @@ class MPCConfig:
     # steps before the taper starts: the excess is allowed in full up to step relax_lag. The
     # hover model cannot change velocity in one step (1); a point mass can (0), and with a
     # lag it would keep the excess forever, braking only "from the next step" every tick.
+    # A count of model steps (not rescaled with the grid, unlike STEP_FIELDS in scenario.py).
     relax_lag: int = 1
     # least widening of the symmetric limits (m/s, rad, rad/s) in those first steps: a
     # state just inside its box can be carried over it by dynamics no input can stop at
@@ -639,7 +640,7 @@ class ChainQP:
     def _run(self, q: np.ndarray, lo: np.ndarray, hi: np.ndarray,
              targets: np.ndarray, shift: bool = True) -> ChainSolution:
         """OSQP, warm-started from the last iterate (``shift``: advanced one step); if it
-        stops at its cap without deciding, PIQP referees."""
+        stops at its iteration cap without deciding, PIQP referees."""
         cfg = self.config
         infinity = osqp.constant("OSQP_INFTY")
         start_time = time.perf_counter()
@@ -659,7 +660,11 @@ class ChainQP:
         result = self.solver.solve(raise_error=False)
         raw = _Raw(_OSQP_STATUS.get(result.info.status_val, SolveStatus.FAILED), result.x,
                    result.y, float(result.info.obj_val), int(result.info.iter))
-        if not raw.status.decided and cfg.referee_max_iter > 0:
+        # stopped at its iteration cap: referee; at its time limit the tick's budget is spent
+        out_of_time = raw.status is SolveStatus.TIME_LIMIT or (
+            warm and cfg.time_limit_s > 0
+            and time.perf_counter() - start_time >= cfg.time_limit_s)
+        if not raw.status.decided and not out_of_time and cfg.referee_max_iter > 0:
             judged = self._referee(q, lo, hi)
             raw = replace(judged, iterations=raw.iterations + judged.iterations, refereed=True)
         solve_ms = (time.perf_counter() - start_time) * 1e3

@@ -79,6 +79,7 @@ class SubsetSelector:
         self._cache: ChainCache = {}  # chain QPs shared by subsets that agree on a chain
         self._pool = ThreadPoolExecutor(workers) if workers > 1 else None
         self._chains = ThreadPoolExecutor(config.workers) if config.workers > 1 else None
+        self.last: Selection | None = None  # the newest select()'s answer
 
     def problem(self, subset: tuple[int, ...]) -> BranchProblem:
         """The warm solver kept for ``subset`` (built on first use)."""
@@ -108,7 +109,9 @@ class SubsetSelector:
         plans = self._map(subsets, x0, goal)
         feasible = {s: p for s, p in plans.items() if p.feasible}
         best = min(feasible, key=lambda s: feasible[s].cost, default=())
-        return Selection(best, feasible.get(best), plans, (time.perf_counter() - start) * 1e3)
+        self.last = Selection(best, feasible.get(best), plans,
+                              (time.perf_counter() - start) * 1e3)
+        return self.last
 
     def _map(self, subsets: list[tuple[int, ...]], x0, goal) -> dict[tuple[int, ...], Plan]:
         if self._pool is None:
