@@ -154,6 +154,17 @@ class _Controller:
         self._alarms: list[str] = []  # what went wrong in this step
 
     @property
+    def lag(self) -> np.ndarray:
+        """The model's lag states: what the vehicle has yet to realize of the commands sent."""
+        return self._lag
+
+    def carry_on(self, other: _Controller) -> None:
+        """Take over the flight ``other`` was flying (same route, new regions): where it is
+        on the route and the lag states of the commands it sent."""
+        self.route.index = other.route.index
+        self._lag = other.lag.copy()
+
+    @property
     def mode(self) -> Mode:
         return self.memory.mode
 
@@ -297,8 +308,9 @@ class _Controller:
 
         The first solve of a problem has no warm start (up to ``max_iter_cold``
         iterations, a few hundred ms); after this the first tick at ``x`` is
-        answered by each chain's memo and later ones start warm. No memory
-        changes: the flight has not begun.
+        answered by each chain's memo and later ones start warm. The flight has
+        not begun: nothing else changes (the route moves on only if ``x`` is already at
+        its waypoint, as the first tick would).
         """
 
     def _warm_recovery(self, x: np.ndarray, goal: np.ndarray) -> None:
@@ -316,13 +328,13 @@ class _Controller:
         reasoner's ``decision`` for the pending anomaly (``None`` while it thinks)."""
         self._x = np.asarray(x, dtype=float)
         if not np.all(np.isfinite(self._x)):
-            return self._measurement_lost(anomaly, decision)
+            return self._measurement_lost(decision)
         xm = self.model.measure(self._x, self._lag)
         self.measured = xm
         self.goal = self.route.target(xm, self.model)
         return self._step(xm, anomaly, decision)
 
-    def _measurement_lost(self, anomaly: bool, decision: int | None) -> ControlOutput:
+    def _measurement_lost(self, decision: int | None) -> ControlOutput:
         """A non-finite state: no solver sees it. Fly the kept recovery branch (or hover),
         take the decision, and raise an alarm; the next finite state resumes the loop."""
         self._take_decision(decision)
@@ -331,7 +343,9 @@ class _Controller:
             self._commit_fallback(None)
         self._alarms.append("non-finite state measured: flying the last plan's recovery "
                             "branch")
-        return self._output(self._blind(), SolveStatus.FAILED, None, self._active)
+        active = {Mode.RECOVERING: (mem.chosen,), Mode.PENDING: mem.options}.get(
+            mem.mode, self._active)
+        return self._output(self._blind(), SolveStatus.FAILED, None, active)
 
     def _k(self) -> int:
         """Ticks of the consensus budget used since the anomaly (a hold's included)."""
@@ -389,7 +403,7 @@ class _Controller:
                 mem.events.append(f"late decision {decision} ignored: already recovering")
             return
         if decision == 0:
-            mem.events.append("reasoner: continue; back to nominal")
+            mem.events.append("continue (y = 0): back to nominal")
             mem.mode, mem.t_anom, mem.options = Mode.NOMINAL, None, ()
             mem.region_step = None
         elif decision in mem.options:

@@ -1,8 +1,8 @@
 """HTTP admin API of the control-loop service.
 
 ``GET /v1/state`` (the newest ControlState and the loop's timing),
-``GET /v1/regions``, ``POST /v1/regions`` (replace the recovery regions, in
-nominal mode only; admin token), ``POST /v1/reset`` (restart the flight;
+``GET /v1/regions``, ``POST /v1/regions`` (replace the recovery regions while the
+flight is nominal or waiting; admin token), ``POST /v1/reset`` (restart the flight;
 admin token), and ``/healthz``, ``/readyz``, ``/metrics``.
 """
 
@@ -118,7 +118,8 @@ def create_app(settings: ControlSettings, runtime: ControlRuntime,
             raise ApiError(422, "invalid", str(exc), error_field(str(exc))) from None
         except NotNominal as exc:
             raise ApiError(409, "conflict", f"the flight is in mode {exc}: recovery regions "
-                           "change only in nominal mode (POST /v1/reset first)", "mode") from None
+                           "change only while nominal or waiting (POST /v1/reset first)",
+                           "mode") from None
         except ValueError as exc:
             raise ApiError(422, "invalid", str(exc), error_field(str(exc))) from None
         return regions_body()

@@ -8,11 +8,11 @@ returns.
   ``previous + period``, so it cannot drift) on the thread that calls
   :meth:`~FixedRateScheduler.run`, the service's tick thread: it sleeps until
   ``spin_s`` before the deadline and spins the rest, so a tick starts within
-  tens of microseconds of its deadline (asyncio's timer wakes about 1 ms late,
-  measured in ``aesop bench loop``). It records each tick's jitter (start minus
-  deadline) and, when a tick's work ends after the next deadline, counts an
-  overrun and skips to the first deadline still in the future, counting the
-  ticks missed. Clock and sleep are injectable.
+  tens of microseconds of its deadline (asyncio's timer woke about 1 ms late,
+  measured with ``aesop bench loop`` before the loop had a thread of its own).
+  It records each tick's jitter (start minus deadline) and, when a tick's work
+  ends after the next deadline, counts an overrun and skips to the first
+  deadline still in the future, counting the ticks missed. Clock and sleep are injectable.
 * :class:`ControlRuntime` is one robot's closed loop: the detector read by
   :mod:`.detector`'s rules, reasoner decisions routed by ``request_id``, the
   controller's ``make_step``, the simulated plant advanced by ``dt``, and the
@@ -180,7 +180,7 @@ class FixedRateScheduler:
 
 
 class NotNominal(Exception):
-    """The flight is not in nominal mode, so its recovery regions cannot change now."""
+    """The flight is not nominal (or waiting), so its recovery regions cannot change now."""
 
 
 CALM = (Mode.NOMINAL, Mode.WAITING)  # modes in which the regions may change
@@ -285,6 +285,7 @@ class ControlRuntime:
         self.pending: str | None = None  # request_id the next decision must carry
         self._cause: Cause | None = None  # what the pending request is about
         self._delivered = False
+        self._refused: str | None = None  # request_id whose "continue" was refused (said once)
         self._stale: bool | None = None  # None until the flight's first tick
         self._silence_asked = False  # this silent spell has raised its request
         self._verdict_asked: int | None = None  # seq of the verdict that asked
@@ -342,7 +343,7 @@ class ControlRuntime:
             inputs = self._read_inputs(verdict, decision)
             x = self.plant.state
             if inputs.waiting:
-                result = self._finish(x, self._hold(x), inputs, 0.0, deadline, seen)
+                result = self._finish(x, self._hold(), inputs, 0.0, deadline, seen)
                 self.last = result
                 return result
             started = time.perf_counter()
@@ -372,7 +373,7 @@ class ControlRuntime:
         self.plant.step(output.u)
         return output
 
-    def _hold(self, x: np.ndarray) -> ControlOutput:
+    def _hold(self) -> ControlOutput:
         """While waiting: nothing is solved and the simulated robot holds its start."""
         u = self.controller.model.linear.u_hover.copy()
         return ControlOutput(u=u, mode=Mode.WAITING, status=SolveStatus.SOLVED, plan=None,
@@ -425,9 +426,11 @@ class ControlRuntime:
                         silence_asked=self._silence_asked, decision=routed)
         if act.refused_continue:
             self._delivered = False  # a later region answer to this request still counts
-            events.append(self._event("continue_refused", "warning", "the reasoner said "
-                                      "continue, but the detector is silent: still waiting "
-                                      "for a region or the fallback at K"))
+            if self._refused != self.pending:  # the slot repeats its answer every tick
+                self._refused = self.pending
+                events.append(self._event("continue_refused", "warning", "the reasoner said "
+                                          "continue, but the detector is silent: still "
+                                          "waiting for a region or the fallback at K"))
         if act.ended_silence:
             events.append(self._event("silence_ended", "info", "the detector answers again: "
                                       "the silent spell's episode ends"))
@@ -538,7 +541,7 @@ class ControlRuntime:
         """Swap the recovery regions (and so the controller) between two ticks.
 
         Raises ``ValueError`` (nothing changed) for regions the scenario cannot
-        use and :class:`NotNominal` unless the flight is in nominal mode.
+        use and :class:`NotNominal` unless the flight is nominal or waiting (:data:`CALM`).
         """
         check_fence(self.scenario, regions)
         scenario = self.scenario.with_regions(regions)
@@ -551,6 +554,7 @@ class ControlRuntime:
         with self.lock:  # between two ticks
             if self.mode not in CALM:
                 raise NotNominal(self.mode.value)
+            controller.carry_on(self.controller)
             self.scenario, self.controller, self._k0 = scenario, controller, self._k
             self.pending = None
             regions = scenario.regions

@@ -19,7 +19,8 @@ class ControlSettings(ServiceSettings):
     port: int = Field(default=8003, ge=0, le=65535)
     # ticks per second of wall time; None: the scene's own, 1 / dt (its plant advances dt a tick)
     rate_hz: float | None = Field(default=None, gt=0.0, le=1000.0)
-    scenario: Path | None = None  # YAML/JSON scenario file; None: the packaged paper scenario
+    # a bundled scenario's name (paper, hardware) or a YAML/JSON file; None: paper
+    scenario: Path | None = None
     control_method: Literal["aesop", "fsmpc", "naive"] = "aesop"
     # the recovery committed at k = K without a decision: cheapest, first, or a region index
     control_fallback: Literal["cheapest", "first"] | int = "cheapest"

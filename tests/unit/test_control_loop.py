@@ -217,12 +217,33 @@ async def test_silence_is_an_anomaly_the_reasoner_cannot_continue_out_of() -> No
                             latency_ms=1.0)
     refused = await tick(rt, clock, old, cont)
     assert refused.state.mode == "anomaly_pending" and "continue_refused" in kinds(refused)
-    later = [await tick(rt, clock, old) for _ in range(K - 2)]
+    # the decision slot keeps its newest answer: every tick sees the same "continue" again
+    later = [await tick(rt, clock, old, cont) for _ in range(K - 2)]
     assert not any(r.request for r in later) and not any("verdict_stale" in kinds(r)
                                                          for r in later)
-    committed = await tick(rt, clock, old)
+    assert not any("continue_refused" in kinds(r) for r in later)  # said once, not per tick
+    assert all(r.state.mode == "anomaly_pending" for r in later)
+    committed = await tick(rt, clock, old, cont)
     assert committed.state.mode == "recovering" and committed.output.fallback
     assert committed.state.chosen in [o.index for o in request.options]
+
+
+async def test_a_camera_that_restarts_its_count_is_not_silent() -> None:
+    """Observation numbers that start again from 1 (the camera or its driver restarted)
+    are new observations: their verdicts are fresh."""
+    clock = FakeClock()
+    rt = runtime(clock)
+    for seq in range(1, 40):
+        seen = Received("aesop/drone1/observation",
+                        Observation(robot="drone1", seq=seq, text="a red box"), clock.now)
+        result = await tick(rt, clock, verdict(clock, seq, False), observation=seen)
+    assert result.state.mode == "nominal" and not result.stale
+    for seq in range(1, 8):  # the count starts again
+        seen = Received("aesop/drone1/observation",
+                        Observation(robot="drone1", seq=seq, text="a red box"), clock.now)
+        result = await tick(rt, clock, verdict(clock, seq, False), observation=seen)
+        assert not result.stale, seq
+    assert result.state.mode == "nominal"
 
 
 async def test_a_region_answer_to_the_silence_is_taken() -> None:
@@ -391,6 +412,27 @@ async def test_regions_change_only_in_nominal_mode_and_a_bad_set_changes_nothing
     with pytest.raises(NotNominal):
         await rt.replace_regions(REGIONS)
     assert rt.scenario.regions == REGIONS[:2]
+
+
+async def test_new_regions_mid_flight_keep_the_flights_progress() -> None:
+    """A region change swaps the controller, not the flight: the route stays where it was
+    (past the approach waypoint, it does not climb back to it) and so do the lag states
+    of the commands already sent."""
+    from dataclasses import replace
+
+    scene = replace(SCENARIO, model="point-mass", approach_height=0.3,
+                    acceleration_lag=(0.08, 0.08, 0.0))
+    clock = FakeClock()
+    rt = ControlRuntime(ControlSettings(start_position=(1.0, 0.0, 1.3), verdict_stale_s=0.5,
+                                        robot="drone1"), scene, clock=clock)
+    for seq in range(8):  # at rest on the waypoint: the route moves on to the descent
+        await tick(rt, clock, verdict(clock, seq, False))
+    assert rt.controller.route.index == 1
+    lag = rt.controller.lag.copy()
+    assert np.any(lag != 0.0)  # the descent has been commanded
+    await rt.replace_regions(REGIONS[:2])
+    assert rt.controller.route.index == 1
+    assert np.array_equal(rt.controller.lag, lag)
 
 
 async def test_reset_restarts_the_flight() -> None:

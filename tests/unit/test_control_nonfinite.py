@@ -88,6 +88,8 @@ def test_a_non_finite_state_is_never_solved_or_flown(where: str, mode: str):
     assert np.all(np.isfinite(out.u)) and out.plan is None
     assert out.status is SolveStatus.FAILED and out.alarms and "non-finite state" in out.alarms[0]
     assert out.mode is before  # nothing else changes
+    if before is Mode.RECOVERING:  # still flying toward the one region chosen
+        assert out.active_regions == (out.chosen,)
     if ticks == 0:
         assert np.allclose(out.u, MODEL.linear.u_hover)  # nothing to fly but hover
     again = ctrl.make_step(x, False)  # the estimator recovers: the loop goes on
