@@ -8,6 +8,7 @@ JSON object on stdout; progress and logs go to stderr.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import logging
 import os
@@ -30,6 +31,8 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
     try:
+        if args.command in ("bench", "demo"):
+            require_bench_extra()
         return int(args.func(args) or 0)
     except CliError as exc:
         print(f"aesop: {exc}", file=sys.stderr)
@@ -43,6 +46,17 @@ def main(argv: list[str] | None = None) -> int:
 
 class CliError(Exception):
     """A user error: printed without a traceback, exit status 2."""
+
+
+BENCH_EXTRA = ("matplotlib", "cvxpy", "psutil")  # what `aesop bench` and `aesop demo` add
+
+
+def require_bench_extra() -> None:
+    """The benchmarks and the demo need the ``bench`` extra, which the image leaves out."""
+    missing = [name for name in BENCH_EXTRA if importlib.util.find_spec(name) is None]
+    if missing:
+        raise CliError(f"this command needs the bench extra ({', '.join(missing)} not "
+                       "installed): pip install 'aesop-stack[bench]'")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -174,8 +188,6 @@ def build_parser() -> argparse.ArgumentParser:
                       help="free ports instead of 7447 (Zenoh) and 8001-8003, 8010, 8080")
     demo.add_argument("--keep-up", action="store_true",
                       help="leave the stack running after the scenarios (Ctrl-C stops it)")
-    demo.add_argument("--detector-only", action="store_true",
-                      help="only the vector-cache service and its verdicts (no flights)")
     demo.add_argument("--model", default=None, help="embedding model (default: all-MiniLM-L6-v2)")
     demo.set_defaults(func=cmd_demo)
     return parser
@@ -183,7 +195,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def cmd_serve(args: argparse.Namespace) -> int:
     if args.service == "fake-llm":
-        from services.reasoner.fake_llm import main as fake_llm
+        from services.fakes.llm import main as fake_llm
 
         given = [(flag, v) for flag, v in (("--host", args.host), ("--port", args.port))
                  if v is not None]
@@ -294,9 +306,9 @@ def cmd_watch(args: argparse.Namespace) -> int:
 
 
 def cmd_detector_eval(args: argparse.Namespace) -> int:
+    from services.bench.evaluate import EvalConfig, evaluate, read_jsonl
     from services.embedding.embedders import EmbedderError, load_embedder
     from services.embedding.errors import DetectorError
-    from services.embedding.evaluate import EvalConfig, evaluate, read_jsonl
     from services.embedding.settings import DEFAULT_MODEL
 
     for name in ("nominal", "calibration", "test"):
@@ -322,7 +334,7 @@ def cmd_detector_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_detector(args: argparse.Namespace) -> int:
-    from services.embedding.bench import run_detector_bench
+    from services.bench.detector import run_detector_bench
 
     result = run_detector_bench(quick=args.quick, only=args.only, plot=args.plot,
                                 seed=args.seed, table=not args.json)
@@ -332,7 +344,7 @@ def cmd_bench_detector(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_reasoner(args: argparse.Namespace) -> int:
-    from services.reasoner.bench import run_reasoner_bench
+    from services.bench.reasoner import run_reasoner_bench
 
     if args.requests < 1 or args.concurrency < 1 or not args.scale > 0:
         raise CliError("--requests and --concurrency must be >= 1 and --scale > 0")
@@ -356,7 +368,7 @@ def _control_scenario(path: Path | None):
 
 
 def cmd_bench_mpc(args: argparse.Namespace) -> int:
-    from services.control.bench import bench_mpc
+    from services.bench.control import bench_mpc
     from shared.tables import table
 
     if args.flights < 1 or args.ticks < 2 or args.reference_every < 1:
@@ -391,7 +403,7 @@ def _mpc_row(run: dict) -> dict:
 
 
 def cmd_bench_closed_loop(args: argparse.Namespace) -> int:
-    from services.control.bench import bench_closed_loop
+    from services.bench.control import bench_closed_loop
     from shared.tables import table
 
     if args.scenarios < 1 or args.workers < 1 or args.inconsequential < 0:
@@ -408,7 +420,7 @@ def cmd_bench_closed_loop(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_loop(args: argparse.Namespace) -> int:
-    from services.control.loopbench import bench_loop, print_loop_table
+    from services.bench.loop import bench_loop, print_loop_table
 
     if not args.minutes > 0 or any(not r > 0 for r in args.rates):
         raise CliError("--minutes and every --rates value must be > 0")
@@ -421,7 +433,7 @@ def cmd_bench_loop(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_bus(args: argparse.Namespace) -> int:
-    from services.stack.bench_bus import BenchError, run_bus_bench
+    from services.bench.bus import BenchError, run_bus_bench
     from shared.process import ServiceFailed
 
     if args.observations < 1 or args.anomalies < 1 or not args.rate > 0:
@@ -469,15 +481,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    if args.detector_only:
-        from services.embedding.demo import run_demo
-
-        result = run_demo(model=args.model, table=not args.json)
-        if args.json:
-            emit(result, True)
-        return 0 if result["ok"] else 1
-
-    from services.stack.demo import run_stack_demo
+    from services.demo.flights import run_stack_demo
     from services.stack.up import hardware_scenario
 
     args.scenario = hardware_scenario()  # the demo flies the hardware scene, whatever the env

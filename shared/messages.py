@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import time
+from enum import StrEnum
 from typing import Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
@@ -126,8 +127,13 @@ class ReasonerDecision(Message):
     model: str = ""
 
 
-# "waiting": the flight has not started (the detector has not answered yet)
-Mode = Literal["waiting", "nominal", "anomaly_pending", "recovering"]
+class Mode(StrEnum):
+    """Algorithm 1's modes, as the control loop runs them and ``ControlState`` carries them."""
+
+    WAITING = "waiting"  # the flight has not started: the detector has not answered yet
+    NOMINAL = "nominal"
+    PENDING = "anomaly_pending"
+    RECOVERING = "recovering"
 
 
 class ControlState(Message):

@@ -52,22 +52,16 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from enum import StrEnum
 
 import numpy as np
+
+from shared.messages import Mode
 
 from .dynamics import N_STATE
 from .models import PlanningModel
 from .mpc import BranchProblem, MPCConfig, Plan, SolveStatus, promised_step, tightened_inputs
 from .regions import Region
 from .selection import SubsetSelector
-
-
-class Mode(StrEnum):
-    WAITING = "waiting"  # the runtime's, before a flight starts (the controller never is)
-    NOMINAL = "nominal"
-    PENDING = "anomaly_pending"
-    RECOVERING = "recovering"
 
 
 class Route:

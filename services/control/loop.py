@@ -40,6 +40,7 @@ from shared.messages import (
     AnomalyVerdict,
     ControlState,
     Event,
+    Mode,
     Observation,
     Option,
     PlanSnapshot,
@@ -48,11 +49,12 @@ from shared.messages import (
     Severity,
 )
 
-from .aesop import ControlOutput, Mode
+from .aesop import ControlOutput
+from .controllers import Controller, make_controller, mpc_config
 from .detector import Cause, Sightings, directive, verdict_age
 from .dynamics import N_STATE, POS
 from .mpc import SolveStatus
-from .plant import make_controller, make_plant, mpc_config
+from .plant import make_plant
 from .regions import Region
 from .scenario import Scenario
 from .settings import ControlSettings
@@ -300,7 +302,7 @@ class ControlRuntime:
 
     # ----------------------------------------------------------------- building
 
-    def build_controller(self, scenario: Scenario, x0: np.ndarray | None = None) -> Any:
+    def build_controller(self, scenario: Scenario, x0: np.ndarray | None = None) -> Controller:
         """A fresh controller of the configured method for ``scenario`` (pure CPU, no I/O),
         warmed up at ``x0`` so that the first tick is not a cold solve (an overrun)."""
         fallback = self.settings.control_fallback

@@ -1,4 +1,4 @@
-"""The simulated vehicle, and the planning model and controller a scenario implies.
+"""The simulated vehicle the control service flies.
 
 The truth is always the nonlinear 12-state quadrotor of :mod:`.dynamics`,
 integrated with RK4. What the controller's input means depends on the
@@ -20,19 +20,13 @@ not care which one it drives.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
-from typing import Literal, Protocol
+from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
-from .aesop import AesopController, FallbackSafeController, NaiveController, Route, _Controller
 from .dynamics import QuadrotorParams, body_z, cross, simulate_step
-from .models import PlanningModel, point_mass_model, quadrotor_model
-from .mpc import MPCConfig
 from .scenario import Scenario
-
-Method = Literal["naive", "fsmpc", "aesop"]
-METHODS: tuple[Method, ...] = ("naive", "fsmpc", "aesop")
 
 
 class Plant(Protocol):
@@ -148,51 +142,9 @@ class TrackedQuadrotor:
         return self.state
 
 
-def planning_model(scenario: Scenario) -> PlanningModel:
-    """The linear model the scenario's MPC plans with (:mod:`.models`)."""
-    if scenario.model == "point-mass":
-        lim = scenario.limits
-        return point_mass_model(scenario.dt, lim.position_lo, lim.position_hi, lim.velocity,
-                                lim.acceleration, scenario.acceleration_lag)
-    return quadrotor_model(scenario.vehicle, scenario.dt, scenario.limits.box())
-
-
 def make_plant(scenario: Scenario, x0: np.ndarray) -> Plant:
     """The simulated vehicle at ``x0`` (12-state), driven the way the scenario's model
     commands it."""
     if scenario.model == "point-mass":
         return TrackedQuadrotor(x0, scenario.dt, scenario.vehicle)
     return SimulatedQuadrotor(x0, scenario.dt, scenario.vehicle)
-
-
-_INT_FIELDS = {f.name for f in fields(MPCConfig) if f.type in ("int", int)}
-
-
-def mpc_config(scenario: Scenario, **overrides) -> MPCConfig:
-    """The MPC settings a scenario implies: T and K in steps, its ``mpc`` overrides, then
-    ``overrides``."""
-    merged = {**dict(scenario.mpc), **overrides}
-    merged = {k: int(v) if k in _INT_FIELDS else v for k, v in merged.items()}
-    return MPCConfig(horizon=scenario.horizon, consensus=scenario.consensus, **merged)
-
-
-def make_controller(method: Method, scenario: Scenario, config: MPCConfig | None = None,
-                    fallback: str | int = "cheapest") -> _Controller:
-    """A fresh controller of ``method`` for ``scenario`` on its planning model."""
-    model = planning_model(scenario)
-    config = config or mpc_config(scenario)
-    args = (model, config, scenario.regions, route(scenario, model))
-    if method == "aesop":
-        return AesopController(*args, fallback=fallback)
-    if method == "fsmpc":
-        return FallbackSafeController(*args)
-    if method == "naive":
-        return NaiveController(*args)
-    raise ValueError(f"unknown method {method!r}: use one of {', '.join(METHODS)}")
-
-
-def route(scenario: Scenario, model: PlanningModel) -> Route:
-    """The nominal task of a scenario: its approach waypoint (if any), then its goal."""
-    stops = [scenario.goal] if scenario.approach_height <= 0 else [scenario.approach,
-                                                                    scenario.goal]
-    return Route(tuple(model.rest_state(p) for p in stops))

@@ -20,9 +20,8 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
 from shared import topics
 from shared.bus import Bus, Latest
-from shared.messages import AnomalyVerdict, Observation, ReasonerDecision
+from shared.messages import AnomalyVerdict, Mode, Observation, ReasonerDecision
 
-from .aesop import Mode
 from .loop import ControlRuntime, FixedRateScheduler, TickResult, TickTiming
 from .settings import ControlSettings
 

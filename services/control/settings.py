@@ -61,7 +61,7 @@ class ControlSettings(ServiceSettings):
         return dt if self.rate_hz is None else 1.0 / self.rate_hz
 
     def mpc_overrides(self) -> dict[str, int]:
-        """``MPCConfig`` fields the settings override (for ``plant.mpc_config``)."""
+        """``MPCConfig`` fields the settings override (for ``controllers.mpc_config``)."""
         out = {}
         if self.mpc_max_iter is not None:
             out["max_iter"] = self.mpc_max_iter

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from playwright.sync_api import Page
 
-CHROMIUM = "/usr/bin/chromium"  # Debian's package; `make setup` installs it
+CHROMIUM = "/usr/bin/chromium"  # Debian's package; `make browser` (and `make test`) installs it
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
          "--disable-component-update", "--no-first-run"]
 

@@ -13,7 +13,7 @@ from tests.e2e.browser import CHROMIUM, FLAGS
 
 @pytest.fixture(scope="module")
 def browser() -> Iterator[Browser]:
-    assert Path(CHROMIUM).is_file(), f"{CHROMIUM} is missing: run `make setup` (apt chromium)"
+    assert Path(CHROMIUM).is_file(), f"{CHROMIUM} is missing: run `make browser` (apt chromium)"
     with sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=FLAGS)
         try:

@@ -5,7 +5,7 @@ The stack is the one `aesop demo --random-ports` brings up (:mod:`services.stack
 Zenoh hub, the fake LLM, the vector cache, the reasoner, the control loop and the
 dashboard, as processes); the cache is built and calibrated and scenario 2a (another
 quadrotor on the red box) is flown by the demo's own code
-(:func:`services.stack.demo.fly_scenarios`) while the page watches. The page must stay
+(:func:`services.demo.flights.fly_scenarios`) while the page watches. The page must stay
 connected, draw the flown trajectory and show the reasoner's decision: the LLM's choice
 of the alternative landing site.
 
@@ -26,7 +26,7 @@ import pytest
 from playwright.sync_api import Browser, expect
 
 from services.control.scenario import load_scenario
-from services.stack.demo import demo_scenario, fly_scenarios
+from services.demo.flights import demo_scenario, fly_scenarios
 from services.stack.up import (
     Ports,
     Stack,

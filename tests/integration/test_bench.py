@@ -16,7 +16,7 @@ from typing import Any
 
 import pytest
 
-from services.embedding.bench import QUICK, _jsonable
+from services.bench.detector import QUICK, _jsonable
 from shared.tables import table
 
 ROOT = Path(__file__).resolve().parents[2]

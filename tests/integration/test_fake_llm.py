@@ -15,7 +15,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from services.reasoner.fake_llm import (
+from services.fakes.llm import (
     FakeLLMConfig,
     FakeLLMSettings,
     UnknownModel,
@@ -193,7 +193,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     root = Path(__file__).resolve().parents[2]
     with open(log, "wb") as out:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "services.reasoner.fake_llm", "--port", str(port),
+            [sys.executable, "-m", "services.fakes.llm", "--port", str(port),
              "--profile", "fixed", "--fixed-s", "0.05", "--time-scale", "0.1", "--seed", "1",
              "--log-level", "warning"],
             cwd=root, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)

@@ -24,7 +24,7 @@ import httpx
 import pytest
 import zenoh
 
-from services.stack.bench_bus import (
+from services.bench.bus import (
     CACHE,
     ROBOT,
     START,

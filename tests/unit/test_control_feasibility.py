@@ -18,12 +18,13 @@ import dataclasses
 import numpy as np
 import pytest
 
-from services.control.aesop import Mode
+from services.bench.reference import reference_solve
+from services.control.controllers import make_controller, mpc_config, planning_model
 from services.control.mpc import SolveStatus, promised_step
-from services.control.plant import make_controller, make_plant, mpc_config, planning_model
-from services.control.reference import reference_solve
+from services.control.plant import make_plant
 from services.control.scenario import load_scenario
 from services.control.selection import SubsetSelector
+from shared.messages import Mode
 
 SCENE = load_scenario("hardware")
 MODEL = planning_model(SCENE)

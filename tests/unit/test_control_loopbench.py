@@ -6,7 +6,7 @@ import json
 import subprocess
 import sys
 
-from services.control.loopbench import FlightScript, time_loop
+from services.bench.loop import FlightScript, time_loop
 from services.control.scenario import load_scenario
 
 SCENARIO = load_scenario()

@@ -9,12 +9,13 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
+from services.bench.reference import reference_solve
 from services.control.aesop import Route
+from services.control.controllers import mpc_config, planning_model
 from services.control.dynamics import QuadrotorParams
 from services.control.models import point_mass_model
 from services.control.mpc import BranchProblem, decouple, promised_step
-from services.control.plant import TrackedQuadrotor, mpc_config, planning_model
-from services.control.reference import reference_solve
+from services.control.plant import TrackedQuadrotor
 from services.control.scenario import load_scenario
 
 SCENE = load_scenario("hardware")

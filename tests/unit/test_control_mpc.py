@@ -7,12 +7,13 @@ few tens of centimetres away and a 3 s horizon keep every solve small.
 import numpy as np
 import pytest
 
-from services.control.aesop import AesopController, Mode, NaiveController, Route
+from services.control.aesop import AesopController, NaiveController, Route
 from services.control.dynamics import QuadrotorParams, simulate_step
 from services.control.models import quadrotor_model
 from services.control.mpc import BranchProblem, MPCConfig
 from services.control.regions import Region
 from services.control.scenario import Limits
+from shared.messages import Mode
 
 PARAMS = QuadrotorParams()
 MODEL = quadrotor_model(PARAMS, 0.1, Limits().box())

@@ -13,13 +13,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from services.control.aesop import AesopController, Mode, Route
+from services.control.aesop import AesopController, Route
 from services.control.dynamics import QuadrotorParams, simulate_step
 from services.control.models import quadrotor_model
 from services.control.mpc import BranchProblem, MPCConfig, SolveStatus
 from services.control.regions import Region
 from services.control.scenario import Limits
 from services.control.selection import Selection, SubsetSelector
+from shared.messages import Mode
 
 PARAMS = QuadrotorParams()
 MODEL = quadrotor_model(PARAMS, 0.1, Limits().box())

@@ -52,8 +52,8 @@ SETTINGS = {
     "reasoner": ["services.reasoner.settings:ReasonerSettings"],
     "control": ["services.control.settings:ControlSettings"],
     "dashboard": ["services.dashboard.settings:DashboardSettings"],
-    "fake-llm": ["services.reasoner.fake_llm:FakeLLMServiceSettings",
-                 "services.reasoner.fake_llm:FakeLLMSettings"],
+    "fake-llm": ["services.fakes.llm:FakeLLMServiceSettings",
+                 "services.fakes.llm:FakeLLMSettings"],
 }
 STACK = {"embedding", "reasoner", "control", "dashboard"}  # the Zenoh services
 ROBOT = "robot0"
@@ -142,7 +142,7 @@ def serve_args(svc: dict[str, Any]) -> tuple[argparse.Namespace, argparse.Namesp
     if args.service != "fake-llm":
         assert extra == [], f"aesop would refuse {extra}"
         return args, None
-    from services.reasoner.fake_llm import build_parser as fake_llm_parser
+    from services.fakes.llm import build_parser as fake_llm_parser
 
     return args, fake_llm_parser().parse_args(extra)
 
@@ -358,6 +358,18 @@ def test_the_image_is_python_311_slim_with_cpu_torch_before_the_project() -> Non
     assert makefile_pin is not None
     assert f"torch=={makefile_pin.group(1)}" in runs[torch_at].split()
     assert importlib.metadata.version("torch").split("+")[0] == makefile_pin.group(1)
+
+
+def test_the_image_installs_the_services_without_the_bench_extra() -> None:
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    runtime = {re.split(r"[<>=\[ ]", d)[0].lower() for d in project["project"]["dependencies"]}
+    bench = {re.split(r"[<>=\[ ]", d)[0].lower()
+             for d in project["project"]["optional-dependencies"]["bench"]}
+    assert {"matplotlib", "cvxpy", "psutil"} <= bench
+    assert not runtime & {"matplotlib", "cvxpy", "psutil"}
+    installs = [r for i, r in dockerfile() if i == "RUN" and "pip install ." in r]
+    assert installs  # and each installs the project without extras (no ".[bench]")
+    assert all(re.search(r"pip install \.(\s|$)", r) for r in installs)
 
 
 def test_the_image_copies_the_packages_and_runs_aesop_as_a_user() -> None:

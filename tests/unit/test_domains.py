@@ -9,7 +9,7 @@ from math import ceil, comb
 
 import pytest
 
-from services.embedding.domains import (
+from services.scenes import (
     DOMAINS,
     NOMINAL_DETECTIONS,
     QUADROTOR_CHOICES,
@@ -26,7 +26,7 @@ from services.embedding.domains import (
     quadrotor_observation,
     write_jsonl,
 )
-from services.embedding.domains.quadrotor import (
+from services.scenes.quadrotor import (
     CALIBRATION_ANOMALIES,
     QUADROTOR,
     SCENARIO_ANOMALIES,

@@ -9,16 +9,9 @@ import numpy as np
 import pytest
 
 from services.control.scenario import load_scenario
-from services.stack.demo import add_time_lost
-from services.stack.report import (
-    GOAL,
-    SCENARIOS,
-    ended_in,
-    flight_measures,
-    judge,
-    observation_text,
-    summary_table,
-)
+from services.demo.flights import add_time_lost
+from services.demo.report import ended_in, flight_measures, judge, summary_table
+from services.scenes.hardware import GOAL, SCENARIOS, observation_text
 from services.stack.up import Ports, StackOptions, hardware_scenario, plan_stack
 
 SCENE = load_scenario(hardware_scenario())

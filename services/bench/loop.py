@@ -23,12 +23,11 @@ from collections.abc import Sequence
 from concurrent.futures import Future
 from typing import Any
 
+from services.control.loop import ControlRuntime, FixedRateScheduler
+from services.control.scenario import Scenario, load_scenario
+from services.control.settings import ControlSettings
 from shared.bus import Received
 from shared.messages import AnomalyVerdict, ReasonerDecision
-
-from .loop import ControlRuntime, FixedRateScheduler
-from .scenario import Scenario, load_scenario
-from .settings import ControlSettings
 
 NOMINAL = AnomalyVerdict(seq=0, score=-0.9, threshold=-0.7, is_anomaly=False, k=1,
                          model="bench", cache="bench", cache_version=1, latency_ms=1.0)

@@ -15,10 +15,17 @@ from typing import Any, Literal
 
 import numpy as np
 
-from .cache import Cache, CacheConfig, Labelled, ScoreKind
-from .calibration import Calibration, auroc, binary_metrics, conformal, loo_quantile, tpr_target
-from .embedders import Embedder
-from .errors import InvalidInput
+from services.embedding.cache import Cache, CacheConfig, Labelled, ScoreKind
+from services.embedding.calibration import (
+    Calibration,
+    auroc,
+    binary_metrics,
+    conformal,
+    loo_quantile,
+    tpr_target,
+)
+from services.embedding.embedders import Embedder
+from services.embedding.errors import InvalidInput
 
 Method = Literal["loo-quantile", "conformal", "tpr-target"]
 

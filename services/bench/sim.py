@@ -22,11 +22,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .aesop import Mode
-from .mpc import MPCConfig
-from .plant import METHODS, Method, make_controller, make_plant, planning_model
-from .regions import Tolerance
-from .scenario import Scenario
+from services.control.controllers import METHODS, Method, make_controller, planning_model
+from services.control.mpc import MPCConfig
+from services.control.plant import make_plant
+from services.control.regions import Tolerance
+from services.control.scenario import Scenario
+from shared.messages import Mode
 
 TOLERANCE = Tolerance()  # how close to a region's box counts as inside (regions.py)
 SETTLE_S = 3.0  # s after t_anom + T at which a flight ends and is judged

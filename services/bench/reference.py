@@ -47,9 +47,9 @@ from dataclasses import dataclass
 import cvxpy as cp
 import numpy as np
 
-from .models import PlanningModel
-from .mpc import MPCConfig, planning_box, tightened_inputs, tightened_states
-from .regions import Region
+from services.control.models import PlanningModel
+from services.control.mpc import MPCConfig, planning_box, tightened_inputs, tightened_states
+from services.control.regions import Region
 
 SLACK_QUADRATIC = 1e-6  # the small quadratic price on the slacks that mpc.py uses
 

@@ -1,6 +1,6 @@
 """``aesop bench reasoner``: the slow reasoner's deadline against the fake LLM server.
 
-Real processes: the fake OpenAI-compatible server (:mod:`services.reasoner.fake_llm`) runs
+Real processes: the fake OpenAI-compatible server (:mod:`services.fakes.llm`) runs
 as a child process with the paper's ``bimodal`` latency profile (mean 3.1 s, std 0.85 s,
 95th percentile 4.3 s) and ``K = 4.3 s``, both multiplied by ``scale`` (default 0.1, so
 ``K = 0.43 s``). One :class:`~services.reasoner.deciding.Decider` answers ``requests``
@@ -45,11 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
-from shared.process import ServiceProcess, free_port
-from shared.tables import table
-
-from .backends import (
+from services.reasoner.backends import (
     BackendConfig,
     ChatBackend,
     Completion,
@@ -57,7 +53,10 @@ from .backends import (
     StopWhen,
     make_client,
 )
-from .deciding import Decider, DeciderConfig
+from services.reasoner.deciding import Decider, DeciderConfig
+from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
+from shared.process import ServiceProcess, free_port
+from shared.tables import table
 
 log = logging.getLogger(__name__)
 

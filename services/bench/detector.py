@@ -19,7 +19,7 @@ returned dict holds no NaN. Timings on the 2-core machines are noisy: every
 number is a median or p99 and comparisons are ratios measured in one run
 (``meta.load_average`` records how busy the machine was).
 
-``python -m services.embedding.bench --memory-probe`` is the memory part's
+``python -m services.bench.detector --memory-probe`` is the memory part's
 subprocess; it prints one JSON line.
 """
 
@@ -51,9 +51,9 @@ from shared.process import ServiceProcess, free_port
 from shared.tables import table
 
 if TYPE_CHECKING:
-    from .domains import Dataset
-    from .embedders import Embedder
-    from .service import CacheService
+    from services.embedding.embedders import Embedder
+    from services.embedding.service import CacheService
+    from services.scenes import Dataset
 
 log = logging.getLogger(__name__)
 
@@ -188,8 +188,8 @@ class _Bench:
 
     @cached_property
     def embedder(self) -> Embedder:
-        from .embedders import load_embedder
-        from .settings import DEFAULT_MODEL
+        from services.embedding.embedders import load_embedder
+        from services.embedding.settings import DEFAULT_MODEL
 
         log.info("loading %s", DEFAULT_MODEL)
         embedder = load_embedder(DEFAULT_MODEL)
@@ -198,7 +198,7 @@ class _Bench:
 
     def dataset(self, name: str) -> Dataset:
         if name not in self._datasets:
-            from .domains import generate
+            from services.scenes import generate
 
             n_nominal, n_anomaly = self.sizes.domains.get(name, (None, None))
             self._datasets[name] = generate(name, seed=self.seed, n_nominal=n_nominal,
@@ -323,7 +323,7 @@ def bench_quality(bench: _Bench, plot: Path | None) -> dict[str, Any]:
 
 
 def _quality_domain(bench: _Bench, name: str) -> dict[str, Any]:
-    from .domains import concept_subset
+    from services.scenes import concept_subset
 
     ds = bench.dataset(name)
     nominal, anomalies = bench.vectors(name)
@@ -366,7 +366,8 @@ def _split(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
 def _detect(cache_x: np.ndarray, test_x: np.ndarray, test_y: np.ndarray,
             alphas: Sequence[float] = (ALPHA,)) -> dict[str, Any]:
     """Detector built on ``cache_x`` with tau from eq. (2), evaluated on the test set."""
-    from .calibration import auroc, binary_metrics, loo_quantile
+    from services.embedding.calibration import auroc, binary_metrics, loo_quantile
+
     from .evaluate import EvalConfig, build_cache
 
     cache = build_cache(cache_x, EvalConfig(k=K), None)
@@ -494,10 +495,10 @@ async def _latency(n: int, size: int, seed: int) -> dict[str, Any]:
     paper's full prompt is timed too, to show what its fixed preamble costs."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from .domains import generate
-    from .embedders import load_embedder
-    from .service import on_fresh_thread
-    from .settings import DEFAULT_MODEL
+    from services.embedding.embedders import load_embedder
+    from services.embedding.service import on_fresh_thread
+    from services.embedding.settings import DEFAULT_MODEL
+    from services.scenes import generate
 
     embedder = await on_fresh_thread(load_embedder, DEFAULT_MODEL)
     ds = generate("vtol", seed=seed, n_nominal=max(n, 200), n_anomaly=n)
@@ -549,9 +550,9 @@ async def _latency(n: int, size: int, seed: int) -> dict[str, Any]:
 async def _service(embedder: Embedder, data_dir: Path, *, microbatch: bool = True,
                    fsync: bool = False) -> CacheService:
     """A started ``CacheService`` on ``data_dir`` that shares the already-loaded model."""
-    from .embedders import EmbedderPool
-    from .service import CacheService
-    from .settings import EmbeddingSettings
+    from services.embedding.embedders import EmbedderPool
+    from services.embedding.service import CacheService
+    from services.embedding.settings import EmbeddingSettings
 
     settings = EmbeddingSettings(data_dir=data_dir, microbatch=microbatch, fsync=fsync,
                                  zenoh_worker=False)
@@ -562,8 +563,8 @@ async def _service(embedder: Embedder, data_dir: Path, *, microbatch: bool = Tru
 
 async def _fill(service: CacheService, name: str, vectors: np.ndarray) -> None:
     """Create cache ``name`` pinned to the default model and add ``vectors`` as experiences."""
-    from .service import Item
-    from .settings import DEFAULT_MODEL
+    from services.embedding.service import Item
+    from services.embedding.settings import DEFAULT_MODEL
 
     await service.create(name, model=DEFAULT_MODEL, k=K)
     for start in range(0, len(vectors), 5000):
@@ -618,7 +619,7 @@ def _search_at(n: int, m: int, projected: float | None, clusters: _Clusters,
                queries: np.ndarray, sizes: Sizes, seed: int) -> dict[str, Any]:
     import faiss
 
-    from .index import VectorIndex
+    from services.embedding.index import VectorIndex
 
     log.info("search: %d vectors, HNSW M=%d%s", n, m,
              f" (projected build {projected:.0f} s)" if projected else "")
@@ -663,7 +664,7 @@ def _search_at(n: int, m: int, projected: float | None, clusters: _Clusters,
 
 def bench_loo(sizes: Sizes, seed: int) -> dict[str, Any]:
     """``Cache.loo_scores`` at 20k vs FAISS's own batched ``search(x, k+1)`` on the same data."""
-    from .scoring import loo_topk_scores
+    from services.embedding.scoring import loo_topk_scores
 
     n = sizes.loo_size
     x = _Clusters(DIM, seed).sample(n, np.random.default_rng([seed, 4]))
@@ -693,9 +694,9 @@ def bench_build(bench: _Bench) -> dict[str, Any]:
 
 
 async def _build(bench: _Bench) -> dict[str, Any]:
-    from .domains import generate
-    from .service import Item
-    from .settings import DEFAULT_MODEL
+    from services.embedding.service import Item
+    from services.embedding.settings import DEFAULT_MODEL
+    from services.scenes import generate
 
     n = bench.sizes.build_texts
     texts = [s.brief for s in generate("vtol", seed=bench.seed + 1, n_nominal=n,
@@ -726,8 +727,8 @@ async def _build(bench: _Bench) -> dict[str, Any]:
 
 
 def _probe(args: list[str]) -> dict[str, Any]:
-    """Run ``python -m services.embedding.bench <args>`` and read its one JSON line."""
-    cmd = [sys.executable, "-m", "services.embedding.bench", *args]
+    """Run ``python -m services.bench.detector <args>`` and read its one JSON line."""
+    cmd = [sys.executable, "-m", "services.bench.detector", *args]
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1"}
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900,
                           check=False)
@@ -750,9 +751,9 @@ def memory_probe(size: int, seed: int = 0) -> dict[str, Any]:
     import sentence_transformers  # noqa: F401
     import torch  # noqa: F401
 
-    from .cache import Cache, CacheConfig
-    from .embedders import load_embedder
-    from .settings import DEFAULT_MODEL
+    from services.embedding.cache import Cache, CacheConfig
+    from services.embedding.embedders import load_embedder
+    from services.embedding.settings import DEFAULT_MODEL
 
     process = psutil.Process()
 
@@ -772,7 +773,7 @@ def memory_probe(size: int, seed: int = 0) -> dict[str, Any]:
         cache.apply(cache.plan_add(clusters.sample(m, rng), ids=ids, texts=[None] * m,
                                    metadata=[{}] * m))
     stages["after_cache"] = rss()
-    from .domains import generate
+    from services.scenes import generate
 
     texts = [s.text for s in generate("vtol", seed=seed, n_nominal=8, n_anomaly=8).samples]
     cache.score(embedder.embed(texts), K)

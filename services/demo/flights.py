@@ -3,7 +3,7 @@
 It brings the stack up (:mod:`services.stack.up`, logs under ``<out>/logs``),
 builds the nominal cache of the hardware scene over REST (every combination of
 up to 4 nominal detections), calibrates tau for a 0.9 TPR (top-1 scores), then
-flies each scenario of :data:`services.stack.report.SCENARIOS`: reset the
+flies each scenario of :data:`services.scenes.hardware.SCENARIOS`: reset the
 control loop at the start position, publish the scripted ``Observation``s at
 the loop rate, and record what comes back over Zenoh (states, requests,
 decisions, events) until the flight's time is up. Then it judges each flight,
@@ -29,8 +29,24 @@ from typing import Any
 import httpx
 import numpy as np
 
+from services.bench.sim import count_violations
 from services.control.scenario import Scenario, load_scenario
-from services.control.sim import count_violations
+from services.scenes.hardware import (
+    SCENARIOS,
+    DemoScenario,
+    calibration_set,
+    nominal_texts,
+    observation_text,
+)
+from services.stack.up import (
+    DETECTOR_CACHE,
+    FAKE_LLM_LATENCY_S,
+    Stack,
+    StackOptions,
+    StackPlan,
+    file_sink,
+    plan_stack,
+)
 from shared import topics
 from shared.bus import Bus, Subscription
 from shared.messages import (
@@ -44,27 +60,7 @@ from shared.messages import (
 )
 from shared.settings import BusSettings
 
-from .report import (
-    SCENARIOS,
-    DemoScenario,
-    calibration_set,
-    ended_in,
-    flight_measures,
-    judge,
-    nominal_texts,
-    observation_text,
-    summary_table,
-    write_report,
-)
-from .up import (
-    DETECTOR_CACHE,
-    FAKE_LLM_LATENCY_S,
-    Stack,
-    StackOptions,
-    StackPlan,
-    file_sink,
-    plan_stack,
-)
+from .report import ended_in, flight_measures, judge, summary_table, write_report
 
 FLIGHT_S = 22.0  # simulated seconds per scenario: the way in, T = 10 s after the anomaly, settling
 ROUTE_TIMEOUT_S = 60.0

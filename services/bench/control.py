@@ -20,10 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .mpc import SolveStatus, promised_step
-from .plant import METHODS, make_controller, make_plant, mpc_config, planning_model
+from services.control.controllers import METHODS, make_controller, mpc_config, planning_model
+from services.control.mpc import SolveStatus, promised_step
+from services.control.plant import make_plant
+from services.control.scenario import Scenario, load_scenario
+
 from .reference import reference_solve
-from .scenario import Scenario, load_scenario
 from .sim import fly, run_case, sample_cases, summarize, time_lost
 
 

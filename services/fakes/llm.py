@@ -35,7 +35,7 @@ rates (``rate_429``, ``rate_5xx``, ``rate_garbage``) from a seeded RNG.
 When ``response_format`` asks for JSON (``json_object`` / ``json_schema``) the content is
 ``{"reasoning": str, "answer": int}``.
 
-Run: ``python -m services.reasoner.fake_llm --port 8010 [--profile bimodal]``; every
+Run: ``python -m services.fakes.llm --port 8010 [--profile bimodal]``; every
 flag also from ``AESOP_FAKE_LLM_*`` (host/port also from ``AESOP_HOST``/``AESOP_PORT``).
 """
 

@@ -48,18 +48,17 @@ from typing import Any
 import httpx
 import numpy as np
 
-from services.embedding.domains import (
+from services.scenes import (
     QUADROTOR_SCENARIOS,
 )
+from services.scenes.hardware import calibration_set, nominal_texts, observation_text
+from services.stack.up import DETECTOR_CACHE
 from shared import topics
 from shared.bus import Bus, Received, Subscription
 from shared.messages import AnomalyVerdict, ControlState, Observation
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
 from shared.tables import table
-
-from .report import calibration_set, nominal_texts, observation_text
-from .up import DETECTOR_CACHE
 
 CACHE = DETECTOR_CACHE
 ROBOT = "robot0"
@@ -115,7 +114,7 @@ def control_process(tmp: Path, endpoint: str, token: str, **env: str) -> Service
 async def build_scene_cache(http: httpx.AsyncClient, model: str,
                             max_detections: int = 4) -> dict[str, Any]:
     """The quadrotor scene cache over REST: build, then calibrate (tpr-target 0.9, top-1),
-    from the demo's texts (:mod:`.report`)."""
+    from the hardware scene's texts (:mod:`services.scenes.hardware`)."""
     await checked(http.put(f"/v1/caches/{CACHE}", json={"model": model, "k": 1}))
     nominal = nominal_texts(max_detections)
     say(f"building the scene cache: {len(nominal)} nominal experiences")

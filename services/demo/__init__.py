@@ -1,0 +1,1 @@
+"""``aesop demo``: the four hardware scenarios flown on a real stack, with a report."""
