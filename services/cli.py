@@ -471,7 +471,7 @@ def _stack_options(args: argparse.Namespace, data_dir: Path):
                        "stop it or pass --random-ports")
     rate = None if os.environ.get("AESOP_RATE_HZ") else 1.0 / scenario.dt
     return StackOptions(data_dir=data_dir, ports=ports, scenario=scenario_path.resolve(),
-                        rate_hz=rate, goal=scenario.goal, dashboard=dashboard)
+                        rate_hz=rate, dashboard=dashboard)
 
 
 def cmd_up(args: argparse.Namespace) -> int:

@@ -163,6 +163,30 @@ class PlanSnapshot(Message):
     status: str
 
 
+class RegionBox(BaseModel):
+    """One recovery region as the dashboard draws it: a box of rest positions (m)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    index: int = Field(ge=1)  # the option index y the reasoner may choose
+    name: str
+    label: str
+    kind: Literal["landing", "hover"]
+    position_lo: Point3
+    position_hi: Point3
+
+
+class Regions(Message):
+    """The recovery regions the controller keeps feasible, and the goal of the nominal task.
+
+    Published on start, whenever they change and every second, so a late subscriber
+    draws them within a second.
+    """
+
+    regions: tuple[RegionBox, ...]
+    goal: Point3
+
+
 Severity = Literal["info", "warning", "alarm"]
 
 

@@ -40,6 +40,10 @@ def plan(robot: str) -> str:
     return f"{PREFIX}/{_check(robot)}/plan"
 
 
+def regions(robot: str) -> str:
+    return f"{PREFIX}/{_check(robot)}/regions"
+
+
 def event(robot: str) -> str:
     return f"{PREFIX}/{_check(robot)}/event"
 

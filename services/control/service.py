@@ -6,7 +6,8 @@ the newest ``AnomalyVerdict``, ``ReasonerDecision`` and ``Observation`` of its
 robot from ``Latest`` slots (thread-safe; nothing queues up behind a slow
 tick), runs the runtime, then publishes ``ControlState`` (every tick),
 ``PlanSnapshot`` (when the step produced a plan), ``ReasonerRequest`` (on the
-detection tick) and ``Event``s. The bus declares ``aesop/health/control``.
+detection tick), ``Event``s and ``Regions`` (on start, when they change and every
+``REGIONS_EVERY_S``). The bus declares ``aesop/health/control``.
 """
 
 from __future__ import annotations
@@ -20,15 +21,24 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
 from shared import topics
 from shared.bus import Bus, Latest
-from shared.messages import AnomalyVerdict, Mode, Observation, ReasonerDecision
+from shared.messages import AnomalyVerdict, Mode, Observation, ReasonerDecision, RegionBox, Regions
 
 from .loop import ControlRuntime, FixedRateScheduler, TickResult, TickTiming
+from .scenario import Scenario
 from .settings import ControlSettings
 
 log = logging.getLogger(__name__)
 
 SERVICE = "control"
 _ERROR_LOG_INTERVAL_S = 10.0
+REGIONS_EVERY_S = 1.0  # s: a dashboard that joins late draws the regions within this
+
+
+def regions_message(scenario: Scenario, robot: str) -> Regions:
+    """The scene's recovery regions and goal, as the dashboard draws them."""
+    return Regions(robot=robot, goal=(float(scenario.goal[0]), float(scenario.goal[1]),
+                                      float(scenario.goal[2])),
+                   regions=tuple(RegionBox.model_validate(r.to_dict()) for r in scenario.regions))
 
 
 class ControlMetrics:
@@ -105,6 +115,8 @@ class ControlService:
         self.scheduler = FixedRateScheduler(runtime.period_s, window=settings.stats_window)
         self._last_error_log: float | None = None
         self._thread: threading.Thread | None = None
+        self._regions_of: Scenario | None = None  # the scene whose regions went out last
+        self._regions_at = 0.0  # monotonic s when they did
         self._switch = sys.getswitchinterval()
 
     def start(self) -> None:
@@ -146,6 +158,10 @@ class ControlService:
             self.bus.publish(topics.plan(robot), result.plan)
         for event in result.events:
             self.bus.publish(topics.event(robot), event)
+        scenario, now = self.runtime.scenario, time.monotonic()
+        if scenario is not self._regions_of or now - self._regions_at >= REGIONS_EVERY_S:
+            self.bus.publish(topics.regions(robot), regions_message(scenario, robot))
+            self._regions_of, self._regions_at = scenario, now
 
     def stop(self, timeout_s: float = 5.0) -> None:
         """End the loop after the tick in progress and wait for its thread."""

@@ -1,6 +1,6 @@
 """The robot's bus traffic as one stream of :class:`Update`s (the Zenoh side of the dashboard).
 
-Both the dashboard service and ``aesop watch`` follow the same six topics of
+Both the dashboard service and ``aesop watch`` follow the same seven topics of
 one robot plus the liveliness of every service. Each message arrives through
 the shared bridge (``shared.bus``) and is handed on as a JSON-ready dict.
 """
@@ -27,6 +27,7 @@ from shared.messages import (
     PlanSnapshot,
     ReasonerDecision,
     ReasonerRequest,
+    Regions,
 )
 
 log = logging.getLogger(__name__)
@@ -39,12 +40,13 @@ SOURCES: dict[str, tuple[Callable[[str], str], type[Message]]] = {
     "request": (topics.reasoner_request, ReasonerRequest),
     "decision": (topics.reasoner_decision, ReasonerDecision),
     "event": (topics.event, Event),
+    "regions": (topics.regions, Regions),
 }
 
 
 @dataclass(frozen=True, slots=True)
 class Update:
-    """One thing seen: ``kind`` (a key of ``SOURCES``, ``health`` or ``regions``), where it
+    """One thing seen: ``kind`` (a key of ``SOURCES``, or ``health``), where it
     came from, the message as JSON-ready data, and the wall-clock time it arrived (s)."""
 
     kind: str

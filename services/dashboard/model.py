@@ -30,14 +30,13 @@ class Limits:
 class FlightModel:
     """Bounded histories of one robot's flight (``deque(maxlen)`` everywhere)."""
 
-    def __init__(self, robot: str, limits: Limits = Limits(),
-                 goal: list[float] | None = None) -> None:
+    def __init__(self, robot: str, limits: Limits = Limits()) -> None:
         self.robot = robot
         self.state: Json | None = None
         self.plan: Json | None = None
         self.verdict: Json | None = None
         self.regions: list[Json] = []
-        self.goal = goal
+        self.goal: list[float] | None = None  # m, with the regions (``Regions``)
         self.trail: deque[list[Any]] = deque(maxlen=limits.trail)  # [t, x, y, z, mode]
         self.scores: deque[Json] = deque(maxlen=limits.scores)
         self.requests: deque[Json] = deque(maxlen=limits.log)
@@ -108,8 +107,7 @@ class FlightModel:
         return {}
 
     def _regions(self, m: Json) -> Json:
-        self.regions = m["regions"]
-        self.goal = m.get("goal") or self.goal
+        self.regions, self.goal = m["regions"], m["goal"]
         return {}
 
     def label_of(self, request_id: str, choice: int) -> str | None:
@@ -119,30 +117,3 @@ class FlightModel:
                 return next((o["label"] for o in request["options"]
                              if o["index"] == choice), None)
         return None
-
-
-def regions_message(body: object, goal: list[float] | None = None) -> Json | None:
-    """A ``regions`` update from the control service's ``GET /v1/regions`` answer.
-
-    None when the body is not ``{"regions": [{index, label, position_lo[3],
-    position_hi[3], ...}]}``; ``goal`` (m) comes from the body when it says, else
-    the default.
-    """
-    if not isinstance(body, dict) or not isinstance(body.get("regions"), list):
-        return None
-    regions = body["regions"]
-    if not all(_is_region(r) for r in regions):
-        return None
-    said = body.get("goal")
-    return {"regions": regions, "goal": said if _is_point(said) else goal}
-
-
-def _is_region(r: object) -> bool:
-    return (isinstance(r, dict) and isinstance(r.get("index"), int)
-            and isinstance(r.get("label", ""), str)
-            and _is_point(r.get("position_lo")) and _is_point(r.get("position_hi")))
-
-
-def _is_point(p: object) -> bool:
-    return (isinstance(p, list) and len(p) == 3
-            and all(isinstance(v, int | float) and not isinstance(v, bool) for v in p))

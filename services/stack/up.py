@@ -78,7 +78,6 @@ class StackOptions:
     ports: Ports = field(default_factory=Ports)
     scenario: Path | None = None  # None: AESOP_SCENARIO, else the hardware scene
     rate_hz: float | None = None  # None: AESOP_RATE_HZ, else the control default
-    goal: tuple[float, float, float] | None = None  # shown by the dashboard
     dashboard: bool = True
     python: str = sys.executable
 
@@ -131,9 +130,6 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str) ->
     base["AESOP_SCENARIO"] = str(scenario)
     if options.rate_hz is not None:
         base["AESOP_RATE_HZ"] = f"{options.rate_hz:g}"
-    base.setdefault("AESOP_DASHBOARD_CONTROL_URL", f"http://127.0.0.1:{ports.control}")
-    if options.goal is not None:
-        base.setdefault("AESOP_DASHBOARD_GOAL", "[" + ", ".join(map(str, options.goal)) + "]")
 
     def serve(name: str, port: int, data: bool = True) -> ChildSpec:
         argv = [py, "-m", "services.cli", "serve", name, "--port", str(port)]

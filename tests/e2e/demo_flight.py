@@ -1,19 +1,17 @@
-"""A scripted demo flight for the dashboard tests, and a fake control service's regions route.
+"""A scripted demo flight for the dashboard tests, published as the services would.
 
 The geometry is the paper's quadrotor simulation (start near (10, 2, 2) m, goal
 (0, 2, 1.5) m, four landing pads). The flight goes nominal, the detector
 flags an anomaly, the control loop asks the reasoner (K = 1.5 s), the reasoner
-answers "rooftop" and the flight recovers toward it.
+answers "rooftop" and the flight recovers toward it. The regions and the goal go out
+every ten ticks, as the control service sends them every second.
 """
 
 from __future__ import annotations
 
-import json
 import math
-import threading
 import time
 from collections.abc import Iterator
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
 import httpx
@@ -30,6 +28,8 @@ from shared.messages import (
     PlanSnapshot,
     ReasonerDecision,
     ReasonerRequest,
+    RegionBox,
+    Regions,
 )
 from tests.zenoh_peers import wait_until
 
@@ -55,6 +55,11 @@ CONSENSUS = 15  # K in steps (1.5 s)
 TICKS = 60
 ANOMALY_AT, REQUEST_AT, DECISION_AT = 20, 21, 30
 THRESHOLD = -0.70
+
+
+def regions(robot: str) -> Regions:
+    """What the control service says of its regions and goal (on start and every second)."""
+    return Regions(robot=robot, regions=tuple(RegionBox(**r) for r in REGIONS), goal=GOAL)
 
 
 def center(region: dict[str, Any]) -> Point:
@@ -100,6 +105,8 @@ def script(robot: str) -> Iterator[list[tuple[str, Message]]]:
         recovering = mode == "recovering"
         flagged = ANOMALY_AT <= tick < DECISION_AT
         out: list[tuple[str, Message]] = []
+        if tick % 10 == 0:
+            out.append((topics.regions(robot), regions(robot)))
         score = (-0.52 if flagged else -0.85) + 0.03 * math.sin(tick / 2)
         out.append((topics.anomaly(robot), AnomalyVerdict(
             robot=robot, seq=tick, score=score, threshold=THRESHOLD, is_anomaly=flagged, k=5,
@@ -166,37 +173,3 @@ def wait_following(bus: Bus, robot: str, base_url: str) -> None:
         return snapshot["counts"].get("event", 0) > 0
 
     wait_until(seen, "the dashboard to follow the bus", 20.0)
-
-
-class FakeControl:
-    """``GET /v1/regions`` of a control service: the paper's pads and, as a sketch of where
-    the control service could say it, the goal."""
-
-    def __init__(self, regions: list[dict[str, Any]] = REGIONS, goal: Point = GOAL) -> None:
-        body = json.dumps({"regions": regions, "mode": "nominal", "goal": list(goal)}).encode()
-
-        class Handler(BaseHTTPRequestHandler):
-            def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
-                found = self.path == "/v1/regions"
-                self.send_response(200 if found else 404)
-                self.send_header("Content-Type", "application/json")
-                self.end_headers()
-                self.wfile.write(body if found else b'{"error": {"code": "not_found"}}')
-
-            def log_message(self, *args: object) -> None:
-                pass
-
-        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
-
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.server.server_address[1]}"
-
-    def __enter__(self) -> FakeControl:
-        self.thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.server.shutdown()
-        self.server.server_close()

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 from playwright.sync_api import Browser, expect
 
+from shared import topics
 from shared.bus import Bus
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
@@ -23,8 +24,8 @@ from tests.e2e.demo_flight import (
     REGIONS,
     REQUEST_AT,
     TICKS,
-    FakeControl,
     Flight,
+    regions,
     wait_following,
 )
 
@@ -43,16 +44,13 @@ class Live:
 def live(tmp_path: Path) -> Iterator[Live]:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     port = free_port()
-    with FakeControl() as control:
-        env = {"AESOP_ZENOH_LISTEN": endpoint, "AESOP_ROBOT": ROBOT,
-               "AESOP_DASHBOARD_CONTROL_URL": control.url,
-               "AESOP_DASHBOARD_REGIONS_POLL_S": "0.5"}
-        proc = ServiceProcess(["serve", "dashboard", "--port", str(port)], port=port, env=env,
-                              log_path=tmp_path / "dashboard.log", ready_timeout_s=60,
-                              unset=["AESOP_ADMIN_TOKEN"])
-        with proc, Bus.open(BusSettings(zenoh_connect=[endpoint]), "control") as bus:
-            wait_following(bus, ROBOT, proc.url)
-            yield Live(proc, bus)
+    env = {"AESOP_ZENOH_LISTEN": endpoint, "AESOP_ROBOT": ROBOT}
+    proc = ServiceProcess(["serve", "dashboard", "--port", str(port)], port=port, env=env,
+                          log_path=tmp_path / "dashboard.log", ready_timeout_s=60,
+                          unset=["AESOP_ADMIN_TOKEN"])
+    with proc, Bus.open(BusSettings(zenoh_connect=[endpoint]), "control") as bus:
+        wait_following(bus, ROBOT, proc.url)
+        yield Live(proc, bus)
 
 
 def test_the_page_draws_the_live_flight_and_shows_the_decision(
@@ -66,6 +64,7 @@ def test_the_page_draws_the_live_flight_and_shows_the_decision(
                                                       timeout=WAIT_MS)
     expect(page.locator('#services [data-service="control"]')).to_have_attribute(
         "data-alive", "true", timeout=WAIT_MS)
+    live.bus.publish(topics.regions(ROBOT), regions(ROBOT))  # as the control service starts
     expect(page.locator("#top")).to_have_attribute("data-regions", str(len(REGIONS)),
                                                    timeout=WAIT_MS)
 

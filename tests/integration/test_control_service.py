@@ -26,6 +26,7 @@ from shared.messages import (
     PlanSnapshot,
     ReasonerDecision,
     ReasonerRequest,
+    Regions,
 )
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
@@ -131,6 +132,7 @@ class Stack:
         self.plans = Inbox(bus, topics.plan(ROBOT), PlanSnapshot)
         self.requests = Inbox(bus, topics.reasoner_request(ROBOT), ReasonerRequest)
         self.events = Inbox(bus, topics.event(ROBOT), Event)
+        self.regions = Inbox(bus, topics.regions(ROBOT), Regions)
 
     def nominal_flight(self) -> None:
         """Verdicts flowing, nothing flagged, the flight restarted and seen nominal."""
@@ -259,6 +261,19 @@ def test_regions_routes(stack: Stack) -> None:
     assert [x["name"] for x in http.get("/v1/regions").json()["regions"]] == ["hold", "roof"]
     event = stack.events.wait_for(lambda e: e.kind == "regions_updated", "the swap", since)
     assert event.data["count"] == 2
+    seen = stack.regions.wait_for(lambda m: len(m.regions) == 2, "the new regions on the bus")
+    assert [r.model_dump(mode="json") for r in seen.regions] == REGIONS
+    assert seen.goal == (1.0, 0.0, 1.0)
+
+
+def test_the_regions_and_goal_go_out_on_the_bus_again_for_late_subscribers(
+        stack: Stack) -> None:
+    since = stack.regions.mark()
+    first = stack.regions.wait_for(lambda m: True, "the regions on the bus", since)
+    again = stack.regions.wait_for(lambda m: m.stamp > first.stamp, "them again", since)
+    listing = stack.http.get("/v1/regions").json()
+    assert [r.model_dump(mode="json") for r in again.regions] == listing["regions"]
+    assert list(again.goal) == listing["goal"]
 
 
 def test_reset_and_ops_routes(stack: Stack) -> None:

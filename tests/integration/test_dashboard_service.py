@@ -19,7 +19,7 @@ from shared import topics
 from shared.bus import Bus
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
-from tests.e2e.demo_flight import GOAL, REGIONS, FakeControl, fly, wait_following
+from tests.e2e.demo_flight import GOAL, REGIONS, fly, wait_following
 from tests.zenoh_peers import wait_until
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
@@ -45,20 +45,18 @@ def dashboard(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Dashboard]:
     tmp = tmp_path_factory.mktemp("dashboard")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     port = free_port()
-    with FakeControl() as control:
-        env = {"AESOP_ZENOH_LISTEN": endpoint, "AESOP_ROBOT": ROBOT,
-               "AESOP_DASHBOARD_CONTROL_URL": control.url,
-               "AESOP_DASHBOARD_REGIONS_POLL_S": "0.5", "AESOP_DASHBOARD_CLIENT_QUEUE": "1000"}
-        proc = ServiceProcess(["serve", "dashboard", "--port", str(port)], port=port, env=env,
-                              log_path=tmp / "dashboard.log", ready_timeout_s=60,
-                              unset=["AESOP_ADMIN_TOKEN"])
-        with proc, Bus.open(BusSettings(zenoh_connect=[endpoint]), "tester") as bus:
-            wait_following(bus, ROBOT, proc.url)
-            dashboard = Dashboard(proc, bus, endpoint)
-            try:
-                yield dashboard
-            finally:
-                dashboard.http.close()
+    env = {"AESOP_ZENOH_LISTEN": endpoint, "AESOP_ROBOT": ROBOT,
+           "AESOP_DASHBOARD_CLIENT_QUEUE": "1000"}
+    proc = ServiceProcess(["serve", "dashboard", "--port", str(port)], port=port, env=env,
+                          log_path=tmp / "dashboard.log", ready_timeout_s=60,
+                          unset=["AESOP_ADMIN_TOKEN"])
+    with proc, Bus.open(BusSettings(zenoh_connect=[endpoint]), "tester") as bus:
+        wait_following(bus, ROBOT, proc.url)
+        dashboard = Dashboard(proc, bus, endpoint)
+        try:
+            yield dashboard
+        finally:
+            dashboard.http.close()
 
 
 def read_until(ws: ClientConnection, wanted: set[str]) -> dict[str, dict[str, Any]]:

@@ -9,7 +9,7 @@ import pytest
 
 from services.dashboard.feed import Update
 from services.dashboard.hub import ClientQueue, Hub
-from services.dashboard.model import FlightModel, Limits, regions_message
+from services.dashboard.model import FlightModel, Limits
 from shared import topics
 from shared.messages import (
     AnomalyVerdict,
@@ -21,6 +21,8 @@ from shared.messages import (
     PlanSnapshot,
     ReasonerDecision,
     ReasonerRequest,
+    RegionBox,
+    Regions,
 )
 
 ROBOT = "r1"
@@ -31,7 +33,7 @@ REGION = {"index": 1, "name": "roof", "label": "rooftop", "kind": "landing",
 def update(kind: str, message: Message, received: float = 100.0) -> Update:
     key = {"state": topics.state, "plan": topics.plan, "anomaly": topics.anomaly,
            "request": topics.reasoner_request, "decision": topics.reasoner_decision,
-           "event": topics.event}[kind](ROBOT)
+           "event": topics.event, "regions": topics.regions}[kind](ROBOT)
     return Update(kind, key, message.model_dump(mode="json"), received)
 
 
@@ -141,24 +143,23 @@ def test_unknown_kinds_are_refused() -> None:
 
 
 def test_regions_and_goal_from_the_control_service() -> None:
-    model = FlightModel(ROBOT, goal=[0.0, 2.0, 1.5])
-    assert model.snapshot()["goal"] == [0.0, 2.0, 1.5]
-    message = regions_message({"regions": [REGION], "mode": "nominal"}, model.goal)
-    assert message == {"regions": [REGION], "goal": [0.0, 2.0, 1.5]}
-    model.apply(Update("regions", "http://control/v1/regions", message, 1.0))
+    model = FlightModel(ROBOT)
+    assert model.snapshot()["regions"] == [] and model.snapshot()["goal"] is None
+    model.apply(update("regions", Regions(robot=ROBOT, regions=(RegionBox(**REGION),),
+                                          goal=(0.0, 2.0, 1.5))))
     assert model.snapshot()["regions"] == [REGION]
-    said = regions_message({"regions": [REGION], "goal": [1, 2, 3]}, [0.0, 0.0, 0.0])
-    assert said is not None and said["goal"] == [1, 2, 3]
+    assert model.snapshot()["goal"] == [0.0, 2.0, 1.5]
+    model.apply(update("regions", Regions(robot=ROBOT, regions=(), goal=(1.0, 2.0, 3.0))))
+    assert model.snapshot()["regions"] == [] and model.snapshot()["goal"] == [1.0, 2.0, 3.0]
 
 
-@pytest.mark.parametrize("body", [
-    None, [], {"regions": None}, {"regions": [{"index": 1}]},
-    {"regions": [{**REGION, "position_lo": [0, 0]}]},
-    {"regions": [{**REGION, "position_hi": [0, 0, "high"]}]},
-    {"regions": [{**REGION, "index": "1"}]},
+@pytest.mark.parametrize("change", [
+    {"position_lo": [0, 0]}, {"position_hi": [0, 0, "high"]}, {"index": 0},
+    {"kind": "orbit"}, {"extra": 1},
 ])
-def test_a_malformed_regions_answer_is_ignored(body: object) -> None:
-    assert regions_message(body) is None
+def test_a_malformed_region_is_refused_on_the_bus(change: dict[str, object]) -> None:
+    with pytest.raises(ValueError):
+        Regions.model_validate({"regions": [{**REGION, **change}], "goal": [0, 0, 0]})
 
 
 async def test_a_slow_client_loses_its_oldest_items_and_blocks_nobody() -> None:

@@ -61,7 +61,8 @@ ROBOT = "robot0"
 PUBLISHES: dict[str, list[Callable[[str], str]]] = {
     "embedding": [topics.anomaly, topics.event],
     "reasoner": [topics.reasoner_decision, topics.event],
-    "control": [topics.state, topics.plan, topics.reasoner_request, topics.event],
+    "control": [topics.state, topics.plan, topics.reasoner_request, topics.regions,
+                topics.event],
     "dashboard": [topics.event],
     "robot": [topics.observation, topics.event],
 }
@@ -311,14 +312,6 @@ def test_the_reasoner_asks_the_fake_llm_unless_told_otherwise(
     assert reasoner.llm_base_url == ollama  # type: ignore[attr-defined]
     assert reasoner.llm_api_key.get_secret_value() == "k"  # type: ignore[attr-defined]
     assert f"AESOP_LLM_BASE_URL={ollama}" in (ROOT / "deploy" / "README.md").read_text()
-
-
-def test_the_dashboard_asks_the_control_service(monkeypatch: pytest.MonkeyPatch) -> None:
-    services = aesop_services()
-    dashboard = settings_in_container(services["dashboard"], monkeypatch)
-    url = urlsplit(dashboard.dashboard_control_url)  # type: ignore[attr-defined]
-    control = settings_in_container(services["control"], monkeypatch)
-    assert (url.hostname, url.port) == ("control", control.port)  # type: ignore[attr-defined]
 
 
 def test_named_volumes_are_declared_and_hold_the_data(monkeypatch: pytest.MonkeyPatch) -> None:

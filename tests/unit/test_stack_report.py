@@ -124,8 +124,7 @@ def test_summary_table_has_a_row_per_scenario() -> None:
 
 
 def options(tmp: Path) -> StackOptions:
-    return StackOptions(data_dir=tmp, ports=Ports(1, 2, 3, 4, 5, 6), rate_hz=5.0,
-                        goal=(1.5, 0.0, 0.1), python="py")
+    return StackOptions(data_dir=tmp, ports=Ports(1, 2, 3, 4, 5, 6), rate_hz=5.0, python="py")
 
 
 def test_plan_starts_the_fake_llm_without_a_backend_and_generates_the_token(
