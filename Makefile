@@ -26,6 +26,7 @@ browser:
 
 test: $(STAMP) browser
 	$(VENV)/bin/ruff check shared services tests
+	$(VENV)/bin/mypy
 	$(PY) -m pytest -q
 
 demo: $(STAMP)
@@ -36,6 +37,7 @@ bench: $(STAMP)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check shared services tests
+	$(VENV)/bin/mypy
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

@@ -409,7 +409,8 @@ class Bus:
         try:
             return cls(session, service)
         except BaseException:
-            session.close()
+            # zenoh's stub leaves Session.close unannotated
+            session.close()  # type: ignore[no-untyped-call]
             raise
 
     @property
@@ -476,7 +477,8 @@ class Bus:
             _once(publisher.undeclare)()
         if token is not None:
             _once(token.undeclare)()
-        self._session.close()
+        # zenoh's stub leaves Session.close unannotated
+        self._session.close()  # type: ignore[no-untyped-call]
 
     def _open_session(self) -> zenoh.Session:
         if self._closed:

@@ -64,7 +64,8 @@ def field_path(loc: tuple[Any, ...] | list[Any]) -> str:
 async def _validation_error(_: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, RequestValidationError)
     errors = exc.errors()
-    first = errors[0] if errors else {"loc": ("body",), "msg": "invalid request", "type": ""}
+    first: dict[str, Any] = (errors[0] if errors
+                             else {"loc": ("body",), "msg": "invalid request", "type": ""})
     if first.get("type") == "json_invalid":
         return error_response(400, "malformed_json", f"request body is not valid JSON: "
                               f"{first.get('ctx', {}).get('error', first['msg'])}", "body")

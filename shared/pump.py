@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Awaitable, Callable
-from typing import Generic
+from collections.abc import Callable, Coroutine
+from typing import Any, Generic
 
 from .bus import Bus, M, Received, Subscription
 
@@ -20,7 +20,7 @@ log = logging.getLogger(__name__)
 
 class MessagePump(Generic[M]):
     def __init__(self, bus: Bus, key_expr: str, model: type[M],
-                 handler: Callable[[Received[M]], Awaitable[None]], *,
+                 handler: Callable[[Received[M]], Coroutine[Any, Any, None]], *,
                  max_in_flight: int = 64, maxsize: int = 256) -> None:
         self.bus, self.key_expr, self.model, self.handler = bus, key_expr, model, handler
         self.maxsize = maxsize

@@ -258,7 +258,8 @@ async def reaction_phase(stack: Stack, scene: Scene, verdicts: Verdicts, nominal
     states = stack.bus.subscribe(topics.state(ROBOT), ControlState, maxsize=4096)
     scene.text = nominal
     stream = asyncio.create_task(scene.stream())
-    reaction, after_verdict = [], []
+    reaction: list[float] = []
+    after_verdict: list[float] = []
     try:
         while len(reaction) < n:
             for _attempt in range(MAX_ATTEMPTS):

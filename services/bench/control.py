@@ -29,7 +29,7 @@ from .reference import reference_solve
 from .sim import fly, run_case, sample_cases, summarize, time_lost
 
 
-def _pct(values: list[float]) -> dict:
+def _pct(values: Sequence[float]) -> dict:
     return {"p50": float(np.percentile(values, 50)), "p99": float(np.percentile(values, 99)),
             "max": float(np.max(values)), "n": len(values)}
 
@@ -69,7 +69,9 @@ def _mpc_run(scenario: Scenario, flights: int, ticks: int, reference_every: int,
     model = planning_model(scenario)
     config = mpc_config(scenario)
     rng = np.random.default_rng(seed)
-    step_ms, first_ms, warm_up_ms, reference_ms, rel_diffs, iterations = [], [], [], [], [], []
+    step_ms: list[float] = []
+    first_ms: list[float] = []
+    warm_up_ms, reference_ms, rel_diffs, iterations = [], [], [], []
     infeasible = undecided = referee = 0
     print(f"bench mpc: {scenario.name}, N = {config.horizon}, dt = {scenario.dt:g} s",
           file=sys.stderr, flush=True)

@@ -41,7 +41,7 @@ import time
 import traceback
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -342,10 +342,10 @@ def _quality_domain(bench: _Bench, name: str) -> dict[str, Any]:
             by_size[f].append(_detect(nominal[members], test_x, test_y))
         for f in COVERAGE_FRACTIONS:
             subset = set(concept_subset(domain, f, seed=bench.seed * 1000 + r))
-            members = [i for i in pool if set(ds.nominal[i].concepts) <= subset]
-            seen = {c for i in members for c in ds.nominal[i].concepts}
-            point = _detect(nominal[members], test_x, test_y) if len(members) > K else {
-                "cache_size": len(members)}
+            covered = [i for i in pool if set(ds.nominal[i].concepts) <= subset]
+            seen = {c for i in covered for c in ds.nominal[i].concepts}
+            point: dict[str, Any] = (_detect(nominal[covered], test_x, test_y)
+                                     if len(covered) > K else {"cache_size": len(covered)})
             point["concepts_covered"] = len(seen) / len(domain.nominal_concepts)
             by_coverage[f].append(point)
     return {
@@ -524,8 +524,11 @@ async def _latency(n: int, size: int, seed: int) -> dict[str, Any]:
     entry_cache = _cache_of(cache_x)
     def timings() -> tuple[dict[str, dict[str, float]], dict[str, float]]:
         vectors = embedder.embed(texts["brief"])
-        embed = {form: _stats(_time_each(lambda i, f=form: embedder.embed([texts[f][i]]),
-                                         len(samples))) for form in texts}
+        def embed_one(form: str, i: int) -> object:
+            return embedder.embed([texts[form][i]])
+
+        embed = {form: _stats(_time_each(partial(embed_one, form), len(samples)))
+                 for form in texts}
         search = _stats(_time_each(lambda i: entry_cache.score(vectors[i:i + 1], K),
                                    len(samples)))
         return embed, search

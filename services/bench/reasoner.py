@@ -301,7 +301,7 @@ def _stats(values_ms: Sequence[float], keys: Sequence[str] = ("p50", "p99", "max
 def _phase_summary(samples: Sequence[Sample], deadline_s: float) -> dict[str, Any]:
     over = [(s.latency_s - deadline_s) * 1e3 for s in samples]
     timeouts = [o for o, s in zip(over, samples, strict=True) if s.decision.source == "timeout"]
-    sources = Counter(s.decision.source for s in samples)
+    sources: Counter[str] = Counter(s.decision.source for s in samples)
     n = len(samples)
     overhead = [o * 1e3 for s in samples if (o := s.overhead_s()) is not None]
     backend_ms = [(c.t1 - c.t0) * 1e3 for s in samples for c in s.calls if c.ok]

@@ -115,7 +115,7 @@ def reference_solve(model: PlanningModel, config: MPCConfig,
     constraints: list[cp.Constraint] = []
     tracking = 0
     xs, dus, sigmas = [], [], []
-    for target, weight, share, region in branches:
+    for target, weight, share, branch_region in branches:
         x = cp.Variable((horizon + 1, n))
         du = cp.Variable((horizon, m))
         xs.append(x)
@@ -124,9 +124,9 @@ def reference_solve(model: PlanningModel, config: MPCConfig,
         constraints += _within(du, np.tile(du_lo, (horizon, 1)), np.tile(du_hi, (horizon, 1)))
         lo, hi = box_lo.copy(), box_hi.copy()
         shifted = x[1:]
-        if region is not None:
+        if branch_region is not None:
             # steps s..T are rows s-1..T-1
-            r_lo, r_hi = planning_box(model, region, config)
+            r_lo, r_hi = planning_box(model, branch_region, config)
             lo[s - 1:] = np.maximum(lo[s - 1:], r_lo - widen[s - 1:])
             hi[s - 1:] = np.minimum(hi[s - 1:], r_hi + widen[s - 1:])
             if soft:
@@ -161,6 +161,13 @@ def reference_solve(model: PlanningModel, config: MPCConfig,
     if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
         return ReferenceResult(float("inf"), problem.status, np.full(m, np.nan), solve_ms,
                                total_ms)
-    slack = max((float(np.max(np.abs(sig.value))) for sig in sigmas), default=0.0)
+    slack = max((float(np.max(np.abs(_solved(sig)))) for sig in sigmas), default=0.0)
     return ReferenceResult(float(reported.value), problem.status,
-                           dus[0].value[0] + model.linear.u_hover, solve_ms, total_ms, slack)
+                           _solved(dus[0])[0] + model.linear.u_hover, solve_ms, total_ms, slack)
+
+
+def _solved(variable: cp.Variable) -> np.ndarray:
+    """A variable's value after an optimal solve (CVXPY sets every one then)."""
+    if variable.value is None:
+        raise RuntimeError("CVXPY reported an optimum but left a variable without a value")
+    return variable.value

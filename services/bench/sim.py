@@ -143,7 +143,8 @@ def fly(method: Method, scenario: Scenario, case: Case, config: MPCConfig | None
     latency_ticks = max(1, math.ceil(case.latency_s / dt - 1e-9))
     end_s = duration_s or case.anomaly_s + scenario.horizon_s + SETTLE_S
     steps = int(round(end_s / dt))
-    states, inputs, modes = [plant.state], [], []
+    states, inputs = [plant.state], []
+    modes: list[str] = []
     flight = Flight(method, case, np.empty(0), np.empty(0), modes)
     answer: int | None = None
     answer_tick: int | None = None

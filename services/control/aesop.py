@@ -276,6 +276,8 @@ class _Controller:
         """
         mem = self.memory
         k = mem.t - (mem.t_anom or 0) + mem.spent
+        if mem.chosen is None:  # RECOVERING is always entered with a region chosen
+            raise RuntimeError("recovering with no region chosen")
         region = [self.regions[mem.chosen]]
         if self.soft_recovery:
             plan = self._recovery_problem(True).solve(x, self.goal, region, 0,

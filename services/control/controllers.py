@@ -7,7 +7,7 @@ loop and the closed-loop benchmark rely on.
 from __future__ import annotations
 
 from dataclasses import fields
-from typing import Literal, Protocol
+from typing import Literal, Protocol, Self
 
 import numpy as np
 
@@ -47,7 +47,7 @@ class Controller(Protocol):
     def make_step(self, x: np.ndarray, anomaly: bool, decision: int | None = None
                   ) -> ControlOutput: ...
 
-    def carry_on(self, other: Controller) -> None: ...
+    def carry_on(self, other: Self) -> None: ...
 
 
 def planning_model(scenario: Scenario) -> PlanningModel:

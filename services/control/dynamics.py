@@ -188,8 +188,8 @@ class LinearModel:
 
     @property
     def n(self) -> int:
-        return self.a.shape[0]
+        return int(self.a.shape[0])
 
     @property
     def m(self) -> int:
-        return self.b.shape[1]
+        return int(self.b.shape[1])

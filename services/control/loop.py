@@ -391,6 +391,7 @@ class ControlRuntime:
         if self.mode is Mode.WAITING:
             if not fresh:
                 return _Inputs(False, None, True, verdict, events, waiting=True)
+            assert age is not None  # fresh: the verdict's age is known
             events.append(self._event("flight_started", "info", "the anomaly detector is "
                                       "answering: the flight starts", age_s=round(age, 3)))
         if not fresh and self._stale is not True:

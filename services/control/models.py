@@ -100,7 +100,9 @@ class PlanningModel:
     def advance(self, lag: np.ndarray, u: np.ndarray) -> np.ndarray:
         """The lag states one step on, with ``u`` held (exact for the first-order lag)."""
         decay = np.asarray(self.lag_decay)
-        return decay * lag + (1.0 - decay) * np.asarray(u, dtype=float)[list(self.lag_inputs)]
+        lagged: np.ndarray = (decay * lag
+                              + (1.0 - decay) * np.asarray(u, dtype=float)[list(self.lag_inputs)])
+        return lagged
 
     def rest_state(self, position: np.ndarray | tuple[float, ...]) -> np.ndarray:
         """At rest (and level) at ``position`` (m)."""
@@ -141,7 +143,8 @@ def quadrotor_model(params: QuadrotorParams, dt: float, x_bounds: tuple[np.ndarr
         symmetric=(3, 4, 5, 6, 7, 9, 10, 11), free=(8,))
 
 
-def point_mass_model(dt: float, position_lo, position_hi, velocity: float,
+def point_mass_model(dt: float, position_lo: tuple[float, float, float],
+                     position_hi: tuple[float, float, float], velocity: float,
                      acceleration: tuple[float, float, float],
                      lag: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> PlanningModel:
     """The paper's hardware model: ``p'' = a`` per axis, ZOH at ``dt``.

@@ -431,17 +431,19 @@ class ChainQP:
         """Variable index of ``x_b[k][i]``, shape ``(branches, T+1, n)``."""
         nb, horizon, n = self.n_branches, self.config.horizon, self.n
         base = np.arange(nb)[:, None, None] * self.branch_size
-        return base + np.arange((horizon + 1) * n).reshape(1, horizon + 1, n)
+        index: np.ndarray = base + np.arange((horizon + 1) * n).reshape(1, horizon + 1, n)
+        return index
 
     def _u_index(self) -> np.ndarray:
         """Variable index of ``du_b[k][j]``, shape ``(branches, T, m)``."""
         nb, horizon, n, m = self.n_branches, self.config.horizon, self.n, self.m
         base = np.arange(nb)[:, None, None] * self.branch_size + (horizon + 1) * n
-        return base + np.arange(horizon * m).reshape(1, horizon, m)
+        index: np.ndarray = base + np.arange(horizon * m).reshape(1, horizon, m)
+        return index
 
     def _sigma(self, slot: int) -> int:
         """First of ``2 n`` slack variables (sigma+, then sigma-) of recovery slot ``slot``."""
-        return self.n_branches * self.branch_size + 2 * slot * self.n
+        return int(self.n_branches * self.branch_size + 2 * slot * self.n)
 
     def _build(self) -> None:
         n, m, horizon, nb = self.n, self.m, self.config.horizon, self.n_branches
@@ -526,9 +528,9 @@ class ChainQP:
         self._rows = self._a.tocsr()
         single = np.diff(self._rows.indptr) == 1
         single[self._init_rows:self._init_rows + nb * n] = False
-        first = self._rows.indptr[:-1].clip(max=max(self._rows.nnz - 1, 0))
-        self._bound_rows = single & (self._rows.data[first] == 1.0)
-        self._bound_vars = self._rows.indices[first[self._bound_rows]]
+        entry = self._rows.indptr[:-1].clip(max=max(self._rows.nnz - 1, 0))
+        self._bound_rows = single & (self._rows.data[entry] == 1.0)
+        self._bound_vars = self._rows.indices[entry[self._bound_rows]]
         self._build_cost()
 
     def _build_cost(self) -> None:
@@ -720,6 +722,7 @@ class ChainQP:
                 status = SolveStatus.FAILED  # "solved" with a non-finite answer
             return ChainSolution(status, float("inf"), None, None, float("inf"), iterations,
                                  solve_ms, refereed)
+        assert raw is not None  # a solved status comes from a solver's answer
         cost = raw.objective
         # the constants OSQP leaves out: sum over branches of w_b * T * t_b' Q t_b
         cost += float(np.sum(self._branch_scale * horizon
@@ -734,7 +737,8 @@ class ChainQP:
         return ChainSolution(status, cost, states, inputs, slack, iterations, solve_ms, refereed)
 
 
-ChainCache = dict[tuple, ChainQP]
+# key: (chain, recovery branches, nominal?, soft?, config, the regions' chain boxes)
+ChainCache = dict[tuple[int, int, bool, bool, MPCConfig, tuple[bytes, ...]], ChainQP]
 
 
 class BranchProblem:
@@ -831,6 +835,7 @@ class BranchProblem:
             if sol.states is None:
                 status = _worse(status, sol.status)
                 continue
+            assert sol.du is not None  # a chain solution has both trajectories or neither
             if status is SolveStatus.SOLVED:
                 status = sol.status
             # QP branch of each region: nominal first, then the regions in key order

@@ -14,7 +14,7 @@ gives the same set as ``H x <= h`` for anyone who wants the general form.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -100,7 +100,7 @@ class Region:
         widen = (tolerance or Tolerance(0, 0, 0, 0)).widen()
         return bool(np.all(x >= self.lo - widen) and np.all(x <= self.hi + widen))
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {"index": self.index, "name": self.name, "label": self.label, "kind": self.kind,
                 "position_lo": list(self.position_lo), "position_hi": list(self.position_hi)}
 

@@ -23,7 +23,7 @@ import json
 from dataclasses import dataclass, field, fields, replace
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import yaml
@@ -105,6 +105,9 @@ class Scenario:
 
     def __post_init__(self) -> None:
         check = ScenarioError
+        for name, point in (("goal", self.goal), ("start.center", self.start_center)):
+            if len(point) != 3:
+                raise check(f"{name}: expected 3 numbers (m), got {len(point)}")
         if not self.dt > 0:
             raise check("dt must be positive")
         if not self.consensus_s < self.horizon_s:
@@ -189,8 +192,8 @@ def regions_from_list(items: Any) -> tuple[Region, ...]:
             out.append(Region(
                 index=int(item.get("index", i + 1)), name=str(item["name"]),
                 label=str(item.get("label", item["name"])), kind=item.get("kind", "landing"),
-                position_lo=tuple(float(v) for v in item["position_lo"]),
-                position_hi=tuple(float(v) for v in item["position_hi"])))
+                position_lo=_vec3(item["position_lo"]),
+                position_hi=_vec3(item["position_hi"])))
         except KeyError as exc:
             raise ScenarioError(f"regions[{i}].{exc.args[0]}: required") from None
         except (TypeError, ValueError) as exc:
@@ -207,13 +210,14 @@ def scenario_from_dict(data: Any) -> Scenario:
     if not isinstance(data, dict):
         raise ScenarioError("scenario: expected a mapping at the top level")
     try:
-        limits = Limits(**{k: tuple(v) if isinstance(v, list) else v
-                           for k, v in _mapping(data, "limits").items()})
+        given: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v
+                                 for k, v in _mapping(data, "limits").items()}
+        limits = Limits(**given)
         start = data["start"]
         return Scenario(
             name=str(data.get("name", "scenario")),
-            goal=tuple(float(v) for v in data["goal"]),
-            start_center=tuple(float(v) for v in start["center"]),
+            goal=_vec3(data["goal"]),
+            start_center=_vec3(start["center"]),
             start_half_width=float(start.get("half_width", 0.0)),
             regions=regions_from_list(data.get("regions")),
             limits=limits,
@@ -221,10 +225,12 @@ def scenario_from_dict(data: Any) -> Scenario:
             horizon_s=float(data.get("horizon_s", 4.0)),
             consensus_s=float(data.get("consensus_s", 1.5)),
             model=str(data.get("model", "quadrotor")),
-            acceleration_lag=tuple(float(v) for v in data.get("acceleration_lag", (0, 0, 0))),
+            acceleration_lag=_vec3(data.get("acceleration_lag", (0, 0, 0))),
             vehicle=_vehicle(_mapping(data, "vehicle")),
             approach_height=float(data.get("approach_height", 0.0)),
-            anomaly_window=tuple(float(v) for v in data.get("anomaly_window", (1.0, 4.0))),
+            # two numbers: Scenario unpacks them as (from, to)
+            anomaly_window=cast(tuple[float, float],
+                                tuple(float(v) for v in data.get("anomaly_window", (1.0, 4.0)))),
             mpc=_mpc_overrides(_mapping(data, "mpc")),
         )
     except KeyError as exc:
@@ -233,6 +239,11 @@ def scenario_from_dict(data: Any) -> Scenario:
         if isinstance(exc, ScenarioError):
             raise
         raise ScenarioError(f"scenario: {exc}") from None
+
+
+def _vec3(values: Any) -> tuple[float, float, float]:
+    """Numbers from a list in the file; Region and Scenario check that there are 3."""
+    return cast(tuple[float, float, float], tuple(float(v) for v in values))
 
 
 def _mapping(data: dict, key: str) -> dict:
@@ -249,8 +260,9 @@ def _vehicle(data: dict) -> QuadrotorParams:
         if key not in known:
             raise ScenarioError(f"vehicle.{key}: unknown; one of {', '.join(sorted(known))}")
     try:
-        return QuadrotorParams(**{k: tuple(float(x) for x in v) if isinstance(v, list)
-                                  else float(v) for k, v in data.items()})
+        given: dict[str, Any] = {k: tuple(float(x) for x in v) if isinstance(v, list)
+                                 else float(v) for k, v in data.items()}
+        return QuadrotorParams(**given)
     except (TypeError, ValueError) as exc:
         raise ScenarioError(f"vehicle: {exc}") from None
 

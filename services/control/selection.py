@@ -113,7 +113,8 @@ class SubsetSelector:
                               (time.perf_counter() - start) * 1e3)
         return self.last
 
-    def _map(self, subsets: list[tuple[int, ...]], x0, goal) -> dict[tuple[int, ...], Plan]:
+    def _map(self, subsets: list[tuple[int, ...]], x0: np.ndarray, goal: np.ndarray
+             ) -> dict[tuple[int, ...], Plan]:
         if self._pool is None:
             return {s: self.solve(s, x0, goal) for s in subsets}
         for s in subsets:

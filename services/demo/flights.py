@@ -285,10 +285,10 @@ async def fly(http: httpx.AsyncClient, camera: Camera, verdicts: Subscription[An
 def add_time_lost(rows: list[dict[str, Any]]) -> None:
     """Scenario 3's landing against the nominal flight's (same start, same route)."""
     landed = {r["name"].split("-", 1)[0]: r.get("landed_s") for r in rows}
+    nominal, lost = landed.get("1"), landed.get("3")
     for row in rows:
-        if row["name"].startswith("3-") and landed.get("3") is not None \
-                and landed.get("1") is not None:
-            row["time_lost_s"] = round(landed["3"] - landed["1"], 2)
+        if row["name"].startswith("3-") and lost is not None and nominal is not None:
+            row["time_lost_s"] = round(lost - nominal, 2)
 
 
 def summarize(rec: Recorder, demo: DemoScenario, scenario: Scenario, wall_s: float
@@ -300,7 +300,8 @@ def summarize(rec: Recorder, demo: DemoScenario, scenario: Scenario, wall_s: flo
     ids = {r.request_id: r for r in rec.requests}
     answered = [d for d in rec.decisions if d.request_id in ids]
     decided = answered[-1] if answered else None  # the decision the flight ended with
-    decision, source = None, None
+    decision: str | None = None
+    source: str | None = None
     if decided is not None:
         labels = {o.index: o.label for o in ids[decided.request_id].options}
         decision, source = labels.get(decided.choice, str(decided.choice)), decided.source

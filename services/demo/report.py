@@ -35,7 +35,7 @@ AT_REST_M_S = 0.15
 # --------------------------------------------------------------------------- judging
 
 
-def ended_in(x: Sequence[float], scenario: Scenario,
+def ended_in(x: Sequence[float] | np.ndarray, scenario: Scenario,
              tolerance: Tolerance = TOLERANCE) -> str | None:
     """``GOAL`` when at rest on the goal, else the name of the region holding ``x``."""
     x = np.asarray(x, dtype=float)
@@ -59,8 +59,9 @@ class FlightMeasures:
     closest_to_goal_m: float | None  # horizontal distance to the goal, least after detection
 
 
-def flight_measures(t: Sequence[float], states: Sequence[Sequence[float]],
-                    modes: Sequence[str], goal: Sequence[float],
+def flight_measures(t: Sequence[float] | np.ndarray,
+                    states: Sequence[Sequence[float]] | np.ndarray,
+                    modes: Sequence[str], goal: Sequence[float] | np.ndarray,
                     anomaly_at_s: float | None) -> FlightMeasures:
     """:class:`FlightMeasures` of one flight from its published states (``t`` in s)."""
     t = np.asarray(t, dtype=float)

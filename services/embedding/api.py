@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import asynccontextmanager
 from typing import Annotated, Any, Literal
 
@@ -284,7 +284,7 @@ def _items(body: AddExperiences, settings: EmbeddingSettings) -> list[Item]:
         return [Item(text=it.text, id=it.id, metadata=it.metadata) for it in body.items]
     vectors = body.vectors or []
     _matrix(vectors, "vectors", settings)
-    ids = body.ids or [None] * len(vectors)
+    ids: Sequence[str | None] = body.ids or [None] * len(vectors)
     return [Item(vector=v, id=i) for v, i in zip(vectors, ids, strict=True)]
 
 

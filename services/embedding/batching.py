@@ -68,7 +68,8 @@ class MicroBatcher(Generic[T, R]):
         return sum(len(chunk) for chunk, _ in self._pending)
 
     def _take(self) -> list[tuple[list[T], asyncio.Future[list[R]]]]:
-        taken, total = [], 0
+        taken: list[tuple[list[T], asyncio.Future[list[R]]]] = []
+        total = 0
         while self._pending and (not taken or total + len(self._pending[0][0]) <= self._max_items):
             chunk = self._pending.pop(0)
             taken.append(chunk)

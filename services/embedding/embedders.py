@@ -109,7 +109,7 @@ def normalize(v: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(x / np.linalg.norm(x, axis=-1, keepdims=True), dtype=np.float32)
 
 
-def _rows(mask: np.ndarray) -> str:
+def _rows(mask: np.ndarray | np.bool_) -> str:
     idx = np.flatnonzero(mask)
     shown = ", ".join(str(i) for i in idx[:10])
     return shown + (f", ... ({idx.size} in all)" if idx.size > 10 else "")

@@ -90,7 +90,9 @@ class VectorIndex:
             self._hnsw.add(vectors)
 
     def remove(self, labels: np.ndarray) -> int:
-        removed = int(self._index.remove_ids(np.ascontiguousarray(labels, dtype=np.int64)))
+        ids = np.ascontiguousarray(labels, dtype=np.int64)
+        # faiss's Python wrapper takes an id array; its SWIG stub only knows IDSelector
+        removed = int(self._index.remove_ids(ids))  # type: ignore[arg-type]
         if removed and self.kind == "hnsw":
             self._hnsw_dirty = True
         return removed

@@ -111,7 +111,8 @@ def topk_score(similarities: np.ndarray, k: int) -> np.ndarray:
     """
     sims = _as_similarities(similarities)
     _check_k(k, sims.shape[1])
-    return -sims[:, :k].mean(axis=1)
+    scores: np.ndarray = -sims[:, :k].mean(axis=1)
+    return scores
 
 
 def loo_topk_scores(
@@ -298,7 +299,8 @@ class MahalanobisModel:
         """
         z = _as_vectors(vectors, self.dim) - self.mean
         d2 = np.einsum("ij,ij->i", z @ self.precision, z)
-        return np.sqrt(np.maximum(d2, 0.0))
+        distances: np.ndarray = np.sqrt(np.maximum(d2, 0.0))
+        return distances
 
     def loo_scores(self, vectors: np.ndarray) -> np.ndarray:
         """Leave-one-out distances d_i = s(x_i; D \\ {x_i}) of the fitted vectors, closed form.

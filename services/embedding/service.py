@@ -374,7 +374,8 @@ class CacheService:
             if method == "loo-quantile":
                 loo = await on_fresh_thread(self._loo, entry)
                 cal = loo_quantile(loo, 0.95 if alpha is None else alpha)
-                if labels is not None and labels.any() and (~labels).any():
+                if scores is not None and labels is not None and labels.any() \
+                        and (~labels).any():
                     cal = replace(cal, auroc=auroc(scores, labels))
                 return cal
             if method == "conformal":

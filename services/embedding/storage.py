@@ -350,7 +350,7 @@ def _encode(head: dict[str, Any], arrays: Mapping[str, Array]) -> list[bytes | m
     offset = 0
     for name, array in arrays.items():
         little = array.astype(array.dtype.newbyteorder("<"), order="C", copy=False)
-        blob = memoryview(little.reshape(-1).view(np.uint8))
+        blob = little.reshape(-1).view(np.uint8).data  # a memoryview of the bytes
         descriptors.append(
             {
                 "name": name,

@@ -145,6 +145,8 @@ def test_limits_tighten_only_the_symmetric_bounds():
     (lambda d: d.update(acceleration_lag=[0.1, 0.1]), "acceleration_lag"),
     (lambda d: d.update(anomaly_window=[5, 1]), "anomaly_window"),
     (lambda d: d.update(approach_height=-1), "approach_height"),
+    (lambda d: d.update(goal=[0, 1]), "goal"),  # was a numpy broadcast error in flight
+    (lambda d: d["start"].update(center=[0, 1, 1, 1]), "start.center"),
     (lambda d: d.update(limits={"acceleration": [1, 0, 1]}), "limits.acceleration"),
 ])
 def test_bad_scenario_files_name_the_field(tmp_path, mutate, field):
