@@ -51,8 +51,9 @@ from shared.messages import (
 
 from .aesop import ControlOutput
 from .controllers import Controller, make_controller, mpc_config
-from .detector import Cause, Sightings, directive, verdict_age
+from .detector import Cause, Sightings, verdict_age
 from .dynamics import N_STATE, POS
+from .handshake import Handshake
 from .mpc import SolveStatus
 from .plant import make_plant
 from .regions import Region
@@ -284,18 +285,7 @@ class ControlRuntime:
         self._k0 = 0  # plant tick at which the controller was built
         self.mode = Mode.WAITING
         self._queued: list[Event] = [self._waiting_event()]
-        self.pending: str | None = None  # request_id the next decision must carry
-        self._cause: Cause | None = None  # what the pending request is about
-        self._delivered = False
-        self._refused: str | None = None  # request_id whose "continue" was refused (said once)
-        self._stale: bool | None = None  # None until the flight's first tick
-        self._silence_asked = False  # this silent spell has raised its request
-        self._verdict_asked: int | None = None  # seq of the verdict that asked
-        # scene texts the reasoner answered "continue" for: flagged again, they do not ask
-        # again (the keyboard stays on the ground) until the flight is reset
-        self._cleared: set[str] = set()
-        self._asked_about: str | None = None  # the observation text of the pending request
-        self._said_cleared: str | None = None  # the cleared scene the last event was about
+        self.handshake = Handshake()  # the pending request, silence, cleared scenes
         self._seen: deque[Observation] = deque(maxlen=64)  # recent observations, by seq
         self._sightings = Sightings()
         self.last: TickResult | None = None
@@ -327,6 +317,11 @@ class ControlRuntime:
     def period_s(self) -> float:
         """Wall seconds between ticks: the configured rate's, else the scene's dt."""
         return self.settings.period_s(self.scenario.dt)
+
+    @property
+    def pending(self) -> str | None:
+        """The request_id of the request to the reasoner being waited on, if any."""
+        return self.handshake.pending
 
     @property
     def t(self) -> float:
@@ -384,60 +379,17 @@ class ControlRuntime:
     def _read_inputs(self, verdict: Received[AnomalyVerdict] | None,
                      decision: ReasonerDecision | None) -> _Inputs:
         events, self._queued = self._queued, []
-        now, limit = self.clock(), self.settings.verdict_stale_s
+        now = self.clock()
         age = None if verdict is None else verdict_age(
             self._sightings, verdict.message.seq, verdict.received_at, now)
-        fresh = age is not None and age <= limit
-        if self.mode is Mode.WAITING:
-            if not fresh:
-                return _Inputs(False, None, True, verdict, events, waiting=True)
-            assert age is not None  # fresh: the verdict's age is known
-            events.append(self._event("flight_started", "info", "the anomaly detector is "
-                                      "answering: the flight starts", age_s=round(age, 3)))
-        if not fresh and self._stale is not True:
-            why = ("no anomaly verdict has arrived" if verdict is None else
-                   "the newest anomaly verdict answers an observation older than anything "
-                   "remembered" if age is None else
-                   f"the newest anomaly verdict answers an observation {age:.2f} s old")
-            events.append(self._event(
-                "verdict_stale", "alarm",
-                f"{why} (limit {limit:g} s): the detector is silent, counted as an anomaly",
-                age_s=None if age is None else round(age, 3)))
-            self._silence_asked = False
-        elif fresh and self._stale is True:
-            events.append(self._event("verdict_fresh", "info", "anomaly verdicts are answering "
-                                      "fresh observations again", age_s=round(age or 0.0, 3)))
-        self._stale = not fresh
-        routed = None
-        if (decision is not None and self.pending is not None and not self._delivered
-                and decision.request_id == self.pending):
-            routed, self._delivered = decision.choice, True
-        pending = self._cause if self.mode is Mode.PENDING else None
-        if fresh and routed == 0 and pending is Cause.ANOMALY and self._asked_about:
-            self._cleared.add(self._asked_about)  # before this tick's verdict is judged
-        flagged = fresh and verdict is not None and verdict.message.is_anomaly \
-            and verdict.message.seq != self._verdict_asked
-        scene = self._scene_of(verdict) if flagged else None
-        if scene in self._cleared:
-            flagged = False
-            if scene != self._said_cleared:  # once per run of flags on that scene
-                events.append(self._event(
-                    "anomaly_cleared", "info", "flagged scene already judged harmless by the "
-                    "reasoner: not asking again", seq=verdict.message.seq if verdict else None))
-        self._said_cleared = scene if scene in self._cleared else None
-        act = directive(fresh=fresh, flagged=flagged, pending=pending,
-                        silence_asked=self._silence_asked, decision=routed)
-        if act.refused_continue:
-            self._delivered = False  # a later region answer to this request still counts
-            if self._refused != self.pending:  # the slot repeats its answer every tick
-                self._refused = self.pending
-                events.append(self._event("continue_refused", "warning", "the reasoner said "
-                                          "continue, but the detector is silent: still "
-                                          "waiting for a region or the fallback at K"))
-        if act.ended_silence:
-            events.append(self._event("silence_ended", "info", "the detector answers again: "
-                                      "the silent spell's episode ends"))
-        return _Inputs(act.anomaly, act.decision, not fresh, verdict, events, cause=act.cause)
+        reading = self.handshake.read(
+            mode=self.mode, age=age, limit=self.settings.verdict_stale_s,
+            verdict=None if verdict is None else verdict.message,
+            scene=self._scene_of(verdict), decision=decision)
+        events.extend(self._event(n.kind, n.severity, n.message, **n.data)
+                      for n in reading.notes)
+        return _Inputs(reading.anomaly, reading.decision, reading.stale, verdict, events,
+                       cause=reading.cause, waiting=reading.waiting)
 
     def _scene_of(self, verdict: Received[AnomalyVerdict] | None) -> str | None:
         """The text of the observation ``verdict`` judged; the newest one seen if that one
@@ -456,16 +408,12 @@ class ControlRuntime:
         if output.request is not None:
             request = self._request(output.request, inputs, observation, deadline,
                                     output.consensus_left)
-            self.pending, self._delivered = request.request_id, False
-            self._cause = inputs.cause
-            silent = inputs.cause is Cause.SILENCE
-            self._asked_about = None if observation is None or silent else observation.text
-            if silent:
-                self._silence_asked = True
-            elif inputs.verdict is not None:
-                self._verdict_asked = inputs.verdict.message.seq
-        elif self._delivered:
-            self.pending = None  # answered: a later duplicate is ignored
+            self.handshake.asked(
+                request.request_id, inputs.cause,
+                None if observation is None else observation.text,
+                None if inputs.verdict is None else inputs.verdict.message.seq)
+        else:
+            self.handshake.settle()
         events.extend(self._event("non_finite", "alarm", alarm) for alarm in output.alarms)
         events.extend(self._output_events(output, request))
         self.mode = output.mode
@@ -527,7 +475,8 @@ class ControlRuntime:
         return [self._event(kind, severity, said or f"{self.mode.value} -> {output.mode.value}",
                             **{"from": self.mode.value, "to": output.mode.value,
                                "chosen": output.chosen, "fallback": output.fallback,
-                               "request_id": request.request_id if request else self.pending})]
+                               "request_id": (request.request_id if request
+                                              else self.handshake.pending)})]
 
     def _waiting_event(self) -> Event:
         return self._event("waiting", "info", "holding the start state until the anomaly "
@@ -559,7 +508,7 @@ class ControlRuntime:
                 raise NotNominal(self.mode.value)
             controller.carry_on(self.controller)
             self.scenario, self.controller, self._k0 = scenario, controller, self._k
-            self.pending = None
+            self.handshake.forget_request()
             regions = scenario.regions
             self._queued.append(self._event(
                 "regions_updated", "info", f"{len(regions)} recovery regions: "
@@ -577,10 +526,7 @@ class ControlRuntime:
             self.controller = controller
             self.plant = make_plant(self.scenario, x0)
             self._k = self._k0 = 0
-            self.mode, self.pending, self._delivered = Mode.WAITING, None, False
-            self._cause, self._stale, self._silence_asked = None, None, False
-            self._verdict_asked = None
-            self._cleared.clear()
+            self.mode, self.handshake = Mode.WAITING, Handshake()
             self._queued.append(self._waiting_event())
             self._queued.append(self._event(
                 "reset", "info", "flight restarted at (" +

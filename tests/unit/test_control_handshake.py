@@ -1,0 +1,159 @@
+"""The loop's handshake with the detector and the reasoner, as one table: the state before,
+one tick's inputs, what the controller is handed, what a person is told, the state after."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import pytest
+
+from services.control.detector import Cause
+from services.control.handshake import Handshake
+from shared.messages import AnomalyVerdict, Mode, ReasonerDecision
+
+LIMIT = 0.5  # s: verdict freshness
+FRESH, OLD = 0.1, 2.0  # s: verdict ages
+KEYBOARD = "a keyboard on the ground"
+REQ = "req-1"
+
+
+def verdict(seq: int, flagged: bool) -> AnomalyVerdict:
+    return AnomalyVerdict(seq=seq, score=-0.5, threshold=-0.7, is_anomaly=flagged, k=1,
+                          model="m", cache="c", cache_version=1, latency_ms=1.0)
+
+
+def answer(choice: int, request_id: str = REQ) -> ReasonerDecision:
+    return ReasonerDecision(request_id=request_id, choice=choice, source="llm", latency_ms=1.0)
+
+
+@dataclass(frozen=True)
+class Tick:
+    mode: Mode = Mode.NOMINAL
+    age: float | None = FRESH
+    verdict: AnomalyVerdict | None = field(default_factory=lambda: verdict(7, False))
+    scene: str | None = KEYBOARD
+    decision: ReasonerDecision | None = None
+
+
+@dataclass(frozen=True)
+class Handed:
+    anomaly: bool = False
+    decision: int | None = None
+    cause: Cause | None = None
+    stale: bool = False
+    waiting: bool = False
+    notes: tuple[str, ...] = ()
+
+
+SILENT = Handshake(stale=True, silence_asked=True, pending=REQ, cause=Cause.SILENCE)
+ASKED = Handshake(stale=False, pending=REQ, cause=Cause.ANOMALY, verdict_asked=7,
+                  asked_about=KEYBOARD)
+PENDING, FLAG = Mode.PENDING, verdict(8, True)
+
+# (name, state before, tick, handed, fields of the state after)
+TABLE: list[tuple[str, Handshake, Tick, Handed, dict[str, Any]]] = [
+    ("waiting, no verdict: hold", Handshake(), Tick(Mode.WAITING, None, None),
+     Handed(stale=True, waiting=True), {"stale": None}),
+    ("waiting, a stale verdict: hold", Handshake(), Tick(Mode.WAITING, OLD),
+     Handed(stale=True, waiting=True), {"stale": None}),
+    ("waiting, a fresh verdict: the flight starts", Handshake(), Tick(Mode.WAITING),
+     Handed(notes=("flight_started",)), {"stale": False}),
+    ("a fresh nominal verdict", Handshake(stale=False), Tick(), Handed(), {}),
+    ("a new flagged verdict asks", Handshake(stale=False), Tick(verdict=FLAG),
+     Handed(anomaly=True, cause=Cause.ANOMALY), {}),
+    ("a verdict asks once", replace(ASKED, pending=None, cause=None),
+     Tick(verdict=verdict(7, True)), Handed(), {}),
+    ("silence is an anomaly: alarm once, ask about the silence", Handshake(stale=False),
+     Tick(age=OLD), Handed(anomaly=True, cause=Cause.SILENCE, stale=True,
+                           notes=("verdict_stale",)), {"stale": True, "silence_asked": False}),
+    ("no verdict at all is silence", Handshake(stale=False), Tick(age=None, verdict=None),
+     Handed(anomaly=True, cause=Cause.SILENCE, stale=True, notes=("verdict_stale",)), {}),
+    ("a silent spell asks once", replace(SILENT, pending=None, cause=None), Tick(age=OLD),
+     Handed(stale=True), {}),
+    ("continue is refused while silent, said once", SILENT,
+     Tick(PENDING, OLD, decision=answer(0)),
+     Handed(stale=True, notes=("continue_refused",)), {"delivered": False, "refused": REQ}),
+    ("the refusal is not said again", replace(SILENT, refused=REQ),
+     Tick(PENDING, OLD, decision=answer(0)), Handed(stale=True), {"delivered": False}),
+    ("a region answer while silent is handed on", replace(SILENT, refused=REQ),
+     Tick(PENDING, OLD, decision=answer(2)), Handed(decision=2, stale=True),
+     {"delivered": True}),
+    ("fresh verdicts end the silence's episode", SILENT, Tick(PENDING),
+     Handed(decision=0, notes=("verdict_fresh", "silence_ended")), {"stale": False}),
+    ("fresh and flagged after silence: ask about the scene", SILENT,
+     Tick(PENDING, verdict=FLAG),
+     Handed(anomaly=True, decision=0, cause=Cause.ANOMALY,
+            notes=("verdict_fresh", "silence_ended")), {}),
+    ("a region chosen during silence stands when the detector is back",
+     replace(SILENT, refused=REQ), Tick(PENDING, decision=answer(3)),
+     Handed(decision=3, notes=("verdict_fresh",)), {"delivered": True}),
+    ("continue for a flagged scene clears it", ASKED, Tick(PENDING, decision=answer(0)),
+     Handed(decision=0), {"delivered": True, "cleared": {KEYBOARD}}),
+    ("a cleared scene flagged again does not ask, said once",
+     Handshake(stale=False, cleared={KEYBOARD}), Tick(verdict=FLAG),
+     Handed(notes=("anomaly_cleared",)), {"said_cleared": KEYBOARD}),
+    ("and is not said again while it stays flagged",
+     Handshake(stale=False, cleared={KEYBOARD}, said_cleared=KEYBOARD), Tick(verdict=FLAG),
+     Handed(), {"said_cleared": KEYBOARD}),
+    ("another scene flagged still asks", Handshake(stale=False, cleared={KEYBOARD}),
+     Tick(verdict=FLAG, scene="a quadrotor on the red box"),
+     Handed(anomaly=True, cause=Cause.ANOMALY), {"said_cleared": None}),
+    ("an answer to another request is ignored", ASKED,
+     Tick(PENDING, decision=answer(2, "req-old")), Handed(), {"delivered": False}),
+    ("an answer is handed on once", replace(ASKED, delivered=True),
+     Tick(PENDING, decision=answer(2)), Handed(), {}),
+    ("a verdict older than anything remembered is silence", Handshake(stale=False),
+     Tick(age=None), Handed(anomaly=True, cause=Cause.SILENCE, stale=True,
+                            notes=("verdict_stale",)), {}),
+]
+
+
+@pytest.mark.parametrize(("before", "tick", "handed", "after"),
+                         [row[1:] for row in TABLE], ids=[row[0] for row in TABLE])
+def test_one_tick_of_the_handshake(before: Handshake, tick: Tick, handed: Handed,
+                                   after: dict[str, Any]) -> None:
+    state = replace(before, cleared=set(before.cleared))
+    reading = state.read(mode=tick.mode, age=tick.age, limit=LIMIT, verdict=tick.verdict,
+                         scene=tick.scene, decision=tick.decision)
+    got = Handed(reading.anomaly, reading.decision, reading.cause, reading.stale,
+                 reading.waiting, tuple(n.kind for n in reading.notes))
+    assert got == handed
+    for name, value in after.items():
+        assert getattr(state, name) == value, name
+
+
+def test_a_stale_alarm_says_why() -> None:
+    told = {}
+    for age, v in ((None, None), (None, verdict(1, False)), (OLD, verdict(1, False))):
+        (note,) = Handshake(stale=False).read(mode=Mode.NOMINAL, age=age, limit=LIMIT,
+                                              verdict=v, scene=None, decision=None).notes
+        told[(age, v is None)] = note.message
+    assert told[(None, True)].startswith("no anomaly verdict has arrived")
+    assert "older than anything remembered" in told[(None, False)]
+    assert "2.00 s old" in told[(OLD, False)] and "limit 0.5 s" in told[(OLD, False)]
+
+
+def test_a_request_remembers_what_it_asked_and_an_answer_closes_it() -> None:
+    state = Handshake(stale=False)
+    state.asked(REQ, Cause.ANOMALY, KEYBOARD, 8)
+    assert (state.pending, state.cause, state.asked_about, state.verdict_asked) == (
+        REQ, Cause.ANOMALY, KEYBOARD, 8)
+    state.settle()
+    assert state.pending == REQ  # not answered yet: still waited on
+    state.read(mode=Mode.PENDING, age=FRESH, limit=LIMIT, verdict=verdict(9, True),
+               scene=KEYBOARD, decision=answer(2))
+    state.settle()
+    assert state.pending is None and state.delivered
+
+
+def test_a_silence_request_asks_once_and_names_no_scene() -> None:
+    state = Handshake(stale=True, asked_about="old scene")
+    state.asked(REQ, Cause.SILENCE, KEYBOARD, 3)
+    assert state.silence_asked and state.asked_about is None and state.verdict_asked is None
+
+
+def test_new_regions_drop_the_request() -> None:
+    state = replace(ASKED)
+    state.forget_request()
+    assert state.pending is None
