@@ -3,7 +3,7 @@
 Every message is a pydantic model encoded as JSON on the wire. Each carries
 ``schema_version`` (bumped on an incompatible change), ``robot`` (the robot id
 in the topic) and ``stamp`` (wall-clock seconds, float, when it was made).
-Field names follow ``ARCHITECTURE.md``; the paper's symbols are noted where
+Field names follow ``docs/architecture.md``; the paper's symbols are noted where
 they apply (o_t, s(e_t), tau, y, K).
 """
 

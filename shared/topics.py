@@ -1,4 +1,4 @@
-"""Zenoh key expressions of the stack (ARCHITECTURE.md, "Zenoh key expressions")."""
+"""Zenoh key expressions of the stack (docs/architecture.md, "Zenoh key expressions")."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""HTTP admin API of the vector-cache service (routes and shapes from ARCHITECTURE.md)."""
+"""HTTP admin API of the vector-cache service (routes and shapes in docs/architecture.md)."""
 
 from __future__ import annotations
 

@@ -90,7 +90,7 @@ class Cache:
         return None if self.calibration is None else self.calibration.threshold
 
     def describe(self) -> dict[str, Any]:
-        """The ``GET /v1/caches/{name}`` shape (ARCHITECTURE.md)."""
+        """The ``GET /v1/caches/{name}`` shape (docs/architecture.md)."""
         cal = None
         if self.calibration is not None:
             cal = {**self.calibration.to_dict(), "stale": self.stale}

@@ -14,7 +14,8 @@ confidence bound on the *true* quantile (``k_upper_s``): an order statistic
 chosen with the binomial distribution, valid for any continuous latency
 distribution and i.i.d. samples.
 
-Everything here is pure: no I/O, no clock; the measuring lives in the bench.
+Everything here is pure: no I/O, no clock; the timed queries live in
+:mod:`.calibrating` (``POST /v1/latency/calibrate``).
 
 Errors: every refusal is a :class:`LatencyError` (a ``ValueError``) whose
 ``field`` names what was wrong: ``"quantile"``, ``"confidence"``, ``"bins"``,

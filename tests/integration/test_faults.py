@@ -4,7 +4,7 @@ One embedding service (a small calibrated cache of the quadrotor scene) and one 
 loop (the paper scenario, 10 Hz) serve the whole module; each test starts its own fake
 LLM and reasoner. A feed publishes the scene as Observations at 10 Hz; a test turns it
 anomalous and watches what the services publish. The fail-safe rules under test
-(ARCHITECTURE.md): a dead reasoner never leaves the robot waiting, a stale anomaly
+(docs/architecture.md): a dead reasoner never leaves the robot waiting, a stale anomaly
 verdict counts as an anomaly, and a bad LLM answer becomes a labelled fallback.
 """
 

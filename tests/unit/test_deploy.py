@@ -57,7 +57,7 @@ SETTINGS = {
 }
 STACK = {"embedding", "reasoner", "control", "dashboard"}  # the Zenoh services
 ROBOT = "robot0"
-# ARCHITECTURE.md, "Zenoh key expressions": who publishes what.
+# docs/architecture.md, "Zenoh key expressions": who publishes what.
 PUBLISHES: dict[str, list[Callable[[str], str]]] = {
     "embedding": [topics.anomaly, topics.event],
     "reasoner": [topics.reasoner_decision, topics.event],
