@@ -210,7 +210,26 @@ class _LoopQueue(Generic[T]):
         self._ready.set()
 
 
-class Subscription(Generic[M]):
+class _Decoding(Generic[M]):
+    """What both kinds of subscriber say about their samples (via their ``_Decoder``)."""
+
+    _decoder: _Decoder[M]
+
+    @property
+    def key_expr(self) -> str:
+        return self._decoder.key_expr
+
+    @property
+    def received(self) -> int:
+        """Samples decoded so far (including any later dropped)."""
+        return self._decoder.received
+
+    @property
+    def decode_errors(self) -> int:
+        return self._decoder.decode_errors
+
+
+class Subscription(_Decoding[M]):
     """Typed samples on ``key_expr`` as an async iterator of ``Received[M]``.
 
     Create it inside a running loop (``Bus.subscribe``). When the consumer is
@@ -224,19 +243,6 @@ class Subscription(Generic[M]):
         self._decoder = _Decoder(key_expr, model)
         self._subscriber = session.declare_subscriber(key_expr, self._on_sample)
         self._undeclare = _once(self._subscriber.undeclare)
-
-    @property
-    def key_expr(self) -> str:
-        return self._decoder.key_expr
-
-    @property
-    def received(self) -> int:
-        """Samples decoded so far (including those later dropped)."""
-        return self._decoder.received
-
-    @property
-    def decode_errors(self) -> int:
-        return self._decoder.decode_errors
 
     @property
     def dropped(self) -> int:
@@ -279,7 +285,7 @@ class Subscription(Generic[M]):
         self.close()
 
 
-class Latest(Generic[M]):
+class Latest(_Decoding[M]):
     """The newest decoded message on ``key_expr``; thread-safe, for fixed-rate loops."""
 
     def __init__(self, session: zenoh.Session, key_expr: str, model: type[M]) -> None:
@@ -288,18 +294,6 @@ class Latest(Generic[M]):
         self._latest: Received[M] | None = None
         self._subscriber = session.declare_subscriber(key_expr, self._on_sample)
         self._undeclare = _once(self._subscriber.undeclare)
-
-    @property
-    def key_expr(self) -> str:
-        return self._decoder.key_expr
-
-    @property
-    def received(self) -> int:
-        return self._decoder.received
-
-    @property
-    def decode_errors(self) -> int:
-        return self._decoder.decode_errors
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         got = self._decoder(sample)

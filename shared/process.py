@@ -1,21 +1,36 @@
-"""Run a service as a child process and wait until its ``/readyz`` answers 200.
+"""Child processes of the stack, and the one way to supervise them.
 
-Used by the demo, by tests that kill real servers, and later by ``aesop up``.
+* :class:`Child` runs one :class:`ChildSpec` in its own process group, forwards
+  each line of its output to a :data:`Sink` (``[control] ...`` on a terminal,
+  or ``control.log``), answers whether it is ready (``/readyz``, or a TCP accept
+  for the Zenoh hub) and passes signals to its whole group.
+* :func:`await_ready` waits for several children at once and names the one
+  that died or never became ready, with the tail of its output.
+* :class:`ServiceProcess` is one ``python -m services.cli ...`` child with a
+  log file, started ready or not at all (the benchmarks and the tests);
+  ``aesop up`` and ``aesop demo`` supervise a whole stack with
+  :class:`services.stack.up.Stack`, on the same :class:`Child`.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
+from typing import IO, Literal
 
 import httpx
+
+Sink = Callable[[str, str], None]  # (child name, one line of its output)
 
 
 def free_port() -> int:
@@ -26,11 +41,162 @@ def free_port() -> int:
 
 
 class ServiceFailed(RuntimeError):
-    """The child exited or never became ready; the message carries its log tail."""
+    """A child exited or never became ready; the message says which and why."""
+
+
+@dataclass(frozen=True)
+class ChildSpec:
+    name: str
+    argv: tuple[str, ...]
+    port: int
+    env: Mapping[str, str]
+    ready: Literal["http", "tcp"] = "http"
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+
+class Child:
+    """One child process in its own process group, its output forwarded line by line."""
+
+    def __init__(self, spec: ChildSpec, sink: Sink) -> None:
+        self.spec, self.sink = spec, sink
+        self.proc: subprocess.Popen[bytes] | None = None
+        self._pump: threading.Thread | None = None
+        self.tail: list[str] = []
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    @property
+    def pid(self) -> int:
+        assert self.proc is not None
+        return self.proc.pid
+
+    def start(self) -> None:
+        self.tail = []
+        self.proc = subprocess.Popen(list(self.spec.argv), env=dict(self.spec.env),
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                     stdin=subprocess.DEVNULL, start_new_session=True)
+        self._pump = threading.Thread(target=self._forward, args=(self.proc.stdout,),
+                                      name=f"log-{self.name}", daemon=True)
+        self._pump.start()
+
+    def _forward(self, stream: IO[bytes]) -> None:
+        for raw in stream:
+            line = raw.decode(errors="replace").rstrip()
+            self.tail = (self.tail + [line])[-30:]
+            self.sink(self.name, line)
+
+    def exited(self) -> int | None:
+        return None if self.proc is None else self.proc.poll()
+
+    def is_ready(self) -> bool:
+        if self.spec.ready == "tcp":
+            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+                sock.settimeout(0.5)
+                return sock.connect_ex(("127.0.0.1", self.spec.port)) == 0
+        try:
+            return httpx.get(f"{self.spec.url}/readyz", timeout=1.0).status_code == 200
+        except httpx.TransportError:
+            return False
+
+    def signal(self, sig: signal.Signals) -> None:
+        """Send ``sig`` to the child's whole process group."""
+        if self.proc is None:
+            return
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self.proc.pid, sig)
+
+    def wait(self, timeout_s: float) -> bool:
+        if self.proc is None:
+            return True
+        try:
+            self.proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            return False
+        if self._pump is not None:
+            self._pump.join(2.0)
+        return True
+
+    def stop(self, grace_s: float = 15.0) -> None:
+        """SIGTERM, then SIGKILL what is left after ``grace_s``."""
+        if self.exited() is not None or self.proc is None:
+            self.wait(5.0)
+            return
+        self.signal(signal.SIGTERM)
+        if not self.wait(grace_s):
+            self.sink(self.name, f"did not stop in {grace_s:g} s: killing it")
+            self.signal(signal.SIGKILL)
+            self.wait(5.0)
+
+
+def await_ready(children: Sequence[Child], timeout_s: float, *,
+                stopping: threading.Event | None = None,
+                on_ready: Callable[[Child], None] = lambda _: None) -> None:
+    """Return when every child answers ready; :class:`ServiceFailed` naming the child that
+    exited (with its last lines) or those still not ready after ``timeout_s``."""
+    waiting = list(children)
+    deadline = time.monotonic() + timeout_s
+    while waiting:
+        if stopping is not None and stopping.is_set():
+            raise ServiceFailed("interrupted while starting")
+        for child in list(waiting):
+            status = child.exited()
+            if status is not None:
+                raise ServiceFailed(f"{child.name} exited with status {status} while "
+                                    "starting:\n" + "\n".join(child.tail[-15:]))
+            if child.is_ready():
+                on_ready(child)
+                waiting.remove(child)
+        if time.monotonic() > deadline:
+            names = ", ".join(c.name for c in waiting)
+            tails = "\n".join(f"[{c.name}] {line}" for c in waiting for line in c.tail[-10:])
+            raise ServiceFailed(f"not ready after {timeout_s:.0f} s: {names}\n{tails}")
+        time.sleep(0.05)
+
+
+def stderr_sink(width: int = 10) -> Sink:
+    lock = threading.Lock()
+
+    def write(name: str, line: str) -> None:
+        with lock:
+            print(f"[{name}]".ljust(width + 2) + line, file=sys.stderr, flush=True)
+
+    return write
+
+
+def file_sink(directory: Path) -> Sink:
+    """Each child's lines to ``directory/<name>.log``."""
+    directory.mkdir(parents=True, exist_ok=True)
+    return _files(lambda name: directory / f"{name}.log")
+
+
+def log_sink(path: Path) -> Sink:
+    """Every line to the one file ``path``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return _files(lambda _: path)
+
+
+def _files(path_of: Callable[[str], Path]) -> Sink:
+    lock = threading.Lock()
+    files: dict[Path, IO[str]] = {}
+
+    def write(name: str, line: str) -> None:
+        path = path_of(name)
+        with lock:
+            if path not in files:
+                files[path] = open(path, "a", encoding="utf-8")  # noqa: SIM115
+            files[path].write(line + "\n")
+            files[path].flush()
+
+    return write
 
 
 class ServiceProcess:
-    """``python -m services.cli <args>`` with its output in ``log_path``."""
+    """``python -m services.cli <args>`` with its output in ``log_path``, started ready."""
 
     def __init__(self, args: Sequence[str], *, port: int, log_path: Path,
                  env: Mapping[str, str] | None = None, ready_timeout_s: float = 120.0,
@@ -38,39 +204,33 @@ class ServiceProcess:
         self.args = list(args)
         self.port = port
         self.log_path = log_path
-        self.env = {k: v for k, v in {**os.environ, **(env or {})}.items() if k not in unset}
+        merged = {k: v for k, v in {**os.environ, **(env or {})}.items() if k not in unset}
+        self.env = merged
         self.ready_timeout_s = ready_timeout_s
-        self.proc: subprocess.Popen[bytes] | None = None
+        name = self.args[1] if len(self.args) > 1 and self.args[0] == "serve" else self.args[0]
+        self.child = Child(ChildSpec(name, (sys.executable, "-m", "services.cli", *self.args),
+                                     port, merged), log_sink(log_path))
 
     @property
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
     @property
+    def proc(self) -> subprocess.Popen[bytes] | None:
+        return self.child.proc
+
+    @property
     def pid(self) -> int:
-        assert self.proc is not None
-        return self.proc.pid
+        return self.child.pid
 
     def start(self) -> ServiceProcess:
-        with open(self.log_path, "ab") as log:
-            self.proc = subprocess.Popen([sys.executable, "-m", "services.cli", *self.args],
-                                         env=self.env, stdout=log, stderr=subprocess.STDOUT,
-                                         stdin=subprocess.DEVNULL)
-        deadline = time.monotonic() + self.ready_timeout_s
-        while True:
-            if self.proc.poll() is not None:
-                raise ServiceFailed(f"{' '.join(self.args)} exited with status "
-                                    f"{self.proc.returncode}:\n{self.log_tail()}")
-            try:
-                if httpx.get(f"{self.url}/readyz", timeout=1.0).status_code == 200:
-                    return self
-            except httpx.TransportError:
-                pass
-            if time.monotonic() > deadline:
-                self.stop()
-                raise ServiceFailed(f"{' '.join(self.args)} was not ready after "
-                                    f"{self.ready_timeout_s:.0f} s:\n{self.log_tail()}")
-            time.sleep(0.05)
+        self.child.start()
+        try:
+            await_ready([self.child], self.ready_timeout_s)
+        except ServiceFailed:
+            self.stop()
+            raise
+        return self
 
     def log_tail(self, lines: int = 30) -> str:
         try:
@@ -80,19 +240,13 @@ class ServiceProcess:
 
     def kill(self) -> None:
         """SIGKILL: no cleanup at all, as in a crash."""
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGKILL)
-            self.proc.wait(10)
+        if self.child.exited() is None:
+            self.child.signal(signal.SIGKILL)
+            self.child.wait(10.0)
 
     def stop(self, timeout_s: float = 15.0) -> None:
         """SIGTERM, then SIGKILL if it does not exit in time."""
-        if self.proc is None or self.proc.poll() is not None:
-            return
-        self.proc.send_signal(signal.SIGTERM)
-        try:
-            self.proc.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            self.kill()
+        self.child.stop(timeout_s)
 
     def __enter__(self) -> ServiceProcess:
         return self.start()

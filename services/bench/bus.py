@@ -41,17 +41,19 @@ import secrets
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import httpx
 import numpy as np
 
+from services.control.client import ControlClient
+from services.embedding.client import EmbeddingClient
+from services.embedding.schemas import CacheInfo
 from services.scenes import (
     QUADROTOR_SCENARIOS,
 )
-from services.scenes.hardware import calibration_set, nominal_texts, observation_text
+from services.scenes.hardware import build_scene_cache, observation_text
 from services.stack.up import DETECTOR_CACHE
 from shared import topics
 from shared.bus import Bus, Received, Subscription
@@ -85,9 +87,9 @@ class Stack:
     embedding: ServiceProcess
     control: ServiceProcess
     bus: Bus
-    detector: httpx.AsyncClient
-    pilot: httpx.AsyncClient
-    cache: dict[str, Any] = field(default_factory=dict)
+    detector: EmbeddingClient
+    pilot: ControlClient
+    cache: CacheInfo | None = None
 
 
 def service_env(endpoint: str, token: str) -> dict[str, str]:
@@ -111,29 +113,14 @@ def control_process(tmp: Path, endpoint: str, token: str, **env: str) -> Service
                           port=port, env=full, log_path=tmp / "control.log", ready_timeout_s=60)
 
 
-async def build_scene_cache(http: httpx.AsyncClient, model: str,
-                            max_detections: int = 4) -> dict[str, Any]:
-    """The quadrotor scene cache over REST: build, then calibrate (tpr-target 0.9, top-1),
-    from the hardware scene's texts (:mod:`services.scenes.hardware`)."""
-    await checked(http.put(f"/v1/caches/{CACHE}", json={"model": model, "k": 1}))
-    nominal = nominal_texts(max_detections)
-    say(f"building the scene cache: {len(nominal)} nominal experiences")
-    await checked(http.post(f"/v1/caches/{CACHE}/experiences",
-                            json={"items": [{"text": t} for t in nominal]}))
-    cal = await checked(http.post(f"/v1/caches/{CACHE}/calibrate", json={
-        "method": "tpr-target", "tpr": 0.9, "calibration": calibration_set()}))
-    say(f"calibrated: tau = {cal['threshold']:.4f}")
-    return await checked(http.get(f"/v1/caches/{CACHE}"))
-
-
-async def pick_scenes(http: httpx.AsyncClient, cache_detections: int = 4) -> tuple[str, str]:
+async def pick_scenes(detector: EmbeddingClient, cache_detections: int = 4
+                      ) -> tuple[str, str]:
     """A nominal scene the cache holds and a test scene it flags: (nominal, anomalous)."""
     nominal = observation_text(QUADROTOR_SCENARIOS["nominal"].detections[:cache_detections])
     anomalous = [observation_text(s.detections) for s in QUADROTOR_SCENARIOS.values()
                  if s.expected_anomaly]
-    scored = await checked(http.post(f"/v1/caches/{CACHE}/score",
-                                     json={"texts": [nominal, *anomalous]}))
-    flags = [r["is_anomaly"] for r in scored["results"]]
+    scored = await detector.score(CACHE, [nominal, *anomalous])
+    flags = [r.is_anomaly for r in scored.results]
     if flags[0]:
         raise BenchError(f"the cache flags its own nominal scene {nominal!r}")
     flagged = [text for text, flag in zip(anomalous, flags[1:], strict=True) if flag]
@@ -152,13 +139,12 @@ async def running_stack(tmp: Path, model: str, cache_detections: int):
         control = control_process(tmp, endpoint, token)
         say(f"starting embedding and control on Zenoh {endpoint}")
         with embedding, control:
-            auth = {"Authorization": f"Bearer {token}"}
-            async with httpx.AsyncClient(base_url=embedding.url, headers=auth,
-                                         timeout=WAIT_S * 5) as detector, \
-                    httpx.AsyncClient(base_url=control.url, headers=auth,
-                                      timeout=WAIT_S) as pilot:
+            async with EmbeddingClient(embedding.url, token=token,
+                                       timeout_s=WAIT_S * 5) as detector, \
+                    ControlClient(control.url, token=token, timeout_s=WAIT_S) as pilot:
                 stack = Stack(endpoint, token, embedding, control, bus, detector, pilot)
-                stack.cache = await build_scene_cache(detector, model, cache_detections)
+                stack.cache, _ = await build_scene_cache(detector, CACHE, model=model, say=say,
+                                                         max_detections=cache_detections)
                 yield stack
 
 
@@ -297,7 +283,7 @@ async def nominal_flight(stack: Stack, scene: Scene, verdicts: Verdicts,
         scene.publish(nominal)
         for seq in [s for s in scene.sent if s not in verdicts.arrived]:
             await verdicts.wait(seq)
-        await checked(stack.pilot.post("/v1/reset", json={"start": list(START)}))
+        await stack.pilot.reset(START)
         await next_state(states, lambda s: s.t == 0.0, "the restarted flight")
         got = await next_state(states, lambda s: True, "a tick")
         if got.message.mode == "nominal":
@@ -318,10 +304,10 @@ async def next_state(states: Subscription[ControlState], cond: Any, what: str
             return got
 
 
-async def fresh_verdicts_at_control(pilot: httpx.AsyncClient, scene: Scene) -> None:
+async def fresh_verdicts_at_control(pilot: ControlClient, scene: Scene) -> None:
     """Publish the scene until the control loop reports fresh verdicts."""
     deadline = time.monotonic() + WAIT_S
-    while (await checked(pilot.get("/v1/state")))["verdict_stale"] is not False:
+    while (await pilot.state()).verdict_stale is not False:
         if time.monotonic() > deadline:
             raise BenchError("the control loop never saw a fresh verdict")
         scene.publish()
@@ -360,7 +346,8 @@ async def _bench(observations: int, rate_hz: float, anomalies: int, model: str,
                     "verdict_ms": summary(verdict_ms),
                     "anomalies": anomalies, "reaction_ms": summary(reaction_ms),
                     "reaction_after_verdict_ms": summary(after_ms),
-                    "model": stack.cache["model"], "cache_size": stack.cache["size"],
+                    "model": stack.cache.model if stack.cache else model,
+                    "cache_size": stack.cache.size if stack.cache else 0,
                     "control_rate_hz": CONTROL_RATE_HZ}
 
 
@@ -387,15 +374,6 @@ def print_table(result: dict[str, Any]) -> None:
                 f"{result['rate_hz']:g} Hz, {result['anomalies']} anomalies, control at "
                 f"{result['control_rate_hz']:g} Hz ({result['model']}, cache of "
                 f"{result['cache_size']})", rows))
-
-
-async def checked(request: Any) -> dict[str, Any]:
-    """Await an httpx request; a 4xx/5xx becomes a ``BenchError`` with the body."""
-    response = await request
-    if response.status_code >= 400:
-        raise BenchError(f"{response.request.method} {response.request.url.path} -> "
-                         f"{response.status_code}: {response.text}")
-    return response.json()
 
 
 def say(message: str) -> None:

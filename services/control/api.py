@@ -11,11 +11,9 @@ from __future__ import annotations
 import asyncio
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
-from typing import Any
 
 from fastapi import Depends, FastAPI
 from prometheus_client import CollectorRegistry
-from pydantic import BaseModel, ConfigDict
 
 from shared.bus import Bus
 from shared.http import (
@@ -29,20 +27,9 @@ from shared.http import (
 
 from .loop import ControlRuntime, NotNominal
 from .scenario import ScenarioError, regions_from_list
-from .service import SERVICE, ControlMetrics, ControlService
+from .schemas import RegionsAnswer, RegionsBody, ResetAnswer, ResetBody, State
+from .service import SERVICE, ControlMetrics, ControlService, regions_message
 from .settings import ControlSettings
-
-
-class RegionsBody(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    regions: list[Any]  # checked by regions_from_list, whose errors name the entry and field
-
-
-class ResetBody(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    start: tuple[float, float, float] | None = None  # m; None: a fresh draw from the start box
 
 
 def error_field(message: str) -> str:
@@ -79,38 +66,33 @@ def create_app(settings: ControlSettings, runtime: ControlRuntime,
     auth = [Depends(bearer_auth(settings.admin_token))]
 
     @app.get("/v1/state")
-    async def state() -> dict[str, Any]:
+    async def state() -> State:
         last = runtime.last
         service = holder.get("service")
         plan = None if last is None else last.output.plan
-        return {
-            "robot": settings.robot,
-            "state": None if last is None else last.state.model_dump(),
-            "mode": runtime.mode.value,
-            "status": None if last is None else last.output.status.value,
-            "method": settings.control_method,
-            "scenario": runtime.scenario.name,
-            "verdict_stale": None if last is None else last.stale,
-            "pending_request": runtime.pending,
-            "loop": {
+        return State(
+            robot=settings.robot, state=None if last is None else last.state,
+            mode=runtime.mode, status=None if last is None else last.output.status.value,
+            method=settings.control_method, scenario=runtime.scenario.name,
+            verdict_stale=None if last is None else last.stale,
+            pending_request=runtime.pending,
+            loop={
                 "rate_hz": 1.0 / runtime.period_s,
                 **(service.scheduler.stats.summary() if service else {}),
                 "last_step_ms": None if last is None else round(last.step_ms, 3),
                 "last_solve_ms": None if plan is None else round(float(plan.solve_ms), 3),
-            },
-        }
+            })
 
-    def regions_body() -> dict[str, Any]:
-        return {"regions": [r.to_dict() for r in runtime.scenario.regions],
-                "goal": [float(v) for v in runtime.scenario.goal],
-                "mode": runtime.mode.value}
+    def regions_body() -> RegionsAnswer:
+        message = regions_message(runtime.scenario, settings.robot)
+        return RegionsAnswer(regions=list(message.regions), goal=message.goal, mode=runtime.mode)
 
     @app.get("/v1/regions")
-    async def get_regions() -> dict[str, Any]:
+    async def get_regions() -> RegionsAnswer:
         return regions_body()
 
     @app.post("/v1/regions", dependencies=auth)
-    async def post_regions(body: RegionsBody) -> dict[str, Any]:
+    async def post_regions(body: RegionsBody) -> RegionsAnswer:
         try:
             regions = regions_from_list(body.regions)
             await runtime.replace_regions(regions)
@@ -125,11 +107,11 @@ def create_app(settings: ControlSettings, runtime: ControlRuntime,
         return regions_body()
 
     @app.post("/v1/reset", dependencies=auth)
-    async def reset(body: ResetBody | None = None) -> dict[str, Any]:
+    async def reset(body: ResetBody | None = None) -> ResetAnswer:
         try:
             x0 = await runtime.reset(None if body is None else body.start)
         except ValueError as exc:
             raise ApiError(422, "invalid", str(exc), "start") from None
-        return {"start": [float(v) for v in x0[:3]], "mode": runtime.mode.value}
+        return ResetAnswer(start=(float(x0[0]), float(x0[1]), float(x0[2])), mode=runtime.mode)
 
     return app

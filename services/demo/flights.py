@@ -26,25 +26,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import httpx
 import numpy as np
 
 from services.bench.sim import count_violations
+from services.control.client import ControlClient
 from services.control.scenario import Scenario, load_scenario
-from services.scenes.hardware import (
-    SCENARIOS,
-    DemoScenario,
-    calibration_set,
-    nominal_texts,
-    observation_text,
-)
+from services.embedding.client import EmbeddingClient
+from services.scenes.hardware import SCENARIOS, DemoScenario, build_scene_cache, observation_text
 from services.stack.up import (
     DETECTOR_CACHE,
     FAKE_LLM_LATENCY_S,
     Stack,
     StackOptions,
     StackPlan,
-    file_sink,
     plan_stack,
 )
 from shared import topics
@@ -58,6 +52,7 @@ from shared.messages import (
     ReasonerDecision,
     ReasonerRequest,
 )
+from shared.process import file_sink
 from shared.settings import BusSettings
 
 from .report import ended_in, flight_measures, judge, summary_table, write_report
@@ -168,9 +163,9 @@ async def _demo(embedding_url: str | None, control_url: str | None, token: str,
                 demos: Sequence[DemoScenario] = SCENARIOS
                 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     assert embedding_url and control_url
-    auth = {"Authorization": f"Bearer {token}"}
-    async with httpx.AsyncClient(base_url=embedding_url, timeout=300, headers=auth) as http:
-        detector = await build_cache(http, model)
+    async with EmbeddingClient(embedding_url, token=token, timeout_s=60) as client:
+        info, cal = await build_scene_cache(client, DETECTOR_CACHE, model=model, say=_say)
+    detector = {"size": info.size, "k": info.k, "calibration": cal.model_dump(mode="json")}
     rows, flights = [], {}
     with Bus.open(settings, "demo") as bus:
         robot = settings.robot
@@ -192,9 +187,9 @@ async def _demo(embedding_url: str | None, control_url: str | None, token: str,
         tasks.append(asyncio.create_task(camera.run()))
         try:
             await _first_verdict(verdicts)
-            async with httpx.AsyncClient(base_url=control_url, timeout=60, headers=auth) as http:
+            async with ControlClient(control_url, token=token, timeout_s=60) as control:
                 for demo in demos:
-                    row, states = await fly(http, camera, verdicts, rec, demo, scenario)
+                    row, states = await fly(control, camera, verdicts, rec, demo, scenario)
                     rows.append(row)
                     flights[demo.name] = states
                     _say(f"  {demo.name}: {row['outcome']}")
@@ -205,30 +200,6 @@ async def _demo(embedding_url: str | None, control_url: str | None, token: str,
             await asyncio.gather(*tasks, return_exceptions=True)
     return {"ok": all(r["outcome"] == "ok" for r in rows), "scenarios": rows,
             "detector": detector}, flights
-
-
-async def build_cache(http: httpx.AsyncClient, model: str | None) -> dict[str, Any]:
-    """The nominal cache of the hardware scene, calibrated for TPR 0.9 with top-1 scores."""
-    body: dict[str, Any] = {"k": 1} | ({"model": model} if model else {})
-    _check(await http.put(f"/v1/caches/{DETECTOR_CACHE}", json=body))
-    info = _check(await http.get(f"/v1/caches/{DETECTOR_CACHE}"))
-    texts = nominal_texts()
-    if info["size"] != len(texts):  # a cache kept from an earlier run is reused as is
-        if info["size"]:
-            raise RuntimeError(f"cache {DETECTOR_CACHE!r} holds {info['size']} experiences, "
-                               f"not the {len(texts)} of the scene: remove the demo's data dir")
-        _say(f"building the nominal cache: {len(texts)} combinations of up to 4 detections")
-        job = _check(await http.post(f"/v1/caches/{DETECTOR_CACHE}/experiences",
-                                     params={"wait": "false"},
-                                     json={"items": [{"text": t} for t in texts]}))
-        while (state := _check(await http.get(f"/v1/jobs/{job['job']}")))["state"] == "running":
-            await asyncio.sleep(0.5)
-        if state["state"] != "succeeded":
-            raise RuntimeError(f"building the cache failed: {state['error']}")
-    cal = _check(await http.post(f"/v1/caches/{DETECTOR_CACHE}/calibrate", json={
-        "method": "tpr-target", "tpr": 0.9, "calibration": calibration_set()}))
-    _say(f"calibrated: tau = {cal['threshold']:.4f}, TPR {cal['tpr']:.2f}, FPR {cal['fpr']:.2f}")
-    return {"size": len(texts), "k": 1, "calibration": cal}
 
 
 class Camera:
@@ -259,7 +230,7 @@ class Camera:
             await asyncio.sleep(self.period_s)
 
 
-async def fly(http: httpx.AsyncClient, camera: Camera, verdicts: Subscription[AnomalyVerdict],
+async def fly(control: ControlClient, camera: Camera, verdicts: Subscription[AnomalyVerdict],
               rec: Recorder, demo: DemoScenario, scenario: Scenario
               ) -> tuple[dict[str, Any], np.ndarray]:
     camera.scene, camera.flying = demo, False
@@ -268,7 +239,7 @@ async def fly(http: httpx.AsyncClient, camera: Camera, verdicts: Subscription[An
     rec.states, rec.requests, rec.decisions, rec.events = [], [], [], []
     rec.detector_alarms = 0
     start = [float(v) for v in scenario.start_center]
-    _check(await http.post("/v1/reset", json={"start": start}))
+    await control.reset(start)
     rec.recording = True
     camera.flying = True
     wall = time.monotonic()
@@ -388,11 +359,3 @@ def _on_event(rec: Recorder, msg: Event) -> None:
 
 def _round(value: float | None) -> float | None:
     return None if value is None else round(value, 2)
-
-
-def _check(response: httpx.Response) -> dict[str, Any]:
-    if response.status_code >= 400:
-        raise RuntimeError(f"{response.request.method} {response.request.url.path} -> "
-                           f"{response.status_code}: {response.text[:500]}")
-    return response.json()
-

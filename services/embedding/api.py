@@ -4,15 +4,14 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from contextlib import asynccontextmanager
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any
 
 import numpy as np
 from fastapi import Depends, FastAPI, Query, Request
 from fastapi.responses import JSONResponse
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
-from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from shared.http import (
     ApiError,
@@ -29,6 +28,22 @@ from shared.jobs import Job, UnknownJob
 from .cache import Labelled
 from .embedders import EmbedderError
 from .errors import Conflict, DetectorError, InvalidInput, NotCalibrated, NotFound
+from .schemas import (
+    Added,
+    AddExperiences,
+    CacheInfo,
+    CacheList,
+    Calibrate,
+    Calibrated,
+    CreateCache,
+    Deleted,
+    Experience,
+    JobAccepted,
+    JobInfo,
+    Score,
+    ScoreResult,
+    Scores,
+)
 from .scoring import ScoringError
 from .service import CacheService, Item, ScoreBatch
 from .settings import EmbeddingSettings
@@ -36,65 +51,7 @@ from .storage import StorageCorrupt
 
 log = logging.getLogger(__name__)
 
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
-Id = Annotated[str, Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.:\-]+$")]
 STATUS = {InvalidInput: 422, NotFound: 404, Conflict: 409, NotCalibrated: 409}
-
-
-class Body(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class CreateCache(Body):
-    model: str | None = Field(default=None, min_length=1, max_length=512)
-    dim: int | None = Field(default=None, ge=1, le=16384)
-    k: int | None = Field(default=None, ge=1, le=1000)
-    score: Literal["topk", "mahalanobis"] = "topk"
-    index: Literal["flat", "hnsw"] = "flat"
-
-
-class ItemIn(Body):
-    text: str = Field(min_length=1)
-    id: Id | None = None
-    metadata: dict[str, Any] = Field(default_factory=dict)
-
-
-class AddExperiences(Body):
-    items: list[ItemIn] | None = None
-    vectors: list[list[FiniteFloat]] | None = None
-    ids: list[Id] | None = None
-
-    @model_validator(mode="after")
-    def _one_kind(self) -> AddExperiences:
-        if (self.items is None) == (self.vectors is None):
-            raise ValueError("send either 'items' (texts) or 'vectors'")
-        if self.ids is not None and (self.vectors is None or len(self.ids) != len(self.vectors)):
-            raise ValueError("'ids' must accompany 'vectors', one id per vector")
-        return self
-
-
-class LabelledIn(Body):
-    text: str = Field(min_length=1)
-    label: Literal["nominal", "anomaly"]
-
-
-class Calibrate(Body):
-    method: Literal["loo-quantile", "conformal", "tpr-target"]
-    alpha: float | None = Field(default=None, gt=0.0, lt=1.0)
-    tpr: float | None = Field(default=None, gt=0.0, le=1.0)
-    calibration: list[LabelledIn] | None = None
-
-
-class Score(Body):
-    texts: list[str] | None = None
-    vectors: list[list[FiniteFloat]] | None = None
-    k: int | None = Field(default=None, ge=1, le=1000)
-
-    @model_validator(mode="after")
-    def _one_kind(self) -> Score:
-        if (self.texts is None) == (self.vectors is None):
-            raise ValueError("send either 'texts' or 'vectors'")
-        return self
 
 
 def _service(request: Request) -> CacheService:
@@ -190,22 +147,24 @@ def create_app(
     app.include_router(ops_router(registry, ready, refresh))
     auth = [Depends(bearer_auth(settings.admin_token))]
 
-    @app.put("/v1/caches/{name}", dependencies=auth)
+    @app.put("/v1/caches/{name}", dependencies=auth, response_model=CacheInfo,
+             responses={201: {"model": CacheInfo, "description": "created"}})
     async def put_cache(name: str, body: CreateCache, service: ServiceDep) -> JSONResponse:
         model = body.model if "model" in body.model_fields_set else settings.embedding_model
         desc, created = await service.create(name, model=model, dim=body.dim, k=body.k,
                                              score=body.score, index=body.index)
-        return JSONResponse(desc, status_code=201 if created else 200)
+        return JSONResponse(desc.model_dump(mode="json"), status_code=201 if created else 200)
 
     @app.get("/v1/caches")
-    async def list_caches(service: ServiceDep) -> dict[str, Any]:
-        return {"caches": [service.describe(n) for n in service.names()]}
+    async def list_caches(service: ServiceDep) -> CacheList:
+        return CacheList(caches=[service.describe(n) for n in service.names()])
 
     @app.get("/v1/caches/{name}")
-    async def get_cache(name: str, service: ServiceDep) -> dict[str, Any]:
+    async def get_cache(name: str, service: ServiceDep) -> CacheInfo:
         return service.describe(name)
 
-    @app.post("/v1/caches/{name}/experiences", dependencies=auth)
+    @app.post("/v1/caches/{name}/experiences", dependencies=auth, response_model=Added,
+              responses={202: {"model": JobAccepted, "description": "?wait=false"}})
     async def add_experiences(
         name: str, body: AddExperiences, service: ServiceDep,
         wait: Annotated[bool, Query(description="false: answer 202 with a job id")] = True,
@@ -214,30 +173,30 @@ def create_app(
         items = _items(body, settings)
         job = service.jobs.create("add_experiences", name, len(items))
         if wait:
-            result = await _run_job(job, service.add(name, items, job))
-            return JSONResponse({**result, "job": job.id})
+            added = await _run_job(job, service.add(name, items, job))
+            return JSONResponse(added.model_dump(mode="json"))
         task = asyncio.create_task(_run_job(job, service.add(name, items, job)))
         task.add_done_callback(lambda t: t.exception())  # the job records the error
-        return JSONResponse({"job": job.id, "state": job.state, "total": job.total},
-                            status_code=202)
+        accepted = JobAccepted(job=job.id, state=job.state, total=job.total)
+        return JSONResponse(accepted.model_dump(mode="json"), status_code=202)
 
     @app.get("/v1/caches/{name}/experiences/{ident}")
-    async def get_experience(name: str, ident: str, service: ServiceDep) -> dict[str, Any]:
+    async def get_experience(name: str, ident: str, service: ServiceDep) -> Experience:
         return service.experience(name, ident)
 
     @app.delete("/v1/caches/{name}/experiences/{ident}", dependencies=auth)
-    async def delete_experience(name: str, ident: str, service: ServiceDep) -> dict[str, Any]:
+    async def delete_experience(name: str, ident: str, service: ServiceDep) -> Deleted:
         return await service.delete(name, ident)
 
     @app.post("/v1/caches/{name}/calibrate", dependencies=auth)
-    async def calibrate(name: str, body: Calibrate, service: ServiceDep) -> dict[str, Any]:
+    async def calibrate(name: str, body: Calibrate, service: ServiceDep) -> Calibrated:
         labelled = [Labelled(x.text, x.label == "anomaly") for x in body.calibration or ()]
         _check_texts([x.text for x in labelled], "calibration", settings, key="text")
         return await service.calibrate(name, body.method, alpha=body.alpha, tpr=body.tpr,
                                        calibration=labelled)
 
     @app.post("/v1/caches/{name}/score")
-    async def score(name: str, body: Score, service: ServiceDep) -> dict[str, Any]:
+    async def score(name: str, body: Score, service: ServiceDep) -> Scores:
         with metrics.score_seconds.time():
             if body.texts is not None:
                 _check_count(len(body.texts), "texts", settings)
@@ -249,9 +208,9 @@ def create_app(
         return _score_response(batch)
 
     @app.get("/v1/jobs/{job_id}")
-    async def get_job(job_id: str, service: ServiceDep) -> dict[str, Any]:
+    async def get_job(job_id: str, service: ServiceDep) -> JobInfo:
         try:
-            return service.jobs.get(job_id).to_dict()
+            return JobInfo.model_validate(service.jobs.get(job_id).to_dict())
         except UnknownJob:
             raise NotFound(f"no job {job_id!r}", field="id") from None
 
@@ -264,7 +223,7 @@ def _report_worker_exit(task: asyncio.Task[None]) -> None:
                   exc_info=task.exception())
 
 
-async def _run_job(job: Job, work: Any) -> dict[str, Any]:
+async def _run_job(job: Job, work: Awaitable[Added]) -> Added:
     try:
         result = await work
     except DetectorError as exc:
@@ -273,7 +232,7 @@ async def _run_job(job: Job, work: Any) -> dict[str, Any]:
     except Exception as exc:
         job.fail("internal", str(exc))
         raise
-    job.succeed(result)
+    job.succeed(result.model_dump(mode="json"))
     return result
 
 
@@ -322,20 +281,12 @@ def _matrix(rows: list[list[float]], field: str, settings: EmbeddingSettings) ->
     return matrix
 
 
-def _score_response(batch: ScoreBatch) -> dict[str, Any]:
+def _score_response(batch: ScoreBatch) -> Scores:
     threshold = batch.threshold
-    return {
-        "results": [
-            {
-                "score": r.score,
-                "is_anomaly": None if threshold is None else r.score > threshold,
-                "neighbors": [n.model_dump() for n in r.neighbors],
-            }
-            for r in batch.results
-        ],
-        "threshold": threshold,
-        "stale": batch.stale,
-        "k": batch.k,
-        "model": batch.model,
-        "version": batch.version,
-    }
+    return Scores(
+        results=[ScoreResult(score=r.score,
+                             is_anomaly=None if threshold is None else r.score > threshold,
+                             neighbors=list(r.neighbors))
+                 for r in batch.results],
+        threshold=threshold, stale=batch.stale, k=batch.k, model=batch.model,
+        version=batch.version)

@@ -89,18 +89,6 @@ class Cache:
     def threshold(self) -> float | None:
         return None if self.calibration is None else self.calibration.threshold
 
-    def describe(self) -> dict[str, Any]:
-        """The ``GET /v1/caches/{name}`` shape (docs/architecture.md)."""
-        cal = None
-        if self.calibration is not None:
-            cal = {**self.calibration.to_dict(), "stale": self.stale}
-        c = self.config
-        return {
-            "name": c.name, "size": self.size, "dim": c.dim, "model": c.model, "k": c.k,
-            "score": c.score, "index": c.index, "threshold": self.threshold,
-            "calibration": cal, "version": self.version,
-        }
-
     def check_k(self, k: int, *, leave_one_out: bool = False) -> int:
         need = k + 1 if leave_one_out else k
         if k < 1:

@@ -27,7 +27,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -38,6 +38,7 @@ from .cache import Cache, CacheConfig, Labelled, Scored, ScoreKind
 from .calibration import (
     Calibration,
     CalibrationError,
+    Method,
     auroc,
     conformal,
     loo_quantile,
@@ -47,13 +48,13 @@ from .calibration import (
 from .embedders import Embedder, EmbedderPool, ModelNotFound
 from .errors import Conflict, InvalidInput, NotFound
 from .index import IndexKind
+from .schemas import Added, CacheInfo, Calibrated, Deleted, Experience, Roc
 from .settings import EmbeddingSettings
 from .storage import CacheStore, Record
 
 log = logging.getLogger(__name__)
 
 CACHE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")
-Method = Literal["loo-quantile", "conformal", "tpr-target"]
 T = TypeVar("T")
 
 
@@ -226,19 +227,19 @@ class CacheService:
         except KeyError:
             raise NotFound(f"no cache named {name!r}", field="name") from None
 
-    def describe(self, name: str) -> dict[str, Any]:
+    def describe(self, name: str) -> CacheInfo:
         entry = self.entry(name)
         with entry.rw.read():
-            return entry.cache.describe()
+            return CacheInfo.of(entry.cache)
 
-    def experience(self, name: str, ident: str) -> dict[str, Any]:
+    def experience(self, name: str, ident: str) -> Experience:
         entry = self.entry(name)
         with entry.rw.read():
             label = entry.cache.labels_by_id.get(ident)
             if label is None:
                 raise NotFound(f"no experience {ident!r} in cache {name!r}", field="id")
             exp = entry.cache.experiences[label]
-            return {"id": exp.id, "text": exp.text, "metadata": dict(exp.metadata)}
+            return Experience(id=exp.id, text=exp.text, metadata=dict(exp.metadata))
 
     # -- mutations --------------------------------------------------------------
 
@@ -251,7 +252,7 @@ class CacheService:
         k: int | None = None,
         score: ScoreKind = "topk",
         index: IndexKind = "flat",
-    ) -> tuple[dict[str, Any], bool]:
+    ) -> tuple[CacheInfo, bool]:
         """Create cache ``name`` or reconcile an existing one; returns (description, created)."""
         if not CACHE_NAME.match(name):
             raise InvalidInput("cache names are 1-64 letters, digits, '_', '.', '-'", field="name")
@@ -267,7 +268,7 @@ class CacheService:
             config = CacheConfig(name, model, int(dim), k, score, index)
             entry = await asyncio.to_thread(self._create_entry, config)
             self._entries[name] = entry
-            return entry.cache.describe(), True
+            return CacheInfo.of(entry.cache), True
 
     def _create_entry(self, config: CacheConfig) -> Entry:
         directory = self.root / config.name
@@ -282,7 +283,7 @@ class CacheService:
         return entry
 
     async def _reconcile(self, name: str, *, model: str | None, k: int, score: ScoreKind
-                         ) -> dict[str, Any]:
+                         ) -> CacheInfo:
         entry = self._entries[name]
         pinned = entry.cache.config.model
         if model is not None and pinned is not None:
@@ -297,7 +298,7 @@ class CacheService:
         return self.describe(name)
 
     async def add(self, name: str, items: Sequence[Item], job: Job | None = None
-                  ) -> dict[str, Any]:
+                  ) -> Added:
         """Embed and add experiences; durable (fsync'd) when this returns."""
         entry = self.entry(name)
         config = entry.cache.config
@@ -307,8 +308,9 @@ class CacheService:
                 vectors, ids=[it.id for it in items], texts=[it.text for it in items],
                 metadata=[it.metadata for it in items])
             await self._commit(entry, record)
-            result = {"ids": [it["id"] for it in record.op["items"]],
-                      "size": entry.cache.size, "version": entry.cache.version}
+            result = Added(ids=[it["id"] for it in record.op["items"]],
+                           size=entry.cache.size, version=entry.cache.version,
+                           job=None if job is None else job.id)
         if job is not None:
             job.progress(len(items), len(items))
         return result
@@ -335,11 +337,11 @@ class CacheService:
             vectors[[i for i, _ in texts]] = embedded
         return vectors
 
-    async def delete(self, name: str, ident: str) -> dict[str, Any]:
+    async def delete(self, name: str, ident: str) -> Deleted:
         entry = self.entry(name)
         async with entry.writer:
             await self._commit(entry, entry.cache.plan_delete(ident))
-            return {"id": ident, "size": entry.cache.size, "version": entry.cache.version}
+            return Deleted(id=ident, size=entry.cache.size, version=entry.cache.version)
 
     async def calibrate(
         self,
@@ -349,7 +351,7 @@ class CacheService:
         alpha: float | None = None,
         tpr: float | None = None,
         calibration: Sequence[Labelled] = (),
-    ) -> dict[str, Any]:
+    ) -> Calibrated:
         """Compute tau and store it with the cache. The answer adds, for a labelled
         calibration set with both classes, its ROC curve (at most 201 points)."""
         entry = self.entry(name)
@@ -362,10 +364,11 @@ class CacheService:
                 labels = np.array([x.is_anomaly for x in calibration], dtype=bool)
             cal = await self._calibration(entry, method, alpha, tpr, scores, labels)
             await self._commit(entry, entry.cache.plan_calibration(cal))
-            answer = {**cal.to_dict(), "cache": name, "version": entry.cache.version}
+            version = entry.cache.version
+        roc = None
         if scores is not None and labels is not None and labels.any() and (~labels).any():
-            answer["roc"] = roc_points(scores, labels)
-        return answer
+            roc = Roc(**roc_points(scores, labels))
+        return Calibrated(**cal.to_dict(), cache=name, version=version, roc=roc)
 
     async def _calibration(self, entry: Entry, method: Method, alpha: float | None,
                            tpr: float | None, scores: np.ndarray | None,

@@ -6,10 +6,10 @@ fake LLM (unless ``AESOP_LLM_BASE_URL`` names a real backend), the vector-cache
 and the dashboard, all as ``python -m services.cli serve ...`` peers of the hub.
 
 * :func:`plan_stack` is pure: environment and options in, the child specs out.
-* :class:`Stack` starts the children, each in its own process group, waits for
-  every ``/readyz`` (a TCP accept for the hub), forwards each line of their
-  output to a sink (``[control] ...``), and stops them all: SIGTERM to every
-  group, SIGKILL to what is left after a grace period, the hub last.
+* :class:`Stack` starts the children (:class:`shared.process.Child`, each in its
+  own process group, its output forwarded to a sink: ``[control] ...``), waits
+  for every ``/readyz`` (a TCP accept for the hub), and stops them all: SIGTERM
+  to every group, SIGKILL to what is left after a grace period, the hub last.
 * :func:`run_up` is the command: it generates an admin token when
   ``AESOP_ADMIN_TOKEN`` is unset (kept in a 0600 file, not printed), prints the
   URLs and serves until SIGINT/SIGTERM or until a child dies.
@@ -17,26 +17,28 @@ and the dashboard, all as ``python -m services.cli serve ...`` peers of the hub.
 
 from __future__ import annotations
 
-import contextlib
 import os
 import secrets
 import signal
 import socket
-import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Literal
-
-import httpx
 
 from services.control.scenario import bundled_path, resolve_scenario
-from shared.process import free_port
+from shared.process import (
+    Child,
+    ChildSpec,
+    ServiceFailed,
+    Sink,
+    await_ready,
+    free_port,
+    stderr_sink,
+)
 
-Sink = Callable[[str, str], None]  # (service name, one line of its output)
 DETECTOR_CACHE = "quadrotor"
 FAKE_LLM_LATENCY_S = 3.1  # the paper's mean GPT-3.5-turbo CoT latency (Table "jetson timings")
 # Environment a child must not inherit: each service listens on its own port
@@ -80,19 +82,6 @@ class StackOptions:
     rate_hz: float | None = None  # None: AESOP_RATE_HZ, else the control default
     dashboard: bool = True
     python: str = sys.executable
-
-
-@dataclass(frozen=True)
-class ChildSpec:
-    name: str
-    argv: tuple[str, ...]
-    port: int
-    env: Mapping[str, str]
-    ready: Literal["http", "tcp"] = "http"
-
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
 
 
 @dataclass(frozen=True)
@@ -150,74 +139,6 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str) ->
 # --------------------------------------------------------------------------- processes
 
 
-class StackError(RuntimeError):
-    """A child exited or never became ready; the message says which and why."""
-
-
-class Child:
-    """One child process in its own process group, its output forwarded line by line."""
-
-    def __init__(self, spec: ChildSpec, sink: Sink) -> None:
-        self.spec, self.sink = spec, sink
-        self.proc: subprocess.Popen[bytes] | None = None
-        self._pump: threading.Thread | None = None
-        self.tail: list[str] = []
-
-    @property
-    def name(self) -> str:
-        return self.spec.name
-
-    @property
-    def pid(self) -> int:
-        assert self.proc is not None
-        return self.proc.pid
-
-    def start(self) -> None:
-        self.proc = subprocess.Popen(list(self.spec.argv), env=dict(self.spec.env),
-                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                     stdin=subprocess.DEVNULL, start_new_session=True)
-        self._pump = threading.Thread(target=self._forward, args=(self.proc.stdout,),
-                                      name=f"log-{self.name}", daemon=True)
-        self._pump.start()
-
-    def _forward(self, stream: IO[bytes]) -> None:
-        for raw in stream:
-            line = raw.decode(errors="replace").rstrip()
-            self.tail = (self.tail + [line])[-20:]
-            self.sink(self.name, line)
-
-    def exited(self) -> int | None:
-        return None if self.proc is None else self.proc.poll()
-
-    def is_ready(self) -> bool:
-        if self.spec.ready == "tcp":
-            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-                sock.settimeout(0.5)
-                return sock.connect_ex(("127.0.0.1", self.spec.port)) == 0
-        try:
-            return httpx.get(f"{self.spec.url}/readyz", timeout=1.0).status_code == 200
-        except httpx.TransportError:
-            return False
-
-    def signal(self, sig: signal.Signals) -> None:
-        """Send ``sig`` to the child's whole process group."""
-        if self.proc is None:
-            return
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(self.proc.pid, sig)
-
-    def wait(self, timeout_s: float) -> bool:
-        if self.proc is None:
-            return True
-        try:
-            self.proc.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            return False
-        if self._pump is not None:
-            self._pump.join(2.0)
-        return True
-
-
 class Stack:
     """Starts a :class:`StackPlan`'s children, watches them and stops them all."""
 
@@ -242,23 +163,8 @@ class Stack:
         self._await_ready(self.children)
 
     def _await_ready(self, children: Sequence[Child]) -> None:
-        waiting = list(children)
-        deadline = time.monotonic() + self.ready_timeout_s
-        while waiting:
-            if self.stopping.is_set():
-                raise StackError("interrupted while starting")
-            for child in list(waiting):
-                status = child.exited()
-                if status is not None:
-                    raise StackError(f"{child.name} exited with status {status} while "
-                                     "starting:\n" + "\n".join(child.tail[-10:]))
-                if child.is_ready():
-                    self.sink("up", f"{child.name} ready on port {child.spec.port}")
-                    waiting.remove(child)
-            if time.monotonic() > deadline:
-                names = ", ".join(c.name for c in waiting)
-                raise StackError(f"not ready after {self.ready_timeout_s:.0f} s: {names}")
-            time.sleep(0.1)
+        await_ready(children, self.ready_timeout_s, stopping=self.stopping,
+                    on_ready=lambda c: self.sink("up", f"{c.name} ready on port {c.spec.port}"))
 
     def watch(self) -> str | None:
         """Block until ``stopping`` is set (None) or a child exits (its description)."""
@@ -283,32 +189,6 @@ class Stack:
 
 
 # --------------------------------------------------------------------------- the command
-
-
-def stderr_sink(width: int = 10) -> Sink:
-    lock = threading.Lock()
-
-    def write(name: str, line: str) -> None:
-        with lock:
-            print(f"[{name}]".ljust(width + 2) + line, file=sys.stderr, flush=True)
-
-    return write
-
-
-def file_sink(directory: Path) -> Sink:
-    """Each service's lines to ``directory/<name>.log`` (for the demo)."""
-    directory.mkdir(parents=True, exist_ok=True)
-    lock = threading.Lock()
-    files: dict[str, IO[str]] = {}
-
-    def write(name: str, line: str) -> None:
-        with lock:
-            if name not in files:
-                files[name] = open(directory / f"{name}.log", "a", encoding="utf-8")  # noqa: SIM115
-            files[name].write(line + "\n")
-            files[name].flush()
-
-    return write
 
 
 def write_token(data_dir: Path, token: str) -> Path:
@@ -359,7 +239,7 @@ def run_up(options: StackOptions, environ: Mapping[str, str]) -> int:
         if died is not None:
             print(f"aesop up: {died}; stopping the stack", file=sys.stderr)
             status = 1
-    except StackError as exc:
+    except ServiceFailed as exc:
         print(f"aesop up: {exc}", file=sys.stderr)
         status = 130 if stop.is_set() else 1
     finally:

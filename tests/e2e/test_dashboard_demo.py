@@ -32,10 +32,10 @@ from services.stack.up import (
     Stack,
     StackOptions,
     StackPlan,
-    file_sink,
     hardware_scenario,
     plan_stack,
 )
+from shared.process import file_sink
 from tests.e2e.browser import canvas_count, screenshot
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]

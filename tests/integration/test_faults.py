@@ -28,12 +28,13 @@ from services.bench.bus import (
     CACHE,
     ROBOT,
     START,
-    build_scene_cache,
     control_process,
     embedding_process,
     pick_scenes,
     service_env,
 )
+from services.embedding.client import EmbeddingClient
+from services.scenes.hardware import build_scene_cache
 from shared import topics
 from shared.bus import Bus
 from shared.messages import (
@@ -143,11 +144,11 @@ class Stack:
         self.feed = SceneFeed(self.bus, self.nominal)
 
     async def _build_cache(self) -> None:
-        async with httpx.AsyncClient(base_url=self.embedding.url, headers=self.auth,
-                                     timeout=300) as http:
-            await build_scene_cache(http, "sentence-transformers/all-MiniLM-L6-v2",
-                                    CACHE_DETECTIONS)
-            self.nominal, self.anomalous = await pick_scenes(http, CACHE_DETECTIONS)
+        async with EmbeddingClient(self.embedding.url, token=self.token,
+                                   timeout_s=300) as client:
+            await build_scene_cache(client, CACHE, model="sentence-transformers/all-MiniLM-L6-v2",
+                                    max_detections=CACHE_DETECTIONS)
+            self.nominal, self.anomalous = await pick_scenes(client, CACHE_DETECTIONS)
 
     def stop(self) -> None:
         if self.feed is not None:

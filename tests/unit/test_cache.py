@@ -9,6 +9,7 @@ from services.embedding.cache import Cache, CacheConfig
 from services.embedding.calibration import loo_quantile
 from services.embedding.errors import Conflict, InvalidInput, NotFound
 from services.embedding.index import VectorIndex
+from services.embedding.schemas import CacheInfo
 from services.embedding.storage import Snapshot
 
 
@@ -91,7 +92,7 @@ def test_snapshot_round_trip_preserves_state_after_deletes() -> None:
     cache.apply(cache.plan_calibration(loo_quantile(cache.loo_scores(), 0.9)))
     meta, arrays = cache.to_snapshot()
     copy = Cache.from_snapshot(Snapshot(meta, arrays, seq=0))
-    assert copy.describe() == cache.describe()
+    assert CacheInfo.of(copy) == CacheInfo.of(cache)
     q = unit([[1, 0.2, 0]])
     assert [r.score for r in copy.score(q)] == [r.score for r in cache.score(q)]
     add(copy, [[0, 1, 1]])  # labels are never reused after a delete

@@ -1,0 +1,99 @@
+"""The vector-cache service's typed client: every caller's way to build, calibrate and
+query a cache over HTTP (the demo, ``aesop bench bus``, the tests)."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable, Sequence
+from typing import Any, Literal
+
+from shared.client import ServiceClient, ServiceError
+
+from .schemas import (
+    Added,
+    CacheInfo,
+    CacheList,
+    Calibrated,
+    Deleted,
+    Experience,
+    JobAccepted,
+    JobInfo,
+    Method,
+    Scores,
+)
+
+Progress = Callable[[JobInfo], None]
+
+
+class EmbeddingClient(ServiceClient):
+    async def create_cache(self, name: str, *, model: str | None = None, k: int | None = None,
+                           score: Literal["topk", "mahalanobis"] = "topk",
+                           index: Literal["flat", "hnsw"] = "flat",
+                           dim: int | None = None) -> CacheInfo:
+        """``PUT /v1/caches/{name}``: create it, or reconcile the existing one."""
+        body: dict[str, Any] = {"score": score, "index": index}
+        body |= {key: value for key, value in (("model", model), ("k", k), ("dim", dim))
+                 if value is not None}
+        return await self.request("PUT", f"/v1/caches/{name}", CacheInfo, json=body)
+
+    async def cache(self, name: str) -> CacheInfo:
+        return await self.request("GET", f"/v1/caches/{name}", CacheInfo)
+
+    async def caches(self) -> list[CacheInfo]:
+        return (await self.request("GET", "/v1/caches", CacheList)).caches
+
+    async def add_texts(self, name: str, texts: Sequence[str], *, background: bool = False,
+                        progress: Progress | None = None, poll_s: float = 0.5) -> Added:
+        """Add nominal experiences (durable when this returns). ``background`` (or a
+        ``progress`` callback, given each poll of the job) lets the service work as a job
+        polled every ``poll_s``, so that no single request waits for a long build."""
+        body = {"items": [{"text": t} for t in texts]}
+        if not background and progress is None:
+            return await self.request("POST", f"/v1/caches/{name}/experiences", Added, json=body)
+        accepted = await self.request("POST", f"/v1/caches/{name}/experiences", JobAccepted,
+                                      json=body, params={"wait": "false"}, expect=(202,))
+        job = await self.wait_for_job(accepted.job, progress=progress, poll_s=poll_s)
+        return Added.model_validate(job.result)
+
+    async def job(self, job_id: str) -> JobInfo:
+        return await self.request("GET", f"/v1/jobs/{job_id}", JobInfo)
+
+    async def wait_for_job(self, job_id: str, *, progress: Progress | None = None,
+                           poll_s: float = 0.5) -> JobInfo:
+        """Poll until the job ends; a failed job raises its error as :class:`ServiceError`."""
+        while True:
+            job = await self.job(job_id)
+            if progress is not None:
+                progress(job)
+            if job.state == "failed":
+                error = job.error
+                raise ServiceError("GET", f"/v1/jobs/{job_id}", 200,
+                                   error.code if error else "failed",
+                                   error.message if error else "the job failed",
+                                   error.field if error else None)
+            if job.state == "succeeded":
+                return job
+            await asyncio.sleep(poll_s)
+
+    async def calibrate(self, name: str, method: Method, *, alpha: float | None = None,
+                        tpr: float | None = None,
+                        calibration: Sequence[tuple[str, bool]] = ()) -> Calibrated:
+        """Compute tau; ``calibration`` is (text, is_anomaly) pairs for ``tpr-target``."""
+        body: dict[str, Any] = {"method": method}
+        body |= {key: value for key, value in (("alpha", alpha), ("tpr", tpr))
+                 if value is not None}
+        if calibration:
+            body["calibration"] = [{"text": text, "label": "anomaly" if bad else "nominal"}
+                                   for text, bad in calibration]
+        return await self.request("POST", f"/v1/caches/{name}/calibrate", Calibrated,
+                                  json=body)
+
+    async def score(self, name: str, texts: Sequence[str], k: int | None = None) -> Scores:
+        body: dict[str, Any] = {"texts": list(texts)} | ({} if k is None else {"k": k})
+        return await self.request("POST", f"/v1/caches/{name}/score", Scores, json=body)
+
+    async def experience(self, name: str, ident: str) -> Experience:
+        return await self.request("GET", f"/v1/caches/{name}/experiences/{ident}", Experience)
+
+    async def delete(self, name: str, ident: str) -> Deleted:
+        return await self.request("DELETE", f"/v1/caches/{name}/experiences/{ident}", Deleted)

@@ -1,0 +1,119 @@
+"""The typed clients against real HTTP servers: the vector-cache app served by uvicorn on a
+real port (with the bag-of-words embedder), and `aesop serve control` as a process."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+import uvicorn
+
+from services.control.client import ControlClient
+from services.embedding.api import create_app
+from services.embedding.client import EmbeddingClient
+from services.embedding.embedders import EmbedderPool
+from services.embedding.schemas import JobInfo
+from services.embedding.service import CacheService
+from services.embedding.settings import EmbeddingSettings
+from shared.client import ServiceError
+from shared.process import ServiceProcess, free_port
+from tests.fakes.hash_embedder import HashEmbedder
+
+TOKEN = "client-test-token-0123"
+NOMINAL = [f"a {c} package on the belt next to a {t}" for c in ("brown", "white", "taped")
+           for t in ("shelf", "pallet", "scanner", "worker")]
+ODD = "a smoking lithium battery leaking acid everywhere"
+
+
+@pytest.fixture(scope="module")
+def embedding_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    settings = EmbeddingSettings(data_dir=tmp_path_factory.mktemp("embedding"),
+                                 admin_token=TOKEN, zenoh_worker=False, fsync=False)
+    service = CacheService(settings, embedders=EmbedderPool(loader=lambda m: HashEmbedder()))
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(create_app(settings, service=service),
+                                           host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    url = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 30
+    while not server.started:
+        assert time.monotonic() < deadline and thread.is_alive(), "the server did not start"
+        time.sleep(0.05)
+    yield url
+    server.should_exit = True
+    thread.join(10)
+
+
+async def test_build_calibrate_and_score_a_cache(embedding_url: str) -> None:
+    async with EmbeddingClient(embedding_url, token=TOKEN) as client:
+        info = await client.create_cache("belt", k=2)
+        assert (info.name, info.size, info.k, info.calibration) == ("belt", 0, 2, None)
+        added = await client.add_texts("belt", NOMINAL[:6])
+        assert added.size == 6 and len(added.ids) == 6 and added.job is not None
+        polls: list[JobInfo] = []
+        more = await client.add_texts("belt", NOMINAL[6:], progress=polls.append, poll_s=0.05)
+        assert more.size == len(NOMINAL) and polls and polls[-1].state == "succeeded"
+        cal = await client.calibrate("belt", "tpr-target", tpr=0.5, calibration=[
+            (NOMINAL[0], False), (NOMINAL[1], False), (ODD, True), ("a fire", True)])
+        assert cal.method == "tpr-target" and cal.cache == "belt" and cal.roc is not None
+        scored = await client.score("belt", [NOMINAL[0], ODD])
+        assert scored.threshold == cal.threshold and scored.version == cal.version
+        assert scored.results[0].is_anomaly is False and scored.results[1].is_anomaly is True
+        assert scored.results[0].neighbors[0].text == NOMINAL[0]
+        kept = await client.experience("belt", added.ids[0])
+        assert kept.text == NOMINAL[0]
+        gone = await client.delete("belt", added.ids[0])
+        assert gone.size == len(NOMINAL) - 1
+        assert [c.name for c in await client.caches()] == ["belt"]
+        assert (await client.cache("belt")).calibration.stale  # type: ignore[union-attr]
+
+
+async def test_errors_come_back_with_status_code_and_field(embedding_url: str) -> None:
+    async with EmbeddingClient(embedding_url, token=TOKEN) as client:
+        with pytest.raises(ServiceError) as missing:
+            await client.cache("nowhere")
+        assert (missing.value.status, missing.value.code, missing.value.field) == (
+            404, "not_found", "name")
+        await client.create_cache("tiny", k=1)
+        with pytest.raises(ServiceError) as bad:
+            await client.score("tiny", [" "])
+        assert bad.value.status == 422 and bad.value.field == "texts[0]"
+    async with EmbeddingClient(embedding_url) as anonymous:
+        with pytest.raises(ServiceError) as denied:
+            await anonymous.create_cache("mine")
+        assert denied.value.status == 401 and denied.value.code == "unauthorized"
+    async with EmbeddingClient("http://127.0.0.1:9", timeout_s=2) as nobody:
+        with pytest.raises(httpx.TransportError):
+            await nobody.caches()
+
+
+@pytest.mark.slow
+def test_the_control_client_speaks_to_a_real_control_service(tmp_path: Path) -> None:
+    port = free_port()
+    env = {"AESOP_ADMIN_TOKEN": TOKEN, "AESOP_ZENOH_LISTEN": f"tcp/127.0.0.1:{free_port()}",
+           "AESOP_RATE_HZ": "10", "AESOP_START_POSITION": "[0, 0, 1]"}
+    with ServiceProcess(["serve", "control", "--port", str(port)], port=port, env=env,
+                        log_path=tmp_path / "control.log", ready_timeout_s=60) as proc:
+        asyncio.run(_control_round_trip(proc.url))
+
+
+async def _control_round_trip(url: str) -> None:
+    async with ControlClient(url, token=TOKEN) as control:
+        state = await control.state()
+        assert state.mode == "waiting" and state.method == "aesop"
+        assert state.scenario == "paper-quadrotor-sim"  # the default scene, paper.yaml
+        regions = await control.regions()
+        assert len(regions.regions) == 4 and len(regions.goal) == 3
+        reset = await control.reset([0.0, 0.0, 1.0])
+        assert reset.start == (0.0, 0.0, 1.0) and reset.mode == "waiting"
+        swapped = await control.set_regions(regions.regions[:2])
+        assert [r.name for r in swapped.regions] == [r.name for r in regions.regions[:2]]
+        with pytest.raises(ServiceError) as outside:
+            await control.reset([1e6, 0.0, 1.0])
+        assert outside.value.status == 422 and outside.value.field == "start"
