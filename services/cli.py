@@ -72,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--data-dir", type=Path)
     serve.add_argument("--scenario", default=None,
                        help="control only: a bundled scenario (paper, hardware) or a file "
-                            "(default: AESOP_SCENARIO, else paper)")
+                            "(default: AESOP_CONTROL_SCENARIO, else paper)")
     serve.set_defaults(func=cmd_serve)
 
     detector = sub.add_parser("detector", help="offline tools for the fast anomaly detector")
@@ -174,7 +174,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="one subdirectory per service (default ./aesop-data)")
     up.add_argument("--scenario", type=Path, default=None,
                     help="control scenario: a bundled name (paper, hardware) or a file "
-                         "(default: AESOP_SCENARIO or the hardware scene)")
+                         "(default: AESOP_CONTROL_SCENARIO or the hardware scene)")
     up.add_argument("--random-ports", action="store_true",
                     help="free ports instead of 7447 (Zenoh) and 8001-8003, 8010, 8080")
     up.add_argument("--no-dashboard", action="store_true")
@@ -454,10 +454,11 @@ def _stack_options(args: argparse.Namespace, data_dir: Path):
     import importlib.util
 
     from services.control.scenario import resolve_scenario
+    from services.control.settings import ControlSettings
     from services.stack.up import Ports, StackOptions, hardware_scenario
 
-    scenario_path = resolve_scenario(args.scenario or os.environ.get("AESOP_SCENARIO")
-                                     or hardware_scenario())
+    control = ControlSettings()  # what the environment asks of the control loop
+    scenario_path = resolve_scenario(args.scenario or control.scenario or hardware_scenario())
     scenario = _control_scenario(scenario_path)
     dashboard = not getattr(args, "no_dashboard", False)
     if dashboard and importlib.util.find_spec("services.dashboard") is None:
@@ -469,7 +470,7 @@ def _stack_options(args: argparse.Namespace, data_dir: Path):
     if busy:
         raise CliError(f"ports already in use: {', '.join(busy)} (is `aesop up` running?); "
                        "stop it or pass --random-ports")
-    rate = None if os.environ.get("AESOP_RATE_HZ") else 1.0 / scenario.dt
+    rate = None if control.rate_hz is not None else 1.0 / scenario.dt
     return StackOptions(data_dir=data_dir, ports=ports, scenario=scenario_path.resolve(),
                         rate_hz=rate, dashboard=dashboard)
 
@@ -486,8 +487,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     args.scenario = hardware_scenario()  # the demo flies the hardware scene, whatever the env
     out = args.out.resolve()
-    result = run_stack_demo(_stack_options(args, out / "data"), out, model=args.model,
-                            table=not args.json, keep_up=args.keep_up)
+    result = run_stack_demo(_stack_options(args, out / "data"), os.environ, out,
+                            model=args.model, table=not args.json, keep_up=args.keep_up)
     if args.json:
         print(json.dumps({"scenarios": result["scenarios"]}, allow_nan=False))
     return 0 if result["ok"] else 1

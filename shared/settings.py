@@ -1,21 +1,35 @@
-"""Settings every service shares, read from ``AESOP_*`` environment variables.
+"""Settings, read from ``AESOP_*`` environment variables.
 
-Build them once at the edge (the CLI) and pass them down; logic never reads
-``os.environ``. A service adds its own fields by subclassing ``ServiceSettings``.
-Lists (Zenoh endpoints) are comma-separated in the environment, e.g.
-``AESOP_ZENOH_CONNECT=tcp/127.0.0.1:7447,tcp/10.0.0.2:7447``.
+What every service shares has a plain ``AESOP_`` name: the robot, the Zenoh
+endpoints, the admin token, the data directory and the log level
+(``AESOP_ROBOT``, ``AESOP_ZENOH_CONNECT``, ``AESOP_ADMIN_TOKEN``, ...). The rest
+belongs to one service and carries its name: ``AESOP_EMBEDDING_*``,
+``AESOP_REASONER_*``, ``AESOP_CONTROL_*``, ``AESOP_DASHBOARD_*`` (a service
+subclasses ``ServiceSettings`` with its own ``env_prefix``; the shared fields
+name their variable themselves, so the prefix does not touch them).
+
+Build settings once at the edge (the CLI) and pass them down; logic never reads
+``os.environ``. :func:`to_env` writes a settings object back as the
+environment a child process reads it from (``aesop up``), so a bad value fails
+where the plan is made, naming the field. Lists (Zenoh endpoints) are
+comma-separated, e.g. ``AESOP_ZENOH_CONNECT=tcp/127.0.0.1:7447,tcp/10.0.0.2:7447``;
+tuples and mappings are JSON.
 """
 
 from __future__ import annotations
 
 import ipaddress
+import json
+from collections.abc import Mapping
+from enum import Enum
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal, TypeVar
 
-from pydantic import Field, SecretStr, field_validator
-from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+from pydantic import AliasChoices, Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, EnvSettingsSource, NoDecode, SettingsConfigDict
 
 Endpoints = Annotated[list[str], NoDecode]
+S = TypeVar("S", bound=BaseSettings)
 
 
 def _split(value: object) -> object:
@@ -24,29 +38,40 @@ def _split(value: object) -> object:
     return value
 
 
+def shared(name: str) -> str:
+    """The environment variable of a setting every service shares: ``AESOP_<NAME>``."""
+    return f"AESOP_{name.upper()}"
+
+
 class BusSettings(BaseSettings):
     """How a process joins the Zenoh network (defaults: a peer on loopback, no multicast)."""
 
-    model_config = SettingsConfigDict(env_prefix="AESOP_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="AESOP_", extra="ignore", validate_by_name=True)
 
-    robot: str = Field(default="robot0", pattern=r"^[A-Za-z0-9_\-]+$")
-    zenoh_mode: Literal["peer", "client"] = "peer"
-    zenoh_listen: Endpoints = Field(default_factory=list)
-    zenoh_connect: Endpoints = Field(default_factory=list)
-    zenoh_multicast: bool = False
-    zenoh_config: Path | None = None  # a zenoh JSON5 config file, applied first
+    robot: str = Field(default="robot0", pattern=r"^[A-Za-z0-9_\-]+$",
+                       validation_alias=shared("robot"))
+    zenoh_mode: Literal["peer", "client"] = Field(default="peer",
+                                                  validation_alias=shared("zenoh_mode"))
+    zenoh_listen: Endpoints = Field(default_factory=list, validation_alias=shared("zenoh_listen"))
+    zenoh_connect: Endpoints = Field(default_factory=list,
+                                     validation_alias=shared("zenoh_connect"))
+    zenoh_multicast: bool = Field(default=False, validation_alias=shared("zenoh_multicast"))
+    # a zenoh JSON5 config file, applied first
+    zenoh_config: Path | None = Field(default=None, validation_alias=shared("zenoh_config"))
 
     _split_listen = field_validator("zenoh_listen", "zenoh_connect", mode="before")(_split)
 
 
 class ServiceSettings(BusSettings):
-    """A service: the Zenoh bus plus an HTTP admin API and a data directory."""
+    """A service: the Zenoh bus plus an HTTP admin API and a data directory. ``host`` and
+    ``port`` are the service's own (``AESOP_<SERVICE>_HOST``, ``_PORT``)."""
 
     host: str = "127.0.0.1"
     port: int = Field(default=8000, ge=0, le=65535)
-    admin_token: SecretStr | None = None
-    data_dir: Path = Path("data")
-    log_level: Literal["debug", "info", "warning", "error"] = "info"
+    admin_token: SecretStr | None = Field(default=None, validation_alias=shared("admin_token"))
+    data_dir: Path = Field(default=Path("data"), validation_alias=shared("data_dir"))
+    log_level: Literal["debug", "info", "warning", "error"] = Field(
+        default="info", validation_alias=shared("log_level"))
 
     @field_validator("admin_token", mode="before")
     @classmethod
@@ -76,3 +101,67 @@ def is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False
+
+
+def env_names(cls: type[BaseSettings], name: str) -> tuple[str, ...]:
+    """The environment variables field ``name`` of ``cls`` is read from, first one first."""
+    info = cls.model_fields[name]
+    alias = info.validation_alias
+    if isinstance(alias, str):
+        return (alias,)
+    if isinstance(alias, AliasChoices):
+        return tuple(str(choice) for choice in alias.choices)
+    return (f"{cls.model_config.get('env_prefix', '')}{name}".upper(),)
+
+
+def to_env(settings: BaseSettings) -> dict[str, str]:
+    """``settings`` as the environment its class reads it back from (fields that are None
+    are left out: their default is None)."""
+    out: dict[str, str] = {}
+    for name in type(settings).model_fields:
+        value = getattr(settings, name)
+        if value is not None:
+            out[env_names(type(settings), name)[0]] = _env_value(value)
+    return out
+
+
+def _env_value(value: Any) -> str:
+    if isinstance(value, SecretStr):
+        return value.get_secret_value()
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, Enum):
+        return str(value.value)
+    if isinstance(value, str | int | float | Path):
+        return str(value)
+    if isinstance(value, list):  # endpoint lists: comma-separated (NoDecode)
+        return ",".join(str(v) for v in value)
+    return json.dumps(value)  # tuples and mappings
+
+
+def read_settings(cls: type[S], environ: Mapping[str, str], *,
+                  defaults: Mapping[str, Any] | None = None, **forced: Any) -> S:
+    """``cls`` as a process with environment ``environ`` would read it (pure: the
+    process's own environment is not looked at). ``defaults`` apply where ``environ``
+    says nothing; ``forced`` wins over both. A bad value raises ``ValidationError``
+    naming the field."""
+    raw = _MappingSource(cls, environ)()
+    given: dict[str, Any] = {}
+    for name in cls.model_fields:
+        key = next((k for k in (name, *env_names(cls, name)) if k in raw), None)
+        if key is not None:
+            given[name] = raw[key]
+    return cls.model_validate({**(defaults or {}), **given, **forced})
+
+
+class _MappingSource(EnvSettingsSource):
+    """pydantic-settings' environment source, over a given mapping."""
+
+    def __init__(self, settings_cls: type[BaseSettings], environ: Mapping[str, str]) -> None:
+        self._given = dict(environ)
+        super().__init__(settings_cls)
+
+    def _load_env_vars(self) -> Mapping[str, str | None]:
+        if self.case_sensitive:
+            return dict(self._given)
+        return {name.lower(): value for name, value in self._given.items()}

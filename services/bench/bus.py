@@ -100,15 +100,15 @@ def service_env(endpoint: str, token: str) -> dict[str, str]:
 
 def embedding_process(tmp: Path, endpoint: str, token: str, **env: str) -> ServiceProcess:
     port = free_port()
-    env = {**service_env(endpoint, token), "AESOP_DETECTOR_CACHE": CACHE, **env}
+    env = {**service_env(endpoint, token), "AESOP_EMBEDDING_DETECTOR_CACHE": CACHE, **env}
     return ServiceProcess(["serve", "embedding", "--port", str(port), "--data-dir", str(tmp)],
                           port=port, env=env, log_path=tmp / "embedding.log")
 
 
 def control_process(tmp: Path, endpoint: str, token: str, **env: str) -> ServiceProcess:
     port = free_port()
-    full = {**service_env(endpoint, token), "AESOP_RATE_HZ": str(CONTROL_RATE_HZ),
-            "AESOP_START_POSITION": str(list(START)), **env}
+    full = {**service_env(endpoint, token), "AESOP_CONTROL_RATE_HZ": str(CONTROL_RATE_HZ),
+            "AESOP_CONTROL_START_POSITION": str(list(START)), **env}
     return ServiceProcess(["serve", "control", "--port", str(port), "--data-dir", str(tmp)],
                           port=port, env=full, log_path=tmp / "control.log", ready_timeout_s=60)
 

@@ -73,7 +73,7 @@ def create_app(settings: ControlSettings, runtime: ControlRuntime,
         return State(
             robot=settings.robot, state=None if last is None else last.state,
             mode=runtime.mode, status=None if last is None else last.output.status.value,
-            method=settings.control_method, scenario=runtime.scenario.name,
+            method=settings.method, scenario=runtime.scenario.name,
             verdict_stale=None if last is None else last.stale,
             pending_request=runtime.pending,
             loop={

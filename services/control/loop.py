@@ -295,12 +295,12 @@ class ControlRuntime:
     def build_controller(self, scenario: Scenario, x0: np.ndarray | None = None) -> Controller:
         """A fresh controller of the configured method for ``scenario`` (pure CPU, no I/O),
         warmed up at ``x0`` so that the first tick is not a cold solve (an overrun)."""
-        fallback = self.settings.control_fallback
+        fallback = self.settings.fallback
         if isinstance(fallback, int) and fallback not in {r.index for r in scenario.regions}:
-            raise ValueError(f"control_fallback: region {fallback} is not one of the "
+            raise ValueError(f"fallback: region {fallback} is not one of the "
                              f"scenario's {len(scenario.regions)} recovery regions")
         config = mpc_config(scenario, **self.settings.mpc_overrides())
-        controller = make_controller(self.settings.control_method, scenario, config=config,
+        controller = make_controller(self.settings.method, scenario, config=config,
                                      fallback=fallback)
         if x0 is not None:
             controller.warm_up(x0)

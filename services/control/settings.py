@@ -1,9 +1,4 @@
-"""Settings of the control-loop service (``AESOP_*`` environment variables).
-
-The names that other services also use carry a ``control_`` prefix
-(``AESOP_CONTROL_METHOD``, ``AESOP_CONTROL_FALLBACK``): the reasoner already
-reads ``AESOP_FALLBACK``, and ``aesop up`` shares one environment.
-"""
+"""Settings of the control-loop service (``AESOP_CONTROL_*``, and the shared ``AESOP_*``)."""
 
 from __future__ import annotations
 
@@ -11,19 +6,23 @@ from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, field_validator
+from pydantic_settings import SettingsConfigDict
 
 from shared.settings import ServiceSettings
 
 
 class ControlSettings(ServiceSettings):
+    model_config = SettingsConfigDict(env_prefix="AESOP_CONTROL_", extra="ignore",
+                                      validate_by_name=True)
+
     port: int = Field(default=8003, ge=0, le=65535)
     # ticks per second of wall time; None: the scene's own, 1 / dt (its plant advances dt a tick)
     rate_hz: float | None = Field(default=None, gt=0.0, le=1000.0)
     # a bundled scenario's name (paper, hardware) or a YAML/JSON file; None: paper
     scenario: Path | None = None
-    control_method: Literal["aesop", "fsmpc", "naive"] = "aesop"
+    method: Literal["aesop", "fsmpc", "naive"] = "aesop"
     # the recovery committed at k = K without a decision: cheapest, first, or a region index
-    control_fallback: Literal["cheapest", "first"] | int = "cheapest"
+    fallback: Literal["cheapest", "first"] | int = "cheapest"
     # a verdict older than this (s), or none at all, counts as an anomaly (fail-safe)
     verdict_stale_s: float = Field(default=0.5, gt=0.0)
     # time kept back from the reasoner's deadline for the trip back over Zenoh (s)
@@ -42,14 +41,14 @@ class ControlSettings(ServiceSettings):
     def _empty_is_none(cls, v: object) -> object:
         return None if v == "" else v
 
-    @field_validator("control_fallback", mode="before")
+    @field_validator("fallback", mode="before")
     @classmethod
     def _index_from_text(cls, v: object) -> object:
         if isinstance(v, str) and v.strip().isdigit():
             return int(v)
         return v
 
-    @field_validator("control_fallback")
+    @field_validator("fallback")
     @classmethod
     def _positive_index(cls, v: str | int) -> str | int:
         if isinstance(v, int) and v < 1:

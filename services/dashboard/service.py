@@ -41,10 +41,10 @@ class DashboardService:
     def __init__(self, settings: DashboardSettings, session: zenoh.Session,
                  metrics: DashboardMetrics, *, clock: Callable[[], float] = time.time) -> None:
         self.settings, self.session, self.metrics, self.clock = settings, session, metrics, clock
-        limits = Limits(settings.dashboard_trail, settings.dashboard_scores,
-                        settings.dashboard_log)
+        limits = Limits(settings.trail, settings.scores,
+                        settings.log)
         self.model = FlightModel(settings.robot, limits)
-        self.hub = Hub(settings.dashboard_client_queue)
+        self.hub = Hub(settings.client_queue)
 
     def on_update(self, update: Update) -> None:
         item = self.model.apply(update)

@@ -16,12 +16,11 @@ that is already up (the browser test flies one scenario while a page watches).
 from __future__ import annotations
 
 import asyncio
-import os
 import secrets
 import signal
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -62,10 +61,11 @@ ROUTE_TIMEOUT_S = 60.0
 CAMERA_PERIOD_S = 0.1  # observations at 10 Hz (the paper's detector ran at 18.8 Hz)
 
 
-def run_stack_demo(options: StackOptions, out: Path, *, model: str | None = None,
-                   table: bool = True, keep_up: bool = False) -> dict[str, Any]:
+def run_stack_demo(options: StackOptions, environ: Mapping[str, str], out: Path, *,
+                   model: str | None = None, table: bool = True, keep_up: bool = False
+                   ) -> dict[str, Any]:
     scenario = load_scenario(options.scenario)
-    plan = plan_stack(options, os.environ, secrets.token_urlsafe(24))
+    plan = plan_stack(options, environ, secrets.token_urlsafe(24))
     stack = Stack(plan, file_sink(out / "logs"))
     signal.signal(signal.SIGTERM, _interrupt)
     started = time.monotonic()
@@ -76,7 +76,7 @@ def run_stack_demo(options: StackOptions, out: Path, *, model: str | None = None
         if dashboard:
             _say(f"dashboard: {dashboard}  (watch the flights live)")
         result, flights = fly_scenarios(plan, scenario=scenario, model=model,
-                                        robot=os.environ.get("AESOP_ROBOT", "robot0"))
+                                        robot=plan.robot)
         result.update(scene=scenario.name, rate_hz=1.0 / scenario.dt,
                       llm=(f"the fake LLM, {FAKE_LLM_LATENCY_S:g} s per answer" if plan.fake_llm
                            else "the configured LLM backend"),
@@ -132,11 +132,10 @@ def fly_scenarios(plan: StackPlan, names: Sequence[str] | None = None, *,
     one they serve. Returns the result (``ok``, one row per scenario, the detector's
     calibration) and each flight's states.
     """
-    env = plan.hub.env
     if scenario is None:
-        scenario = load_scenario(env["AESOP_SCENARIO"])
+        scenario = load_scenario(plan.scenario)
     demos = SCENARIOS if names is None else tuple(demo_scenario(n) for n in names)
-    settings = BusSettings(robot=robot or env.get("AESOP_ROBOT") or "robot0",
+    settings = BusSettings(robot=robot or plan.robot,
                            zenoh_connect=[f"tcp/127.0.0.1:{plan.hub.port}"])
     return asyncio.run(_demo(plan.url("embedding"), plan.url("control"), plan.token, settings,
                              scenario, model, demos))

@@ -150,7 +150,7 @@ def create_app(
     @app.put("/v1/caches/{name}", dependencies=auth, response_model=CacheInfo,
              responses={201: {"model": CacheInfo, "description": "created"}})
     async def put_cache(name: str, body: CreateCache, service: ServiceDep) -> JSONResponse:
-        model = body.model if "model" in body.model_fields_set else settings.embedding_model
+        model = body.model if "model" in body.model_fields_set else settings.model
         desc, created = await service.create(name, model=model, dim=body.dim, k=body.k,
                                              score=body.score, index=body.index)
         return JSONResponse(desc.model_dump(mode="json"), status_code=201 if created else 200)
@@ -252,7 +252,7 @@ def _check_count(n: int, field: str, settings: EmbeddingSettings) -> None:
         raise InvalidInput(f"'{field}' is empty", field=field)
     if n > settings.max_items:
         raise ApiError(413, "too_large", f"{n} {field} in one request; the limit is "
-                       f"{settings.max_items} (AESOP_MAX_ITEMS)", field)
+                       f"{settings.max_items} (AESOP_EMBEDDING_MAX_ITEMS)", field)
 
 
 def _check_texts(texts: list[str], field: str, settings: EmbeddingSettings,

@@ -1,8 +1,9 @@
-"""Settings of the vector-cache service (``AESOP_*`` environment variables)."""
+"""Settings of the vector-cache service (``AESOP_EMBEDDING_*``, and the shared ``AESOP_*``)."""
 
 from __future__ import annotations
 
 from pydantic import AliasChoices, Field, SecretStr
+from pydantic_settings import SettingsConfigDict
 
 from shared.settings import ServiceSettings
 
@@ -10,11 +11,14 @@ DEFAULT_MODEL = "sentence-transformers/all-MiniLM-L6-v2"
 
 
 class EmbeddingSettings(ServiceSettings):
+    model_config = SettingsConfigDict(env_prefix="AESOP_EMBEDDING_", extra="ignore",
+                                      validate_by_name=True)
+
     port: int = Field(default=8001, ge=0, le=65535)
-    embedding_model: str = DEFAULT_MODEL  # default model of new caches
+    model: str = DEFAULT_MODEL  # default model of new caches
     openai_base_url: str = "https://api.openai.com/v1"  # for models named "openai:<name>"
-    openai_api_key: SecretStr | None = Field(
-        default=None, validation_alias=AliasChoices("AESOP_OPENAI_API_KEY", "OPENAI_API_KEY"))
+    openai_api_key: SecretStr | None = Field(default=None, validation_alias=AliasChoices(
+        "AESOP_EMBEDDING_OPENAI_API_KEY", "OPENAI_API_KEY"))
     detector_cache: str = "default"  # the cache the Zenoh worker scores observations against
     default_k: int = Field(default=5, ge=1, le=1000)
     verdict_neighbors: int = Field(default=3, ge=0, le=100)

@@ -36,7 +36,7 @@ When ``response_format`` asks for JSON (``json_object`` / ``json_schema``) the c
 ``{"reasoning": str, "answer": int}``.
 
 Run: ``python -m services.fakes.llm --port 8010 [--profile bimodal]``; every
-flag also from ``AESOP_FAKE_LLM_*`` (host/port also from ``AESOP_HOST``/``AESOP_PORT``).
+flag also from ``AESOP_FAKE_LLM_*`` (``AESOP_FAKE_LLM_HOST``, ``AESOP_FAKE_LLM_PORT`` too).
 """
 
 from __future__ import annotations
@@ -596,7 +596,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 class FakeLLMServiceSettings(ServiceSettings):
-    """Host, port and log level (``AESOP_HOST`` ...); the fake LLM's default port is 8010."""
+    """Host and port (``AESOP_FAKE_LLM_HOST``, ``_PORT``; 8010 by default), log level."""
+
+    model_config = SettingsConfigDict(env_prefix="AESOP_FAKE_LLM_", extra="ignore",
+                                      validate_by_name=True)
 
     port: int = Field(default=DEFAULT_PORT, ge=0, le=65535)
 

@@ -1,21 +1,25 @@
-"""Settings of the slow-reasoner service (``AESOP_*`` environment variables)."""
+"""Settings of the slow-reasoner service (``AESOP_REASONER_*``, and the shared ``AESOP_*``)."""
 
 from __future__ import annotations
 
 from typing import Literal
 
 from pydantic import AliasChoices, Field, SecretStr, field_validator
+from pydantic_settings import SettingsConfigDict
 
 from shared.settings import ServiceSettings
 
 
 class ReasonerSettings(ServiceSettings):
+    model_config = SettingsConfigDict(env_prefix="AESOP_REASONER_", extra="ignore",
+                                      validate_by_name=True)
+
     port: int = Field(default=8002, ge=0, le=65535)
     # the primary backend: any OpenAI-compatible server (default: `aesop serve fake-llm`)
     llm_base_url: str = "http://127.0.0.1:8010/v1"
     llm_model: str = "fake"
-    llm_api_key: SecretStr | None = Field(
-        default=None, validation_alias=AliasChoices("AESOP_LLM_API_KEY", "OPENAI_API_KEY"))
+    llm_api_key: SecretStr | None = Field(default=None, validation_alias=AliasChoices(
+        "AESOP_REASONER_LLM_API_KEY", "OPENAI_API_KEY"))
     llm_stream: bool = True
     llm_json_schema: bool = False  # ask for {"reasoning", "answer"} where servers support it
     llm_max_tokens: int = Field(default=512, ge=1)

@@ -1,7 +1,7 @@
 """``aesop up``: the whole stack on this machine as child processes.
 
 A Zenoh hub (:mod:`services.stack.hub`, router mode on loopback), then the
-fake LLM (unless ``AESOP_LLM_BASE_URL`` names a real backend), the vector-cache
+fake LLM (unless ``AESOP_REASONER_LLM_BASE_URL`` names a real backend), the vector-cache
 (embedding), the slow reasoner, the control loop with its simulated quadrotor
 and the dashboard, all as ``python -m services.cli serve ...`` peers of the hub.
 
@@ -27,8 +27,14 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from services.control.scenario import bundled_path, resolve_scenario
+from services.control.settings import ControlSettings
+from services.dashboard.settings import DashboardSettings
+from services.embedding.settings import EmbeddingSettings
+from services.fakes.llm import FakeLLMServiceSettings, FakeLLMSettings
+from services.reasoner.settings import ReasonerSettings
 from shared.process import (
     Child,
     ChildSpec,
@@ -38,12 +44,12 @@ from shared.process import (
     free_port,
     stderr_sink,
 )
+from shared.settings import ServiceSettings, read_settings, to_env
 
 DETECTOR_CACHE = "quadrotor"
 FAKE_LLM_LATENCY_S = 3.1  # the paper's mean GPT-3.5-turbo CoT latency (Table "jetson timings")
 # Environment a child must not inherit: each service listens on its own port
 # and joins the hub, whatever the calling shell says.
-_DROPPED_ENV = ("AESOP_ZENOH_LISTEN", "AESOP_ZENOH_CONFIG", "AESOP_ZENOH_MODE", "AESOP_PORT")
 
 
 def hardware_scenario() -> Path:
@@ -78,8 +84,8 @@ class Ports:
 class StackOptions:
     data_dir: Path
     ports: Ports = field(default_factory=Ports)
-    scenario: Path | None = None  # None: AESOP_SCENARIO, else the hardware scene
-    rate_hz: float | None = None  # None: AESOP_RATE_HZ, else the control default
+    scenario: Path | None = None  # None: AESOP_CONTROL_SCENARIO, else the hardware scene
+    rate_hz: float | None = None  # None: AESOP_CONTROL_RATE_HZ, else the control default
     dashboard: bool = True
     python: str = sys.executable
 
@@ -91,6 +97,8 @@ class StackPlan:
     token: str
     token_generated: bool
     fake_llm: bool
+    robot: str  # the robot the services serve
+    scenario: Path  # the scene the control loop flies
 
     def url(self, name: str) -> str | None:
         return next((s.url for s in self.services if s.name == name), None)
@@ -99,41 +107,61 @@ class StackPlan:
 def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str) -> StackPlan:
     """The children of the stack and their environments (pure).
 
-    ``token`` is used when ``environ`` has no ``AESOP_ADMIN_TOKEN``.
+    Each service's settings are read from ``environ`` (as that service would read
+    them), with what the stack decides forced on top: the hub's endpoint, the
+    ports, the data directories, the token (``token`` when ``environ`` has no
+    ``AESOP_ADMIN_TOKEN``), the scene and the rate. A bad value fails here, naming
+    the field (``pydantic.ValidationError``), not in a child. Each child's
+    environment is the caller's without any ``AESOP_*`` variable, plus its settings.
     """
     ports, py = options.ports, options.python
     given = environ.get("AESOP_ADMIN_TOKEN", "")
     endpoint = f"tcp/127.0.0.1:{ports.hub}"
-    base = {k: v for k, v in environ.items() if k not in _DROPPED_ENV}
-    base.update(AESOP_ZENOH_CONNECT=endpoint, AESOP_ZENOH_MULTICAST="false",
-                AESOP_ADMIN_TOKEN=given or token)
-    base.setdefault("AESOP_DETECTOR_CACHE", DETECTOR_CACHE)
-    fake = not environ.get("AESOP_LLM_BASE_URL")
-    if fake:
-        base["AESOP_LLM_BASE_URL"] = f"http://127.0.0.1:{ports.fake_llm}/v1"
-        base.setdefault("AESOP_LLM_MODEL", "fake")
-        base.setdefault("AESOP_FAKE_LLM_PROFILE", "fixed")
-        base.setdefault("AESOP_FAKE_LLM_FIXED_S", str(FAKE_LLM_LATENCY_S))
-    scenario = options.scenario or resolve_scenario(environ.get("AESOP_SCENARIO")
-                                                    or hardware_scenario())
-    base["AESOP_SCENARIO"] = str(scenario)
-    if options.rate_hz is not None:
-        base["AESOP_RATE_HZ"] = f"{options.rate_hz:g}"
+    common: dict[str, Any] = {"zenoh_connect": [endpoint], "zenoh_listen": [],
+                              "zenoh_mode": "peer", "zenoh_multicast": False,
+                              "zenoh_config": None, "admin_token": given or token,
+                              "host": "127.0.0.1"}
 
-    def serve(name: str, port: int, data: bool = True) -> ChildSpec:
-        argv = [py, "-m", "services.cli", "serve", name, "--port", str(port)]
-        if data:
-            argv += ["--data-dir", str(options.data_dir / name)]
-        return ChildSpec(name, tuple(argv), port, dict(base))
+    def data(name: str) -> Path:
+        return options.data_dir / name
+
+    fake = "AESOP_REASONER_LLM_BASE_URL" not in environ
+    reasoner = read_settings(
+        ReasonerSettings, environ, defaults={"llm_model": "fake"} if fake else None, **common,
+        port=ports.reasoner, data_dir=data("reasoner"),
+        **({"llm_base_url": f"http://127.0.0.1:{ports.fake_llm}/v1"} if fake else {}))
+    embedding = read_settings(EmbeddingSettings, environ,
+                              defaults={"detector_cache": DETECTOR_CACHE}, **common,
+                              port=ports.embedding, data_dir=data("embedding"))
+    control_env = read_settings(ControlSettings, environ)
+    scenario = options.scenario or resolve_scenario(control_env.scenario or hardware_scenario())
+    forced: dict[str, Any] = {**common, "port": ports.control, "data_dir": data("control"),
+                              "scenario": scenario}
+    if options.rate_hz is not None:
+        forced["rate_hz"] = options.rate_hz
+    control = read_settings(ControlSettings, environ, **forced)
+    settings: list[tuple[str, ServiceSettings]] = []
+    if fake:
+        settings.append(("fake-llm", read_settings(FakeLLMServiceSettings, environ, **common,
+                                                   port=ports.fake_llm)))
+    settings += [("embedding", embedding), ("reasoner", reasoner), ("control", control)]
+    if options.dashboard:
+        settings.append(("dashboard", read_settings(DashboardSettings, environ, **common,
+                                                    port=ports.dashboard,
+                                                    data_dir=data("dashboard"))))
+    inherited = {k: v for k, v in environ.items() if not k.startswith("AESOP_")}
+    fake_llm = to_env(read_settings(FakeLLMSettings, environ, defaults={
+        "profile": "fixed", "fixed_s": FAKE_LLM_LATENCY_S}))
+
+    def child(name: str, service: ServiceSettings) -> ChildSpec:
+        argv = (py, "-m", "services.cli", "serve", name)
+        env = {**inherited, **to_env(service), **(fake_llm if name == "fake-llm" else {})}
+        return ChildSpec(name, argv, service.port, env)
 
     hub = ChildSpec("hub", (py, "-m", "services.stack.hub", "--listen", endpoint), ports.hub,
-                    dict(base), ready="tcp")
-    services = [serve("fake-llm", ports.fake_llm, data=False)] if fake else []
-    services += [serve("embedding", ports.embedding), serve("reasoner", ports.reasoner),
-                 serve("control", ports.control)]
-    if options.dashboard:
-        services.append(serve("dashboard", ports.dashboard))
-    return StackPlan(hub, tuple(services), given or token, not given, fake)
+                    inherited, ready="tcp")
+    return StackPlan(hub, tuple(child(n, s) for n, s in settings), given or token, not given,
+                     fake, control.robot, scenario)
 
 
 # --------------------------------------------------------------------------- processes
@@ -206,8 +234,8 @@ def urls_text(plan: StackPlan, token_file: Path | None) -> str:
     lines += [f"  {s.name:<10} {s.url}" for s in plan.services]
     lines.append(f"  {'zenoh':<10} tcp/127.0.0.1:{plan.hub.port}  (router; services are peers)")
     if plan.fake_llm:
-        lines.append("  LLM: the fake OpenAI-compatible server (set AESOP_LLM_BASE_URL for a "
-                     "real one)")
+        lines.append("  LLM: the fake OpenAI-compatible server (set "
+                     "AESOP_REASONER_LLM_BASE_URL for a real one)")
     if token_file is not None:
         lines.append(f"  admin token: generated, in {token_file} (export AESOP_ADMIN_TOKEN="
                      f"$(cat {token_file}))")

@@ -51,7 +51,7 @@ def stack(tmp_path: Path) -> Iterator[StackPlan]:
     ``tmp_path/logs``; stopped whatever happens."""
     path = hardware_scenario()
     scene = load_scenario(path)
-    rate = None if os.environ.get("AESOP_RATE_HZ") else 1.0 / scene.dt
+    rate = None if os.environ.get("AESOP_CONTROL_RATE_HZ") else 1.0 / scene.dt
     options = StackOptions(data_dir=tmp_path / "data", ports=Ports.free(), scenario=path,
                            rate_hz=rate)
     plan = plan_stack(options, os.environ, secrets.token_urlsafe(24))

@@ -97,7 +97,7 @@ async def test_errors_come_back_with_status_code_and_field(embedding_url: str) -
 def test_the_control_client_speaks_to_a_real_control_service(tmp_path: Path) -> None:
     port = free_port()
     env = {"AESOP_ADMIN_TOKEN": TOKEN, "AESOP_ZENOH_LISTEN": f"tcp/127.0.0.1:{free_port()}",
-           "AESOP_RATE_HZ": "10", "AESOP_START_POSITION": "[0, 0, 1]"}
+           "AESOP_CONTROL_RATE_HZ": "10", "AESOP_CONTROL_START_POSITION": "[0, 0, 1]"}
     with ServiceProcess(["serve", "control", "--port", str(port)], port=port, env=env,
                         log_path=tmp_path / "control.log", ready_timeout_s=60) as proc:
         asyncio.run(_control_round_trip(proc.url))

@@ -153,9 +153,9 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
     (tmp / "light.yaml").write_text(SCENARIO)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     port = free_port()
-    env = {"AESOP_ADMIN_TOKEN": TOKEN, "AESOP_SCENARIO": str(tmp / "light.yaml"),
-           "AESOP_ZENOH_LISTEN": endpoint, "AESOP_ROBOT": ROBOT, "AESOP_RATE_HZ": "10",
-           "AESOP_VERDICT_STALE_S": "1.0", "AESOP_START_POSITION": "[0, 0, 1]"}
+    env = {"AESOP_ADMIN_TOKEN": TOKEN, "AESOP_CONTROL_SCENARIO": str(tmp / "light.yaml"),
+           "AESOP_ZENOH_LISTEN": endpoint, "AESOP_ROBOT": ROBOT, "AESOP_CONTROL_RATE_HZ": "10",
+           "AESOP_CONTROL_VERDICT_STALE_S": "1.0", "AESOP_CONTROL_START_POSITION": "[0, 0, 1]"}
     proc = ServiceProcess(["serve", "control", "--port", str(port)], port=port, env=env,
                           log_path=tmp / "control.log", ready_timeout_s=60)
     with proc, Bus.open(BusSettings(zenoh_connect=[endpoint]), "tester") as bus:
@@ -298,7 +298,7 @@ def test_reset_and_ops_routes(stack: Stack) -> None:
 def test_a_bad_scenario_stops_the_command_with_the_field(tmp_path: Path) -> None:
     path = tmp_path / "bad.yaml"
     path.write_text(SCENARIO.replace("goal: [1.0, 0.0, 1.0]\n", ""))
-    env = {"AESOP_SCENARIO": str(path), "PATH": "/usr/bin:/bin"}
+    env = {"AESOP_CONTROL_SCENARIO": str(path), "PATH": "/usr/bin:/bin"}
     done = subprocess.run([sys.executable, "-m", "services.cli", "serve", "control"],
                           env=env, capture_output=True, text=True, timeout=60,
                           cwd=Path(__file__).resolve().parents[2])

@@ -24,8 +24,8 @@ DIM = 8
 
 
 def server(data_dir: Path, port: int) -> ServiceProcess:
-    env = {"AESOP_ADMIN_TOKEN": TOKEN, "AESOP_ZENOH_WORKER": "false",
-           "AESOP_SNAPSHOT_WAL_BYTES": "20000"}  # small, so snapshots happen mid-run too
+    env = {"AESOP_ADMIN_TOKEN": TOKEN, "AESOP_EMBEDDING_ZENOH_WORKER": "false",
+           "AESOP_EMBEDDING_SNAPSHOT_WAL_BYTES": "20000"}  # small, so snapshots happen mid-run too
     return ServiceProcess(["serve", "embedding", "--port", str(port), "--data-dir", str(data_dir)],
                           port=port, env=env, log_path=data_dir / f"server-{port}.log")
 

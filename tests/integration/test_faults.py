@@ -131,7 +131,7 @@ class Stack:
         self.decisions = Inbox(bus, topics.reasoner_decision(ROBOT), ReasonerDecision)
         self.verdicts = Inbox(bus, topics.anomaly(ROBOT), AnomalyVerdict)
         self.embedding = embedding_process(tmp / "embedding", endpoint, token)
-        self.control = control_process(tmp, endpoint, token, AESOP_VERDICT_STALE_S="1.0")
+        self.control = control_process(tmp, endpoint, token, AESOP_CONTROL_VERDICT_STALE_S="1.0")
         self.nominal = self.anomalous = ""
         self.feed: SceneFeed | None = None
 
@@ -196,7 +196,7 @@ class Stack:
         llm = ServiceProcess(["serve", "fake-llm", "--port", str(llm_port), *llm_args],
                              port=llm_port, log_path=tmp / "fake-llm.log")
         env = {**service_env(self.endpoint, self.token),
-               "AESOP_LLM_BASE_URL": f"http://127.0.0.1:{llm_port}/v1"}
+               "AESOP_REASONER_LLM_BASE_URL": f"http://127.0.0.1:{llm_port}/v1"}
         reasoner = ServiceProcess(["serve", "reasoner", "--port", str(port), "--data-dir",
                                    str(tmp)], port=port, env=env, log_path=tmp / "reasoner.log")
         with llm, reasoner:

@@ -35,7 +35,7 @@ def wait_for_urls(proc: subprocess.Popen[str], timeout_s: float = 240.0) -> dict
 
 def test_up_serves_every_service_and_sigint_stops_them_all(tmp_path: Path) -> None:
     env = {k: v for k, v in os.environ.items()
-           if k not in ("AESOP_ADMIN_TOKEN", "AESOP_LLM_BASE_URL")}
+           if k not in ("AESOP_ADMIN_TOKEN", "AESOP_REASONER_LLM_BASE_URL")}
     proc = subprocess.Popen(
         [sys.executable, "-m", "services.cli", "up", "--random-ports", "--data-dir",
          str(tmp_path / "data")], env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,

@@ -308,10 +308,11 @@ def test_the_reasoner_asks_the_fake_llm_unless_told_otherwise(
     assert (url.hostname, url.port) == ("fake-llm", fake.port)  # type: ignore[attr-defined]
     ollama = "http://ollama:11434/v1"
     reasoner = settings_in_container(services["reasoner"], monkeypatch,
-                                     {"AESOP_LLM_BASE_URL": ollama, "AESOP_LLM_API_KEY": "k"})
+                                     {"AESOP_REASONER_LLM_BASE_URL": ollama,
+                                      "AESOP_REASONER_LLM_API_KEY": "k"})
     assert reasoner.llm_base_url == ollama  # type: ignore[attr-defined]
     assert reasoner.llm_api_key.get_secret_value() == "k"  # type: ignore[attr-defined]
-    assert f"AESOP_LLM_BASE_URL={ollama}" in (ROOT / "deploy" / "README.md").read_text()
+    assert f"AESOP_REASONER_LLM_BASE_URL={ollama}" in (ROOT / "deploy" / "README.md").read_text()
 
 
 def test_named_volumes_are_declared_and_hold_the_data(monkeypatch: pytest.MonkeyPatch) -> None:

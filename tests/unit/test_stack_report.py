@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from services.control.scenario import load_scenario
 from services.demo.flights import add_time_lost
@@ -134,20 +135,50 @@ def test_plan_starts_the_fake_llm_without_a_backend_and_generates_the_token(
     assert names == ["fake-llm", "embedding", "reasoner", "control", "dashboard"]
     assert plan.token_generated and plan.fake_llm
     env = plan.services[2].env
-    assert env["AESOP_LLM_BASE_URL"] == "http://127.0.0.1:6/v1"
+    assert env["AESOP_REASONER_LLM_BASE_URL"] == "http://127.0.0.1:6/v1"
     assert env["AESOP_ADMIN_TOKEN"] == "t" * 24
     assert env["AESOP_ZENOH_CONNECT"] == "tcp/127.0.0.1:1"
-    assert "AESOP_ZENOH_LISTEN" not in env  # every peer listens on its own port
-    assert env["AESOP_RATE_HZ"] == "5"
-    assert "AESOP_VERDICT_STALE_S" not in env and "AESOP_MPC_MAX_ITER" not in env
+    assert env["AESOP_ZENOH_LISTEN"] == ""  # no endpoint of its own: it joins the hub
+    control = plan.services[3].env
+    assert control["AESOP_CONTROL_RATE_HZ"] == "5.0" and control["AESOP_CONTROL_PORT"] == "4"
+    assert control["AESOP_CONTROL_VERDICT_STALE_S"] == "0.5"  # every setting, defaults too
+    assert "AESOP_CONTROL_MPC_MAX_ITER" not in control  # None: the MPC's own
+    assert "AESOP_REASONER_LLM_BASE_URL" not in control  # only its own and the shared ones
     assert plan.hub.ready == "tcp" and plan.hub.argv[-1] == "tcp/127.0.0.1:1"
-    assert plan.services[1].argv[-2:] == ("--data-dir", str(tmp_path / "embedding"))
+    assert not any(k.startswith("AESOP_") for k in plan.hub.env)
+    assert plan.services[1].env["AESOP_DATA_DIR"] == str(tmp_path / "embedding")
+    assert plan.services[1].env["AESOP_EMBEDDING_DETECTOR_CACHE"] == "quadrotor"
 
 
 def test_plan_uses_a_configured_backend_and_token(tmp_path: Path) -> None:
-    environ = {"AESOP_LLM_BASE_URL": "https://api.openai.com/v1",
+    environ = {"AESOP_REASONER_LLM_BASE_URL": "https://api.openai.com/v1",
                "AESOP_ADMIN_TOKEN": "given-token-0123456789"}
     plan = plan_stack(options(tmp_path), environ, "unused")
     assert "fake-llm" not in [s.name for s in plan.services]
     assert not plan.token_generated and plan.token == "given-token-0123456789"
-    assert plan.services[1].env["AESOP_LLM_BASE_URL"] == "https://api.openai.com/v1"
+    assert plan.services[1].env["AESOP_REASONER_LLM_BASE_URL"] == "https://api.openai.com/v1"
+
+
+@pytest.mark.parametrize(("name", "value", "field"), [
+    ("AESOP_CONTROL_VERDICT_STALE_S", "-1", "verdict_stale_s"),
+    ("AESOP_CONTROL_START_POSITION", "[0, 1]", "start_position"),
+    ("AESOP_REASONER_FALLBACK", "panic", "fallback"),
+    ("AESOP_EMBEDDING_MAX_ITEMS", "lots", "max_items"),
+    ("AESOP_ROBOT", "no spaces", "robot"),
+])
+def test_a_bad_setting_fails_the_plan_naming_the_field(tmp_path: Path, name: str, value: str,
+                                                       field: str) -> None:
+    with pytest.raises(ValidationError, match=field):
+        plan_stack(options(tmp_path), {name: value}, "t" * 24)
+
+
+def test_the_plan_keeps_what_the_environment_sets(tmp_path: Path) -> None:
+    environ = {"AESOP_CONTROL_VERDICT_STALE_S": "0.8", "AESOP_EMBEDDING_DETECTOR_CACHE": "mine",
+               "AESOP_ROBOT": "r5", "PATH": "/usr/bin", "AESOP_CONTROL_PORT": "1"}
+    plan = plan_stack(options(tmp_path), environ, "t" * 24)
+    control = next(s for s in plan.services if s.name == "control")
+    embedding = next(s for s in plan.services if s.name == "embedding")
+    assert control.env["AESOP_CONTROL_VERDICT_STALE_S"] == "0.8" and control.env["PATH"]
+    assert control.env["AESOP_CONTROL_PORT"] == "4"  # the stack's port wins
+    assert embedding.env["AESOP_EMBEDDING_DETECTOR_CACHE"] == "mine"
+    assert plan.robot == "r5" and embedding.env["AESOP_ROBOT"] == "r5"

@@ -1,0 +1,97 @@
+"""Settings per service: shared ``AESOP_*`` names, ``AESOP_<SERVICE>_*`` for the rest, and
+the environment ``aesop up`` writes for a child reading back what it was given."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+from pydantic import ValidationError
+from pydantic_settings import BaseSettings
+
+from services.control.settings import ControlSettings
+from services.dashboard.settings import DashboardSettings
+from services.embedding.settings import EmbeddingSettings
+from services.fakes.llm import FakeLLMServiceSettings
+from services.reasoner.settings import ReasonerSettings
+from shared.settings import env_names, to_env
+
+SERVICES: list[type[BaseSettings]] = [EmbeddingSettings, ReasonerSettings, ControlSettings,
+                                      DashboardSettings, FakeLLMServiceSettings]
+
+
+@pytest.fixture(autouse=True)
+def clean_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    for name in list(os.environ):
+        if name.startswith("AESOP_") or name == "OPENAI_API_KEY":
+            monkeypatch.delenv(name)
+
+
+def test_shared_names_reach_every_service_and_the_rest_is_each_services_own(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("AESOP_ROBOT", "r7")
+    monkeypatch.setenv("AESOP_ZENOH_CONNECT", "tcp/10.0.0.1:7447")
+    monkeypatch.setenv("AESOP_ADMIN_TOKEN", "t" * 20)
+    monkeypatch.setenv("AESOP_CONTROL_PORT", "9100")
+    monkeypatch.setenv("AESOP_EMBEDDING_PORT", "9200")
+    monkeypatch.setenv("AESOP_REASONER_FALLBACK", "rank")
+    monkeypatch.setenv("AESOP_CONTROL_FALLBACK", "2")
+    monkeypatch.setenv("AESOP_DASHBOARD_TRAIL", "500")
+    control, embedding = ControlSettings(), EmbeddingSettings()
+    reasoner, dashboard = ReasonerSettings(), DashboardSettings()
+    for s in (control, embedding, reasoner, dashboard):
+        assert s.robot == "r7" and s.zenoh_connect == ["tcp/10.0.0.1:7447"]
+        assert s.admin_token is not None and s.admin_token.get_secret_value() == "t" * 20
+    assert (control.port, embedding.port, reasoner.port, dashboard.port) == (9100, 9200, 8002,
+                                                                            8080)
+    assert reasoner.fallback == "rank" and control.fallback == 2 and dashboard.trail == 500
+
+
+def test_a_name_of_another_service_is_not_read(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("AESOP_FALLBACK", "rank")  # the old flat name: nobody reads it
+    monkeypatch.setenv("AESOP_PORT", "9999")
+    monkeypatch.setenv("AESOP_REASONER_PORT", "9002")
+    assert ReasonerSettings().fallback == "first_recovery"
+    assert ControlSettings().port == 8003 and ReasonerSettings().port == 9002
+
+
+@pytest.mark.parametrize("cls", SERVICES, ids=lambda c: c.__name__)
+def test_every_field_has_one_name_of_its_service_or_a_shared_one(cls: type[BaseSettings]
+                                                                 ) -> None:
+    shared = {"robot", "zenoh_mode", "zenoh_listen", "zenoh_connect", "zenoh_multicast",
+              "zenoh_config", "admin_token", "data_dir", "log_level"}
+    prefix = str(cls.model_config["env_prefix"])
+    assert prefix.startswith("AESOP_") and prefix != "AESOP_"
+    for name in cls.model_fields:
+        first = env_names(cls, name)[0]
+        if name in shared:
+            assert first == f"AESOP_{name.upper()}", name
+        else:
+            assert first == f"{prefix}{name.upper()}", name
+
+
+def test_what_aesop_up_writes_is_read_back_the_same() -> None:
+    given = [
+        ControlSettings(port=9103, rate_hz=20.0, scenario=Path("/tmp/s.yaml"), fallback=2,
+                        start_position=(0.0, 1.0, 1.5), robot="r2", admin_token="k" * 16,
+                        zenoh_connect=["tcp/127.0.0.1:7447", "tcp/127.0.0.1:7448"]),
+        ReasonerSettings(llm_base_url="http://llm:1/v1", fallback="rank",
+                         fallback_ranks={"holding zone": 1, "blue box": 2}, hedge_after_s=1.5),
+        EmbeddingSettings(detector_cache="quadrotor", microbatch=False, data_dir=Path("/d")),
+        DashboardSettings(trail=100, zenoh_multicast=True),
+    ]
+    for settings in given:
+        environ = to_env(settings)
+        assert all(name.startswith("AESOP_") for name in environ)
+        with pytest.MonkeyPatch.context() as mp:
+            for name, value in environ.items():
+                mp.setenv(name, value)
+            assert type(settings)() == settings
+
+
+def test_a_bad_value_is_refused_naming_the_field() -> None:
+    with pytest.raises(ValidationError, match="rate_hz"):
+        ControlSettings(rate_hz=-1.0)
+    with pytest.raises(ValidationError, match="fallback"):
+        ControlSettings(fallback=0)
