@@ -13,6 +13,7 @@ import json
 import logging
 import os
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +31,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request is noise
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
+    if args.command in ("serve", "up", "demo"):
+        warn_unknown_settings(os.environ)
     try:
         if args.command in ("bench", "demo"):
             require_bench_extra()
@@ -46,6 +49,29 @@ def main(argv: list[str] | None = None) -> int:
 
 class CliError(Exception):
     """A user error: printed without a traceback, exit status 2."""
+
+
+def warn_unknown_settings(environ: Mapping[str, str]) -> list[str]:
+    """Say which ``AESOP_*`` variables no service reads (an old or misspelt name is
+    otherwise silently ignored); the lines said."""
+    from pydantic_settings import BaseSettings
+
+    from services.control.settings import ControlSettings
+    from services.dashboard.settings import DashboardSettings
+    from services.embedding.settings import EmbeddingSettings
+    from services.fakes.llm import FakeLLMServiceSettings, FakeLLMSettings
+    from services.reasoner.settings import ReasonerSettings
+    from shared.settings import unknown_names
+
+    classes: list[type[BaseSettings]] = [EmbeddingSettings, ReasonerSettings, ControlSettings,
+                                          DashboardSettings, FakeLLMServiceSettings,
+                                          FakeLLMSettings]
+    lines = [f"aesop: {name} is not a setting of any service" +
+             (f" (did you mean {meant}?)" if meant else "")
+             for name, meant in unknown_names(environ, classes).items()]
+    for line in lines:
+        print(line, file=sys.stderr)
+    return lines
 
 
 BENCH_EXTRA = ("matplotlib", "cvxpy", "psutil")  # what `aesop bench` and `aesop demo` add

@@ -18,9 +18,10 @@ tuples and mappings are JSON.
 
 from __future__ import annotations
 
+import difflib
 import ipaddress
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar
@@ -165,3 +166,19 @@ class _MappingSource(EnvSettingsSource):
         if self.case_sensitive:
             return dict(self._given)
         return {name.lower(): value for name, value in self._given.items()}
+
+
+def unknown_names(environ: Mapping[str, str], classes: Sequence[type[BaseSettings]]
+                  ) -> dict[str, str | None]:
+    """The ``AESOP_*`` variables of ``environ`` that none of ``classes`` reads, each with
+    the name it most likely meant (``AESOP_LLM_MODEL`` -> ``AESOP_REASONER_LLM_MODEL``)."""
+    known = {n for cls in classes for name in cls.model_fields for n in env_names(cls, name)}
+    out: dict[str, str | None] = {}
+    for name in sorted(environ):
+        if not name.startswith("AESOP_") or name in known:
+            continue
+        tail = name.removeprefix("AESOP_")
+        same = sorted(k for k in known if k.endswith(f"_{tail}"))
+        close = difflib.get_close_matches(name, sorted(known), n=1)
+        out[name] = same[0] if len(same) == 1 else (close[0] if close else None)
+    return out

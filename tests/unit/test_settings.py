@@ -95,3 +95,17 @@ def test_a_bad_value_is_refused_naming_the_field() -> None:
         ControlSettings(rate_hz=-1.0)
     with pytest.raises(ValidationError, match="fallback"):
         ControlSettings(fallback=0)
+
+
+def test_an_old_or_misspelt_name_is_pointed_out() -> None:
+    from services.cli import warn_unknown_settings
+
+    said = warn_unknown_settings({"AESOP_LLM_BASE_URL": "http://llm/v1", "AESOP_ROBOT": "r1",
+                                  "AESOP_CONTROL_RATE_HZ": "20", "AESOP_CONTROL_RATEHZ": "5",
+                                  "AESOP_NOTHING_LIKE_IT_AT_ALL_XYZ": "1", "PATH": "/bin"})
+    assert said[0] == ("aesop: AESOP_CONTROL_RATEHZ is not a setting of any service "
+                       "(did you mean AESOP_CONTROL_RATE_HZ?)")
+    assert said[1] == ("aesop: AESOP_LLM_BASE_URL is not a setting of any service "
+                       "(did you mean AESOP_REASONER_LLM_BASE_URL?)")
+    assert said[2] == "aesop: AESOP_NOTHING_LIKE_IT_AT_ALL_XYZ is not a setting of any service"
+    assert len(said) == 3
