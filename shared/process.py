@@ -58,13 +58,25 @@ class ChildSpec:
 
 
 class Child:
-    """One child process in its own process group, its output forwarded line by line."""
+    """One child process in its own process group, its output forwarded line by line to
+    ``sink``, or written straight to ``log_path`` (no thread in between: a busy parent
+    never slows the child down, and a killed child's last lines are on disk)."""
 
-    def __init__(self, spec: ChildSpec, sink: Sink) -> None:
-        self.spec, self.sink = spec, sink
+    def __init__(self, spec: ChildSpec, sink: Sink, *, log_path: Path | None = None) -> None:
+        self.spec, self.sink, self.log_path = spec, sink, log_path
         self.proc: subprocess.Popen[bytes] | None = None
         self._pump: threading.Thread | None = None
-        self.tail: list[str] = []
+        self._tail: list[str] = []
+
+    @property
+    def tail(self) -> list[str]:
+        """The last lines of the child's output."""
+        if self.log_path is None:
+            return self._tail
+        try:
+            return self.log_path.read_text(errors="replace").splitlines()[-30:]
+        except OSError:
+            return []
 
     @property
     def name(self) -> str:
@@ -76,7 +88,14 @@ class Child:
         return self.proc.pid
 
     def start(self) -> None:
-        self.tail = []
+        self._tail = []
+        if self.log_path is not None:
+            self.log_path.parent.mkdir(parents=True, exist_ok=True)
+            with open(self.log_path, "ab") as log:
+                self.proc = subprocess.Popen(list(self.spec.argv), env=dict(self.spec.env),
+                                             stdout=log, stderr=subprocess.STDOUT,
+                                             stdin=subprocess.DEVNULL, start_new_session=True)
+            return
         self.proc = subprocess.Popen(list(self.spec.argv), env=dict(self.spec.env),
                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                      stdin=subprocess.DEVNULL, start_new_session=True)
@@ -87,7 +106,7 @@ class Child:
     def _forward(self, stream: IO[bytes]) -> None:
         for raw in stream:
             line = raw.decode(errors="replace").rstrip()
-            self.tail = (self.tail + [line])[-30:]
+            self._tail = (self._tail + [line])[-30:]
             self.sink(self.name, line)
 
     def exited(self) -> int | None:
@@ -174,12 +193,6 @@ def file_sink(directory: Path) -> Sink:
     return _files(lambda name: directory / f"{name}.log")
 
 
-def log_sink(path: Path) -> Sink:
-    """Every line to the one file ``path``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return _files(lambda _: path)
-
-
 def _files(path_of: Callable[[str], Path]) -> Sink:
     lock = threading.Lock()
     files: dict[Path, IO[str]] = {}
@@ -209,7 +222,7 @@ class ServiceProcess:
         self.ready_timeout_s = ready_timeout_s
         name = self.args[1] if len(self.args) > 1 and self.args[0] == "serve" else self.args[0]
         self.child = Child(ChildSpec(name, (sys.executable, "-m", "services.cli", *self.args),
-                                     port, merged), log_sink(log_path))
+                                     port, merged), lambda *_: None, log_path=log_path)
 
     @property
     def url(self) -> str:

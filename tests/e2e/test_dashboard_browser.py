@@ -11,6 +11,7 @@ import re
 from collections.abc import Iterator
 from pathlib import Path
 
+import httpx
 import pytest
 from playwright.sync_api import Browser, expect
 
@@ -28,6 +29,7 @@ from tests.e2e.demo_flight import (
     regions,
     wait_following,
 )
+from tests.zenoh_peers import wait_until
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
@@ -99,7 +101,10 @@ def test_the_page_draws_the_live_flight_and_shows_the_decision(
 
 def test_the_page_reconnects_and_redraws_from_the_snapshot(
         browser: Browser, live: Live, tmp_path: Path) -> None:
-    Flight(live.bus, ROBOT).fly(period_s=0.0)
+    # a quick flight, but not one burst: Zenoh drops best-effort puts past a full queue
+    Flight(live.bus, ROBOT).fly(period_s=0.002)
+    wait_until(lambda: len(httpx.get(f"{live.proc.url}/v1/snapshot").json()["trail"]) >= TICKS,
+               "the service to hold the whole flight", WAIT_MS / 1000)
     page = browser.new_page()
     page.goto(live.proc.url)
     # a late page draws at once from the snapshot
