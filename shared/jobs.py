@@ -8,6 +8,8 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+from pydantic import BaseModel, ConfigDict
+
 
 class UnknownJob(KeyError):
     """No job with this id (or it was forgotten: only the newest ``keep`` are kept)."""
@@ -61,3 +63,44 @@ class Jobs:
             return self._jobs[job_id]
         except KeyError:
             raise UnknownJob(job_id) from None
+
+
+class _Answer(BaseModel):
+    model_config = ConfigDict(extra="ignore")
+
+
+class JobAccepted(_Answer):
+    """The work goes on in the background: poll ``GET /v1/jobs/{job}``."""
+
+    job: str
+    state: Literal["running", "succeeded", "failed"]
+    total: int
+
+    @classmethod
+    def of(cls, job: Job) -> JobAccepted:
+        return cls(job=job.id, state=job.state, total=job.total)
+
+
+class JobError(_Answer):
+    code: str
+    message: str
+    field: str | None = None
+
+
+class JobInfo(_Answer):
+    """``GET /v1/jobs/{id}``."""
+
+    id: str
+    kind: str
+    cache: str  # what the job works on: a cache, or a reasoner backend
+    total: int
+    done: int
+    state: Literal["running", "succeeded", "failed"]
+    result: dict[str, Any] | None = None  # the answer of the work, once succeeded
+    error: JobError | None = None
+    created_at: float
+    finished_at: float | None = None
+
+    @classmethod
+    def of(cls, job: Job) -> JobInfo:
+        return cls.model_validate(job.to_dict())

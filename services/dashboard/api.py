@@ -15,7 +15,6 @@ from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from importlib.resources import files
 from pathlib import Path
-from typing import Any
 
 from fastapi import FastAPI, WebSocket, WebSocketDisconnect
 from fastapi.responses import FileResponse
@@ -26,6 +25,7 @@ from shared.bus import Bus
 from shared.http import ApiError, HttpMetrics, install_error_handlers, ops_router
 
 from .hub import ClientQueue
+from .model import Snapshot
 from .service import SERVICE, DashboardMetrics, DashboardService
 from .settings import DashboardSettings
 
@@ -75,8 +75,8 @@ def create_app(settings: DashboardSettings, bus_factory: Callable[[], Bus]) -> F
         return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
 
     @app.get("/v1/snapshot")
-    async def snapshot() -> dict[str, Any]:
-        return running().model.snapshot()
+    async def snapshot() -> Snapshot:
+        return Snapshot.model_validate(running().model.snapshot())
 
     @app.websocket("/ws")
     async def stream(websocket: WebSocket) -> None:

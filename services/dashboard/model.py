@@ -15,6 +15,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from pydantic import BaseModel
+
 from .feed import Update
 
 Json = dict[str, Any]
@@ -25,6 +27,25 @@ class Limits:
     trail: int = 3000  # states kept for the flown path
     scores: int = 600  # verdicts kept for the score timeline
     log: int = 50  # requests, decisions and events kept, each
+
+
+class Snapshot(BaseModel):
+    """``GET /v1/snapshot`` (and the first item on ``/ws``): the flight so far. The
+    messages are as they arrived on the bus (``shared.messages``, as JSON)."""
+
+    robot: str
+    state: Json | None  # the newest ControlState
+    trail: list[list[Any]]  # [t, x, y, z, mode] of the flown path
+    plan: Json | None  # the newest PlanSnapshot
+    regions: list[Json]  # RegionBox of the newest Regions
+    goal: list[float] | None  # m
+    verdict: Json | None  # the newest AnomalyVerdict
+    scores: list[Json]  # {seq, stamp, score, threshold, is_anomaly} for the timeline
+    requests: list[Json]  # ReasonerRequests, newest last
+    decisions: list[Json]
+    events: list[Json]
+    services: dict[str, bool]  # liveliness by service
+    counts: dict[str, int]  # updates received by kind
 
 
 class FlightModel:

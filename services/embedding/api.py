@@ -23,7 +23,7 @@ from shared.http import (
     ops_router,
     require_json,
 )
-from shared.jobs import Job, UnknownJob
+from shared.jobs import Job, JobAccepted, JobInfo, UnknownJob
 
 from .cache import Labelled
 from .embedders import EmbedderError
@@ -38,8 +38,6 @@ from .schemas import (
     CreateCache,
     Deleted,
     Experience,
-    JobAccepted,
-    JobInfo,
     Score,
     ScoreResult,
     Scores,
@@ -177,7 +175,7 @@ def create_app(
             return JSONResponse(added.model_dump(mode="json"))
         task = asyncio.create_task(_run_job(job, service.add(name, items, job)))
         task.add_done_callback(lambda t: t.exception())  # the job records the error
-        accepted = JobAccepted(job=job.id, state=job.state, total=job.total)
+        accepted = JobAccepted.of(job)
         return JSONResponse(accepted.model_dump(mode="json"), status_code=202)
 
     @app.get("/v1/caches/{name}/experiences/{ident}")
@@ -210,7 +208,7 @@ def create_app(
     @app.get("/v1/jobs/{job_id}")
     async def get_job(job_id: str, service: ServiceDep) -> JobInfo:
         try:
-            return JobInfo.model_validate(service.jobs.get(job_id).to_dict())
+            return JobInfo.of(service.jobs.get(job_id))
         except UnknownJob:
             raise NotFound(f"no job {job_id!r}", field="id") from None
 

@@ -8,6 +8,7 @@ from collections.abc import Callable, Sequence
 from typing import Any, Literal
 
 from shared.client import ServiceClient, ServiceError
+from shared.jobs import JobAccepted, JobInfo
 
 from .schemas import (
     Added,
@@ -16,8 +17,6 @@ from .schemas import (
     Calibrated,
     Deleted,
     Experience,
-    JobAccepted,
-    JobInfo,
     Method,
     Scores,
 )

@@ -146,33 +146,6 @@ class Added(Answer):
     job: str | None = None  # the job that did it (``GET /v1/jobs/{id}``)
 
 
-class JobAccepted(Answer):
-    """``?wait=false``: the work goes on; poll ``GET /v1/jobs/{job}``."""
-
-    job: str
-    state: Literal["running", "succeeded", "failed"]
-    total: int
-
-
-class JobError(Answer):
-    code: str
-    message: str
-    field: str | None = None
-
-
-class JobInfo(Answer):
-    id: str
-    kind: str
-    cache: str
-    total: int
-    done: int
-    state: Literal["running", "succeeded", "failed"]
-    result: dict[str, Any] | None = None  # the route's answer (e.g. ``Added``) once succeeded
-    error: JobError | None = None
-    created_at: float
-    finished_at: float | None = None
-
-
 class Experience(Answer):
     id: str
     text: str | None

@@ -7,11 +7,10 @@ import logging
 import uuid
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any
 
 from fastapi import Depends, FastAPI, Request
 from prometheus_client import CollectorRegistry, Counter, Histogram
-from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from shared.http import (
     ApiError,
@@ -21,7 +20,7 @@ from shared.http import (
     ops_router,
     require_json,
 )
-from shared.jobs import Job, Jobs, UnknownJob
+from shared.jobs import Job, JobAccepted, JobInfo, Jobs, UnknownJob
 from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
 
 from .backends import BackendConfig, ChatBackend, Completion, OpenAIChatBackend
@@ -29,39 +28,10 @@ from .calibrating import CalibrationPlan, measure
 from .deciding import Decider, DeciderConfig, FallbackPolicy
 from .latency import LatencyError, min_samples
 from .prompts import build_messages, load_template
+from .schemas import BackendInfo, Backends, CalibrateBody, ReasonBody
 from .settings import ReasonerSettings
 
 log = logging.getLogger(__name__)
-
-
-class ReasonBody(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    request_id: str | None = Field(default=None, min_length=1, max_length=128)
-    observation: Observation
-    options: list[Option] = Field(min_length=1)
-    deadline_s: float = Field(gt=0.0)
-
-    @field_validator("options")
-    @classmethod
-    def _unique_indices(cls, options: list[Option]) -> list[Option]:
-        indices = [o.index for o in options]
-        if len(set(indices)) != len(indices):
-            raise ValueError("option indices must be unique")
-        return options
-
-
-class CalibrateBody(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    n: int = Field(default=100, ge=1, le=10_000)
-    warmup: int = Field(default=3, ge=0, le=100)
-    quantile: float = Field(default=0.95, gt=0.0, lt=1.0)
-    confidence: float = Field(default=0.95, gt=0.0, lt=1.0)
-    timeout_s: float = Field(default=30.0, gt=0.0, le=600.0)
-    backend: Literal["primary", "hedge"] = "primary"
-    observation: Observation | None = None  # default: the quadrotor red-box scene
-    options: list[Option] | None = None
 
 
 DEFAULT_SCENE = Observation(
@@ -185,7 +155,7 @@ def create_app(
     auth = [Depends(bearer_auth(settings.admin_token))]
 
     @app.post("/v1/reason", dependencies=auth)
-    async def reason(body: ReasonBody, decider: DeciderDep) -> dict[str, Any]:
+    async def reason(body: ReasonBody, decider: DeciderDep) -> ReasonerDecision:
         check_request(body, settings)
         request = ReasonerRequest(
             robot=body.observation.robot, request_id=body.request_id or uuid.uuid4().hex,
@@ -193,10 +163,10 @@ def create_app(
             deadline_s=body.deadline_s)
         decision = await decider.decide(request)
         metrics.observe(decision)
-        return decision.model_dump()
+        return decision
 
     @app.post("/v1/latency/calibrate", dependencies=auth, status_code=202)
-    async def calibrate(body: CalibrateBody, decider: DeciderDep) -> dict[str, Any]:
+    async def calibrate(body: CalibrateBody, decider: DeciderDep) -> JobAccepted:
         needed = min_samples(body.quantile, body.confidence)
         if body.n < needed:
             raise ApiError(422, "invalid", f"n = {body.n} is too small to bound the "
@@ -217,22 +187,23 @@ def create_app(
         task = asyncio.create_task(_calibrate(job, backend, messages, plan))
         tasks.add(task)
         task.add_done_callback(tasks.discard)
-        return {"job": job.id, "state": job.state, "total": job.total}
+        return JobAccepted.of(job)
 
     @app.get("/v1/jobs/{job_id}")
-    async def get_job(job_id: str) -> dict[str, Any]:
+    async def get_job(job_id: str) -> JobInfo:
         try:
-            return jobs.get(job_id).to_dict()
+            return JobInfo.of(jobs.get(job_id))
         except UnknownJob:
             raise ApiError(404, "not_found", f"no job {job_id!r}", "id") from None
 
     @app.get("/v1/backends")
-    async def backends() -> dict[str, Any]:
-        return {"backends": [
-            {"name": c.name, "base_url": c.base_url, "model": c.model, "stream": c.stream,
-             "json_schema": c.json_schema} for c in backend_configs(settings)],
-            "hedge_after_s": settings.hedge_after_s, "domain": settings.domain,
-            "variant": settings.variant, "fallback": settings.fallback}
+    async def backends() -> Backends:
+        return Backends(
+            backends=[BackendInfo(name=c.name, base_url=c.base_url, model=c.model,
+                                  stream=c.stream, json_schema=c.json_schema)
+                      for c in backend_configs(settings)],
+            hedge_after_s=settings.hedge_after_s, domain=settings.domain,
+            variant=settings.variant, fallback=settings.fallback)
 
     return app
 

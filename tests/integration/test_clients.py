@@ -17,10 +17,10 @@ from services.control.client import ControlClient
 from services.embedding.api import create_app
 from services.embedding.client import EmbeddingClient
 from services.embedding.embedders import EmbedderPool
-from services.embedding.schemas import JobInfo
 from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingSettings
 from shared.client import ServiceError
+from shared.jobs import JobInfo
 from shared.process import ServiceProcess, free_port
 from tests.fakes.hash_embedder import HashEmbedder
 
