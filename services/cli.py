@@ -21,6 +21,11 @@ from pydantic import ValidationError
 
 
 def main(argv: list[str] | None = None) -> int:
+    given = sys.argv[1:] if argv is None else argv
+    if given[:2] == ["serve", "fake-llm"] and ({"-h", "--help"} & set(given[2:])):
+        from services.fakes.llm import build_parser as fake_llm_parser
+
+        fake_llm_parser().parse_args(["--help"])  # the fake's own flags (exits 0)
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
     if extra and getattr(args, "service", None) != "fake-llm":

@@ -22,3 +22,12 @@ def test_bench_and_demo_name_the_missing_bench_extra(
 
 def test_the_installed_environment_has_the_bench_extra() -> None:
     cli.require_bench_extra()  # make test installs it: no error
+
+
+def test_serve_fake_llm_help_shows_the_fakes_own_flags(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as done:
+        cli.main(["serve", "fake-llm", "--help"])
+    assert done.value.code == 0
+    out = capsys.readouterr().out
+    assert "--profile" in out and "--rate-429" in out and "usage: fake-llm" in out
