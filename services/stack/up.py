@@ -119,8 +119,7 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str) ->
     endpoint = f"tcp/127.0.0.1:{ports.hub}"
     common: dict[str, Any] = {"zenoh_connect": [endpoint], "zenoh_listen": [],
                               "zenoh_mode": "peer", "zenoh_multicast": False,
-                              "zenoh_config": None, "admin_token": given or token,
-                              "host": "127.0.0.1"}
+                              "zenoh_config": None, "admin_token": given or token}
 
     def data(name: str) -> Path:
         return options.data_dir / name
