@@ -190,20 +190,15 @@ def stderr_sink(width: int = 10) -> Sink:
 def file_sink(directory: Path) -> Sink:
     """Each child's lines to ``directory/<name>.log``."""
     directory.mkdir(parents=True, exist_ok=True)
-    return _files(lambda name: directory / f"{name}.log")
-
-
-def _files(path_of: Callable[[str], Path]) -> Sink:
     lock = threading.Lock()
-    files: dict[Path, IO[str]] = {}
+    files: dict[str, IO[str]] = {}
 
     def write(name: str, line: str) -> None:
-        path = path_of(name)
         with lock:
-            if path not in files:
-                files[path] = open(path, "a", encoding="utf-8")  # noqa: SIM115
-            files[path].write(line + "\n")
-            files[path].flush()
+            if name not in files:
+                files[name] = open(directory / f"{name}.log", "a", encoding="utf-8")  # noqa: SIM115
+            files[name].write(line + "\n")
+            files[name].flush()
 
     return write
 

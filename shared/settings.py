@@ -22,7 +22,6 @@ import difflib
 import ipaddress
 import json
 from collections.abc import Mapping, Sequence
-from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar
 
@@ -131,8 +130,6 @@ def _env_value(value: Any) -> str:
         return value.get_secret_value()
     if isinstance(value, bool):
         return "true" if value else "false"
-    if isinstance(value, Enum):
-        return str(value.value)
     if isinstance(value, str | int | float | Path):
         return str(value)
     if isinstance(value, list):  # endpoint lists: comma-separated (NoDecode)

@@ -385,7 +385,8 @@ class ControlRuntime:
         reading = self.handshake.read(
             mode=self.mode, age=age, limit=self.settings.verdict_stale_s,
             verdict=None if verdict is None else verdict.message,
-            scene=self._scene_of(verdict), decision=decision)
+            scene=self._scene_of(verdict) if verdict and verdict.message.is_anomaly else None,
+            decision=decision)
         events.extend(self._event(n.kind, n.severity, n.message, **n.data)
                       for n in reading.notes)
         return _Inputs(reading.anomaly, reading.decision, reading.stale, verdict, events,

@@ -132,13 +132,12 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str) ->
     embedding = read_settings(EmbeddingSettings, environ,
                               defaults={"detector_cache": DETECTOR_CACHE}, **common,
                               port=ports.embedding, data_dir=data("embedding"))
-    control_env = read_settings(ControlSettings, environ)
-    scenario = options.scenario or resolve_scenario(control_env.scenario or hardware_scenario())
-    forced: dict[str, Any] = {**common, "port": ports.control, "data_dir": data("control"),
-                              "scenario": scenario}
+    forced: dict[str, Any] = {**common, "port": ports.control, "data_dir": data("control")}
     if options.rate_hz is not None:
         forced["rate_hz"] = options.rate_hz
     control = read_settings(ControlSettings, environ, **forced)
+    scenario = options.scenario or resolve_scenario(control.scenario or hardware_scenario())
+    control = control.model_copy(update={"scenario": scenario})  # a resolved, existing path
     settings: list[tuple[str, ServiceSettings]] = []
     if fake:
         settings.append(("fake-llm", read_settings(FakeLLMServiceSettings, environ, **common,

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -23,6 +22,7 @@ from shared.client import ServiceError
 from shared.jobs import JobInfo
 from shared.process import ServiceProcess, free_port
 from tests.fakes.hash_embedder import HashEmbedder
+from tests.zenoh_peers import wait_until
 
 TOKEN = "client-test-token-0123"
 NOMINAL = [f"a {c} package on the belt next to a {t}" for c in ("brown", "white", "taped")
@@ -41,10 +41,8 @@ def embedding_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 30
-    while not server.started:
-        assert time.monotonic() < deadline and thread.is_alive(), "the server did not start"
-        time.sleep(0.05)
+    wait_until(lambda: server.started or not thread.is_alive(), "the server to start", 30)
+    assert server.started, "the server exited while starting"
     yield url
     server.should_exit = True
     thread.join(10)
