@@ -45,7 +45,7 @@ from .schemas import (
 from .scoring import ScoringError
 from .service import CacheService, Item, ScoreBatch
 from .settings import EmbeddingSettings
-from .storage import StorageCorrupt
+from .store import StorageCorrupt, StorageError, StorageFull
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +98,7 @@ def create_app(
             await svc.start()
         except StorageCorrupt as exc:
             log.error("refusing to start: %s. The file was left untouched: restore it from a "
-                      "backup or move its cache directory aside.", exc)
+                      "backup or move it aside.", exc)
             raise
         worker = worker_factory(svc, metrics) if worker_factory else None
         task = asyncio.create_task(worker.run()) if worker else None
@@ -126,6 +126,13 @@ def create_app(
     async def domain_error(_: Request, exc: DetectorError) -> JSONResponse:
         status = next((s for cls, s in STATUS.items() if isinstance(exc, cls)), 400)
         return error_response(status, exc.code, exc.message, exc.field)
+
+    @app.exception_handler(StorageError)
+    async def storage_error(_: Request, exc: StorageError) -> JSONResponse:
+        # the write was rolled back: nothing of it is stored or applied, retry later
+        if isinstance(exc, StorageFull):
+            return error_response(507, "storage_full", str(exc))
+        return error_response(503, "storage_error", str(exc), headers={"Retry-After": "1"})
 
     @app.exception_handler(ScoringError)
     async def scoring_error(_: Request, exc: ScoringError) -> JSONResponse:

@@ -1,9 +1,9 @@
 """A named cache of nominal experiences D_e = {e_i} (paper §IV-A) and its threshold tau.
 
-Every mutation is planned first (validated, turned into a WAL ``Record``) and
-then applied by ``Cache.apply``, the single mutation path used both live and
-when replaying the log on start. Planning never changes state, so a rejected
-request leaves the cache exactly as it was.
+Every mutation is planned first (validated, turned into an ``Op``), made durable by
+the store, then applied by ``Cache.apply``, the single mutation path. Planning never
+changes state, so a rejected request leaves the cache exactly as it was. A cache is
+its ``Header`` (config, version, calibration...) plus its experiences and their index.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import uuid
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -22,7 +22,6 @@ from .calibration import Calibration
 from .errors import Conflict, InvalidInput, NotFound
 from .index import IndexKind, VectorIndex
 from .scoring import MahalanobisModel, loo_topk_scores, topk_score
-from .storage import Record, Snapshot
 
 ScoreKind = Literal["topk", "mahalanobis"]
 
@@ -63,19 +62,99 @@ class Scored:
     neighbors: tuple[Neighbor, ...]
 
 
+@dataclass(frozen=True, eq=False)
+class Add:
+    """New experiences under fresh ``labels``, with their (n, dim) unit float32 vectors."""
+
+    labels: tuple[int, ...]
+    experiences: tuple[Experience, ...]
+    vectors: np.ndarray
+    version: int
+
+
+@dataclass(frozen=True)
+class Delete:
+    id: str
+    label: int
+    version: int
+
+
+@dataclass(frozen=True)
+class Calibrate:
+    calibration: Calibration
+    version: int
+
+
+@dataclass(frozen=True)
+class Configure:
+    k: int
+    score: ScoreKind
+    version: int
+
+
+Op = Add | Delete | Calibrate | Configure
+
+
+@dataclass(frozen=True)
+class Header:
+    """A cache apart from its experiences: what the store keeps in the cache's row."""
+
+    config: CacheConfig
+    version: int = 0
+    next_label: int = 0  # labels are never reused, even after a delete
+    calibration: Calibration | None = None
+    stale: bool = False  # the experiences or the score changed since the calibration
+
+    def after(self, op: Op) -> Header:
+        """The header once ``op`` is applied."""
+        calibrated = self.calibration is not None
+        if isinstance(op, Add):
+            top = max(op.labels, default=self.next_label - 1) + 1
+            return replace(self, version=op.version, next_label=max(self.next_label, top),
+                           stale=calibrated)
+        if isinstance(op, Delete):
+            return replace(self, version=op.version, stale=calibrated)
+        if isinstance(op, Calibrate):
+            return replace(self, version=op.version, calibration=op.calibration, stale=False)
+        config = replace(self.config, k=op.k, score=op.score)
+        return replace(self, version=op.version, config=config, stale=calibrated)
+
+
 class Cache:
-    def __init__(self, config: CacheConfig) -> None:
-        self.config = config
-        self.index = VectorIndex(config.dim, config.index)
+    def __init__(self, config: CacheConfig, index: VectorIndex | None = None) -> None:
+        self.header = Header(config)
+        self.index = index if index is not None else VectorIndex(config.dim, config.index)
         self.experiences: dict[int, Experience] = {}
         self.labels_by_id: dict[str, int] = {}
-        self.next_label = 0
-        self.version = 0
-        self.calibration: Calibration | None = None
-        self.stale = False
         self._mahalanobis: tuple[int, MahalanobisModel] | None = None
 
+    @classmethod
+    def restored(cls, header: Header, experiences: Mapping[int, Experience],
+                 index: VectorIndex) -> Cache:
+        """A cache as stored: ``index`` holds exactly the labels of ``experiences``."""
+        cache = cls(header.config, index)
+        cache.header = header
+        cache.experiences = dict(experiences)
+        cache.labels_by_id = {e.id: label for label, e in experiences.items()}
+        return cache
+
     # -- queries ---------------------------------------------------------------
+
+    @property
+    def config(self) -> CacheConfig:
+        return self.header.config
+
+    @property
+    def version(self) -> int:
+        return self.header.version
+
+    @property
+    def calibration(self) -> Calibration | None:
+        return self.header.calibration
+
+    @property
+    def stale(self) -> bool:
+        return self.header.stale
 
     @property
     def name(self) -> str:
@@ -151,7 +230,7 @@ class Cache:
         texts: Sequence[str | None],
         metadata: Sequence[Mapping[str, Any]],
         field_prefix: str = "items",
-    ) -> Record:
+    ) -> Add:
         n = len(vectors)
         if vectors.ndim != 2 or vectors.shape[1] != self.config.dim:
             got = vectors.shape[1] if vectors.ndim == 2 else vectors.shape
@@ -178,91 +257,40 @@ class Cache:
                                field=f"{field_prefix}[{i}].id")
             seen.add(ident)
             resolved.append(ident)
-        labels = list(range(self.next_label, self.next_label + n))
-        items = [
-            {"id": ident, "label": label, "text": text, "metadata": dict(meta)}
-            for ident, label, text, meta in zip(resolved, labels, texts, metadata, strict=True)
-        ]
+        first = self.header.next_label
         unit = (vectors / norms[:, None]).astype(np.float32)
-        return Record({"op": "add", "items": items, "version": self.version + 1}, {"vectors": unit})
+        return Add(
+            labels=tuple(range(first, first + n)),
+            experiences=tuple(Experience(ident, text, dict(meta)) for ident, text, meta
+                              in zip(resolved, texts, metadata, strict=True)),
+            vectors=unit, version=self.version + 1)
 
-    def plan_delete(self, ident: str) -> Record:
+    def plan_delete(self, ident: str) -> Delete:
         if ident not in self.labels_by_id:
             raise NotFound(f"no experience {ident!r} in cache {self.name!r}", field="id")
-        return Record({"op": "delete", "id": ident, "version": self.version + 1})
+        return Delete(ident, self.labels_by_id[ident], self.version + 1)
 
-    def plan_calibration(self, calibration: Calibration) -> Record:
+    def plan_calibration(self, calibration: Calibration) -> Calibrate:
         if not math.isfinite(calibration.threshold):
             raise InvalidInput("calibration gave a non-finite threshold", field="calibration")
-        return Record({"op": "calibrate", "calibration": calibration.to_dict(),
-                       "version": self.version + 1})
+        return Calibrate(calibration, self.version + 1)
 
-    def plan_configure(self, *, k: int, score: ScoreKind) -> Record | None:
+    def plan_configure(self, *, k: int, score: ScoreKind) -> Configure | None:
         if (k, score) == (self.config.k, self.config.score):
             return None
-        return Record({"op": "configure", "k": k, "score": score, "version": self.version + 1})
+        return Configure(k, score, self.version + 1)
 
     # -- the one mutation path -------------------------------------------------
 
-    def apply(self, record: Record) -> None:
-        op = record.op
-        kind = op["op"]
-        if kind == "add":
-            items = op["items"]
-            labels = np.array([it["label"] for it in items], dtype=np.int64)
-            self.index.add(record.arrays["vectors"], labels)
-            for it in items:
-                self.experiences[it["label"]] = Experience(it["id"], it["text"], it["metadata"])
-                self.labels_by_id[it["id"]] = it["label"]
-            if items:
-                self.next_label = max(self.next_label, int(labels.max()) + 1)
-            self.stale = self.calibration is not None
-        elif kind == "delete":
-            label = self.labels_by_id.pop(op["id"])
-            del self.experiences[label]
-            self.index.remove(np.array([label], dtype=np.int64))
-            self.stale = self.calibration is not None
-        elif kind == "calibrate":
-            self.calibration = Calibration(**op["calibration"])
-            self.stale = False
-        elif kind == "configure":
-            self.config = CacheConfig(**{**asdict(self.config), "k": op["k"], "score": op["score"]})
-            self.stale = self.calibration is not None
-        else:
-            raise ValueError(f"unknown operation {kind!r}")
-        self.version = int(op["version"])
-
-    # -- snapshots ---------------------------------------------------------------
-
-    def to_snapshot(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-        labels = self.index.labels()
-        records = [
-            {"id": e.id, "text": e.text, "metadata": dict(e.metadata)}
-            for e in (self.experiences[int(label)] for label in labels)
-        ]
-        meta = {
-            "config": asdict(self.config),
-            "experiences": records,
-            "next_label": self.next_label,
-            "version": self.version,
-            "calibration": None if self.calibration is None else self.calibration.to_dict(),
-            "stale": self.stale,
-        }
-        return meta, {"labels": labels.copy(), "vectors": np.array(self.index.vectors())}
-
-    @classmethod
-    def from_snapshot(cls, snapshot: Snapshot) -> Cache:
-        meta = snapshot.meta
-        cache = cls(CacheConfig(**meta["config"]))
-        labels = snapshot.arrays["labels"]
-        if len(labels):
-            cache.index.add(snapshot.arrays["vectors"], labels)
-        for label, rec in zip(labels.tolist(), meta["experiences"], strict=True):
-            cache.experiences[label] = Experience(rec["id"], rec["text"], rec["metadata"])
-            cache.labels_by_id[rec["id"]] = label
-        cache.next_label = int(meta["next_label"])
-        cache.version = int(meta["version"])
-        cal = meta["calibration"]
-        cache.calibration = None if cal is None else Calibration(**cal)
-        cache.stale = bool(meta["stale"])
-        return cache
+    def apply(self, op: Op) -> None:
+        header = self.header.after(op)
+        if isinstance(op, Add):
+            self.index.add(op.vectors, np.array(op.labels, dtype=np.int64))
+            for label, exp in zip(op.labels, op.experiences, strict=True):
+                self.experiences[label] = exp
+                self.labels_by_id[exp.id] = label
+        elif isinstance(op, Delete):
+            del self.labels_by_id[op.id]
+            del self.experiences[op.label]
+            self.index.remove(np.array([op.label], dtype=np.int64))
+        self.header = header

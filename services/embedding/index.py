@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import AbstractContextManager, contextmanager
+from pathlib import Path
 from typing import Literal
 
 import faiss
@@ -62,6 +63,42 @@ class VectorIndex:
 
     def __len__(self) -> int:
         return int(self._index.ntotal)
+
+    @property
+    def graph_ready(self) -> bool:
+        """An HNSW graph is built and current (a search will not rebuild it)."""
+        return self._hnsw is not None and not self._hnsw_dirty
+
+    def write(self, vectors: Path, graph: Path) -> bool:
+        """Write the labelled vectors to ``vectors`` and, when it is current, the HNSW
+        graph to ``graph``; returns whether the graph was written. Raises OSError or
+        RuntimeError (FAISS's failed write, e.g. a full disk)."""
+        faiss.write_index(self._index, str(vectors))
+        if self._hnsw is not None and not self._hnsw_dirty:
+            faiss.write_index(self._hnsw, str(graph))
+            return True
+        return False
+
+    @classmethod
+    def read(cls, dim: int, kind: IndexKind, vectors: Path, graph: Path | None = None
+             ) -> VectorIndex:
+        """An index written by :meth:`write`; ``graph`` (optional) must have been written
+        with it. Raises RuntimeError (FAISS) or ValueError for a file that does not fit."""
+        index = cls(dim, kind)
+        idmap = faiss.read_index(str(vectors))
+        if not isinstance(idmap, faiss.IndexIDMap2) or idmap.d != dim:
+            raise ValueError(f"{vectors}: not a labelled index of dimension {dim}")
+        flat = faiss.downcast_index(idmap.index)
+        if not isinstance(flat, faiss.IndexFlatIP):
+            raise ValueError(f"{vectors}: not an exact inner-product index")
+        index._index, index._flat = idmap, flat
+        if kind == "hnsw" and graph is not None:
+            hnsw = faiss.read_index(str(graph))
+            if not isinstance(hnsw, faiss.IndexHNSWFlat) or hnsw.ntotal != idmap.ntotal:
+                raise ValueError(f"{graph}: not an HNSW graph over {idmap.ntotal} vectors")
+            hnsw.hnsw.efSearch = index.ef_search
+            index._hnsw, index._hnsw_dirty = hnsw, False
+        return index
 
     def labels(self) -> np.ndarray:
         """(n,) int64 labels in storage order: a read-only view, valid until the next

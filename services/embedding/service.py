@@ -1,7 +1,7 @@
 """The vector-cache service: named caches on disk, embedders, jobs, micro-batched scoring.
 
-Concurrency: per cache, writers are serialised by an asyncio lock and the WAL
-append (fsync) happens before the in-memory apply; readers (scoring,
+Concurrency: per cache, writers are serialised by an asyncio lock and the
+database commit happens before the in-memory apply; readers (scoring,
 leave-one-out) run in worker threads under the shared side of a
 readers-writer lock, so they see a cache either before or after a write.
 Embedding happens outside every lock.
@@ -34,7 +34,7 @@ import numpy as np
 from shared.jobs import Job, Jobs
 
 from .batching import MicroBatcher
-from .cache import Cache, CacheConfig, Labelled, Scored, ScoreKind
+from .cache import Add, Cache, CacheConfig, Delete, Labelled, Op, Scored, ScoreKind
 from .calibration import (
     Calibration,
     CalibrationError,
@@ -48,13 +48,14 @@ from .calibration import (
 from .embedders import Embedder, EmbedderPool, ModelNotFound
 from .errors import Conflict, InvalidInput, NotFound
 from .index import IndexKind
+from .legacy import legacy_caches, read_legacy
 from .schemas import Added, CacheInfo, Calibrated, Deleted, Experience, Roc
 from .settings import EmbeddingSettings
-from .storage import CacheStore, Record
+from .store import StorageError, Store
 
 log = logging.getLogger(__name__)
 
-CACHE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")
+CACHE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}")
 T = TypeVar("T")
 
 
@@ -97,10 +98,16 @@ class RWLock:
 @dataclass
 class Entry:
     cache: Cache
-    store: CacheStore
+    saved: tuple[int, bool] | None = None  # the index file's (version, has HNSW graph)
+    changed: int = 0  # experiences added or deleted since the index file was saved
     writer: asyncio.Lock = field(default_factory=asyncio.Lock)
     rw: RWLock = field(default_factory=RWLock)
     batchers: dict[int, MicroBatcher[str, Scored]] = field(default_factory=dict)
+
+    def index_outdated(self) -> bool:
+        """The saved index file is missing, older than the cache, or lacks a built graph."""
+        return (self.saved is None or self.saved[0] != self.cache.version
+                or (self.cache.index.graph_ready and not self.saved[1]))
 
 
 @dataclass(frozen=True)
@@ -173,48 +180,66 @@ class CacheService:
         self._create_lock = asyncio.Lock()
         self._on_batch = on_batch
         self._compute = ThreadPoolExecutor(max_workers=1, thread_name_prefix="aesop-compute")
-        self.root = Path(settings.data_dir) / "caches"
+        self._store: Store | None = None
+
+    @property
+    def store(self) -> Store:
+        if self._store is None:
+            raise RuntimeError("the cache service is not started")
+        return self._store
 
     # -- lifecycle --------------------------------------------------------------
 
     async def start(self) -> None:
-        """Open every cache under the data directory (raises StorageCorrupt naming a file)."""
-        self.root.mkdir(parents=True, exist_ok=True)
-        for directory in sorted(p for p in self.root.iterdir() if p.is_dir()):
-            entry = await asyncio.to_thread(self._open, directory)
-            if entry is not None:
-                self._entries[entry.cache.name] = entry
-                log.info("cache %s: %d experiences, version %d", entry.cache.name,
-                         entry.cache.size, entry.cache.version)
+        """Open the database, import a legacy data directory once, load every cache
+        (raises StorageCorrupt naming a file)."""
+        self._store = await asyncio.to_thread(
+            partial(Store, Path(self.settings.data_dir), fsync=self.settings.fsync,
+                    max_bytes=self.settings.max_db_bytes))
+        await asyncio.to_thread(self._import_legacy)
+        for name in self.store.names():
+            cache = await asyncio.to_thread(self.store.load, name)
+            self._entries[name] = Entry(cache, saved=self.store.saved_index(name))
+            log.info("cache %s: %d experiences, version %d", name, cache.size, cache.version)
 
-    def _open(self, directory: Path) -> Entry | None:
-        store = CacheStore(directory, fsync=self.settings.fsync)
-        loaded = store.load()
-        if loaded.snapshot is None:
-            store.close()
-            log.warning("ignoring %s: no snapshot (a cache creation that never finished)",
-                        directory)
-            return None
-        cache = Cache.from_snapshot(loaded.snapshot)
-        for record in loaded.records:
-            cache.apply(record)
-        return Entry(cache, store)
+    def _import_legacy(self) -> None:
+        for directory in legacy_caches(Path(self.settings.data_dir)):
+            source = str(directory.relative_to(self.settings.data_dir))
+            if self.store.imported(source):
+                continue
+            cache = read_legacy(directory)
+            if cache.name in self.store.names():
+                log.warning("not importing %s: a cache named %r exists", directory, cache.name)
+                continue
+            self.store.import_cache(source, cache)
+            log.info("imported cache %s (%d experiences, version %d) from %s; the old files "
+                     "stay where they are", cache.name, cache.size, cache.version, directory)
 
     async def close(self) -> None:
         for entry in self._entries.values():
             for batcher in entry.batchers.values():
                 await batcher.close()
             async with entry.writer:
-                await asyncio.to_thread(self._snapshot, entry)
-                entry.store.close()
+                if entry.index_outdated():
+                    await asyncio.to_thread(self._save_index, entry)
         self._entries.clear()
+        if self._store is not None:
+            self._store.close()
         self._compute.shutdown(wait=True)
         self.embedders.close()
 
-    def _snapshot(self, entry: Entry) -> None:
+    def _save_index(self, entry: Entry) -> None:
+        """Save the index file (under the cache's writer lock); a failure is logged: the
+        database holds everything, the next start catches up from an older file."""
         with entry.rw.read():
-            meta, arrays = entry.cache.to_snapshot()
-        entry.store.write_snapshot(meta, arrays)
+            try:
+                path = self.store.save_index(entry.cache)
+            except StorageError as exc:
+                log.warning("%s", exc)
+                return
+            entry.saved = (entry.cache.version, entry.cache.index.graph_ready)
+        entry.changed = 0
+        log.info("cache %s: index saved to %s", entry.cache.name, path)
 
     # -- queries --------------------------------------------------------------
 
@@ -254,7 +279,7 @@ class CacheService:
         index: IndexKind = "flat",
     ) -> tuple[CacheInfo, bool]:
         """Create cache ``name`` or reconcile an existing one; returns (description, created)."""
-        if not CACHE_NAME.match(name):
+        if not CACHE_NAME.fullmatch(name):
             raise InvalidInput("cache names are 1-64 letters, digits, '_', '.', '-'", field="name")
         k = k or self.settings.default_k
         async with self._create_lock:
@@ -271,16 +296,8 @@ class CacheService:
             return CacheInfo.of(entry.cache), True
 
     def _create_entry(self, config: CacheConfig) -> Entry:
-        directory = self.root / config.name
-        store = CacheStore(directory, fsync=self.settings.fsync)
-        loaded = store.load()
-        if loaded.snapshot is not None or loaded.records:
-            store.close()
-            raise Conflict(f"{directory} already holds data that was not loaded", field="name")
-        entry = Entry(Cache(config), store)
-        meta, arrays = entry.cache.to_snapshot()
-        store.write_snapshot(meta, arrays)
-        return entry
+        self.store.create(config)
+        return Entry(Cache(config))
 
     async def _reconcile(self, name: str, *, model: str | None, k: int, score: ScoreKind
                          ) -> CacheInfo:
@@ -292,9 +309,9 @@ class CacheService:
                 raise Conflict(f"cache {name!r} is pinned to model {pinned!r}; create another "
                                f"cache for {resolved!r}", field="model")
         async with entry.writer:
-            record = entry.cache.plan_configure(k=k, score=score)
-            if record is not None:
-                await self._commit(entry, record)
+            op = entry.cache.plan_configure(k=k, score=score)
+            if op is not None:
+                await self._commit(entry, op)
         return self.describe(name)
 
     async def add(self, name: str, items: Sequence[Item], job: Job | None = None
@@ -304,11 +321,11 @@ class CacheService:
         config = entry.cache.config
         vectors = await self._vectors_for(config, items, job)
         async with entry.writer:
-            record = entry.cache.plan_add(
+            op = entry.cache.plan_add(
                 vectors, ids=[it.id for it in items], texts=[it.text for it in items],
                 metadata=[it.metadata for it in items])
-            await self._commit(entry, record)
-            result = Added(ids=[it["id"] for it in record.op["items"]],
+            await self._commit(entry, op)
+            result = Added(ids=[e.id for e in op.experiences],
                            size=entry.cache.size, version=entry.cache.version,
                            job=None if job is None else job.id)
         if job is not None:
@@ -400,13 +417,17 @@ class CacheService:
         with entry.rw.read():
             return entry.cache.loo_scores()
 
-    async def _commit(self, entry: Entry, record: Record) -> None:
-        await asyncio.to_thread(entry.store.append, [record])
+    async def _commit(self, entry: Entry, op: Op) -> None:
+        """Commit ``op`` to the database, then apply it: a 2xx after this is durable."""
+        cache = entry.cache
+        await asyncio.to_thread(self.store.commit, cache.name, op, cache.header.after(op))
         with entry.rw.write():
-            entry.cache.apply(record)
-        limit = self.settings.snapshot_wal_bytes
-        if limit and entry.store.wal_bytes > limit:
-            await asyncio.to_thread(self._snapshot, entry)
+            cache.apply(op)
+        if isinstance(op, Add | Delete):
+            entry.changed += len(op.labels) if isinstance(op, Add) else 1
+        limit = self.settings.index_save_changes
+        if limit and entry.changed >= limit:
+            await asyncio.to_thread(self._save_index, entry)
 
     # -- scoring ------------------------------------------------------------------
 

@@ -31,7 +31,12 @@ class EmbeddingSettings(ServiceSettings):
     # a batch is being embedded still form the next batch
     microbatch_window_ms: float = Field(default=0.0, ge=0.0)
     microbatch_max: int = Field(default=64, ge=1)
-    snapshot_wal_bytes: int = Field(default=64 * 1024 * 1024, ge=0)
+    # save a cache's index file once this many experiences were added or deleted since
+    # the last save (0: only on close); a restart loads it and catches up from the database
+    index_save_changes: int = Field(default=50_000, ge=0)
+    # the most the database file may grow to (0: no limit but the disk's); a write past
+    # it is answered 507 and nothing of it is stored, as on a full disk
+    max_db_bytes: int = Field(default=0, ge=0)
     zenoh_worker: bool = True
     # torch intra-op threads; 0 keeps torch's default (one per core). One thread keeps a
     # single observation's embedding at ~15 ms on a busy machine, where a pool of

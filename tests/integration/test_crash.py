@@ -14,6 +14,7 @@ import httpx
 import numpy as np
 import pytest
 
+from services.embedding.store import DB_NAME
 from shared.process import ServiceFailed, ServiceProcess, free_port
 
 pytestmark = [pytest.mark.timeout(180), pytest.mark.slow]
@@ -25,7 +26,7 @@ DIM = 8
 
 def server(data_dir: Path, port: int) -> ServiceProcess:
     env = {"AESOP_ADMIN_TOKEN": TOKEN, "AESOP_EMBEDDING_ZENOH_WORKER": "false",
-           "AESOP_EMBEDDING_SNAPSHOT_WAL_BYTES": "20000"}  # small, so snapshots happen mid-run too
+           "AESOP_EMBEDDING_INDEX_SAVE_CHANGES": "200"}  # small: index saves mid-run too
     return ServiceProcess(["serve", "embedding", "--port", str(port), "--data-dir", str(data_dir)],
                           port=port, env=env, log_path=data_dir / f"server-{port}.log")
 
@@ -89,20 +90,20 @@ def test_acknowledged_experiences_survive_sigkill(tmp_path: Path) -> None:
         assert r.status_code == 200 and r.json()["size"] == desc["size"] + 1
 
 
-def test_a_corrupt_snapshot_stops_the_service_naming_the_file(tmp_path: Path) -> None:
+def test_a_corrupt_database_stops_the_service_naming_the_file(tmp_path: Path) -> None:
     port = free_port()
     with server(tmp_path, port):
         r = httpx.put(f"http://127.0.0.1:{port}/v1/caches/c", json={"model": None, "dim": 3},
                       headers=AUTH)
         assert r.status_code == 201
-    snapshot = tmp_path / "caches" / "c" / "snapshot.bin"
-    data = bytearray(snapshot.read_bytes())
-    data[len(data) // 2] ^= 0xFF
-    snapshot.write_bytes(bytes(data))
+    database = tmp_path / DB_NAME
+    data = bytearray(database.read_bytes())
+    data[:16] = b"not a database!!"
+    database.write_bytes(bytes(data))
     proc = server(tmp_path, free_port())
     with pytest.raises(ServiceFailed) as failed:
         proc.start()
-    assert str(snapshot) in str(failed.value)
-    assert f"refusing to start: {snapshot}" in proc.log_path.read_text()
+    assert str(database) in str(failed.value)
+    assert f"refusing to start: {database}" in proc.log_path.read_text()
     assert proc.proc is not None and proc.proc.returncode != 0
-    assert snapshot.read_bytes() == bytes(data)  # never overwritten
+    assert database.read_bytes() == bytes(data)  # never overwritten

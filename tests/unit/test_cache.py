@@ -1,4 +1,4 @@
-"""Cache planning/apply (the one mutation path), snapshots, and the FAISS index wrapper."""
+"""Cache planning/apply (the one mutation path) and the FAISS index wrapper."""
 
 from __future__ import annotations
 
@@ -9,8 +9,6 @@ from services.embedding.cache import Cache, CacheConfig
 from services.embedding.calibration import loo_quantile
 from services.embedding.errors import Conflict, InvalidInput, NotFound
 from services.embedding.index import VectorIndex
-from services.embedding.schemas import CacheInfo
-from services.embedding.storage import Snapshot
 
 
 def unit(rows: list[list[float]]) -> np.ndarray:
@@ -83,20 +81,6 @@ def test_versions_and_staleness() -> None:
     assert cache.plan_configure(k=1, score="topk") is None  # nothing to change
     cache.apply(cache.plan_configure(k=2, score="topk"))  # type: ignore[arg-type]
     assert cache.config.k == 2 and cache.version == v + 3
-
-
-def test_snapshot_round_trip_preserves_state_after_deletes() -> None:
-    cache = make(k=1)
-    add(cache, [[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0]], ids=["a", "b", "c", "d"])
-    cache.apply(cache.plan_delete("b"))
-    cache.apply(cache.plan_calibration(loo_quantile(cache.loo_scores(), 0.9)))
-    meta, arrays = cache.to_snapshot()
-    copy = Cache.from_snapshot(Snapshot(meta, arrays, seq=0))
-    assert CacheInfo.of(copy) == CacheInfo.of(cache)
-    q = unit([[1, 0.2, 0]])
-    assert [r.score for r in copy.score(q)] == [r.score for r in cache.score(q)]
-    add(copy, [[0, 1, 1]])  # labels are never reused after a delete
-    assert len(set(copy.labels_by_id.values())) == copy.size == 4
 
 
 def test_mahalanobis_cache_scores_far_points_higher() -> None:

@@ -1,0 +1,422 @@
+"""Durable storage of the vector-cache service: one SQLite database, and index files.
+
+The database ``<data_dir>/embedding.sqlite3`` (WAL journal, ``synchronous=FULL``)
+is the source of truth: every cache's header, experiences (vectors included),
+and the history of its versions. A write is one transaction; the service answers
+2xx only after its COMMIT returned, so a 2xx means durable, and a write that
+fails (a full disk: ``StorageFull``) is rolled back whole, in the file and in
+memory alike.
+
+A cache's FAISS index is derived data, saved now and then to
+``<data_dir>/indexes/<cache>/v<version>.faiss`` (and its HNSW graph, once built,
+to ``v<version>.hnsw``), written to a temporary file, fsync'd and renamed. On
+open, a file at the cache's version is loaded as it is (an HNSW graph over a
+million vectors is not rebuilt); an older one is loaded and caught up from the
+database; with none, or one that does not fit, the index is built from the
+stored vectors. A failed index save loses nothing.
+
+Schema (``PRAGMA user_version`` = 1)::
+
+    caches(name PK, config JSON, version, next_label, calibration JSON|NULL, stale)
+    experiences(cache, label, id, text|NULL, metadata JSON, vector BLOB <f4, version)
+        PK (cache, label), UNIQUE (cache, id); ``version``: the one that added it
+    changes(cache, version, op, detail JSON, at)   one row per version of each cache:
+        op is create | add | delete | calibrate | configure | import
+    imports(source PK, cache, version, at)   legacy data directories imported once
+
+One process per data directory: an flock on ``<data_dir>/embedding.lock``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import logging
+import os
+import sqlite3
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import asdict
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import numpy as np
+
+from .cache import Add, Cache, CacheConfig, Calibrate, Configure, Delete, Experience, Header, Op
+from .calibration import Calibration
+from .index import VectorIndex
+
+log = logging.getLogger(__name__)
+
+DB_NAME = "embedding.sqlite3"
+LOCK_NAME = "embedding.lock"
+INDEX_DIR = "indexes"
+SCHEMA_VERSION = 1
+
+_SCHEMA = """
+CREATE TABLE caches (
+    name TEXT PRIMARY KEY, config TEXT NOT NULL, version INTEGER NOT NULL,
+    next_label INTEGER NOT NULL, calibration TEXT, stale INTEGER NOT NULL
+) STRICT;
+CREATE TABLE experiences (
+    cache TEXT NOT NULL REFERENCES caches(name), label INTEGER NOT NULL, id TEXT NOT NULL,
+    text TEXT, metadata TEXT NOT NULL, vector BLOB NOT NULL, version INTEGER NOT NULL,
+    PRIMARY KEY (cache, label), UNIQUE (cache, id)
+) STRICT;
+CREATE INDEX experiences_by_version ON experiences (cache, version);
+CREATE TABLE changes (
+    cache TEXT NOT NULL REFERENCES caches(name), version INTEGER NOT NULL, op TEXT NOT NULL,
+    detail TEXT NOT NULL, at REAL NOT NULL, PRIMARY KEY (cache, version)
+) STRICT;
+CREATE TABLE imports (
+    source TEXT PRIMARY KEY, cache TEXT NOT NULL, version INTEGER NOT NULL, at REAL NOT NULL
+) STRICT;
+"""
+
+
+class StorageError(Exception):
+    """A write that did not happen (rolled back), or a lock held by another process."""
+
+
+class StorageFull(StorageError):
+    """The disk (or the database's size limit) is full; the write was rolled back."""
+
+
+class StorageCorrupt(StorageError):
+    """A file that cannot be trusted; it is left as it is for inspection."""
+
+    def __init__(self, path: Path, detail: str) -> None:
+        super().__init__(f"{path}: {detail}")
+        self.path = path
+
+
+class Store:
+    """The service's database and index files under ``data_dir``.
+
+    Thread-safe: one connection, used under a lock. ``fsync=False`` runs SQLite
+    with ``synchronous=OFF`` and skips the index files' fsync: faster, but a 2xx
+    then survives only a process crash, not a power cut.
+    """
+
+    def __init__(self, data_dir: Path, *, fsync: bool = True, max_bytes: int = 0) -> None:
+        """``max_bytes``: the most the database may grow to (0: the disk's size); a write
+        past it is refused with ``StorageFull``, as on a full disk."""
+        self.root = Path(data_dir)
+        self.root.mkdir(parents=True, exist_ok=True)
+        self.path = self.root / DB_NAME
+        self._fsync = fsync
+        self._max_bytes = max_bytes
+        self._mutex = threading.Lock()
+        self._lock_fd = _take_lock(self.root / LOCK_NAME)
+        try:
+            self._db = self._connect()
+        except BaseException:
+            os.close(self._lock_fd)
+            raise
+        self._closed = False
+
+    def _connect(self) -> sqlite3.Connection:
+        db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+        try:
+            db.execute("PRAGMA journal_mode=WAL")
+            db.execute(f"PRAGMA synchronous={'FULL' if self._fsync else 'OFF'}")
+            db.execute("PRAGMA foreign_keys=ON")
+            if self._max_bytes:
+                page = db.execute("PRAGMA page_size").fetchone()[0]
+                db.execute(f"PRAGMA max_page_count={max(1, self._max_bytes // page)}")
+            check = db.execute("PRAGMA quick_check").fetchone()[0]
+            if check != "ok":
+                raise StorageCorrupt(self.path, f"integrity check failed: {check}")
+            schema = db.execute("PRAGMA user_version").fetchone()[0]
+            if schema == 0:
+                db.executescript(f"BEGIN; {_SCHEMA} PRAGMA user_version={SCHEMA_VERSION}; COMMIT;")
+            elif schema != SCHEMA_VERSION:
+                raise StorageCorrupt(self.path, f"schema version {schema}; this build reads "
+                                                f"{SCHEMA_VERSION}")
+        except sqlite3.DatabaseError as exc:
+            db.close()
+            raise StorageCorrupt(self.path, str(exc)) from exc
+        except BaseException:
+            db.close()
+            raise
+        return db
+
+    # -- reads -------------------------------------------------------------------
+
+    def names(self) -> list[str]:
+        with self._mutex:
+            return [r[0] for r in self._db.execute("SELECT name FROM caches ORDER BY name")]
+
+    def imported(self, source: str) -> bool:
+        with self._mutex:
+            row = self._db.execute("SELECT 1 FROM imports WHERE source = ?", (source,))
+            return row.fetchone() is not None
+
+    def history(self, name: str) -> list[tuple[int, str, dict[str, Any]]]:
+        """(version, op, detail) of every version of cache ``name``, oldest first."""
+        with self._mutex:
+            rows = self._db.execute("SELECT version, op, detail FROM changes WHERE cache = ? "
+                                    "ORDER BY version", (name,)).fetchall()
+        return [(v, op, json.loads(detail)) for v, op, detail in rows]
+
+    def load(self, name: str) -> Cache:
+        """Cache ``name`` as stored, its index from the newest usable index file."""
+        with self._mutex:
+            header = self._header(name)
+            experiences = {
+                label: Experience(ident, text, json.loads(meta))
+                for label, ident, text, meta in self._db.execute(
+                    "SELECT label, id, text, metadata FROM experiences WHERE cache = ? "
+                    "ORDER BY label", (name,))
+            }
+            index = self._index(header, set(experiences))
+        return Cache.restored(header, experiences, index)
+
+    def _header(self, name: str) -> Header:
+        row = self._db.execute("SELECT config, version, next_label, calibration, stale "
+                               "FROM caches WHERE name = ?", (name,)).fetchone()
+        if row is None:
+            raise KeyError(name)
+        config, version, next_label, calibration, stale = row
+        cal = None if calibration is None else Calibration(**json.loads(calibration))
+        return Header(CacheConfig(**json.loads(config)), version, next_label, cal, bool(stale))
+
+    def _index(self, header: Header, labels: set[int]) -> VectorIndex:
+        config = header.config
+        for version, vectors, graph in self._index_files(config.name):
+            if version > header.version:
+                continue
+            try:
+                index = VectorIndex.read(config.dim, config.index, vectors,
+                                         graph if graph.exists() else None)
+                if version < header.version:
+                    self._catch_up(index, config, version)
+                if set(index.labels().tolist()) != labels:
+                    raise ValueError("its labels differ from the stored experiences")
+            except (RuntimeError, ValueError) as exc:
+                log.warning("cache %s: not using %s (%s)", config.name, vectors, exc)
+                continue
+            log.info("cache %s: index loaded from %s%s", config.name, vectors.name,
+                     f", caught up from version {version}" if version < header.version else "")
+            return index
+        index = VectorIndex(config.dim, config.index)
+        self._add_stored(index, config, "")
+        return index
+
+    def _catch_up(self, index: VectorIndex, config: CacheConfig, since: int) -> None:
+        """Bring an index saved at version ``since`` to the stored experiences."""
+        deleted = [json.loads(d)["label"] for (d,) in self._db.execute(
+            "SELECT detail FROM changes WHERE cache = ? AND op = 'delete' AND version > ?",
+            (config.name, since))]
+        if deleted:
+            index.remove(np.array(deleted, dtype=np.int64))
+        self._add_stored(index, config, f"AND version > {int(since)}")
+
+    def _add_stored(self, index: VectorIndex, config: CacheConfig, where: str) -> None:
+        rows = self._db.execute(f"SELECT label, vector FROM experiences WHERE cache = ? {where} "
+                                "ORDER BY label", (config.name,))
+        while batch := rows.fetchmany(65536):
+            labels = np.fromiter((r[0] for r in batch), dtype=np.int64, count=len(batch))
+            vectors = np.frombuffer(b"".join(r[1] for r in batch), dtype="<f4")
+            index.add(vectors.reshape(len(batch), config.dim), labels)
+
+    # -- writes ------------------------------------------------------------------
+
+    def create(self, config: CacheConfig) -> Header:
+        header = Header(config)
+        with self._transaction(f"creating cache {config.name!r}") as db:
+            db.execute("INSERT INTO caches VALUES (?, ?, ?, ?, ?, ?)",
+                       (config.name, *_header_row(header)))
+            _change(db, config.name, 0, "create", asdict(config))
+        return header
+
+    def commit(self, name: str, op: Op, header: Header) -> None:
+        """Make ``op`` durable, with ``header`` (the cache's header once it is applied)."""
+        with self._transaction(f"cache {name!r} version {op.version}") as db:
+            _write_op(db, name, op)
+            _update_header(db, name, header)
+
+    def import_cache(self, source: str, cache: Cache) -> None:
+        """Store ``cache`` (read from a legacy ``source``) whole, and remember the source."""
+        header, name = cache.header, cache.name
+        with self._transaction(f"importing {source}") as db:
+            db.execute("INSERT INTO caches VALUES (?, ?, ?, ?, ?, ?)",
+                       (name, *_header_row(header)))
+            labels = cache.index.labels()
+            _insert_experiences(db, name, labels.tolist(),
+                                [cache.experiences[int(x)] for x in labels],
+                                cache.index.vectors(), header.version)
+            _change(db, name, header.version, "import", {"source": source})
+            db.execute("INSERT INTO imports VALUES (?, ?, ?, ?)",
+                       (source, name, header.version, time.time()))
+
+    @contextlib.contextmanager
+    def _transaction(self, what: str) -> Iterator[sqlite3.Connection]:
+        with self._mutex:
+            if self._closed:
+                raise StorageError(f"{self.path}: the store is closed")
+            try:
+                self._db.execute("BEGIN IMMEDIATE")
+                yield self._db
+                self._db.execute("COMMIT")
+            except sqlite3.Error as exc:
+                with contextlib.suppress(sqlite3.Error):
+                    self._db.execute("ROLLBACK")
+                full = getattr(exc, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL
+                kind = StorageFull if full else StorageError
+                raise kind(f"{self.path}: {what} was not written ({exc})") from exc
+            except BaseException:
+                with contextlib.suppress(sqlite3.Error):
+                    self._db.execute("ROLLBACK")
+                raise
+
+    # -- index files -------------------------------------------------------------
+
+    def save_index(self, cache: Cache) -> Path:
+        """Write ``cache``'s index as of its version; older files are removed after.
+        The caller keeps the cache from changing meanwhile. Raises StorageError."""
+        name, version = cache.name, cache.version
+        directory = self.root / INDEX_DIR / name
+        vectors, graph = _index_paths(directory, version)
+        tmp_vectors, tmp_graph = (p.with_name(p.name + ".tmp") for p in (vectors, graph))
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+            with_graph = cache.index.write(tmp_vectors, tmp_graph)
+            for tmp, final in [(tmp_vectors, vectors)] + ([(tmp_graph, graph)] * with_graph):
+                self._sync_file(tmp)
+                os.replace(tmp, final)
+            self._sync_dir(directory)
+        except (OSError, RuntimeError) as exc:
+            for tmp in (tmp_vectors, tmp_graph):
+                with contextlib.suppress(OSError):
+                    tmp.unlink(missing_ok=True)
+            raise StorageError(f"{vectors}: index not saved ({exc}); the database has it all"
+                               ) from exc
+        for old, old_vectors, old_graph in self._index_files(name):
+            if old != version:
+                old_vectors.unlink(missing_ok=True)
+                old_graph.unlink(missing_ok=True)
+        return vectors
+
+    def saved_index(self, name: str) -> tuple[int, bool] | None:
+        """(version, has the HNSW graph) of the newest index file of ``name``, if any."""
+        files = self._index_files(name)
+        return None if not files else (files[0][0], files[0][2].exists())
+
+    def _index_files(self, name: str) -> list[tuple[int, Path, Path]]:
+        """(version, vectors file, graph file) of the saved indexes, newest first."""
+        directory = self.root / INDEX_DIR / name
+        if not directory.is_dir():
+            return []
+        found = []
+        for path in directory.glob("v*.faiss"):
+            if path.stem[1:].isdigit():
+                found.append((int(path.stem[1:]), *_index_paths(directory, int(path.stem[1:]))))
+        for leftover in directory.glob("*.tmp"):
+            leftover.unlink(missing_ok=True)
+        return sorted(found, reverse=True)
+
+    def _sync_file(self, path: Path) -> None:
+        if self._fsync:
+            fd = os.open(path, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+
+    def _sync_dir(self, directory: Path) -> None:
+        if self._fsync:
+            fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+
+    # -- lifecycle -----------------------------------------------------------------
+
+    def close(self) -> None:
+        """Close the database and release the data directory; safe to call twice."""
+        with self._mutex:
+            if self._closed:
+                return
+            self._closed = True
+            try:
+                self._db.close()
+            finally:
+                os.close(self._lock_fd)
+
+    def __enter__(self) -> Store:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+
+def _index_paths(directory: Path, version: int) -> tuple[Path, Path]:
+    return directory / f"v{version}.faiss", directory / f"v{version}.hnsw"
+
+
+def _header_row(header: Header) -> tuple[str, int, int, str | None, int]:
+    cal = None if header.calibration is None else json.dumps(header.calibration.to_dict())
+    return (json.dumps(asdict(header.config)), header.version, header.next_label, cal,
+            int(header.stale))
+
+
+def _update_header(db: sqlite3.Connection, name: str, header: Header) -> None:
+    config, version, next_label, cal, stale = _header_row(header)
+    db.execute("UPDATE caches SET config = ?, version = ?, next_label = ?, calibration = ?, "
+               "stale = ? WHERE name = ?", (config, version, next_label, cal, stale, name))
+
+
+def _change(db: sqlite3.Connection, name: str, version: int, op: str,
+            detail: dict[str, Any]) -> None:
+    db.execute("INSERT INTO changes VALUES (?, ?, ?, ?, ?)",
+               (name, version, op, json.dumps(detail), time.time()))
+
+
+def _insert_experiences(db: sqlite3.Connection, name: str, labels: list[int],
+                        experiences: list[Experience], vectors: np.ndarray, version: int) -> None:
+    little = np.ascontiguousarray(vectors, dtype="<f4")
+    db.executemany(
+        "INSERT INTO experiences VALUES (?, ?, ?, ?, ?, ?, ?)",
+        ((name, label, e.id, e.text, json.dumps(dict(e.metadata)), row.tobytes(), version)
+         for label, e, row in zip(labels, experiences, little, strict=True)))
+
+
+def _write_op(db: sqlite3.Connection, name: str, op: Op) -> None:
+    if isinstance(op, Add):
+        _insert_experiences(db, name, list(op.labels), list(op.experiences), op.vectors,
+                            op.version)
+        detail: dict[str, Any] = {"count": len(op.labels)}
+        if op.labels:
+            detail |= {"first_label": op.labels[0], "last_label": op.labels[-1]}
+        _change(db, name, op.version, "add", detail)
+    elif isinstance(op, Delete):
+        db.execute("DELETE FROM experiences WHERE cache = ? AND label = ?", (name, op.label))
+        _change(db, name, op.version, "delete", {"id": op.id, "label": op.label})
+    elif isinstance(op, Calibrate):
+        _change(db, name, op.version, "calibrate", op.calibration.to_dict())
+    elif isinstance(op, Configure):
+        _change(db, name, op.version, "configure", {"k": op.k, "score": op.score})
+
+
+def _take_lock(path: Path) -> int:
+    """An fd holding an exclusive flock on ``path``, or ``StorageError`` if it is held."""
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.read(fd, 32).decode(errors="replace").strip() or "unknown"
+        os.close(fd)
+        raise StorageError(f"{path.parent} is in use by another process (pid {holder})"
+                           ) from None
+    except BaseException:
+        os.close(fd)
+        raise
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    return fd
