@@ -1,6 +1,7 @@
 """HTTP admin API pieces every service shares (FastAPI).
 
-- errors: JSON ``{"error": {"code", "message", "field"}}`` with a 4xx/5xx status;
+- errors: JSON ``{"error": {"code", "message", "field"}}`` (``ErrorBody``) with a 4xx/5xx
+  status, documented in ``/openapi.json`` with ``errors(...)``;
 - ``bearer_auth``: mutating routes need ``Authorization: Bearer $AESOP_ADMIN_TOKEN``;
 - ``ops_router``: ``/healthz``, ``/readyz`` and ``/metrics`` (Prometheus, per-app registry);
 - ``serve``: run an app with uvicorn, refusing off-loopback exposure without a token.
@@ -15,7 +16,7 @@ from typing import Any
 
 from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, Response
+from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from fastapi.routing import APIRouter
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import (
@@ -25,7 +26,9 @@ from prometheus_client import (
     Histogram,
     generate_latest,
 )
-from pydantic import SecretStr
+from pydantic import BaseModel, ConfigDict, SecretStr
+from starlette.exceptions import HTTPException
+from starlette.routing import Match
 
 from .settings import ServiceSettings
 
@@ -40,6 +43,73 @@ class ApiError(Exception):
         self.status, self.code, self.message, self.field = status, code, message, field
 
 
+class ErrorDetail(BaseModel):
+    model_config = ConfigDict(extra="ignore")
+
+    code: str  # machine-readable: invalid, not_found, conflict, unauthorized, too_large, ...
+    message: str  # for a person
+    field: str | None = None  # the request field at fault, e.g. "items[3].text"
+
+
+class ErrorBody(BaseModel):
+    """Every error answer of every service."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    error: ErrorDetail
+
+
+REASONS = {
+    400: "the body is not valid JSON",
+    401: "a valid 'Authorization: Bearer <token>' header is missing",
+    404: "no such resource (error.field names which)",
+    405: "method not allowed (the Allow header lists those that are)",
+    409: "the request conflicts with the stored state",
+    413: "the body or one of its lists is larger than the limit",
+    415: "the body is not declared as JSON",
+    422: "a field is invalid (error.field names it)",
+    429: "too busy: retry later",
+    502: "an upstream server failed",
+    503: "not ready, or storage failed: retry later",
+    507: "the disk (or the configured size limit) is full; nothing was stored",
+}
+REQUEST_ERRORS = (400, 413, 415, 422)  # what any route with a JSON body may answer
+
+
+def errors(*statuses: int) -> dict[int | str, dict[str, Any]]:
+    """``responses=`` for a route (or an app) that may answer these error statuses."""
+    return {s: {"model": ErrorBody, "description": REASONS[s]} for s in statuses}
+
+
+def document_limits(app: FastAPI, limits: dict[str, dict[str, dict[str, Any]]]) -> None:
+    """Write limits that come from settings into the app's ``/openapi.json``, so the
+    schema says what the service enforces: ``{model: {property: {keyword: value}}}``;
+    a nested dict (e.g. ``{"items": {"maxLength": 4000}}``) is merged into the nested
+    schema, and a nullable property gets the keywords on its non-null branch."""
+    build = app.openapi
+
+    def merge(target: dict[str, Any], keywords: dict[str, Any]) -> None:
+        for branch in [b for b in target.get("anyOf", [target]) if b.get("type") != "null"]:
+            for key, value in keywords.items():
+                if isinstance(value, dict):
+                    merge(branch.setdefault(key, {}), value)
+                else:
+                    branch[key] = value
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            schema = build()
+            models = schema["components"]["schemas"]
+            for model, properties in limits.items():
+                for name in (model, f"{model}-Input"):  # pydantic's name for a request model
+                    if name in models:  # also used in an answer
+                        for prop, keywords in properties.items():
+                            merge(models[name]["properties"][prop], keywords)
+        return app.openapi_schema or {}
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
 def error_response(status: int, code: str, message: str, field: str | None = None,
                    headers: dict[str, str] | None = None) -> JSONResponse:
     body: dict[str, Any] = {"code": code, "message": message}
@@ -49,10 +119,13 @@ def error_response(status: int, code: str, message: str, field: str | None = Non
 
 
 def field_path(loc: tuple[Any, ...] | list[Any]) -> str:
-    """('body', 'items', 3, 'text') -> 'items[3].text'."""
+    """('body', 'items', 3, 'text') -> 'items[3].text'. The union member pydantic tried
+    (a part like 'list[constrained-str]', never a field name) is left out."""
     out = ""
     for part in loc:
         if part in ("body", "query", "path", "header") and not out:
+            continue
+        if isinstance(part, str) and not part.isidentifier():
             continue
         if isinstance(part, int):
             out += f"[{part}]"
@@ -81,9 +154,32 @@ async def _api_error(_: Request, exc: Exception) -> JSONResponse:
     return error_response(exc.status, exc.code, exc.message, exc.field)
 
 
+def allowed_methods(request: Request) -> list[str]:
+    """The methods some route of the app accepts at the request's path."""
+    methods: set[str] = set()
+    for route in request.app.router.routes:
+        match, _ = route.matches({**request.scope, "method": "GET"})
+        if match != Match.NONE:
+            methods |= set(getattr(route, "methods", None) or ())
+    return sorted(methods)
+
+
+async def _http_error(request: Request, exc: Exception) -> Response:
+    """Starlette's own errors (unknown path, wrong method, unparsable body) as ErrorBody."""
+    assert isinstance(exc, HTTPException)
+    headers = dict(exc.headers or {})
+    if exc.status_code == 405:
+        headers["Allow"] = ", ".join(allowed_methods(request))
+    code = {400: "malformed_body", 404: "not_found", 405: "method_not_allowed"}.get(
+        exc.status_code, "http_error")
+    field = "body" if exc.status_code == 400 else None
+    return error_response(exc.status_code, code, str(exc.detail), field, headers=headers)
+
+
 def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(ApiError, _api_error)
+    app.add_exception_handler(HTTPException, _http_error)
 
 
 def bearer_auth(token: SecretStr | None) -> Callable[..., Awaitable[None]]:
@@ -140,14 +236,16 @@ def ops_router(
     async def healthz() -> dict[str, str]:
         return {"status": "ok"}
 
-    @router.get("/readyz")
+    @router.get("/readyz", responses={503: {"description": "not ready yet: says what is "
+                                            "missing", "content": {"application/json": {}}}})
     async def readyz() -> Response:
         missing = ready()
         if missing:
             return JSONResponse({"status": "not_ready", **missing}, status_code=503)
         return JSONResponse({"status": "ready"})
 
-    @router.get("/metrics")
+    @router.get("/metrics", response_class=PlainTextResponse, responses={
+        200: {"description": "Prometheus text format", "content": {"text/plain": {}}}})
     async def metrics() -> Response:
         if refresh is not None:
             refresh()

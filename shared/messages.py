@@ -12,13 +12,27 @@ from __future__ import annotations
 import math
 import time
 from enum import StrEnum
-from typing import Literal, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
 
 SCHEMA_VERSION = 1
 
 M = TypeVar("M", bound="Message")
+
+
+def _not_a_bool(value: Any) -> Any:
+    """pydantic's lax mode reads true/false as 1/0; a number field refuses them."""
+    if isinstance(value, bool):
+        raise ValueError("expected a number, not true or false")
+    return value
+
+
+NotBool = BeforeValidator(_not_a_bool)
+Int = Annotated[int, NotBool]  # an int that is not a bool
+Float = Annotated[float, NotBool]  # a float that is not a bool
+# limits of an optional number go before NotBool, or pydantic cannot publish them:
+# Annotated[int, Field(ge=1), NotBool] | None
 
 
 class Message(BaseModel):
@@ -26,9 +40,9 @@ class Message(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    schema_version: int = SCHEMA_VERSION
+    schema_version: Int = SCHEMA_VERSION
     robot: str = Field(default="robot0", min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_\-]+$")
-    stamp: float = Field(default_factory=time.time)
+    stamp: Float = Field(default_factory=time.time)
 
     def encode(self) -> bytes:
         return self.model_dump_json().encode()
@@ -44,14 +58,14 @@ class Detection(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     label: str
-    confidence: float | None = None
+    confidence: Float | None = None
     where: str | None = None  # context, e.g. "on the red box", "on the ground"
 
 
 class Observation(Message):
     """o_t: the robot's text observation at tick ``seq``."""
 
-    seq: int = Field(ge=0)
+    seq: Int = Field(ge=0)
     task: str = ""
     text: str = Field(min_length=1)
     detections: tuple[Detection, ...] = ()
@@ -64,7 +78,7 @@ class Neighbor(BaseModel):
 
     id: str
     text: str | None = None
-    similarity: float
+    similarity: Float
 
 
 class AnomalyVerdict(Message):
@@ -74,16 +88,16 @@ class AnomalyVerdict(Message):
     then an anomaly (fail-safe) and ``reason`` says so.
     """
 
-    seq: int = Field(ge=0)
-    score: float
-    threshold: float | None
+    seq: Int = Field(ge=0)
+    score: Float
+    threshold: Float | None
     is_anomaly: bool
-    k: int = Field(ge=1)
+    k: Int = Field(ge=1)
     neighbors: tuple[Neighbor, ...] = ()
     model: str
     cache: str
-    cache_version: int = Field(ge=0)
-    latency_ms: float = Field(ge=0.0)
+    cache_version: Int = Field(ge=0)
+    latency_ms: Float = Field(ge=0.0)
     reason: str | None = None
 
     @field_validator("score")
@@ -99,9 +113,9 @@ class Option(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    index: int = Field(ge=0)
-    label: str
-    description: str = ""
+    index: Int = Field(ge=0)
+    label: str = Field(min_length=1, max_length=200, pattern=r"\S")  # one line in the prompt
+    description: str = Field(default="", max_length=1000)
 
 
 class ReasonerRequest(Message):
@@ -110,7 +124,7 @@ class ReasonerRequest(Message):
     request_id: str
     observation: Observation
     options: tuple[Option, ...] = Field(min_length=1)
-    deadline_s: float = Field(gt=0.0)
+    deadline_s: Float = Field(gt=0.0)
 
 
 DecisionSource = Literal["llm", "timeout", "parse_error", "backend_error"]
@@ -120,10 +134,10 @@ class ReasonerDecision(Message):
     """Reasoner -> control: y, the chosen option index, and where it came from."""
 
     request_id: str
-    choice: int = Field(ge=0)
+    choice: Int = Field(ge=0)
     source: DecisionSource
     rationale: str = ""
-    latency_ms: float = Field(ge=0.0)
+    latency_ms: Float = Field(ge=0.0)
     model: str = ""
 
 
@@ -140,26 +154,26 @@ class ControlState(Message):
     """Closed-loop state at time ``t`` (s): x (12 states) and u, the controller's input in
     its planning model's units (thrust and torques, or 3 accelerations), Algorithm 1 mode."""
 
-    t: float
-    x: tuple[float, ...] = Field(min_length=12, max_length=12)
-    u: tuple[float, ...] = Field(min_length=1, max_length=12)
+    t: Float
+    x: tuple[Float, ...] = Field(min_length=12, max_length=12)
+    u: tuple[Float, ...] = Field(min_length=1, max_length=12)
     mode: Mode
-    t_anom: float | None = None
-    chosen: int | None = None
-    active_regions: tuple[int, ...] = ()
+    t_anom: Float | None = None
+    chosen: Int | None = None
+    active_regions: tuple[Int, ...] = ()
 
 
-Point3 = tuple[float, float, float]
+Point3 = tuple[Float, Float, Float]
 
 
 class PlanSnapshot(Message):
     """The MPC plan tree at time ``t``: nominal branch and one branch per recovery region."""
 
-    t: float
+    t: Float
     nominal: tuple[Point3, ...] = ()
-    recovery: dict[int, tuple[Point3, ...]] = Field(default_factory=dict)
-    consensus_steps: int = Field(ge=0)
-    solve_ms: float = Field(ge=0.0)
+    recovery: dict[Int, tuple[Point3, ...]] = Field(default_factory=dict)
+    consensus_steps: Int = Field(ge=0)
+    solve_ms: Float = Field(ge=0.0)
     status: str
 
 
@@ -168,7 +182,7 @@ class RegionBox(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    index: int = Field(ge=1)  # the option index y the reasoner may choose
+    index: Int = Field(ge=1)  # the option index y the reasoner may choose
     name: str
     label: str
     kind: Literal["landing", "hover"]

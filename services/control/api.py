@@ -17,9 +17,12 @@ from prometheus_client import CollectorRegistry
 
 from shared.bus import Bus
 from shared.http import (
+    REQUEST_ERRORS,
     ApiError,
     HttpMetrics,
     bearer_auth,
+    document_limits,
+    errors,
     install_error_handlers,
     ops_router,
     require_json,
@@ -30,12 +33,6 @@ from .scenario import ScenarioError, regions_from_list
 from .schemas import RegionsAnswer, RegionsBody, ResetAnswer, ResetBody, State
 from .service import SERVICE, ControlMetrics, ControlService, regions_message
 from .settings import ControlSettings
-
-
-def error_field(message: str) -> str:
-    """The field a scenario error names: ``'regions[1].name: required'`` -> ``regions[1].name``."""
-    head = message.split(":", 1)[0].strip()
-    return head if head.startswith("regions") and " " not in head else "regions"
 
 
 def create_app(settings: ControlSettings, runtime: ControlRuntime,
@@ -57,8 +54,15 @@ def create_app(settings: ControlSettings, runtime: ControlRuntime,
             await asyncio.to_thread(service.stop)
             service.close()
 
-    app = FastAPI(title="AESOP control-loop service", version="1", lifespan=lifespan)
+    app = FastAPI(title="AESOP control-loop service", version="1", lifespan=lifespan,
+                  responses=errors(*REQUEST_ERRORS))
     install_error_handlers(app)
+    limits = runtime.scenario.limits  # the fence: positions outside it are refused
+    inside = {"prefixItems": [{"type": "number", "minimum": lo, "maximum": hi}
+                              for lo, hi in zip(limits.position_lo, limits.position_hi,
+                                                strict=True)]}
+    document_limits(app, {"ResetBody": {"start": inside},
+                          "RegionIn": {"position_lo": inside, "position_hi": inside}})
     require_json(app)
     HttpMetrics(registry, SERVICE).install(app)
     app.include_router(ops_router(
@@ -91,22 +95,20 @@ def create_app(settings: ControlSettings, runtime: ControlRuntime,
     async def get_regions() -> RegionsAnswer:
         return regions_body()
 
-    @app.post("/v1/regions", dependencies=auth)
+    @app.post("/v1/regions", dependencies=auth, responses=errors(401, 409))
     async def post_regions(body: RegionsBody) -> RegionsAnswer:
         try:
-            regions = regions_from_list(body.regions)
+            regions = regions_from_list([r.model_dump(exclude_none=True) for r in body.regions])
             await runtime.replace_regions(regions)
         except ScenarioError as exc:
-            raise ApiError(422, "invalid", str(exc), error_field(str(exc))) from None
+            raise ApiError(422, "invalid", str(exc), exc.field) from None
         except NotNominal as exc:
             raise ApiError(409, "conflict", f"the flight is in mode {exc}: recovery regions "
                            "change only while nominal or waiting (POST /v1/reset first)",
                            "mode") from None
-        except ValueError as exc:
-            raise ApiError(422, "invalid", str(exc), error_field(str(exc))) from None
         return regions_body()
 
-    @app.post("/v1/reset", dependencies=auth)
+    @app.post("/v1/reset", dependencies=auth, responses=errors(401))
     async def reset(body: ResetBody | None = None) -> ResetAnswer:
         try:
             x0 = await runtime.reset(None if body is None else body.start)

@@ -57,7 +57,7 @@ from .handshake import Handshake
 from .mpc import SolveStatus
 from .plant import make_plant
 from .regions import Region
-from .scenario import Scenario
+from .scenario import Scenario, ScenarioError
 from .settings import ControlSettings
 
 SOURCE = "control"
@@ -251,14 +251,14 @@ def check_start(scenario: Scenario, start: Sequence[float]) -> np.ndarray:
 
 
 def check_fence(scenario: Scenario, regions: Sequence[Region]) -> None:
-    """Every region must lie inside the position limits; ``ValueError`` names the entry."""
+    """Every region must lie inside the position limits; ``ScenarioError`` names the entry."""
     lo, hi = np.asarray(scenario.limits.position_lo), np.asarray(scenario.limits.position_hi)
     for i, region in enumerate(regions):
         if np.any(np.asarray(region.position_lo) < lo) or \
                 np.any(np.asarray(region.position_hi) > hi):
-            raise ValueError(f"regions[{i}]: {region.name!r} lies outside the position limits "
-                             f"{list(scenario.limits.position_lo)}.."
-                             f"{list(scenario.limits.position_hi)}")
+            raise ScenarioError(f"regions[{i}]", f"{region.name!r} lies outside the position "
+                                f"limits {list(scenario.limits.position_lo)}.."
+                                f"{list(scenario.limits.position_hi)}")
 
 
 class ControlRuntime:

@@ -44,7 +44,12 @@ MPC_FIELDS = ("velocity_margin", "position_margin", "shrink", "input_margin", "r
 
 
 class ScenarioError(ValueError):
-    """A scenario file that cannot be used; the message names the field."""
+    """A scenario (or a list of regions) that cannot be used. ``field`` names where
+    (``regions[1].name``, ``limits``, or the file); the message starts with it."""
+
+    def __init__(self, field: str, problem: str) -> None:
+        super().__init__(f"{field}: {problem}")
+        self.field = field
 
 
 @dataclass(frozen=True)
@@ -61,11 +66,11 @@ class Limits:
 
     def __post_init__(self) -> None:
         if self.velocity <= 0 or self.tilt <= 0 or min(self.rates) <= 0:
-            raise ScenarioError("limits: velocity, tilt and rates must be positive")
+            raise ScenarioError("limits", "velocity, tilt and rates must be positive")
         if len(self.acceleration) != 3 or min(self.acceleration) <= 0:
-            raise ScenarioError("limits.acceleration: expected 3 positive numbers (m/s^2)")
+            raise ScenarioError("limits.acceleration", "expected 3 positive numbers (m/s^2)")
         if np.any(np.asarray(self.position_lo) >= np.asarray(self.position_hi)):
-            raise ScenarioError("limits: position_lo must be below position_hi")
+            raise ScenarioError("limits", "position_lo must be below position_hi")
 
     def box(self, shrink: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """``(x_lo, x_hi)``; ``shrink`` tightens velocity, tilt and rates by that fraction."""
@@ -107,28 +112,28 @@ class Scenario:
         check = ScenarioError
         for name, point in (("goal", self.goal), ("start.center", self.start_center)):
             if len(point) != 3:
-                raise check(f"{name}: expected 3 numbers (m), got {len(point)}")
+                raise check(name, f"expected 3 numbers (m), got {len(point)}")
         if not self.dt > 0:
-            raise check("dt must be positive")
+            raise check("dt", "must be positive")
         if not self.consensus_s < self.horizon_s:
-            raise check("consensus_s (K) must be shorter than horizon_s (T)")
+            raise check("consensus_s", "K must be shorter than horizon_s (T)")
         if self.model not in MODEL_NAMES:
-            raise check(f"model: expected one of {', '.join(MODEL_NAMES)}")
+            raise check("model", f"expected one of {', '.join(MODEL_NAMES)}")
         if len(self.acceleration_lag) != 3 or not all(0.0 <= v <= 2.0
                                                         for v in self.acceleration_lag):
-            raise check("acceleration_lag: expected 3 numbers in 0..2 s")
+            raise check("acceleration_lag", "expected 3 numbers in 0..2 s")
         lo, hi = self.anomaly_window
         if not 0.0 <= lo <= hi:
-            raise check("anomaly_window: expected [from, to] s with 0 <= from <= to")
+            raise check("anomaly_window", "expected [from, to] s with 0 <= from <= to")
         if not 0.0 <= self.approach_height <= 10.0:
-            raise check("approach_height: expected 0..10 m")
+            raise check("approach_height", "expected 0..10 m")
         unknown = [k for k, _ in self.mpc if k not in MPC_FIELDS]
         if unknown:
-            raise check(f"mpc.{unknown[0]}: unknown; one of {', '.join(MPC_FIELDS)}")
+            raise check(f"mpc.{unknown[0]}", f"unknown; one of {', '.join(MPC_FIELDS)}")
         try:
             check_regions(self.regions)
         except ValueError as exc:
-            raise check(f"regions: {exc}") from None
+            raise check("regions", str(exc)) from None
 
     @property
     def horizon(self) -> int:
@@ -160,7 +165,7 @@ class Scenario:
         and T kept in seconds and the step-valued ``mpc`` settings kept in seconds too
         (for ``aesop bench mpc --horizons``)."""
         if horizon < 2:
-            raise ScenarioError("horizon: need at least 2 steps")
+            raise ScenarioError("horizon", "need at least 2 steps")
         dt = self.horizon_s / horizon
         scale = self.dt / dt
         mpc = tuple((k, max(1, round(v * scale)) if k in STEP_FIELDS else v)
@@ -183,11 +188,11 @@ class Scenario:
 def regions_from_list(items: Any) -> tuple[Region, ...]:
     """Regions from a list of mappings; errors name the entry and the field."""
     if not isinstance(items, list) or not items:
-        raise ScenarioError("regions: expected a non-empty list")
+        raise ScenarioError("regions", "expected a non-empty list")
     out = []
     for i, item in enumerate(items):
         if not isinstance(item, dict):
-            raise ScenarioError(f"regions[{i}]: expected a mapping")
+            raise ScenarioError(f"regions[{i}]", "expected a mapping")
         try:
             out.append(Region(
                 index=int(item.get("index", i + 1)), name=str(item["name"]),
@@ -195,20 +200,20 @@ def regions_from_list(items: Any) -> tuple[Region, ...]:
                 position_lo=_vec3(item["position_lo"]),
                 position_hi=_vec3(item["position_hi"])))
         except KeyError as exc:
-            raise ScenarioError(f"regions[{i}].{exc.args[0]}: required") from None
+            raise ScenarioError(f"regions[{i}].{exc.args[0]}", "required") from None
         except (TypeError, ValueError) as exc:
-            raise ScenarioError(f"regions[{i}]: {exc}") from None
+            raise ScenarioError(f"regions[{i}]", str(exc)) from None
     regions = tuple(out)
     try:
         check_regions(regions)
     except ValueError as exc:
-        raise ScenarioError(f"regions: {exc}") from None
+        raise ScenarioError("regions", str(exc)) from None
     return regions
 
 
 def scenario_from_dict(data: Any) -> Scenario:
     if not isinstance(data, dict):
-        raise ScenarioError("scenario: expected a mapping at the top level")
+        raise ScenarioError("scenario", "expected a mapping at the top level")
     try:
         given: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v
                                  for k, v in _mapping(data, "limits").items()}
@@ -234,11 +239,11 @@ def scenario_from_dict(data: Any) -> Scenario:
             mpc=_mpc_overrides(_mapping(data, "mpc")),
         )
     except KeyError as exc:
-        raise ScenarioError(f"{exc.args[0]}: required") from None
+        raise ScenarioError(str(exc.args[0]), "required") from None
     except (TypeError, ValueError) as exc:
         if isinstance(exc, ScenarioError):
             raise
-        raise ScenarioError(f"scenario: {exc}") from None
+        raise ScenarioError("scenario", str(exc)) from None
 
 
 def _vec3(values: Any) -> tuple[float, float, float]:
@@ -249,7 +254,7 @@ def _vec3(values: Any) -> tuple[float, float, float]:
 def _mapping(data: dict, key: str) -> dict:
     value = data.get(key) or {}
     if not isinstance(value, dict):
-        raise ScenarioError(f"{key}: expected a mapping")
+        raise ScenarioError(key, "expected a mapping")
     return value
 
 
@@ -258,22 +263,22 @@ def _vehicle(data: dict) -> QuadrotorParams:
     known = {f.name for f in fields(QuadrotorParams)}
     for key in data:
         if key not in known:
-            raise ScenarioError(f"vehicle.{key}: unknown; one of {', '.join(sorted(known))}")
+            raise ScenarioError(f"vehicle.{key}", f"unknown; one of {', '.join(sorted(known))}")
     try:
         given: dict[str, Any] = {k: tuple(float(x) for x in v) if isinstance(v, list)
                                  else float(v) for k, v in data.items()}
         return QuadrotorParams(**given)
     except (TypeError, ValueError) as exc:
-        raise ScenarioError(f"vehicle: {exc}") from None
+        raise ScenarioError("vehicle", str(exc)) from None
 
 
 def _mpc_overrides(data: dict) -> tuple[tuple[str, float], ...]:
     out = []
     for key, value in data.items():
         if key not in MPC_FIELDS:
-            raise ScenarioError(f"mpc.{key}: unknown; one of {', '.join(MPC_FIELDS)}")
+            raise ScenarioError(f"mpc.{key}", f"unknown; one of {', '.join(MPC_FIELDS)}")
         if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ScenarioError(f"mpc.{key}: expected a number")
+            raise ScenarioError(f"mpc.{key}", "expected a number")
         out.append((key, value))
     return tuple(sorted(out))
 
@@ -281,7 +286,8 @@ def _mpc_overrides(data: dict) -> tuple[tuple[str, float], ...]:
 def bundled_path(name: str) -> Path:
     """The packaged file of a bundled scenario (``paper`` or ``hardware``)."""
     if name not in BUNDLED:
-        raise ScenarioError(f"no bundled scenario {name!r}: {', '.join(BUNDLED)}")
+        raise ScenarioError("scenario", f"no bundled scenario {name!r} (bundled: "
+                            f"{', '.join(BUNDLED)})")
     return Path(str(resources.files(__package__).joinpath(f"scenarios/{name}.yaml")))
 
 
@@ -300,10 +306,10 @@ def load_scenario(name_or_path: Path | str | None = None) -> Scenario:
     try:
         text = path.read_text()
     except OSError as exc:
-        raise ScenarioError(f"{path}: {exc.strerror}") from None
+        raise ScenarioError(str(path), str(exc.strerror)) from None
     try:
         data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
     except (json.JSONDecodeError, yaml.YAMLError) as exc:
-        raise ScenarioError(f"{path}: not valid {path.suffix.lstrip('.') or 'YAML'}: {exc}") \
+        raise ScenarioError(str(path), f"not valid {path.suffix.lstrip('.') or 'YAML'}: {exc}") \
             from None
     return scenario_from_dict(data)

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 
-from shared.messages import ControlState, Mode, Point3, RegionBox
+from shared.messages import ControlState, Float, Int, Mode, NotBool, Point3, RegionBox
 
 
 class Body(BaseModel):
@@ -17,9 +17,21 @@ class Answer(BaseModel):
     model_config = ConfigDict(extra="ignore")
 
 
+class RegionIn(Body):
+    """One recovery region: a box of rest positions (m) inside the scenario's fence."""
+
+    index: Annotated[int, Field(ge=1), NotBool] | None = None  # the option y; default: its place
+    name: str = Field(min_length=1, max_length=64)
+    label: str | None = Field(default=None, max_length=200)  # default: the name
+    kind: Literal["landing", "hover"] = "landing"
+    position_lo: Point3
+    position_hi: Point3
+
+
 class RegionsBody(Body):
-    # checked by scenario.regions_from_list, whose errors name the entry and field
-    regions: list[Any]
+    # the geometry (lo <= hi, inside the fence, indices 1..d, unique names) is checked
+    # by scenario.regions_from_list and the runtime; their errors name the entry
+    regions: list[RegionIn] = Field(min_length=1, max_length=16)
 
 
 class ResetBody(Body):
@@ -37,7 +49,7 @@ class State(Answer):
     scenario: str
     verdict_stale: bool | None
     pending_request: str | None  # request_id of the request being waited on
-    loop: dict[str, float | int | None]  # rate_hz, ticks, overruns, jitter and tick percentiles
+    loop: dict[str, Float | Int | None]  # rate_hz, ticks, overruns, jitter and tick percentiles
 
 
 class RegionsAnswer(Answer):

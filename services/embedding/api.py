@@ -8,17 +8,19 @@ from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from contextlib import asynccontextmanager
 from typing import Annotated, Any
 
-import numpy as np
 from fastapi import Depends, FastAPI, Query, Request
 from fastapi.responses import JSONResponse
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
 from shared.http import (
+    REQUEST_ERRORS,
     ApiError,
     HttpMetrics,
     bearer_auth,
     body_limit,
+    document_limits,
     error_response,
+    errors,
     install_error_handlers,
     ops_router,
     require_json,
@@ -115,9 +117,16 @@ def create_app(
                 await asyncio.gather(task, return_exceptions=True)
             await svc.close()
 
-    app = FastAPI(title="AESOP vector-cache service", version="1", lifespan=lifespan)
+    app = FastAPI(title="AESOP vector-cache service", version="1", lifespan=lifespan,
+                  responses=errors(*REQUEST_ERRORS))
     metrics = Metrics(registry, service)  # type: ignore[arg-type]
     install_error_handlers(app)
+    most, chars = {"maxItems": settings.max_items}, {"maxLength": settings.max_text_chars}
+    document_limits(app, {
+        "AddExperiences": {"items": most, "vectors": most, "ids": most},
+        "Score": {"texts": {**most, "items": chars}, "vectors": most},
+        "ItemIn": {"text": chars}, "LabelledIn": {"text": chars},
+        "Calibrate": {"calibration": most}})
     body_limit(app, settings.max_body_bytes)
     require_json(app)
     HttpMetrics(registry, "embedding").install(app)
@@ -153,7 +162,8 @@ def create_app(
     auth = [Depends(bearer_auth(settings.admin_token))]
 
     @app.put("/v1/caches/{name}", dependencies=auth, response_model=CacheInfo,
-             responses={201: {"model": CacheInfo, "description": "created"}})
+             responses={201: {"model": CacheInfo, "description": "created"},
+                        **errors(401, 409, 502, 503, 507)})
     async def put_cache(name: str, body: CreateCache, service: ServiceDep) -> JSONResponse:
         model = body.model if "model" in body.model_fields_set else settings.model
         desc, created = await service.create(name, model=model, dim=body.dim, k=body.k,
@@ -164,12 +174,13 @@ def create_app(
     async def list_caches(service: ServiceDep) -> CacheList:
         return CacheList(caches=[service.describe(n) for n in service.names()])
 
-    @app.get("/v1/caches/{name}")
+    @app.get("/v1/caches/{name}", responses=errors(404))
     async def get_cache(name: str, service: ServiceDep) -> CacheInfo:
         return service.describe(name)
 
     @app.post("/v1/caches/{name}/experiences", dependencies=auth, response_model=Added,
-              responses={202: {"model": JobAccepted, "description": "?wait=false"}})
+              responses={202: {"model": JobAccepted, "description": "?wait=false"},
+                         **errors(401, 404, 409, 502, 503, 507)})
     async def add_experiences(
         name: str, body: AddExperiences, service: ServiceDep,
         wait: Annotated[bool, Query(description="false: answer 202 with a job id")] = True,
@@ -185,22 +196,26 @@ def create_app(
         accepted = JobAccepted.of(job)
         return JSONResponse(accepted.model_dump(mode="json"), status_code=202)
 
-    @app.get("/v1/caches/{name}/experiences/{ident}")
+    @app.get("/v1/caches/{name}/experiences/{ident}", responses=errors(404))
     async def get_experience(name: str, ident: str, service: ServiceDep) -> Experience:
         return service.experience(name, ident)
 
-    @app.delete("/v1/caches/{name}/experiences/{ident}", dependencies=auth)
+    @app.delete("/v1/caches/{name}/experiences/{ident}", dependencies=auth,
+                responses=errors(401, 404, 503, 507))
     async def delete_experience(name: str, ident: str, service: ServiceDep) -> Deleted:
         return await service.delete(name, ident)
 
-    @app.post("/v1/caches/{name}/calibrate", dependencies=auth)
+    @app.post("/v1/caches/{name}/calibrate", dependencies=auth,
+              responses=errors(401, 404, 409, 502, 503, 507))
     async def calibrate(name: str, body: Calibrate, service: ServiceDep) -> Calibrated:
         labelled = [Labelled(x.text, x.label == "anomaly") for x in body.calibration or ()]
+        if labelled:
+            _check_count(len(labelled), "calibration", settings)
         _check_texts([x.text for x in labelled], "calibration", settings, key="text")
         return await service.calibrate(name, body.method, alpha=body.alpha, tpr=body.tpr,
                                        calibration=labelled)
 
-    @app.post("/v1/caches/{name}/score")
+    @app.post("/v1/caches/{name}/score", responses=errors(404, 409, 502))
     async def score(name: str, body: Score, service: ServiceDep) -> Scores:
         with metrics.score_seconds.time():
             if body.texts is not None:
@@ -208,11 +223,12 @@ def create_app(
                 _check_texts(body.texts, "texts", settings)
                 batch = await service.score_texts(name, body.texts, body.k)
             else:
-                vectors = _matrix(body.vectors or [], "vectors", settings)
+                vectors = body.vectors or []
+                _check_count(len(vectors), "vectors", settings)
                 batch = await service.score_vectors(name, vectors, body.k)
         return _score_response(batch)
 
-    @app.get("/v1/jobs/{job_id}")
+    @app.get("/v1/jobs/{job_id}", responses=errors(404))
     async def get_job(job_id: str, service: ServiceDep) -> JobInfo:
         try:
             return JobInfo.of(service.jobs.get(job_id))
@@ -247,7 +263,7 @@ def _items(body: AddExperiences, settings: EmbeddingSettings) -> list[Item]:
         _check_texts([it.text for it in body.items], "items", settings, key="text")
         return [Item(text=it.text, id=it.id, metadata=it.metadata) for it in body.items]
     vectors = body.vectors or []
-    _matrix(vectors, "vectors", settings)
+    _check_count(len(vectors), "vectors", settings)
     ids: Sequence[str | None] = body.ids or [None] * len(vectors)
     return [Item(vector=v, id=i) for v, i in zip(vectors, ids, strict=True)]
 
@@ -262,28 +278,11 @@ def _check_count(n: int, field: str, settings: EmbeddingSettings) -> None:
 
 def _check_texts(texts: list[str], field: str, settings: EmbeddingSettings,
                  key: str | None = None) -> None:
-    for i, text in enumerate(texts):
+    for i, text in enumerate(texts):  # blank texts are refused by the schema (Text)
         where = f"{field}[{i}]" + (f".{key}" if key else "")
-        if not text.strip():
-            raise InvalidInput("text is empty", field=where)
         if len(text) > settings.max_text_chars:
             raise InvalidInput(f"text has {len(text)} characters; the limit is "
                                f"{settings.max_text_chars}", field=where)
-
-
-def _matrix(rows: list[list[float]], field: str, settings: EmbeddingSettings) -> np.ndarray:
-    _check_count(len(rows), field, settings)
-    width = len(rows[0])
-    for i, row in enumerate(rows):
-        if len(row) != width or width == 0:
-            raise InvalidInput(f"row {i} has {len(row)} numbers, row 0 has {width}",
-                               field=f"{field}[{i}]")
-    with np.errstate(over="ignore"):
-        matrix = np.asarray(rows, dtype=np.float32)
-    bad = np.argwhere(~np.isfinite(matrix))
-    if len(bad):
-        raise InvalidInput("numbers must be finite float32 values", field=f"{field}[{bad[0][0]}]")
-    return matrix
 
 
 def _score_response(batch: ScoreBatch) -> Scores:

@@ -120,6 +120,16 @@ class Header:
         return replace(self, version=op.version, config=config, stale=calibrated)
 
 
+def unit_rows(rows: np.ndarray) -> np.ndarray:
+    """Rows scaled to unit length as float32, computed in float64 so that neither huge
+    nor tiny finite numbers overflow or vanish; an all-zero row stays zero."""
+    x = np.asarray(rows, dtype=np.float64)
+    scale = np.abs(x).max(axis=1, keepdims=True) if x.size else np.ones((len(x), 1))
+    x = np.divide(x, scale, out=np.zeros_like(x), where=scale > 0)
+    norms = np.linalg.norm(x, axis=1, keepdims=True)
+    return np.divide(x, norms, out=np.zeros_like(x), where=norms > 0).astype(np.float32)
+
+
 class Cache:
     def __init__(self, config: CacheConfig, index: VectorIndex | None = None) -> None:
         self.header = Header(config)
@@ -174,7 +184,7 @@ class Cache:
             raise InvalidInput("k must be at least 1", field="k")
         if need > self.size:
             what = "leave-one-out scoring needs k+1" if leave_one_out else "k"
-            raise InvalidInput(
+            raise Conflict(
                 f"{what} = {need} is larger than cache {self.name!r} ({self.size} experiences)",
                 field="k",
             )
@@ -198,7 +208,7 @@ class Cache:
         """s(e_i; D_e minus {e_i}) for every member: the scores behind eq. (2)."""
         if self.config.score == "mahalanobis":
             if self.size < 3:
-                raise InvalidInput("Mahalanobis scoring needs at least 3 experiences", field="k")
+                raise Conflict("Mahalanobis scoring needs at least 3 experiences", field="k")
             return self._mahalanobis_model().loo_scores(self.index.vectors())
         k = self.check_k(k or self.config.k, leave_one_out=True)
         sims, labels = self.index.self_search(k + 1)
@@ -215,7 +225,7 @@ class Cache:
     def _mahalanobis_model(self) -> MahalanobisModel:
         if self._mahalanobis is None or self._mahalanobis[0] != self.version:
             if self.size < 3:
-                raise InvalidInput("Mahalanobis scoring needs at least 3 experiences", field="k")
+                raise Conflict("Mahalanobis scoring needs at least 3 experiences", field="k")
             model = MahalanobisModel.fit(self.index.vectors(), shrinkage=self.config.shrinkage)
             self._mahalanobis = (self.version, model)
         return self._mahalanobis[1]
@@ -234,16 +244,17 @@ class Cache:
         n = len(vectors)
         if vectors.ndim != 2 or vectors.shape[1] != self.config.dim:
             got = vectors.shape[1] if vectors.ndim == 2 else vectors.shape
-            raise InvalidInput(
+            raise Conflict(
                 f"vectors must have dimension {self.config.dim} (cache {self.name!r}), got {got}",
                 field="vectors",
             )
         if not np.isfinite(vectors).all():
             row = int(np.argwhere(~np.isfinite(vectors))[0][0])
             raise InvalidInput("vectors must be finite (no NaN or inf)", field=f"vectors[{row}]")
-        norms = np.linalg.norm(vectors, axis=1)
-        if (norms < 1e-12).any():
-            row = int(np.argmax(norms < 1e-12))
+        unit = unit_rows(vectors)
+        zero = ~unit.any(axis=1)
+        if zero.any():
+            row = int(np.argmax(zero))
             raise InvalidInput("a zero vector has no direction", field=f"vectors[{row}]")
         seen: set[str] = set()
         resolved: list[str] = []
@@ -258,7 +269,6 @@ class Cache:
             seen.add(ident)
             resolved.append(ident)
         first = self.header.next_label
-        unit = (vectors / norms[:, None]).astype(np.float32)
         return Add(
             labels=tuple(range(first, first + n)),
             experiences=tuple(Experience(ident, text, dict(meta)) for ident, text, meta

@@ -209,15 +209,30 @@ def resolve_model(model: str, *, hf_cache_dir: str | Path | None = None) -> Mode
             f"bundled package {BUNDLED_PACKAGE}: skipped, it only provides {DEFAULT_MODEL}"
         )
     directory = Path(model).expanduser()
-    if directory.is_dir():
+    if _is_dir(directory):
         resolved = directory.resolve()
         return ModelSource(str(resolved), resolved, "directory")
-    state = "exists but is not a directory" if directory.exists() else "does not exist"
+    state = "exists but is not a directory" if _exists(directory) else "does not exist"
     looked.append(f"local directory {directory.resolve()}: {state}")
     found = _from_hf_cache(model, hf_cache_dir, looked)
     if found is not None:
         return found
     raise ModelNotFound(_not_found_message(model, looked))
+
+
+def _is_dir(path: Path) -> bool:
+    """``path.is_dir()``, False for a name the file system refuses (too long, ...)."""
+    try:
+        return path.is_dir()
+    except OSError:
+        return False
+
+
+def _exists(path: Path) -> bool:
+    try:
+        return path.exists()
+    except OSError:
+        return False
 
 
 def _bundled_path(looked: list[str]) -> Path | None:
@@ -577,7 +592,7 @@ def pool_key(model: str) -> str:
     if model.lower() in _BUNDLED_ALIASES:
         return DEFAULT_MODEL
     path = Path(model).expanduser()
-    if path.is_dir():
+    if _is_dir(path):
         return str(path.resolve())
     return model if "/" in model else f"{_ST_ORG}/{model}"
 

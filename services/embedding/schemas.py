@@ -7,18 +7,53 @@ definition for the server, its clients and its tests.
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from collections.abc import Callable
+from typing import Annotated, Any, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
+from pydantic.json_schema import SkipJsonSchema
 
-from shared.messages import Neighbor
+from shared.messages import Float, Int, Neighbor, NotBool
 
 from .cache import Cache, ScoreKind
 from .calibration import Method
 from .index import IndexKind
 
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+# any finite number: vectors are scaled to unit length in float64 before they are
+# stored as float32, so neither 1e300 nor 1e-300 overflows or vanishes
+Number = Annotated[Float, Field(allow_inf_nan=False)]
+# a vector has a direction: at least one number is not zero
+Vector = Annotated[list[Number], Field(min_length=1, json_schema_extra={
+    "contains": {"not": {"const": 0}}})]
 Id = Annotated[str, Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.:\-]+$")]
+Text = Annotated[str, Field(min_length=1, pattern=r"\S")]  # not only whitespace
+T = TypeVar("T")
+NonEmpty = Annotated[list[T], Field(min_length=1)]
+
+
+def schema_extra(**extra: Any) -> Callable[[dict[str, Any]], None]:
+    """``json_schema_extra`` adding ``extra`` and dropping the ``"default": null`` of
+    properties that may be left out but are never null (see ``refuse_nulls``)."""
+    def edit(schema: dict[str, Any]) -> None:
+        for prop in schema.get("properties", {}).values():
+            if prop.get("default", ...) is None and "anyOf" not in prop:
+                del prop["default"]
+        schema.update(extra)
+    return edit
+
+
+def exactly_one_of(*keys: str) -> dict[str, Any]:
+    """JSON Schema for "exactly one of these keys" (the model validates the same)."""
+    return {"oneOf": [{"required": [key]} for key in keys]}
+
+
+def refuse_nulls(data: Any, *keys: str) -> Any:
+    """Optional keys whose schema has no null: an explicit null is refused, as the schema says."""
+    if isinstance(data, dict):
+        for key in keys:
+            if key in data and data[key] is None:
+                raise ValueError(f"'{key}' may be left out but not null")
+    return data
 
 
 class Body(BaseModel):
@@ -38,22 +73,34 @@ class Answer(BaseModel):
 
 class CreateCache(Body):
     model: str | None = Field(default=None, min_length=1, max_length=512)
-    dim: int | None = Field(default=None, ge=1, le=16384)
-    k: int | None = Field(default=None, ge=1, le=1000)
+    dim: Annotated[int, Field(ge=1, le=16384), NotBool] | None = None
+    k: Annotated[int, Field(ge=1, le=1000), NotBool] | None = None
     score: ScoreKind = "topk"
     index: IndexKind = "flat"
 
 
 class ItemIn(Body):
-    text: str = Field(min_length=1)
+    text: Text
     id: Id | None = None
     metadata: dict[str, Any] = Field(default_factory=dict)
 
 
 class AddExperiences(Body):
-    items: list[ItemIn] | None = None
-    vectors: list[list[FiniteFloat]] | None = None
-    ids: list[Id] | None = None
+    """Either ``items`` (texts, embedded by the cache's model) or ``vectors`` with
+    optional ``ids`` (one per vector, no repeats)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra=schema_extra(oneOf=[
+        {"required": ["items"], "not": {"required": ["ids"]}}, {"required": ["vectors"]}]))
+
+    items: NonEmpty[ItemIn] | SkipJsonSchema[None] = None
+    vectors: NonEmpty[Vector] | SkipJsonSchema[None] = None
+    ids: Annotated[list[Id], Field(min_length=1, json_schema_extra={"uniqueItems": True})] \
+        | SkipJsonSchema[None] = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_nulls(cls, data: Any) -> Any:
+        return refuse_nulls(data, "items", "vectors", "ids")
 
     @model_validator(mode="after")
     def _one_kind(self) -> AddExperiences:
@@ -65,21 +112,48 @@ class AddExperiences(Body):
 
 
 class LabelledIn(Body):
-    text: str = Field(min_length=1)
+    text: Text
     label: Literal["nominal", "anomaly"]
 
 
 class Calibrate(Body):
+    """``loo-quantile`` (eq. 2) needs nothing but the cache; ``conformal`` and
+    ``tpr-target`` need a labelled ``calibration`` set."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"if": {
+        "properties": {"method": {"enum": ["conformal", "tpr-target"]}}},
+        "then": {"required": ["calibration"], "properties": {
+            "calibration": {"type": "array", "minItems": 1}}}})
+
     method: Method
-    alpha: float | None = Field(default=None, gt=0.0, lt=1.0)
-    tpr: float | None = Field(default=None, gt=0.0, le=1.0)
-    calibration: list[LabelledIn] | None = None
+    alpha: Annotated[float, Field(gt=0.0, lt=1.0), NotBool] | None = None
+    tpr: Annotated[float, Field(gt=0.0, le=1.0), NotBool] | None = None
+    calibration: list[LabelledIn] | None = Field(default=None, validate_default=True)
+
+    @field_validator("calibration")
+    @classmethod
+    def _labelled_set(cls, value: list[LabelledIn] | None, info: ValidationInfo
+                      ) -> list[LabelledIn] | None:
+        method = info.data.get("method")
+        if method not in (None, "loo-quantile") and not value:
+            raise ValueError(f"{method} calibration needs a labelled calibration set")
+        return value
 
 
 class Score(Body):
-    texts: list[str] | None = None
-    vectors: list[list[FiniteFloat]] | None = None
-    k: int | None = Field(default=None, ge=1, le=1000)
+    """Either ``texts`` or ``vectors``; ``k`` defaults to the cache's."""
+
+    model_config = ConfigDict(extra="forbid",
+                              json_schema_extra=schema_extra(**exactly_one_of("texts", "vectors")))
+
+    texts: NonEmpty[Text] | SkipJsonSchema[None] = None
+    vectors: NonEmpty[Vector] | SkipJsonSchema[None] = None
+    k: Annotated[int, Field(ge=1, le=1000), NotBool] | None = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_nulls(cls, data: Any) -> Any:
+        return refuse_nulls(data, "texts", "vectors")
 
     @model_validator(mode="after")
     def _one_kind(self) -> Score:
@@ -95,13 +169,13 @@ class CalibrationInfo(Answer):
     """tau and how it was obtained (``services.embedding.calibration.Calibration``)."""
 
     method: Method
-    threshold: float  # tau: anomaly iff score > tau
-    alpha: float | None
-    n: int
-    tpr: float | None = None
-    fpr: float | None = None
-    auroc: float | None = None
-    target_tpr: float | None = None
+    threshold: Float  # tau: anomaly iff score > tau
+    alpha: Float | None
+    n: Int
+    tpr: Float | None = None
+    fpr: Float | None = None
+    auroc: Float | None = None
+    target_tpr: Float | None = None
 
 
 class CacheCalibration(CalibrationInfo):
@@ -112,15 +186,15 @@ class CacheInfo(Answer):
     """``GET /v1/caches/{name}``, and the answer of ``PUT``."""
 
     name: str
-    size: int
-    dim: int
+    size: Int
+    dim: Int
     model: str | None
-    k: int
+    k: Int
     score: ScoreKind
     index: IndexKind
-    threshold: float | None
+    threshold: Float | None
     calibration: CacheCalibration | None
-    version: int
+    version: Int
 
     @classmethod
     def of(cls, cache: Cache) -> CacheInfo:
@@ -141,8 +215,8 @@ class Added(Answer):
     """Experiences added (durable when this is answered)."""
 
     ids: list[str]
-    size: int
-    version: int
+    size: Int
+    version: Int
     job: str | None = None  # the job that did it (``GET /v1/jobs/{id}``)
 
 
@@ -154,26 +228,26 @@ class Experience(Answer):
 
 class Deleted(Answer):
     id: str
-    size: int
-    version: int
+    size: Int
+    version: Int
 
 
 class Roc(Answer):
-    fpr: list[float]
-    tpr: list[float]
-    thresholds: list[float | None]  # None for an infinite threshold
+    fpr: list[Float]
+    tpr: list[Float]
+    thresholds: list[Float | None]  # None for an infinite threshold
 
 
 class Calibrated(CalibrationInfo):
     """``POST /v1/caches/{name}/calibrate``: tau, stored with the cache."""
 
     cache: str
-    version: int
+    version: Int
     roc: Roc | None = None  # for a labelled calibration set with both classes
 
 
 class ScoreResult(Answer):
-    score: float  # s(e_t; D_e): higher is more anomalous
+    score: Float  # s(e_t; D_e): higher is more anomalous
     is_anomaly: bool | None  # None while the cache has no tau
     neighbors: list[Neighbor]
 
@@ -182,8 +256,8 @@ class Scores(Answer):
     """``POST /v1/caches/{name}/score``."""
 
     results: list[ScoreResult]
-    threshold: float | None
+    threshold: Float | None
     stale: bool
-    k: int
+    k: Int
     model: str | None
-    version: int
+    version: Int

@@ -34,7 +34,7 @@ import numpy as np
 from shared.jobs import Job, Jobs
 
 from .batching import MicroBatcher
-from .cache import Add, Cache, CacheConfig, Delete, Labelled, Op, Scored, ScoreKind
+from .cache import Add, Cache, CacheConfig, Delete, Labelled, Op, Scored, ScoreKind, unit_rows
 from .calibration import (
     Calibration,
     CalibrationError,
@@ -153,6 +153,16 @@ async def on_fresh_thread(fn: Callable[..., T], *args: Any) -> T:
 
     threading.Thread(target=run, name="aesop-oneoff", daemon=True).start()
     return await future
+
+
+def check_dims(config: CacheConfig, rows: Sequence[Sequence[float]],
+               where: Sequence[int] | None = None) -> None:
+    """Every row has the cache's pinned dimension (else Conflict naming the row)."""
+    for n, row in enumerate(rows):
+        if len(row) != config.dim:
+            i = n if where is None else where[n]
+            raise Conflict(f"vector has dimension {len(row)}; cache {config.name!r} is pinned "
+                           f"to dimension {config.dim}", field=f"vectors[{i}]")
 
 
 def roc_points(scores: np.ndarray, labels: np.ndarray, most: int = 201) -> dict[str, list[Any]]:
@@ -336,16 +346,14 @@ class CacheService:
                            ) -> np.ndarray:
         texts = [(i, it.text) for i, it in enumerate(items) if it.vector is None]
         vectors = np.zeros((len(items), config.dim), dtype=np.float32)
-        for i, it in enumerate(items):
-            if it.vector is not None:
-                if len(it.vector) != config.dim:
-                    raise InvalidInput(f"vector has dimension {len(it.vector)}, cache "
-                                       f"{config.name!r} has {config.dim}", field=f"vectors[{i}]")
-                vectors[i] = it.vector
+        given = [(i, it.vector) for i, it in enumerate(items) if it.vector is not None]
+        if given:
+            check_dims(config, [v for _, v in given], [i for i, _ in given])
+            vectors[[i for i, _ in given]] = unit_rows(np.array([v for _, v in given]))
         if texts:
             if config.model is None:
-                raise InvalidInput(f"cache {config.name!r} has no embedding model: send "
-                                   "vectors instead of texts", field="items")
+                raise Conflict(f"cache {config.name!r} has no embedding model: send "
+                               "vectors instead of texts", field="items")
             embedder = await self._embedder(config.model)
             progress = job.progress if job is not None else None
             embedded = await self._on_compute(
@@ -439,25 +447,25 @@ class CacheService:
         with entry.rw.read():
             cache.check_k(k)
         if cache.config.model is None:
-            raise InvalidInput(f"cache {name!r} has no embedding model: score vectors",
-                               field="texts")
+            raise Conflict(f"cache {name!r} has no embedding model: score vectors",
+                           field="texts")
         if self.settings.microbatch:
             results = await self._batcher(entry, k).submit(list(texts))
         else:
             results = await self._on_compute(self._embed_and_score, entry, k, list(texts))
         return self._batch(entry, results, k)
 
-    async def score_vectors(self, name: str, vectors: np.ndarray, k: int | None = None
-                            ) -> ScoreBatch:
+    async def score_vectors(self, name: str, rows: Sequence[Sequence[float]],
+                            k: int | None = None) -> ScoreBatch:
         entry = self.entry(name)
-        if vectors.shape[1] != entry.cache.config.dim:
-            raise InvalidInput(f"vectors must have dimension {entry.cache.config.dim}",
-                               field="vectors")
-        norms = np.linalg.norm(vectors, axis=1, keepdims=True)
-        if (norms < 1e-12).any():
-            raise InvalidInput("a zero vector has no direction", field="vectors")
+        check_dims(entry.cache.config, rows)
+        unit = unit_rows(np.array(rows))
+        zero = ~unit.any(axis=1)
+        if zero.any():
+            raise InvalidInput("a zero vector has no direction",
+                               field=f"vectors[{int(np.argmax(zero))}]")
         k = k or entry.cache.config.k
-        results = await self._score_vectors(entry, (vectors / norms).astype(np.float32), k)
+        results = await self._score_vectors(entry, unit, k)
         return self._batch(entry, results, k)
 
     def _batch(self, entry: Entry, results: list[Scored], k: int) -> ScoreBatch:
@@ -491,8 +499,8 @@ class CacheService:
 
     async def _embed_texts(self, config: CacheConfig, texts: Sequence[str]) -> np.ndarray:
         if config.model is None:
-            raise InvalidInput(f"cache {config.name!r} has no embedding model",
-                               field="calibration")
+            raise Conflict(f"cache {config.name!r} has no embedding model",
+                           field="calibration")
         embedder = await self._embedder(config.model)
         return await self._on_compute(embedder.embed, list(texts),
                                        batch_size=self.settings.embed_batch_size)

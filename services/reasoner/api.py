@@ -13,9 +13,12 @@ from fastapi import Depends, FastAPI, Request
 from prometheus_client import CollectorRegistry, Counter, Histogram
 
 from shared.http import (
+    REQUEST_ERRORS,
     ApiError,
     HttpMetrics,
     bearer_auth,
+    document_limits,
+    errors,
     install_error_handlers,
     ops_router,
     require_json,
@@ -27,7 +30,7 @@ from .backends import BackendConfig, ChatBackend, Completion, OpenAIChatBackend
 from .calibrating import CalibrationPlan, measure
 from .deciding import Decider, DeciderConfig, FallbackPolicy
 from .latency import LatencyError, min_samples
-from .prompts import build_messages, load_template
+from .prompts import PromptError, build_messages, load_template
 from .schemas import BackendInfo, Backends, CalibrateBody, ReasonBody
 from .settings import ReasonerSettings
 
@@ -146,15 +149,21 @@ def create_app(
                 await asyncio.gather(task, return_exceptions=True)
             await app.state.decider.aclose()
 
-    app = FastAPI(title="AESOP slow-reasoner service", version="1", lifespan=lifespan)
+    app = FastAPI(title="AESOP slow-reasoner service", version="1", lifespan=lifespan,
+                  responses=errors(*REQUEST_ERRORS))
     install_error_handlers(app)
+    document_limits(app, {
+        "ReasonBody": {"options": {"maxItems": settings.max_options},
+                       "deadline_s": {"maximum": settings.max_deadline_s}},
+        "CalibrateBody": {"options": {"maxItems": settings.max_options}},
+        "Observation": {"text": {"maxLength": settings.max_observation_chars}}})
     require_json(app)
     HttpMetrics(registry, "reasoner").install(app)
     app.include_router(ops_router(
         registry, lambda: None if state["started"] else {"reason": "starting"}))
     auth = [Depends(bearer_auth(settings.admin_token))]
 
-    @app.post("/v1/reason", dependencies=auth)
+    @app.post("/v1/reason", dependencies=auth, responses=errors(401))
     async def reason(body: ReasonBody, decider: DeciderDep) -> ReasonerDecision:
         check_request(body, settings)
         request = ReasonerRequest(
@@ -165,8 +174,10 @@ def create_app(
         metrics.observe(decision)
         return decision
 
-    @app.post("/v1/latency/calibrate", dependencies=auth, status_code=202)
+    @app.post("/v1/latency/calibrate", dependencies=auth, status_code=202,
+              responses=errors(401, 409))
     async def calibrate(body: CalibrateBody, decider: DeciderDep) -> JobAccepted:
+        check_request(body, settings)
         needed = min_samples(body.quantile, body.confidence)
         if body.n < needed:
             raise ApiError(422, "invalid", f"n = {body.n} is too small to bound the "
@@ -174,13 +185,17 @@ def create_app(
                            f"at least {needed} queries are needed", "n")
         names = [b.name for b in decider.backends]
         if body.backend not in names:
-            raise ApiError(422, "invalid", f"no {body.backend} backend is configured "
+            raise ApiError(409, "conflict", f"no {body.backend} backend is configured "
                            f"(configured: {', '.join(names)})", "backend")
         backend = decider.backends[names.index(body.backend)]
         scene = body.observation or DEFAULT_SCENE
-        messages = build_messages(load_template(settings.domain), task=scene.task or "its task",
-                                  observation=scene.text, options=body.options or DEFAULT_OPTIONS,
-                                  variant=settings.variant)
+        try:
+            messages = build_messages(load_template(settings.domain),
+                                      task=scene.task or "its task", observation=scene.text,
+                                      options=body.options or DEFAULT_OPTIONS,
+                                      variant=settings.variant)
+        except PromptError as exc:
+            raise ApiError(422, "invalid", str(exc), exc.field) from None
         plan = CalibrationPlan(n=body.n, warmup=body.warmup, quantile=body.quantile,
                                confidence=body.confidence, timeout_s=body.timeout_s)
         job = jobs.create("latency_calibration", body.backend, body.warmup + body.n)
@@ -189,7 +204,7 @@ def create_app(
         task.add_done_callback(tasks.discard)
         return JobAccepted.of(job)
 
-    @app.get("/v1/jobs/{job_id}")
+    @app.get("/v1/jobs/{job_id}", responses=errors(404))
     async def get_job(job_id: str) -> JobInfo:
         try:
             return JobInfo.of(jobs.get(job_id))
@@ -221,15 +236,17 @@ async def _calibrate(job: Job, backend: Any, messages: list[dict[str, str]],
         job.succeed(report.to_dict())
 
 
-def check_request(body: ReasonBody, settings: ReasonerSettings) -> None:
-    """The limits that depend on settings (the shape is checked by pydantic)."""
-    if len(body.observation.text) > settings.max_observation_chars:
+def check_request(body: ReasonBody | CalibrateBody, settings: ReasonerSettings) -> None:
+    """The limits that depend on settings (the shape is checked by pydantic; the same
+    limits are written into ``/openapi.json``)."""
+    if body.observation is not None and \
+            len(body.observation.text) > settings.max_observation_chars:
         raise ApiError(422, "invalid", f"observation has {len(body.observation.text)} "
                        f"characters; the limit is {settings.max_observation_chars}",
                        "observation.text")
-    if len(body.options) > settings.max_options:
+    if body.options is not None and len(body.options) > settings.max_options:
         raise ApiError(422, "invalid", f"{len(body.options)} options; the limit is "
                        f"{settings.max_options}", "options")
-    if body.deadline_s > settings.max_deadline_s:
+    if isinstance(body, ReasonBody) and body.deadline_s > settings.max_deadline_s:
         raise ApiError(422, "invalid", f"deadline_s {body.deadline_s} is over the limit "
                        f"{settings.max_deadline_s}", "deadline_s")

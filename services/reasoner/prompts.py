@@ -42,6 +42,15 @@ from shared.messages import Option
 
 Variant = Literal["cot", "single"]
 
+
+class PromptError(ValueError):
+    """A request the prompt cannot be built from; ``field`` names what (``options``,
+    ``observation``, ``options[2].label``) and the message starts with it."""
+
+    def __init__(self, field: str, problem: str) -> None:
+        super().__init__(f"{field}: {problem}")
+        self.field = field
+
 DOMAINS: tuple[str, ...] = ("quadrotor", "vtol", "warehouse", "vehicle")
 
 CONTINUE_LINE = "0: continue nominal operation"
@@ -149,7 +158,7 @@ def quote_observation(text: str) -> str:
     break, so no reader can find an unquoted line in the result.
     """
     if not isinstance(text, str) or not text.strip():
-        raise ValueError("observation: must be a non-empty string")
+        raise PromptError("observation", "must be a non-empty string")
     return "\n".join(QUOTE + line.rstrip() for line in text.strip().splitlines())
 
 
@@ -170,16 +179,16 @@ def render_options(options: Sequence[Option]) -> str:
 
 
 def validate_options(options: Sequence[Option]) -> tuple[Option, ...]:
-    """Options sorted by index; not empty, unique indices, else ValueError. Option 0
+    """Options sorted by index; not empty, unique indices, else PromptError. Option 0
     (continue) may be withheld, never anything else required."""
     if not options:
-        raise ValueError("options: must not be empty")
+        raise PromptError("options", "must not be empty")
     seen: set[int] = set()
     for opt in options:
         if not isinstance(opt, Option):
-            raise ValueError(f"options: expected Option, got {type(opt).__name__}")
+            raise PromptError("options", f"expected Option, got {type(opt).__name__}")
         if opt.index in seen:
-            raise ValueError(f"options: duplicate index {opt.index}")
+            raise PromptError("options", f"duplicate index {opt.index}")
         seen.add(opt.index)
     return tuple(sorted(options, key=lambda o: o.index))
 
@@ -187,7 +196,7 @@ def validate_options(options: Sequence[Option]) -> tuple[Option, ...]:
 def _single_line(text: str, field: str) -> str:
     collapsed = " ".join(text.split()) if isinstance(text, str) else ""
     if not collapsed:
-        raise ValueError(f"{field}: must be a non-empty string")
+        raise PromptError(field, "must be a non-empty string")
     return collapsed
 
 

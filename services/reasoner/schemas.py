@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from shared.messages import Observation, Option
+from shared.messages import Float, Int, Observation, Option
 
 
 class ReasonBody(BaseModel):
@@ -15,7 +15,7 @@ class ReasonBody(BaseModel):
     request_id: str | None = Field(default=None, min_length=1, max_length=128)
     observation: Observation
     options: list[Option] = Field(min_length=1)
-    deadline_s: float = Field(gt=0.0)
+    deadline_s: Float = Field(gt=0.0)
 
     @field_validator("options")
     @classmethod
@@ -29,11 +29,11 @@ class ReasonBody(BaseModel):
 class CalibrateBody(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    n: int = Field(default=100, ge=1, le=10_000)
-    warmup: int = Field(default=3, ge=0, le=100)
-    quantile: float = Field(default=0.95, gt=0.0, lt=1.0)
-    confidence: float = Field(default=0.95, gt=0.0, lt=1.0)
-    timeout_s: float = Field(default=30.0, gt=0.0, le=600.0)
+    n: Int = Field(default=100, ge=1, le=10_000)
+    warmup: Int = Field(default=3, ge=0, le=100)
+    quantile: Float = Field(default=0.95, gt=0.0, lt=1.0)
+    confidence: Float = Field(default=0.95, gt=0.0, lt=1.0)
+    timeout_s: Float = Field(default=30.0, gt=0.0, le=600.0)
     backend: Literal["primary", "hedge"] = "primary"
     observation: Observation | None = None  # default: the quadrotor red-box scene
     options: list[Option] | None = None
@@ -51,7 +51,7 @@ class Backends(BaseModel):
     """``GET /v1/backends``: the configured LLM backends and the decision policy."""
 
     backends: list[BackendInfo]
-    hedge_after_s: float | None
+    hedge_after_s: Float | None
     domain: str
     variant: Literal["cot", "single"]
     fallback: Literal["first_recovery", "rank"]

@@ -128,9 +128,13 @@ BAD_REQUESTS = [
      "items[0].text"),
     ("post", "/v1/caches/wm/experiences", {"items": []}, 422, "items"),
     ("post", "/v1/caches/wm/experiences", {"items": [{"text": "a"}] * 101}, 413, "items"),
-    ("post", "/v1/caches/wm/experiences", {"vectors": [[0.1] * 63]}, 422, "vectors[0]"),
+    # a vector of another dimension conflicts with the cache's pinned one
+    ("post", "/v1/caches/wm/experiences", {"vectors": [[0.1] * 63]}, 409, "vectors[0]"),
     ("post", "/v1/caches/wm/experiences", {"vectors": [[0.0] * 64]}, 422, "vectors[0]"),
-    ("post", "/v1/caches/wm/experiences", {"vectors": [[1.0] * 64], "items": []}, 422, "body"),
+    ("post", "/v1/caches/wm/experiences", {"vectors": [[1.0] * 64], "items": []}, 422, "items"),
+    ("post", "/v1/caches/wm/experiences", {"vectors": [[1.0] * 64], "items": [{"text": "a"}]},
+     422, "body"),
+    ("post", "/v1/caches/wm/experiences", {"vectors": [[1.0] * 64], "ids": None}, 422, "body"),
     ("post", "/v1/caches/wm/experiences", {"items": [{"text": "a", "id": "e0"},
                                                       {"text": "b", "id": "e0"}]}, 422,
      "items[1].id"),
@@ -145,9 +149,10 @@ BAD_REQUESTS = [
         {"text": "a package", "label": "nominal"}]}, 422, "calibration"),
     ("post", "/v1/caches/wm/calibrate", {"method": "conformal", "alpha": 0.99, "calibration": [
         {"text": f"a package {i}", "label": "nominal"} for i in range(10)]}, 422, "alpha"),
-    ("post", "/v1/caches/wm/score", {"texts": ["a"], "k": 50}, 422, "k"),
+    ("post", "/v1/caches/wm/score", {"texts": ["a"], "k": 50}, 409, "k"),  # the cache is smaller
     ("post", "/v1/caches/wm/score", {"texts": []}, 422, "texts"),
-    ("post", "/v1/caches/wm/score", {"vectors": [[1.0] * 3]}, 422, "vectors"),
+    ("post", "/v1/caches/wm/score", {"vectors": [[1.0] * 3]}, 409, "vectors[0]"),
+    ("post", "/v1/caches/wm/score", {"texts": ["a"], "vectors": [[1.0] * 64]}, 422, "body"),
     ("post", "/v1/caches/nope/score", {"texts": ["a"]}, 404, "name"),
     ("put", "/v1/caches/wm", {"k": 0}, 422, "k"),
     ("put", "/v1/caches/wm", {"score": "cosine"}, 422, "score"),
@@ -193,10 +198,15 @@ def test_a_body_that_is_not_json_is_refused_with_415(client: TestClient) -> None
     assert client.get("/v1/caches/wm").status_code == 404
 
 
-def test_overflowing_float32_is_refused(client: TestClient) -> None:
-    create(client)
-    r = client.post("/v1/caches/wm/experiences", headers=AUTH, json={"vectors": [[1e39] * 64]})
-    assert r.status_code == 422 and r.json()["error"]["field"] == "vectors[0]"
+def test_vectors_of_huge_or_tiny_numbers_keep_their_direction(client: TestClient) -> None:
+    """Scaled to unit length in float64 before float32: neither overflows nor vanishes."""
+    create(client, "raw", model=None, dim=2)
+    r = client.post("/v1/caches/raw/experiences", headers=AUTH,
+                    json={"vectors": [[1e300, 0.0], [0.0, 1e-300]], "ids": ["x", "y"]})
+    assert r.status_code == 200, r.text
+    r = client.post("/v1/caches/raw/score", json={"vectors": [[3e-310, 0.0]], "k": 1})
+    assert r.json()["results"][0]["neighbors"][0]["id"] == "x"
+    assert r.json()["results"][0]["score"] == pytest.approx(-1.0)
 
 
 def test_mutating_routes_need_the_token(client: TestClient) -> None:
@@ -213,7 +223,7 @@ def test_mutating_routes_need_the_token(client: TestClient) -> None:
         kwargs = {"json": body} if body is not None else {}
         assert getattr(client, method)(path, **kwargs).status_code == 401
     assert client.get("/v1/caches/wm").status_code == 200  # reads are open
-    assert client.post("/v1/caches/wm/score", json={"texts": ["a"]}).status_code == 422  # k
+    assert client.post("/v1/caches/wm/score", json={"texts": ["a"]}).status_code == 409  # k
 
 
 def test_state_survives_a_restart(tmp_path: Path) -> None:
@@ -289,5 +299,18 @@ def test_vectors_only_cache(client: TestClient) -> None:
     assert r.json()["results"][0]["score"] == pytest.approx(-1.0)
     assert r.json()["results"][0]["neighbors"][0]["id"] == "z"
     r = client.post("/v1/caches/raw/experiences", headers=AUTH, json={"items": [{"text": "a"}]})
-    assert r.status_code == 422 and r.json()["error"]["field"] == "items"
+    assert r.status_code == 409 and r.json()["error"]["field"] == "items"
     assert json.loads(client.get("/v1/caches/raw").text)["dim"] == 3
+
+
+@pytest.mark.parametrize("model", ["m" * 500, "no/such-model", "/no/such/directory"])
+def test_a_model_this_machine_lacks_is_422_naming_the_field(tmp_path: Path, model: str) -> None:
+    """The real model lookup (no test loader): a name too long for the file system is
+    looked up like any other (it was a 500: OSError, file name too long)."""
+    settings = EmbeddingSettings(data_dir=tmp_path, admin_token=TOKEN, zenoh_worker=False,
+                                 fsync=False)
+    with TestClient(create_app(settings, service=CacheService(settings))) as client:
+        r = client.put("/v1/caches/c", json={"model": model}, headers=AUTH)
+        assert r.status_code == 422, r.text
+        assert r.json()["error"]["field"] == "model"
+        assert client.get("/v1/caches").json()["caches"] == []

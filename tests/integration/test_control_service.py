@@ -236,7 +236,10 @@ def test_regions_routes(stack: Stack) -> None:
             "regions[0].name"),
            ({"regions": [{k: v for k, v in REGIONS[0].items() if k != "position_hi"}]},
             "regions[0].position_hi"),
-           ({"regions": [REGIONS[0], {**REGIONS[1], "kind": "orbit"}]}, "regions[1]"),
+           ({"regions": [REGIONS[0], {**REGIONS[1], "kind": "orbit"}]}, "regions[1].kind"),
+           ({"regions": [REGIONS[0], {**REGIONS[1], "index": 1}]}, "regions"),  # 1..d
+           ({"regions": [{**REGIONS[0], "position_lo": [1.0, 1.0]}]},
+            "regions[0].position_lo[2]"),
            ({"regions": []}, "regions"),
            ({"regions": [{**REGIONS[0], "position_hi": [1.3, 99.0, 1.2]}]}, "regions[0]"),
            ({}, "regions")]

@@ -142,7 +142,6 @@ def test_latency_calibration_job_recommends_k(client: TestClient) -> None:
 @pytest.mark.parametrize(("body", "field"), [
     ({"n": 20}, "n"),  # 59 are needed for a 0.95 bound at 0.95 confidence
     ({"n": 100, "quantile": 1.0}, "quantile"),
-    ({"n": 100, "backend": "hedge"}, "backend"),
 ])
 def test_latency_calibration_refuses_bad_plans(client: TestClient, body: dict,
                                                field: str) -> None:
@@ -151,3 +150,9 @@ def test_latency_calibration_refuses_bad_plans(client: TestClient, body: dict,
     if field == "n":
         assert "59" in r.json()["error"]["message"]
     assert client.get("/v1/jobs/nope").status_code == 404
+
+
+def test_latency_calibration_of_a_backend_not_configured_is_a_conflict(
+        client: TestClient) -> None:
+    r = client.post("/v1/latency/calibrate", headers=AUTH, json={"backend": "hedge"})
+    assert r.status_code == 409 and r.json()["error"]["field"] == "backend"

@@ -52,7 +52,7 @@ def test_planning_validates_without_changing_anything() -> None:
     before = (cache.version, cache.size, dict(cache.labels_by_id))
     bad = [
         (lambda: cache.plan_add(np.ones((1, 4), np.float32), ids=[None], texts=[None],
-                                metadata=[{}]), InvalidInput, "vectors"),
+                                metadata=[{}]), Conflict, "vectors"),
         (lambda: cache.plan_add(np.array([[np.nan, 0, 0]], np.float32), ids=[None],
                                 texts=[None], metadata=[{}]), InvalidInput, "vectors[0]"),
         (lambda: cache.plan_add(np.zeros((1, 3), np.float32), ids=[None], texts=[None],
@@ -60,8 +60,8 @@ def test_planning_validates_without_changing_anything() -> None:
         (lambda: cache.plan_add(np.ones((1, 3), np.float32), ids=["a"], texts=[None],
                                 metadata=[{}]), Conflict, "items[0].id"),
         (lambda: cache.plan_delete("nope"), NotFound, "id"),
-        (lambda: cache.score(unit([[1, 0, 0]]), k=2), InvalidInput, "k"),
-        (lambda: cache.loo_scores(k=1), InvalidInput, "k"),
+        (lambda: cache.score(unit([[1, 0, 0]]), k=2), Conflict, "k"),
+        (lambda: cache.loo_scores(k=1), Conflict, "k"),
     ]
     for call, exc, field in bad:
         with pytest.raises(exc) as info:

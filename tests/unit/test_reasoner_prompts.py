@@ -144,12 +144,20 @@ def test_continue_may_be_withheld():
             (Option(index=0, label="c"), Option(index=1, label="a"), Option(index=1, label="b")),
             "duplicate index 1",
         ),
-        ((Option(index=0, label="c"), Option(index=1, label="  ")), r"options\[1\].label"),
+        # the message refuses a blank label; built around it, the prompt still does
+        ((Option(index=0, label="c"), Option.model_construct(index=1, label="  ")),
+         r"options\[1\].label"),
     ],
 )
 def test_options_validation(options: tuple[Option, ...], field: str) -> None:
     with pytest.raises(ValueError, match=field):
         prompt(options=options)
+
+
+def test_an_option_label_is_one_non_blank_line_of_limited_length() -> None:
+    for label in ("", "  ", "x" * 201):
+        with pytest.raises(ValueError, match="label"):
+            Option(index=1, label=label)
 
 
 @pytest.mark.parametrize(("name", "value"), [("task", " \n"), ("observation", "  ")])
