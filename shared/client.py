@@ -8,11 +8,15 @@ connection failure stays an ``httpx.TransportError``.
 
 from __future__ import annotations
 
+import asyncio
+from collections.abc import Callable
 from types import TracebackType
 from typing import Any, TypeVar
 
 import httpx
 from pydantic import BaseModel
+
+from .jobs import JobInfo
 
 A = TypeVar("A", bound=BaseModel)
 
@@ -57,6 +61,31 @@ class ServiceClient:
 
 
 C = TypeVar("C", bound=ServiceClient)
+Progress = Callable[[JobInfo], None]
+
+
+class JobClient(ServiceClient):
+    """A client of a service with background jobs (``GET /v1/jobs/{id}``)."""
+
+    async def job(self, job_id: str) -> JobInfo:
+        return await self.request("GET", f"/v1/jobs/{job_id}", JobInfo)
+
+    async def wait_for_job(self, job_id: str, *, progress: Progress | None = None,
+                           poll_s: float = 0.5) -> JobInfo:
+        """Poll until the job ends; a failed job raises its error as :class:`ServiceError`."""
+        while True:
+            job = await self.job(job_id)
+            if progress is not None:
+                progress(job)
+            if job.state == "failed":
+                error = job.error
+                raise ServiceError("GET", f"/v1/jobs/{job_id}", 200,
+                                   error.code if error else "failed",
+                                   error.message if error else "the job failed",
+                                   error.field if error else None)
+            if job.state == "succeeded":
+                return job
+            await asyncio.sleep(poll_s)
 
 
 def error_of(method: str, path: str, response: httpx.Response) -> ServiceError:

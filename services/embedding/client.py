@@ -3,12 +3,11 @@ query a cache over HTTP (the demo, ``aesop bench bus``, the tests)."""
 
 from __future__ import annotations
 
-import asyncio
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any, Literal
 
-from shared.client import ServiceClient, ServiceError
-from shared.jobs import JobAccepted, JobInfo
+from shared.client import JobClient, Progress
+from shared.jobs import JobAccepted
 
 from .schemas import (
     Added,
@@ -21,10 +20,8 @@ from .schemas import (
     Scores,
 )
 
-Progress = Callable[[JobInfo], None]
 
-
-class EmbeddingClient(ServiceClient):
+class EmbeddingClient(JobClient):
     async def create_cache(self, name: str, *, model: str | None = None, k: int | None = None,
                            score: Literal["topk", "mahalanobis"] = "topk",
                            index: Literal["flat", "hnsw"] = "flat",
@@ -53,26 +50,6 @@ class EmbeddingClient(ServiceClient):
                                       json=body, params={"wait": "false"}, expect=(202,))
         job = await self.wait_for_job(accepted.job, progress=progress, poll_s=poll_s)
         return Added.model_validate(job.result)
-
-    async def job(self, job_id: str) -> JobInfo:
-        return await self.request("GET", f"/v1/jobs/{job_id}", JobInfo)
-
-    async def wait_for_job(self, job_id: str, *, progress: Progress | None = None,
-                           poll_s: float = 0.5) -> JobInfo:
-        """Poll until the job ends; a failed job raises its error as :class:`ServiceError`."""
-        while True:
-            job = await self.job(job_id)
-            if progress is not None:
-                progress(job)
-            if job.state == "failed":
-                error = job.error
-                raise ServiceError("GET", f"/v1/jobs/{job_id}", 200,
-                                   error.code if error else "failed",
-                                   error.message if error else "the job failed",
-                                   error.field if error else None)
-            if job.state == "succeeded":
-                return job
-            await asyncio.sleep(poll_s)
 
     async def calibrate(self, name: str, method: Method, *, alpha: float | None = None,
                         tpr: float | None = None,

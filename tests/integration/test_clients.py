@@ -1,5 +1,6 @@
 """The typed clients against real HTTP servers: the vector-cache app served by uvicorn on a
-real port (with the bag-of-words embedder), and `aesop serve control` as a process."""
+real port (with the bag-of-words embedder), and `aesop serve control`, `reasoner` (with
+`aesop serve fake-llm`) and `dashboard` as processes."""
 
 from __future__ import annotations
 
@@ -13,13 +14,16 @@ import pytest
 import uvicorn
 
 from services.control.client import ControlClient
+from services.dashboard.client import DashboardClient
 from services.embedding.api import create_app
 from services.embedding.client import EmbeddingClient
 from services.embedding.embedders import EmbedderPool
 from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingSettings
+from services.reasoner.client import ReasonerClient
 from shared.client import ServiceError
 from shared.jobs import JobInfo
+from shared.messages import Observation, Option
 from shared.process import ServiceProcess, free_port
 from tests.fakes.hash_embedder import HashEmbedder
 from tests.zenoh_peers import wait_until
@@ -115,3 +119,52 @@ async def _control_round_trip(url: str) -> None:
         with pytest.raises(ServiceError) as outside:
             await control.reset([1e6, 0.0, 1.0])
         assert outside.value.status == 422 and outside.value.field == "start"
+
+
+@pytest.mark.slow
+def test_the_reasoner_client_speaks_to_a_real_reasoner_and_llm(tmp_path: Path) -> None:
+    llm_port, port = free_port(), free_port()
+    env = {"AESOP_ADMIN_TOKEN": TOKEN, "AESOP_ZENOH_LISTEN": f"tcp/127.0.0.1:{free_port()}",
+           "AESOP_REASONER_LLM_BASE_URL": f"http://127.0.0.1:{llm_port}/v1",
+           "AESOP_REASONER_LLM_MODEL": "fake-fixed-0.05"}
+    with ServiceProcess(["serve", "fake-llm", "--port", str(llm_port)], port=llm_port,
+                        log_path=tmp_path / "llm.log"), \
+            ServiceProcess(["serve", "reasoner", "--port", str(port)], port=port, env=env,
+                           log_path=tmp_path / "reasoner.log") as proc:
+        asyncio.run(_reasoner_round_trip(proc.url))
+
+
+async def _reasoner_round_trip(url: str) -> None:
+    options = [Option(index=0, label="continue"), Option(index=1, label="land on the blue box")]
+    scene = Observation(seq=1, text="a red box is on fire below the drone", task="inspect")
+    async with ReasonerClient(url, token=TOKEN) as reasoner:
+        decision = await reasoner.reason(scene, options, deadline_s=5.0, request_id="r1")
+        assert decision.request_id == "r1" and decision.source == "llm"
+        assert decision.choice in (0, 1)
+        backends = await reasoner.backends()
+        assert [b.name for b in backends.backends] == ["primary"]
+        assert backends.backends[0].model == "fake-fixed-0.05"
+        accepted = await reasoner.calibrate_latency(n=60, warmup=1, timeout_s=5.0)
+        job = await reasoner.wait_for_job(accepted.job, poll_s=0.1)
+        assert job.result is not None and job.result["n"] == 60 and job.result["k_s"] > 0
+        with pytest.raises(ServiceError) as late:
+            await reasoner.reason(scene, options, deadline_s=1e9)
+        assert late.value.status == 422 and late.value.field == "deadline_s"
+        with pytest.raises(ServiceError) as hedge:
+            await reasoner.calibrate_latency(backend="hedge")
+        assert hedge.value.status == 409 and hedge.value.field == "backend"
+
+
+@pytest.mark.slow
+def test_the_dashboard_client_reads_a_real_dashboards_snapshot(tmp_path: Path) -> None:
+    port = free_port()
+    env = {"AESOP_ZENOH_LISTEN": f"tcp/127.0.0.1:{free_port()}", "AESOP_ROBOT": "drone7"}
+    with ServiceProcess(["serve", "dashboard", "--port", str(port)], port=port, env=env,
+                        log_path=tmp_path / "dashboard.log") as proc:
+        asyncio.run(_dashboard_round_trip(proc.url))
+
+
+async def _dashboard_round_trip(url: str) -> None:
+    async with DashboardClient(url) as dashboard:
+        snapshot = await dashboard.snapshot()
+    assert snapshot.robot == "drone7" and snapshot.state is None and snapshot.trail == []
