@@ -23,7 +23,6 @@ import weakref
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from types import TracebackType
 from typing import Generic, Protocol, Self, TypeVar
 
 import zenoh
@@ -210,6 +209,43 @@ class _LoopQueue(Generic[T]):
         self._ready.set()
 
 
+class _Declared:
+    """A declared Zenoh subscriber: ``close()`` (or ``with``) undeclares it, once."""
+
+    _undeclare: Callable[[], None]
+
+    def close(self) -> None:
+        self._undeclare()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class _Stream(_Declared, Generic[T]):
+    """A declared subscriber read as an async iterator from its drop-oldest queue."""
+
+    _queue: _LoopQueue[T]
+
+    @property
+    def dropped(self) -> int:
+        """Items discarded because the queue was full (drop-oldest)."""
+        return self._queue.dropped
+
+    def __aiter__(self) -> Self:
+        return self
+
+    async def __anext__(self) -> T:
+        return await self._queue.get()
+
+    def close(self) -> None:
+        """Undeclare the subscriber and end the iteration; idempotent."""
+        self._queue.close()
+        super().close()
+
+
 class _Decoding(Generic[M]):
     """What both kinds of subscriber say about their samples (via their ``_Decoder``)."""
 
@@ -229,7 +265,7 @@ class _Decoding(Generic[M]):
         return self._decoder.decode_errors
 
 
-class Subscription(_Decoding[M]):
+class Subscription(_Stream[Received[M]], _Decoding[M]):
     """Typed samples on ``key_expr`` as an async iterator of ``Received[M]``.
 
     Create it inside a running loop (``Bus.subscribe``). When the consumer is
@@ -245,11 +281,6 @@ class Subscription(_Decoding[M]):
         self._undeclare = _once(self._subscriber.undeclare)
 
     @property
-    def dropped(self) -> int:
-        """Messages discarded because the queue was full (drop-oldest)."""
-        return self._queue.dropped
-
-    @property
     def closed(self) -> bool:
         return self._queue.closed
 
@@ -261,23 +292,6 @@ class Subscription(_Decoding[M]):
         if got is not None:
             self._queue.put_threadsafe(got)
 
-    def __aiter__(self) -> Self:
-        return self
-
-    async def __anext__(self) -> Received[M]:
-        return await self._queue.get()
-
-    def close(self) -> None:
-        """Undeclare the subscriber and end the iteration; idempotent."""
-        self._queue.close()
-        self._undeclare()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     async def __aenter__(self) -> Self:
         return self
 
@@ -285,7 +299,7 @@ class Subscription(_Decoding[M]):
         self.close()
 
 
-class Latest(_Decoding[M]):
+class Latest(_Declared, _Decoding[M]):
     """The newest decoded message on ``key_expr``; thread-safe, for fixed-rate loops."""
 
     def __init__(self, session: zenoh.Session, key_expr: str, model: type[M]) -> None:
@@ -312,18 +326,8 @@ class Latest(_Decoding[M]):
             return None
         return (time.monotonic() if now is None else now) - got.received_at
 
-    def close(self) -> None:
-        """Undeclare the subscriber; idempotent. ``get()`` keeps the last value."""
-        self._undeclare()
 
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-
-class LivelinessWatch:
+class LivelinessWatch(_Stream[HealthChange]):
     """Async iterator of ``HealthChange``s of services under a health prefix."""
 
     def __init__(
@@ -335,30 +339,10 @@ class LivelinessWatch:
         )
         self._undeclare = _once(self._subscriber.undeclare)
 
-    @property
-    def dropped(self) -> int:
-        return self._queue.dropped
-
     def _on_sample(self, sample: zenoh.Sample) -> None:
         alive = sample.kind == zenoh.SampleKind.PUT
         service = _service_of(str(sample.key_expr))
         self._queue.put_threadsafe(HealthChange(service, alive, time.monotonic()))
-
-    def __aiter__(self) -> Self:
-        return self
-
-    async def __anext__(self) -> HealthChange:
-        return await self._queue.get()
-
-    def close(self) -> None:
-        self._queue.close()
-        self._undeclare()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def _service_of(key: str) -> str:
@@ -486,21 +470,11 @@ class Bus:
     def __enter__(self) -> Self:
         return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     async def __aenter__(self) -> Self:
         return self
 
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    async def __aexit__(self, *exc: object) -> None:
         self.close()

@@ -283,6 +283,32 @@ def require_json(app: FastAPI) -> None:
         return await call_next(request)
 
 
+def service_app(
+    title: str,
+    *,
+    service: str,
+    lifespan: Any,
+    registry: CollectorRegistry,
+    ready: Callable[[], dict[str, Any] | None],
+    refresh: Callable[[], None] | None = None,
+    limits: dict[str, dict[str, dict[str, Any]]] | None = None,
+    max_body_bytes: int | None = None,
+) -> FastAPI:
+    """A service's app with what every service has: documented request errors, the error
+    body, the settings ``limits`` in its schema, a body limit, JSON bodies only, request
+    metrics, and ``/healthz`` ``/readyz`` ``/metrics``."""
+    app = FastAPI(title=title, version="1", lifespan=lifespan, responses=errors(*REQUEST_ERRORS))
+    install_error_handlers(app)
+    if limits:
+        document_limits(app, limits)
+    if max_body_bytes is not None:
+        body_limit(app, max_body_bytes)
+    require_json(app)
+    HttpMetrics(registry, service).install(app)
+    app.include_router(ops_router(registry, ready, refresh))
+    return app
+
+
 def serve(app: FastAPI, settings: ServiceSettings) -> None:
     """Run ``app`` with uvicorn until SIGINT/SIGTERM."""
     import uvicorn

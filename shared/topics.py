@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 
 PREFIX = "aesop"
 ANY_ROBOT = "*"
@@ -16,36 +17,24 @@ def _check(robot: str) -> str:
     return robot
 
 
-def observation(robot: str) -> str:
-    return f"{PREFIX}/{_check(robot)}/observation"
+def _robot_key(suffix: str) -> Callable[[str], str]:
+    """The function giving ``aesop/<robot>/<suffix>`` for a robot id (checked)."""
+
+    def key(robot: str) -> str:
+        return f"{PREFIX}/{_check(robot)}/{suffix}"
+
+    key.__name__ = key.__qualname__ = suffix.replace("/", "_")
+    return key
 
 
-def anomaly(robot: str) -> str:
-    return f"{PREFIX}/{_check(robot)}/anomaly"
-
-
-def reasoner_request(robot: str) -> str:
-    return f"{PREFIX}/{_check(robot)}/reasoner/request"
-
-
-def reasoner_decision(robot: str) -> str:
-    return f"{PREFIX}/{_check(robot)}/reasoner/decision"
-
-
-def state(robot: str) -> str:
-    return f"{PREFIX}/{_check(robot)}/state"
-
-
-def plan(robot: str) -> str:
-    return f"{PREFIX}/{_check(robot)}/plan"
-
-
-def regions(robot: str) -> str:
-    return f"{PREFIX}/{_check(robot)}/regions"
-
-
-def event(robot: str) -> str:
-    return f"{PREFIX}/{_check(robot)}/event"
+observation = _robot_key("observation")
+anomaly = _robot_key("anomaly")
+reasoner_request = _robot_key("reasoner/request")
+reasoner_decision = _robot_key("reasoner/decision")
+state = _robot_key("state")
+plan = _robot_key("plan")
+regions = _robot_key("regions")
+event = _robot_key("event")
 
 
 def health(service: str) -> str:

@@ -16,17 +16,7 @@ from fastapi import Depends, FastAPI
 from prometheus_client import CollectorRegistry
 
 from shared.bus import Bus
-from shared.http import (
-    REQUEST_ERRORS,
-    ApiError,
-    HttpMetrics,
-    bearer_auth,
-    document_limits,
-    errors,
-    install_error_handlers,
-    ops_router,
-    require_json,
-)
+from shared.http import ApiError, bearer_auth, errors, service_app
 
 from .loop import ControlRuntime, NotNominal
 from .scenario import ScenarioError, regions_from_list
@@ -54,19 +44,15 @@ def create_app(settings: ControlSettings, runtime: ControlRuntime,
             await asyncio.to_thread(service.stop)
             service.close()
 
-    app = FastAPI(title="AESOP control-loop service", version="1", lifespan=lifespan,
-                  responses=errors(*REQUEST_ERRORS))
-    install_error_handlers(app)
     limits = runtime.scenario.limits  # the fence: positions outside it are refused
     inside = {"prefixItems": [{"type": "number", "minimum": lo, "maximum": hi}
                               for lo, hi in zip(limits.position_lo, limits.position_hi,
                                                 strict=True)]}
-    document_limits(app, {"ResetBody": {"start": inside},
-                          "RegionIn": {"position_lo": inside, "position_hi": inside}})
-    require_json(app)
-    HttpMetrics(registry, SERVICE).install(app)
-    app.include_router(ops_router(
-        registry, lambda: None if runtime.last is not None else {"reason": "no tick yet"}))
+    app = service_app(
+        "AESOP control-loop service", service=SERVICE, lifespan=lifespan, registry=registry,
+        ready=lambda: None if runtime.last is not None else {"reason": "no tick yet"},
+        limits={"ResetBody": {"start": inside},
+                "RegionIn": {"position_lo": inside, "position_hi": inside}})
     auth = [Depends(bearer_auth(settings.admin_token))]
 
     @app.get("/v1/state")

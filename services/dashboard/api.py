@@ -22,7 +22,7 @@ from fastapi.staticfiles import StaticFiles
 from prometheus_client import CollectorRegistry
 
 from shared.bus import Bus
-from shared.http import ApiError, HttpMetrics, install_error_handlers, ops_router
+from shared.http import ApiError, service_app
 
 from .hub import ClientQueue
 from .model import Snapshot
@@ -63,11 +63,10 @@ def create_app(settings: DashboardSettings, bus_factory: Callable[[], Bus]) -> F
         if "service" in holder:
             holder["service"].refresh_metrics()
 
-    app = FastAPI(title="AESOP dashboard", version="1", lifespan=lifespan)
-    install_error_handlers(app)
-    HttpMetrics(registry, SERVICE).install(app)
-    app.include_router(ops_router(
-        registry, lambda: None if "service" in holder else {"reason": "bus not open"}, refresh))
+    app = service_app(
+        "AESOP dashboard", service=SERVICE, lifespan=lifespan, registry=registry,
+        ready=lambda: None if "service" in holder else {"reason": "bus not open"},
+        refresh=refresh)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
 
     @app.get("/", include_in_schema=False)

@@ -12,19 +12,7 @@ from fastapi import Depends, FastAPI, Query, Request
 from fastapi.responses import JSONResponse
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
-from shared.http import (
-    REQUEST_ERRORS,
-    ApiError,
-    HttpMetrics,
-    bearer_auth,
-    body_limit,
-    document_limits,
-    error_response,
-    errors,
-    install_error_handlers,
-    ops_router,
-    require_json,
-)
+from shared.http import ApiError, bearer_auth, error_response, errors, service_app
 from shared.jobs import Job, JobAccepted, JobInfo, UnknownJob
 
 from .cache import Labelled
@@ -117,19 +105,23 @@ def create_app(
                 await asyncio.gather(task, return_exceptions=True)
             await svc.close()
 
-    app = FastAPI(title="AESOP vector-cache service", version="1", lifespan=lifespan,
-                  responses=errors(*REQUEST_ERRORS))
     metrics = Metrics(registry, service)  # type: ignore[arg-type]
-    install_error_handlers(app)
+
+    def ready() -> dict[str, Any] | None:
+        return None if state["started"] else {"reason": "starting"}
+
+    def refresh() -> None:
+        if state["started"]:
+            metrics.refresh()
+
     most, chars = {"maxItems": settings.max_items}, {"maxLength": settings.max_text_chars}
-    document_limits(app, {
-        "AddExperiences": {"items": most, "vectors": most, "ids": most},
-        "Score": {"texts": {**most, "items": chars}, "vectors": most},
-        "ItemIn": {"text": chars}, "LabelledIn": {"text": chars},
-        "Calibrate": {"calibration": most}})
-    body_limit(app, settings.max_body_bytes)
-    require_json(app)
-    HttpMetrics(registry, "embedding").install(app)
+    app = service_app(
+        "AESOP vector-cache service", service="embedding", lifespan=lifespan,
+        registry=registry, ready=ready, refresh=refresh, max_body_bytes=settings.max_body_bytes,
+        limits={"AddExperiences": {"items": most, "vectors": most, "ids": most},
+                "Score": {"texts": {**most, "items": chars}, "vectors": most},
+                "ItemIn": {"text": chars}, "LabelledIn": {"text": chars},
+                "Calibrate": {"calibration": most}})
 
     @app.exception_handler(DetectorError)
     async def domain_error(_: Request, exc: DetectorError) -> JSONResponse:
@@ -151,14 +143,6 @@ def create_app(
     async def embedder_error(_: Request, exc: EmbedderError) -> JSONResponse:
         return error_response(502, "embedder_error", str(exc))
 
-    def ready() -> dict[str, Any] | None:
-        return None if state["started"] else {"reason": "starting"}
-
-    def refresh() -> None:
-        if state["started"]:
-            metrics.refresh()
-
-    app.include_router(ops_router(registry, ready, refresh))
     auth = [Depends(bearer_auth(settings.admin_token))]
 
     @app.put("/v1/caches/{name}", dependencies=auth, response_model=CacheInfo,

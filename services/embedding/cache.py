@@ -132,7 +132,11 @@ def unit_rows(rows: np.ndarray) -> np.ndarray:
 
 class Cache:
     def __init__(self, config: CacheConfig, index: VectorIndex | None = None) -> None:
-        self.header = Header(config)
+        self.config = config
+        self.version = 0
+        self.next_label = 0  # labels are never reused, even after a delete
+        self.calibration: Calibration | None = None
+        self.stale = False  # the experiences or the score changed since the calibration
         self.index = index if index is not None else VectorIndex(config.dim, config.index)
         self.experiences: dict[int, Experience] = {}
         self.labels_by_id: dict[str, int] = {}
@@ -151,20 +155,15 @@ class Cache:
     # -- queries ---------------------------------------------------------------
 
     @property
-    def config(self) -> CacheConfig:
-        return self.header.config
+    def header(self) -> Header:
+        """What the store keeps of this cache apart from its experiences."""
+        return Header(self.config, self.version, self.next_label, self.calibration, self.stale)
 
-    @property
-    def version(self) -> int:
-        return self.header.version
-
-    @property
-    def calibration(self) -> Calibration | None:
-        return self.header.calibration
-
-    @property
-    def stale(self) -> bool:
-        return self.header.stale
+    @header.setter
+    def header(self, header: Header) -> None:
+        self.config, self.version, self.next_label = header.config, header.version, \
+            header.next_label
+        self.calibration, self.stale = header.calibration, header.stale
 
     @property
     def name(self) -> str:
@@ -268,7 +267,7 @@ class Cache:
                                field=f"{field_prefix}[{i}].id")
             seen.add(ident)
             resolved.append(ident)
-        first = self.header.next_label
+        first = self.next_label
         return Add(
             labels=tuple(range(first, first + n)),
             experiences=tuple(Experience(ident, text, dict(meta)) for ident, text, meta

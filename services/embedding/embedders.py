@@ -32,7 +32,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import TYPE_CHECKING, Any, Literal, Protocol, Self
+from typing import TYPE_CHECKING, Any, Literal, Self
 
 import httpx
 import numpy as np
@@ -60,33 +60,6 @@ class EmbedderError(Exception):
 
 class ModelNotFound(EmbedderError):
     """No local copy of the model; the message names every place looked in."""
-
-
-class Embedder(Protocol):
-    """What the vector cache needs from an embedding backend.
-
-    Not ``runtime_checkable`` on purpose: on Python 3.11 ``isinstance`` would read
-    ``dim``, which costs an HTTP request for an ``OpenAIEmbedder``.
-    """
-
-    @property
-    def name(self) -> str:
-        """The model id a cache pins, e.g. ``sentence-transformers/all-MiniLM-L6-v2``."""
-        ...
-
-    @property
-    def dim(self) -> int: ...
-
-    def embed(
-        self,
-        texts: Sequence[str],
-        *,
-        batch_size: int = 64,
-        progress: ProgressFn | None = None,
-        show_progress_bar: bool = False,
-    ) -> np.ndarray:
-        """``(len(texts), dim)`` float32, C-contiguous, rows of unit L2 norm."""
-        ...
 
 
 def normalize(v: np.ndarray) -> np.ndarray:
@@ -171,6 +144,56 @@ def _stack(parts: list[np.ndarray], dim: int, name: str) -> np.ndarray:
         return normalize(np.concatenate(parts, axis=0))
     except EmbedderError as exc:
         raise EmbedderError(f"{name}: {exc}") from None
+
+
+class Closing:
+    """``with x:`` closes ``x`` at the end."""
+
+    def close(self) -> None:
+        """Release what is held (nothing by default)."""
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+class Embedder(Closing):
+    """What the vector cache needs from an embedding backend. A backend gives its
+    ``name`` and ``dim`` and encodes one batch (``_encode``); ``embed`` batches, reports
+    progress and L2-normalises. (A base class, not a runtime-checkable Protocol: on
+    Python 3.11 ``isinstance`` would read ``dim``, an HTTP request for ``OpenAIEmbedder``.)"""
+
+    @property
+    def name(self) -> str:
+        """The model id a cache pins, e.g. ``sentence-transformers/all-MiniLM-L6-v2``."""
+        raise NotImplementedError
+
+    @property
+    def dim(self) -> int:
+        raise NotImplementedError
+
+    def _encode(self, batch: list[str]) -> np.ndarray:
+        raise NotImplementedError
+
+    def embed(
+        self,
+        texts: Sequence[str],
+        *,
+        batch_size: int = 64,
+        progress: ProgressFn | None = None,
+        show_progress_bar: bool = False,
+    ) -> np.ndarray:
+        """``(len(texts), dim)`` float32, C-contiguous, rows of unit L2 norm."""
+        parts = _embed_in_batches(
+            texts, self._encode, batch_size=batch_size, progress=progress,
+            show_progress_bar=show_progress_bar, desc=self.name,
+        )
+        return _stack(parts, self.dim if not parts else parts[0].shape[1], self.name)
 
 
 # --- sentence-transformers ---------------------------------------------------
@@ -289,7 +312,7 @@ def _not_found_message(model: str, looked: list[str]) -> str:
     return "\n".join(lines)
 
 
-class SentenceTransformerEmbedder:
+class SentenceTransformerEmbedder(Embedder):
     """A sentence-transformers model on CPU (or ``device``), loaded from local files only.
 
     ``embed`` may be called from several threads at once: calls into the model
@@ -316,20 +339,6 @@ class SentenceTransformerEmbedder:
     def source(self) -> ModelSource:
         return self._source
 
-    def embed(
-        self,
-        texts: Sequence[str],
-        *,
-        batch_size: int = 64,
-        progress: ProgressFn | None = None,
-        show_progress_bar: bool = False,
-    ) -> np.ndarray:
-        parts = _embed_in_batches(
-            texts, self._encode, batch_size=batch_size, progress=progress,
-            show_progress_bar=show_progress_bar, desc=self.name,
-        )
-        return _stack(parts, self._dim, self.name)
-
     def _encode(self, batch: list[str]) -> np.ndarray:
         import torch
 
@@ -349,9 +358,6 @@ class SentenceTransformerEmbedder:
                 f"expected ({len(batch)}, {self._dim})"
             )
         return vectors
-
-    def close(self) -> None:
-        """Nothing to release; present so every embedder can be closed alike."""
 
     def __repr__(self) -> str:
         return f"SentenceTransformerEmbedder(name={self.name!r}, dim={self._dim})"
@@ -383,7 +389,7 @@ def _model_dim(model: SentenceTransformer, path: Path) -> int:
 # --- OpenAI-compatible HTTP API ----------------------------------------------
 
 
-class OpenAIEmbedder:
+class OpenAIEmbedder(Embedder):
     """Embeddings from an OpenAI-compatible ``POST {base_url}/embeddings``.
 
     One request per batch, no hidden retries. ``dim`` is the given one, else
@@ -427,20 +433,6 @@ class OpenAIEmbedder:
             if self._dim is None:
                 self._dim = int(self._request([_PROBE_TEXT]).shape[1])
             return self._dim
-
-    def embed(
-        self,
-        texts: Sequence[str],
-        *,
-        batch_size: int = 64,
-        progress: ProgressFn | None = None,
-        show_progress_bar: bool = False,
-    ) -> np.ndarray:
-        parts = _embed_in_batches(
-            texts, self._encode, batch_size=batch_size, progress=progress,
-            show_progress_bar=show_progress_bar, desc=self.name,
-        )
-        return _stack(parts, self.dim if not parts else parts[0].shape[1], self.name)
 
     def _encode(self, batch: list[str]) -> np.ndarray:
         vectors = self._request(batch)
@@ -496,15 +488,6 @@ class OpenAIEmbedder:
         """Closes the HTTP client if this embedder created it."""
         if self._owns_client:
             self._client.close()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         return f"OpenAIEmbedder(name={self.name!r}, url={self._url!r}, dim={self._dim})"
@@ -603,7 +586,7 @@ class _Slot:
         self.embedder: Embedder | None = None
 
 
-class EmbedderPool:
+class EmbedderPool(Closing):
     """Loads each model once and shares it between callers; thread-safe.
 
     Two threads asking for the same model wait for one load; different models
@@ -647,25 +630,15 @@ class EmbedderPool:
         return [s.embedder.name for s in slots if s.embedder is not None]
 
     def close(self) -> None:
-        """Closes every embedder that has a ``close`` (HTTP clients); idempotent."""
+        """Closes every embedder (HTTP clients let go of their connections); idempotent."""
         with self._lock:
             self._closed = True
             slots, self._slots = list(self._slots.values()), {}
         for slot in slots:
             with slot.lock:
-                close = getattr(slot.embedder, "close", None)
-                slot.embedder = None
-            if callable(close):
-                close()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
+                embedder, slot.embedder = slot.embedder, None
+            if embedder is not None:
+                embedder.close()
 
 
 __all__ = [

@@ -12,17 +12,7 @@ from typing import Annotated, Any
 from fastapi import Depends, FastAPI, Request
 from prometheus_client import CollectorRegistry, Counter, Histogram
 
-from shared.http import (
-    REQUEST_ERRORS,
-    ApiError,
-    HttpMetrics,
-    bearer_auth,
-    document_limits,
-    errors,
-    install_error_handlers,
-    ops_router,
-    require_json,
-)
+from shared.http import ApiError, bearer_auth, errors, service_app
 from shared.jobs import Job, JobAccepted, JobInfo, Jobs, UnknownJob
 from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
 
@@ -149,18 +139,13 @@ def create_app(
                 await asyncio.gather(task, return_exceptions=True)
             await app.state.decider.aclose()
 
-    app = FastAPI(title="AESOP slow-reasoner service", version="1", lifespan=lifespan,
-                  responses=errors(*REQUEST_ERRORS))
-    install_error_handlers(app)
-    document_limits(app, {
-        "ReasonBody": {"options": {"maxItems": settings.max_options},
-                       "deadline_s": {"maximum": settings.max_deadline_s}},
-        "CalibrateBody": {"options": {"maxItems": settings.max_options}},
-        "Observation": {"text": {"maxLength": settings.max_observation_chars}}})
-    require_json(app)
-    HttpMetrics(registry, "reasoner").install(app)
-    app.include_router(ops_router(
-        registry, lambda: None if state["started"] else {"reason": "starting"}))
+    app = service_app(
+        "AESOP slow-reasoner service", service="reasoner", lifespan=lifespan, registry=registry,
+        ready=lambda: None if state["started"] else {"reason": "starting"},
+        limits={"ReasonBody": {"options": {"maxItems": settings.max_options},
+                               "deadline_s": {"maximum": settings.max_deadline_s}},
+                "CalibrateBody": {"options": {"maxItems": settings.max_options}},
+                "Observation": {"text": {"maxLength": settings.max_observation_chars}}})
     auth = [Depends(bearer_auth(settings.admin_token))]
 
     @app.post("/v1/reason", dependencies=auth, responses=errors(401))

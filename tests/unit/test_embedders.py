@@ -7,7 +7,7 @@ import socket
 import subprocess
 import sys
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -22,7 +22,6 @@ from services.embedding.embedders import (
     EmbedderPool,
     ModelNotFound,
     OpenAIEmbedder,
-    ProgressFn,
     load_embedder,
     normalize,
     parse_embeddings_response,
@@ -191,7 +190,7 @@ def test_pool_keys_join_spellings_of_one_model(tmp_path: Path) -> None:
 # --- the pool, with a fake loader ------------------------------------------------
 
 
-class CountingEmbedder:
+class CountingEmbedder(Embedder):
     """A null embedder: constant unit vectors; records whether it was closed."""
 
     def __init__(self, name: str) -> None:
@@ -206,9 +205,8 @@ class CountingEmbedder:
     def dim(self) -> int:
         return 2
 
-    def embed(self, texts: Sequence[str], *, batch_size: int = 64,
-              progress: ProgressFn | None = None, show_progress_bar: bool = False) -> np.ndarray:
-        return np.tile(np.float32([1.0, 0.0]), (len(texts), 1))
+    def _encode(self, batch: list[str]) -> np.ndarray:
+        return np.tile(np.float32([1.0, 0.0]), (len(batch), 1))
 
     def close(self) -> None:
         self.closed = True
