@@ -2,7 +2,7 @@
 
 - errors: JSON ``{"error": {"code", "message", "field"}}`` (``ErrorBody``) with a 4xx/5xx
   status, documented in ``/openapi.json`` with ``errors(...)``;
-- ``bearer_auth``: mutating routes need ``Authorization: Bearer $AESOP_ADMIN_TOKEN``;
+- ``TOKEN`` (``require_token``): mutating routes need ``Authorization: Bearer $AESOP_ADMIN_TOKEN``;
 - ``ops_router``: ``/healthz``, ``/readyz`` and ``/metrics`` (Prometheus, per-app registry);
 - ``serve``: run an app with uvicorn, refusing off-loopback exposure without a token.
 """
@@ -12,7 +12,7 @@ from __future__ import annotations
 import hmac
 import time
 from collections.abc import Awaitable, Callable
-from typing import Any
+from typing import Annotated, Any
 
 from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -182,20 +182,26 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(HTTPException, _http_error)
 
 
-def bearer_auth(token: SecretStr | None) -> Callable[..., Awaitable[None]]:
-    """A dependency for mutating routes. Without a configured token the service only
+_BEARER = HTTPBearer(auto_error=False)
+
+
+async def require_token(
+    request: Request,
+    creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_BEARER)],
+) -> None:
+    """The dependency of mutating routes: ``Authorization: Bearer <the app's token>``
+    (``service_app(admin_token=...)``). Without a configured token the service only
     listens on loopback (``ServiceSettings.check_exposure``) and the check is open."""
-    scheme = HTTPBearer(auto_error=False)
+    token: SecretStr | None = request.app.state.admin_token
+    if token is None:
+        return
+    given = b"" if creds is None else creds.credentials.encode()
+    if not hmac.compare_digest(given, token.get_secret_value().encode()):
+        raise ApiError(401, "unauthorized", "a valid 'Authorization: Bearer <token>' "
+                       "header is required", "Authorization")
 
-    async def check(creds: HTTPAuthorizationCredentials | None = Depends(scheme)) -> None:
-        if token is None:
-            return
-        given = b"" if creds is None else creds.credentials.encode()
-        if not hmac.compare_digest(given, token.get_secret_value().encode()):
-            raise ApiError(401, "unauthorized", "a valid 'Authorization: Bearer <token>' "
-                           "header is required", "Authorization")
 
-    return check
+TOKEN = Depends(require_token)  # dependencies=[TOKEN] on a route that needs the token
 
 
 class HttpMetrics:
@@ -291,13 +297,16 @@ def service_app(
     registry: CollectorRegistry,
     ready: Callable[[], dict[str, Any] | None],
     refresh: Callable[[], None] | None = None,
+    admin_token: SecretStr | None = None,
     limits: dict[str, dict[str, dict[str, Any]]] | None = None,
     max_body_bytes: int | None = None,
 ) -> FastAPI:
     """A service's app with what every service has: documented request errors, the error
     body, the settings ``limits`` in its schema, a body limit, JSON bodies only, request
-    metrics, and ``/healthz`` ``/readyz`` ``/metrics``."""
+    metrics, and ``/healthz`` ``/readyz`` ``/metrics``; ``admin_token`` is what
+    ``require_token`` checks."""
     app = FastAPI(title=title, version="1", lifespan=lifespan, responses=errors(*REQUEST_ERRORS))
+    app.state.admin_token = admin_token
     install_error_handlers(app)
     if limits:
         document_limits(app, limits)

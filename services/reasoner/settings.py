@@ -9,6 +9,8 @@ from pydantic_settings import SettingsConfigDict
 
 from shared.settings import ServiceSettings
 
+from .backends import BackendConfig
+
 
 class ReasonerSettings(ServiceSettings):
     model_config = SettingsConfigDict(env_prefix="AESOP_REASONER_", extra="ignore",
@@ -42,4 +44,17 @@ class ReasonerSettings(ServiceSettings):
     def _empty_is_none(cls, v: object) -> object:
         return None if v == "" else v
 
-
+    def backends(self) -> list[BackendConfig]:
+        """The configured LLM backends: the primary, then the hedge if there is one."""
+        key = self.llm_api_key.get_secret_value() if self.llm_api_key else None
+        configs = [BackendConfig(
+            name="primary", base_url=self.llm_base_url, model=self.llm_model, api_key=key,
+            max_tokens=self.llm_max_tokens, temperature=self.llm_temperature,
+            stream=self.llm_stream, json_schema=self.llm_json_schema)]
+        if self.hedge_model:
+            configs.append(BackendConfig(
+                name="hedge", base_url=self.hedge_base_url or self.llm_base_url,
+                model=self.hedge_model, api_key=key, max_tokens=self.llm_max_tokens,
+                temperature=self.llm_temperature, stream=self.llm_stream,
+                json_schema=self.llm_json_schema))
+        return configs

@@ -71,6 +71,19 @@ def test_quick_loo_and_search_print_one_json_object() -> None:
     assert loo["verdict"] in ("pass", "FAIL")
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_quick_restart_loads_the_saved_hnsw_graph() -> None:
+    proc = aesop("bench", "detector", "--quick", "--json", "--only", "restart", timeout=540)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    restart = json.loads(proc.stdout)["restart"]
+    assert "error" not in restart, restart
+    assert restart["n"] == QUICK.restart_cache and restart["graph_loaded"] is True
+    for key in ("commit_s", "graph_build_s", "index_save_s", "restart_with_index_s",
+                "restart_without_index_s", "database_mb", "ratio"):
+        assert positive(restart[key]), key
+
+
 def test_unknown_part_is_a_user_error() -> None:
     proc = aesop("bench", "detector", "--json", "--only", "nope", timeout=120)
     assert proc.returncode == 2

@@ -1,0 +1,89 @@
+"""The control-loop service's routes (shapes in docs/architecture.md): ``GET /v1/state``,
+``GET``/``POST /v1/regions``, ``POST /v1/reset``. Each takes what it needs as
+``Annotated`` dependencies from ``app.state`` (set by :func:`.api.create_app`): the
+runtime, the settings, the running service; ``TOKEN`` guards the mutating ones."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Request
+
+from shared.http import TOKEN, ApiError, errors
+
+from .loop import ControlRuntime, NotNominal
+from .scenario import ScenarioError, regions_from_list
+from .schemas import RegionsAnswer, RegionsBody, ResetAnswer, ResetBody, State
+from .service import ControlService, regions_message
+from .settings import ControlSettings
+
+
+def _runtime(request: Request) -> ControlRuntime:
+    return request.app.state.runtime
+
+
+def _settings(request: Request) -> ControlSettings:
+    return request.app.state.settings
+
+
+def _service(request: Request) -> ControlService | None:
+    return getattr(request.app.state, "service", None)  # None outside the lifespan
+
+
+RuntimeDep = Annotated[ControlRuntime, Depends(_runtime)]
+SettingsDep = Annotated[ControlSettings, Depends(_settings)]
+ServiceDep = Annotated[ControlService | None, Depends(_service)]
+
+router = APIRouter()
+
+
+@router.get("/v1/state")
+async def state(runtime: RuntimeDep, settings: SettingsDep, service: ServiceDep) -> State:
+    last = runtime.last
+    plan = None if last is None else last.output.plan
+    return State(
+        robot=settings.robot, state=None if last is None else last.state,
+        mode=runtime.mode, status=None if last is None else last.output.status.value,
+        method=settings.method, scenario=runtime.scenario.name,
+        verdict_stale=None if last is None else last.stale,
+        pending_request=runtime.pending,
+        loop={
+            "rate_hz": 1.0 / runtime.period_s,
+            **(service.scheduler.stats.summary() if service else {}),
+            "last_step_ms": None if last is None else round(last.step_ms, 3),
+            "last_solve_ms": None if plan is None else round(float(plan.solve_ms), 3),
+        })
+
+
+@router.get("/v1/regions")
+async def get_regions(runtime: RuntimeDep, settings: SettingsDep) -> RegionsAnswer:
+    return regions_answer(runtime, settings)
+
+
+@router.post("/v1/regions", dependencies=[TOKEN], responses=errors(401, 409))
+async def post_regions(body: RegionsBody, runtime: RuntimeDep, settings: SettingsDep
+                       ) -> RegionsAnswer:
+    try:
+        regions = regions_from_list([r.model_dump(exclude_none=True) for r in body.regions])
+        await runtime.replace_regions(regions)
+    except ScenarioError as exc:
+        raise ApiError(422, "invalid", str(exc), exc.field) from None
+    except NotNominal as exc:
+        raise ApiError(409, "conflict", f"the flight is in mode {exc}: recovery regions "
+                       "change only while nominal or waiting (POST /v1/reset first)",
+                       "mode") from None
+    return regions_answer(runtime, settings)
+
+
+@router.post("/v1/reset", dependencies=[TOKEN], responses=errors(401))
+async def reset(runtime: RuntimeDep, body: ResetBody | None = None) -> ResetAnswer:
+    try:
+        x0 = await runtime.reset(None if body is None else body.start)
+    except ValueError as exc:
+        raise ApiError(422, "invalid", str(exc), "start") from None
+    return ResetAnswer(start=(float(x0[0]), float(x0[1]), float(x0[2])), mode=runtime.mode)
+
+
+def regions_answer(runtime: ControlRuntime, settings: ControlSettings) -> RegionsAnswer:
+    message = regions_message(runtime.scenario, settings.robot)
+    return RegionsAnswer(regions=list(message.regions), goal=message.goal, mode=runtime.mode)

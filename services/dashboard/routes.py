@@ -1,0 +1,91 @@
+"""The dashboard's routes, all read-only: ``GET /`` (the page), ``GET /ws`` (the live
+stream), ``GET /v1/snapshot`` (the aggregated state).
+
+On ``/ws`` a page first receives ``{"kind": "snapshot", "message": <snapshot>}``,
+then one JSON item per update (``FlightModel.apply``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+from importlib.resources import files
+from pathlib import Path
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Request, WebSocket, WebSocketDisconnect
+from fastapi.responses import FileResponse
+
+from shared.http import ApiError, errors
+
+from .hub import ClientQueue
+from .model import Snapshot
+from .service import DashboardService
+
+STATIC = Path(str(files("services.dashboard") / "static"))
+
+
+def _running(request: Request) -> DashboardService:
+    service: DashboardService | None = request.app.state.service
+    if service is None:
+        raise ApiError(503, "not_ready", "the dashboard is not following the bus")
+    return service
+
+
+RunningDep = Annotated[DashboardService, Depends(_running)]
+
+router = APIRouter()
+
+
+@router.get("/", include_in_schema=False)
+async def page() -> FileResponse:
+    return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
+
+
+@router.get("/v1/snapshot", responses=errors(503))
+async def snapshot(service: RunningDep) -> Snapshot:
+    return Snapshot.model_validate(service.model.snapshot())
+
+
+@router.websocket("/ws")
+async def stream(websocket: WebSocket) -> None:
+    service: DashboardService | None = websocket.app.state.service
+    if service is None:
+        await websocket.close(code=1013)  # try again later
+        return
+    await websocket.accept()
+    client = service.hub.connect()  # before the snapshot, so nothing falls between
+    try:
+        await websocket.send_text(json.dumps(
+            {"kind": "snapshot", "message": service.model.snapshot()}, allow_nan=False))
+        await _pump(websocket, client)
+    except (WebSocketDisconnect, RuntimeError, OSError):
+        pass  # the page went away mid-send
+    finally:
+        service.hub.disconnect(client)
+
+
+async def _pump(websocket: WebSocket, client: ClientQueue) -> None:
+    """Send queued items until the page leaves or the service stops."""
+    sender = asyncio.create_task(_send(websocket, client))
+    receiver = asyncio.create_task(_until_disconnect(websocket))
+    done, pending = await asyncio.wait({sender, receiver},
+                                       return_when=asyncio.FIRST_COMPLETED)
+    for task in pending:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError, WebSocketDisconnect, RuntimeError):
+            await task
+    for task in done:
+        task.result()
+
+
+async def _send(websocket: WebSocket, client: ClientQueue) -> None:
+    while (item := await client.get()) is not None:
+        await websocket.send_text(item)
+    await websocket.close(code=1001)  # going away: the service is stopping
+
+
+async def _until_disconnect(websocket: WebSocket) -> None:
+    while (await websocket.receive())["type"] != "websocket.disconnect":
+        pass

@@ -1,0 +1,27 @@
+"""The vector-cache service's own Prometheus metrics (beside the HTTP ones)."""
+
+from __future__ import annotations
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+
+from .service import CacheService
+
+
+class Metrics:
+    def __init__(self, registry: CollectorRegistry, service: CacheService) -> None:
+        self.score_seconds = Histogram(
+            "aesop_embedding_score_seconds", "Score request latency (embed + search + threshold)",
+            registry=registry, buckets=(.002, .005, .01, .015, .02, .03, .05, .1, .25, .5, 1, 5))
+        self.batch_size = Histogram(
+            "aesop_embedding_batch_size", "Texts per micro-batched embedding call",
+            registry=registry, buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256))
+        self.verdicts = Counter("aesop_embedding_verdicts", "Anomaly verdicts published",
+                                ["anomaly"], registry=registry)
+        size = Gauge("aesop_embedding_cache_size", "Experiences per cache", ["cache"],
+                     registry=registry)
+        self.size = size
+        self.service = service
+
+    def refresh(self) -> None:
+        for name in self.service.names():
+            self.size.labels(name).set(self.service.entry(name).cache.size)

@@ -1,0 +1,192 @@
+"""The vector-cache service's routes (shapes in docs/architecture.md). Each takes what it
+needs as ``Annotated`` dependencies: the service, the settings, the metrics (all on
+``app.state``, set by :func:`.api.create_app`); ``TOKEN`` guards the mutating ones."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Awaitable, Sequence
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Query, Request
+from fastapi.responses import JSONResponse
+
+from shared.http import TOKEN, ApiError, errors
+from shared.jobs import Job, JobAccepted, JobInfo, UnknownJob
+
+from .cache import Labelled
+from .errors import DetectorError, InvalidInput, NotFound
+from .metrics import Metrics
+from .schemas import (
+    Added,
+    AddExperiences,
+    CacheInfo,
+    CacheList,
+    Calibrate,
+    Calibrated,
+    CreateCache,
+    Deleted,
+    Experience,
+    Score,
+    ScoreResult,
+    Scores,
+)
+from .service import CacheService, Item, ScoreBatch
+from .settings import EmbeddingSettings
+
+
+def _service(request: Request) -> CacheService:
+    return request.app.state.service
+
+
+def _settings(request: Request) -> EmbeddingSettings:
+    return request.app.state.settings
+
+
+def _metrics(request: Request) -> Metrics:
+    return request.app.state.metrics
+
+
+ServiceDep = Annotated[CacheService, Depends(_service)]
+SettingsDep = Annotated[EmbeddingSettings, Depends(_settings)]
+MetricsDep = Annotated[Metrics, Depends(_metrics)]
+
+router = APIRouter()
+
+
+@router.put("/v1/caches/{name}", dependencies=[TOKEN], response_model=CacheInfo,
+            responses={201: {"model": CacheInfo, "description": "created"},
+                       **errors(401, 409, 502, 503, 507)})
+async def put_cache(name: str, body: CreateCache, service: ServiceDep,
+                    settings: SettingsDep) -> JSONResponse:
+    model = body.model if "model" in body.model_fields_set else settings.model
+    desc, created = await service.create(name, model=model, dim=body.dim, k=body.k,
+                                         score=body.score, index=body.index)
+    return JSONResponse(desc.model_dump(mode="json"), status_code=201 if created else 200)
+
+
+@router.get("/v1/caches")
+async def list_caches(service: ServiceDep) -> CacheList:
+    return CacheList(caches=[service.describe(n) for n in service.names()])
+
+
+@router.get("/v1/caches/{name}", responses=errors(404))
+async def get_cache(name: str, service: ServiceDep) -> CacheInfo:
+    return service.describe(name)
+
+
+@router.post("/v1/caches/{name}/experiences", dependencies=[TOKEN], response_model=Added,
+             responses={202: {"model": JobAccepted, "description": "?wait=false"},
+                        **errors(401, 404, 409, 502, 503, 507)})
+async def add_experiences(
+    name: str, body: AddExperiences, service: ServiceDep, settings: SettingsDep,
+    wait: Annotated[bool, Query(description="false: answer 202 with a job id")] = True,
+) -> JSONResponse:
+    service.entry(name)
+    items = _items(body, settings)
+    job = service.jobs.create("add_experiences", name, len(items))
+    if wait:
+        added = await _run_job(job, service.add(name, items, job))
+        return JSONResponse(added.model_dump(mode="json"))
+    task = asyncio.create_task(_run_job(job, service.add(name, items, job)))
+    task.add_done_callback(lambda t: t.exception())  # the job records the error
+    accepted = JobAccepted.of(job)
+    return JSONResponse(accepted.model_dump(mode="json"), status_code=202)
+
+
+@router.get("/v1/caches/{name}/experiences/{ident}", responses=errors(404))
+async def get_experience(name: str, ident: str, service: ServiceDep) -> Experience:
+    return service.experience(name, ident)
+
+
+@router.delete("/v1/caches/{name}/experiences/{ident}", dependencies=[TOKEN],
+               responses=errors(401, 404, 503, 507))
+async def delete_experience(name: str, ident: str, service: ServiceDep) -> Deleted:
+    return await service.delete(name, ident)
+
+
+@router.post("/v1/caches/{name}/calibrate", dependencies=[TOKEN],
+             responses=errors(401, 404, 409, 502, 503, 507))
+async def calibrate(name: str, body: Calibrate, service: ServiceDep,
+                    settings: SettingsDep) -> Calibrated:
+    labelled = [Labelled(x.text, x.label == "anomaly") for x in body.calibration or ()]
+    if labelled:
+        _check_count(len(labelled), "calibration", settings)
+    _check_texts([x.text for x in labelled], "calibration", settings, key="text")
+    return await service.calibrate(name, body.method, alpha=body.alpha, tpr=body.tpr,
+                                   calibration=labelled)
+
+
+@router.post("/v1/caches/{name}/score", responses=errors(404, 409, 502))
+async def score(name: str, body: Score, service: ServiceDep, settings: SettingsDep,
+                metrics: MetricsDep) -> Scores:
+    with metrics.score_seconds.time():
+        if body.texts is not None:
+            _check_count(len(body.texts), "texts", settings)
+            _check_texts(body.texts, "texts", settings)
+            batch = await service.score_texts(name, body.texts, body.k)
+        else:
+            vectors = body.vectors or []
+            _check_count(len(vectors), "vectors", settings)
+            batch = await service.score_vectors(name, vectors, body.k)
+    return _score_response(batch)
+
+
+@router.get("/v1/jobs/{job_id}", responses=errors(404))
+async def get_job(job_id: str, service: ServiceDep) -> JobInfo:
+    try:
+        return JobInfo.of(service.jobs.get(job_id))
+    except UnknownJob:
+        raise NotFound(f"no job {job_id!r}", field="id") from None
+
+
+async def _run_job(job: Job, work: Awaitable[Added]) -> Added:
+    try:
+        result = await work
+    except DetectorError as exc:
+        job.fail(exc.code, exc.message, exc.field)
+        raise
+    except Exception as exc:
+        job.fail("internal", str(exc))
+        raise
+    job.succeed(result.model_dump(mode="json"))
+    return result
+
+
+def _items(body: AddExperiences, settings: EmbeddingSettings) -> list[Item]:
+    if body.items is not None:
+        _check_count(len(body.items), "items", settings)
+        _check_texts([it.text for it in body.items], "items", settings, key="text")
+        return [Item(text=it.text, id=it.id, metadata=it.metadata) for it in body.items]
+    vectors = body.vectors or []
+    _check_count(len(vectors), "vectors", settings)
+    ids: Sequence[str | None] = body.ids or [None] * len(vectors)
+    return [Item(vector=v, id=i) for v, i in zip(vectors, ids, strict=True)]
+
+
+def _check_count(n: int, field: str, settings: EmbeddingSettings) -> None:
+    if n == 0:
+        raise InvalidInput(f"'{field}' is empty", field=field)
+    if n > settings.max_items:
+        raise ApiError(413, "too_large", f"{n} {field} in one request; the limit is "
+                       f"{settings.max_items} (AESOP_EMBEDDING_MAX_ITEMS)", field)
+
+
+def _check_texts(texts: list[str], field: str, settings: EmbeddingSettings,
+                 key: str | None = None) -> None:
+    for i, text in enumerate(texts):  # blank texts are refused by the schema (Text)
+        where = f"{field}[{i}]" + (f".{key}" if key else "")
+        if len(text) > settings.max_text_chars:
+            raise InvalidInput(f"text has {len(text)} characters; the limit is "
+                               f"{settings.max_text_chars}", field=where)
+
+
+def _score_response(batch: ScoreBatch) -> Scores:
+    threshold = batch.threshold
+    return Scores(
+        results=[ScoreResult(score=r.score,
+                             is_anomaly=None if threshold is None else r.score > threshold,
+                             neighbors=list(r.neighbors))
+                 for r in batch.results],
+        threshold=threshold, stale=batch.stale, k=batch.k, model=batch.model,
+        version=batch.version)

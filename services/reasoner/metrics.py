@@ -1,0 +1,33 @@
+"""The slow reasoner's own Prometheus metrics (beside the HTTP ones)."""
+
+from __future__ import annotations
+
+from prometheus_client import CollectorRegistry, Counter, Histogram
+
+from shared.messages import ReasonerDecision
+
+from .backends import Completion
+
+
+class Metrics:
+    def __init__(self, registry: CollectorRegistry) -> None:
+        self.latency = Histogram(
+            "aesop_reasoner_decision_seconds", "Time from request to decision",
+            ["source"], registry=registry,
+            buckets=(.05, .1, .25, .5, 1, 1.5, 2, 3, 4, 5, 7.5, 10, 20))
+        self.decisions = Counter("aesop_reasoner_decisions", "Decisions by source",
+                                 ["source"], registry=registry)
+
+        self.tokens = Counter("aesop_reasoner_tokens", "LLM tokens, as the server reports them "
+                              "in 'usage' (streamed answers count only where it does)",
+                              ["kind"], registry=registry)
+
+    def count(self, completion: Completion) -> None:
+        if completion.prompt_tokens:
+            self.tokens.labels("prompt").inc(completion.prompt_tokens)
+        if completion.completion_tokens:
+            self.tokens.labels("completion").inc(completion.completion_tokens)
+
+    def observe(self, decision: ReasonerDecision) -> None:
+        self.decisions.labels(decision.source).inc()
+        self.latency.labels(decision.source).observe(decision.latency_ms / 1000)
