@@ -182,6 +182,18 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(HTTPException, _http_error)
 
 
+def from_state(name: str, default: Any = ...) -> Callable[[Request], Any]:
+    """A dependency giving ``request.app.state.<name>`` (what the app factory put there):
+    ``Annotated[Settings, Depends(from_state("settings"))]``."""
+
+    def get(request: Request) -> Any:
+        if default is ...:
+            return getattr(request.app.state, name)
+        return getattr(request.app.state, name, default)
+
+    return get
+
+
 _BEARER = HTTPBearer(auto_error=False)
 
 

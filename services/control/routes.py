@@ -7,9 +7,9 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Request
+from fastapi import APIRouter, Depends
 
-from shared.http import TOKEN, ApiError, errors
+from shared.http import TOKEN, ApiError, errors, from_state
 
 from .loop import ControlRuntime, NotNominal
 from .scenario import ScenarioError, regions_from_list
@@ -17,22 +17,10 @@ from .schemas import RegionsAnswer, RegionsBody, ResetAnswer, ResetBody, State
 from .service import ControlService, regions_message
 from .settings import ControlSettings
 
-
-def _runtime(request: Request) -> ControlRuntime:
-    return request.app.state.runtime
-
-
-def _settings(request: Request) -> ControlSettings:
-    return request.app.state.settings
-
-
-def _service(request: Request) -> ControlService | None:
-    return getattr(request.app.state, "service", None)  # None outside the lifespan
-
-
-RuntimeDep = Annotated[ControlRuntime, Depends(_runtime)]
-SettingsDep = Annotated[ControlSettings, Depends(_settings)]
-ServiceDep = Annotated[ControlService | None, Depends(_service)]
+RuntimeDep = Annotated[ControlRuntime, Depends(from_state("runtime"))]
+SettingsDep = Annotated[ControlSettings, Depends(from_state("settings"))]
+# the running service; None outside the lifespan
+ServiceDep = Annotated[ControlService | None, Depends(from_state("service", None))]
 
 router = APIRouter()
 

@@ -8,10 +8,10 @@ import asyncio
 from collections.abc import Awaitable, Sequence
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Query, Request
+from fastapi import APIRouter, Depends, Query
 from fastapi.responses import JSONResponse
 
-from shared.http import TOKEN, ApiError, errors
+from shared.http import TOKEN, ApiError, errors, from_state
 from shared.jobs import Job, JobAccepted, JobInfo, UnknownJob
 
 from .cache import Labelled
@@ -34,22 +34,9 @@ from .schemas import (
 from .service import CacheService, Item, ScoreBatch
 from .settings import EmbeddingSettings
 
-
-def _service(request: Request) -> CacheService:
-    return request.app.state.service
-
-
-def _settings(request: Request) -> EmbeddingSettings:
-    return request.app.state.settings
-
-
-def _metrics(request: Request) -> Metrics:
-    return request.app.state.metrics
-
-
-ServiceDep = Annotated[CacheService, Depends(_service)]
-SettingsDep = Annotated[EmbeddingSettings, Depends(_settings)]
-MetricsDep = Annotated[Metrics, Depends(_metrics)]
+ServiceDep = Annotated[CacheService, Depends(from_state("service"))]
+SettingsDep = Annotated[EmbeddingSettings, Depends(from_state("settings"))]
+MetricsDep = Annotated[Metrics, Depends(from_state("metrics"))]
 
 router = APIRouter()
 

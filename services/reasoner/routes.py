@@ -11,9 +11,9 @@ import uuid
 from dataclasses import dataclass, field
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Request
+from fastapi import APIRouter, Depends
 
-from shared.http import TOKEN, ApiError, errors
+from shared.http import TOKEN, ApiError, errors, from_state
 from shared.jobs import Job, JobAccepted, JobInfo, Jobs, UnknownJob
 from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
 
@@ -43,26 +43,10 @@ class Work:
     tasks: set[asyncio.Task[None]] = field(default_factory=set)
 
 
-def _decider(request: Request) -> Decider:
-    return request.app.state.decider
-
-
-def _settings(request: Request) -> ReasonerSettings:
-    return request.app.state.settings
-
-
-def _metrics(request: Request) -> Metrics:
-    return request.app.state.metrics
-
-
-def _work(request: Request) -> Work:
-    return request.app.state.work
-
-
-DeciderDep = Annotated[Decider, Depends(_decider)]
-SettingsDep = Annotated[ReasonerSettings, Depends(_settings)]
-MetricsDep = Annotated[Metrics, Depends(_metrics)]
-WorkDep = Annotated[Work, Depends(_work)]
+DeciderDep = Annotated[Decider, Depends(from_state("decider"))]
+SettingsDep = Annotated[ReasonerSettings, Depends(from_state("settings"))]
+MetricsDep = Annotated[Metrics, Depends(from_state("metrics"))]
+WorkDep = Annotated[Work, Depends(from_state("work"))]
 
 router = APIRouter()
 
