@@ -49,6 +49,7 @@ class Lines:
 def test_watch_prints_the_flight_and_exits_0_on_ctrl_c(
         listener: Bus, endpoint: str, tmp_path: Path) -> None:
     env = {k: v for k, v in os.environ.items() if not k.startswith("AESOP_ZENOH")}
+    env["PYTHONFAULTHANDLER"] = "1"  # SIGABRT then writes every thread's stack to watch.err
     with open(tmp_path / "watch.err", "w") as err:
         proc = subprocess.Popen(
             [sys.executable, "-m", "services.cli", "watch", "--robot", ROBOT,
@@ -77,7 +78,15 @@ def test_watch_prints_the_flight_and_exits_0_on_ctrl_c(
         assert 3 <= len(states) < 60  # throttled, but every mode change shows
         assert not lines.having("plan")
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(15) == 0
+        try:
+            code = proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGABRT)
+            proc.wait(10)
+            stacks = (tmp_path / "watch.err").read_text()[-8000:]
+            raise AssertionError(f"aesop watch did not stop on SIGINT; its threads:\n{stacks}"
+                                 ) from None
+        assert code == 0
     finally:
         if proc.poll() is None:
             proc.kill()
