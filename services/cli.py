@@ -319,6 +319,7 @@ def serve_dashboard(overrides: dict[str, Any]) -> int:
 
 def cmd_watch(args: argparse.Namespace) -> int:
     import asyncio
+    import signal
 
     from services.dashboard.watch import watch
     from shared.settings import BusSettings
@@ -329,6 +330,9 @@ def cmd_watch(args: argparse.Namespace) -> int:
                  if v is not None}
     settings = BusSettings(**overrides)
     print(f"aesop watch: robot {settings.robot}; Ctrl-C to stop", file=sys.stderr, flush=True)
+    # Ctrl-C (SIGINT) stops it even where it started with SIGINT ignored (a shell's
+    # background job), as it stops aesop up
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         asyncio.run(watch(settings, sys.stdout, args.state_every))
     except KeyboardInterrupt:

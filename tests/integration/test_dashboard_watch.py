@@ -46,13 +46,18 @@ class Lines:
         return [line for line in self.all() if all(p in line for p in parts)]
 
 
+# started as a shell's background job starts it: SIGINT ignored from the start
+IGNORING_SIGINT = ["bash", "-c", 'trap "" INT; exec "$@"', "bash"]
+
+
+@pytest.mark.parametrize("launcher", [[], IGNORING_SIGINT], ids=["foreground", "background"])
 def test_watch_prints_the_flight_and_exits_0_on_ctrl_c(
-        listener: Bus, endpoint: str, tmp_path: Path) -> None:
+        listener: Bus, endpoint: str, tmp_path: Path, launcher: list[str]) -> None:
     env = {k: v for k, v in os.environ.items() if not k.startswith("AESOP_ZENOH")}
     env["PYTHONFAULTHANDLER"] = "1"  # SIGABRT then writes every thread's stack to watch.err
     with open(tmp_path / "watch.err", "w") as err:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "services.cli", "watch", "--robot", ROBOT,
+            [*launcher, sys.executable, "-m", "services.cli", "watch", "--robot", ROBOT,
              "--connect", endpoint, "--state-every", "0.5"],
             stdout=subprocess.PIPE, stderr=err, stdin=subprocess.DEVNULL, text=True, env=env)
     try:
