@@ -19,6 +19,7 @@ import numpy as np
 from shared.messages import Neighbor
 
 from .calibration import Calibration
+from .embedders import normalize
 from .errors import Conflict, InvalidInput, NotFound
 from .index import IndexKind, VectorIndex
 from .scoring import MahalanobisModel, loo_topk_scores, topk_score
@@ -120,14 +121,16 @@ class Header:
         return replace(self, version=op.version, config=config, stale=calibrated)
 
 
-def unit_rows(rows: np.ndarray) -> np.ndarray:
-    """Rows scaled to unit length as float32, computed in float64 so that neither huge
-    nor tiny finite numbers overflow or vanish; an all-zero row stays zero."""
+def unit_vectors(rows: np.ndarray) -> np.ndarray:
+    """Finite rows scaled to unit length as float32 (``embedders.normalize``: in float64,
+    so neither huge nor tiny numbers overflow or vanish); a zero row is InvalidInput
+    naming it."""
     x = np.asarray(rows, dtype=np.float64)
-    scale = np.abs(x).max(axis=1, keepdims=True) if x.size else np.ones((len(x), 1))
-    x = np.divide(x, scale, out=np.zeros_like(x), where=scale > 0)
-    norms = np.linalg.norm(x, axis=1, keepdims=True)
-    return np.divide(x, norms, out=np.zeros_like(x), where=norms > 0).astype(np.float32)
+    zero = ~x.any(axis=1)
+    if zero.any():
+        raise InvalidInput("a zero vector has no direction",
+                           field=f"vectors[{int(np.argmax(zero))}]")
+    return normalize(x)
 
 
 class Cache:
@@ -250,11 +253,7 @@ class Cache:
         if not np.isfinite(vectors).all():
             row = int(np.argwhere(~np.isfinite(vectors))[0][0])
             raise InvalidInput("vectors must be finite (no NaN or inf)", field=f"vectors[{row}]")
-        unit = unit_rows(vectors)
-        zero = ~unit.any(axis=1)
-        if zero.any():
-            row = int(np.argmax(zero))
-            raise InvalidInput("a zero vector has no direction", field=f"vectors[{row}]")
+        unit = unit_vectors(vectors)
         seen: set[str] = set()
         resolved: list[str] = []
         for i, given in enumerate(ids):

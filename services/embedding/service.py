@@ -34,7 +34,7 @@ import numpy as np
 from shared.jobs import Job, Jobs
 
 from .batching import MicroBatcher
-from .cache import Add, Cache, CacheConfig, Delete, Labelled, Op, Scored, ScoreKind, unit_rows
+from .cache import Add, Cache, CacheConfig, Delete, Labelled, Op, Scored, ScoreKind, unit_vectors
 from .calibration import (
     Calibration,
     CalibrationError,
@@ -345,11 +345,12 @@ class CacheService:
     async def _vectors_for(self, config: CacheConfig, items: Sequence[Item], job: Job | None
                            ) -> np.ndarray:
         texts = [(i, it.text) for i, it in enumerate(items) if it.vector is None]
-        vectors = np.zeros((len(items), config.dim), dtype=np.float32)
+        # float64 until plan_add scales each row to unit length, once
+        vectors = np.zeros((len(items), config.dim), dtype=np.float64)
         given = [(i, it.vector) for i, it in enumerate(items) if it.vector is not None]
         if given:
             check_dims(config, [v for _, v in given], [i for i, _ in given])
-            vectors[[i for i, _ in given]] = unit_rows(np.array([v for _, v in given]))
+            vectors[[i for i, _ in given]] = [v for _, v in given]
         if texts:
             if config.model is None:
                 raise Conflict(f"cache {config.name!r} has no embedding model: send "
@@ -459,13 +460,8 @@ class CacheService:
                             k: int | None = None) -> ScoreBatch:
         entry = self.entry(name)
         check_dims(entry.cache.config, rows)
-        unit = unit_rows(np.array(rows))
-        zero = ~unit.any(axis=1)
-        if zero.any():
-            raise InvalidInput("a zero vector has no direction",
-                               field=f"vectors[{int(np.argmax(zero))}]")
         k = k or entry.cache.config.k
-        results = await self._score_vectors(entry, unit, k)
+        results = await self._score_vectors(entry, unit_vectors(np.array(rows)), k)
         return self._batch(entry, results, k)
 
     def _batch(self, entry: Entry, results: list[Scored], k: int) -> ScoreBatch:
