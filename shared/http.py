@@ -2,23 +2,27 @@
 
 - errors: JSON ``{"error": {"code", "message", "field"}}`` (``ErrorBody``) with a 4xx/5xx
   status, documented in ``/openapi.json`` with ``errors(...)``;
-- ``TOKEN`` (``require_token``): mutating routes need ``Authorization: Bearer $AESOP_ADMIN_TOKEN``;
+- ``Guard``: with ``AESOP_ADMIN_TOKEN`` set, every route but the ops ones needs
+  ``Authorization: Bearer <token>``, checked before the body is read; without it, only
+  loopback ``Host`` names; no cross-site requests; bodies counted as they stream in;
 - ``ops_router``: ``/healthz``, ``/readyz`` and ``/metrics`` (Prometheus, per-app registry);
 - ``serve``: run an app with uvicorn, refusing off-loopback exposure without a token.
 """
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import hmac
 import time
 from collections.abc import Awaitable, Callable
-from typing import Annotated, Any
+from typing import Any, TypeVar
+from urllib.parse import urlsplit
 
-from fastapi import Depends, FastAPI, Request
+from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from fastapi.routing import APIRouter
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import (
     CONTENT_TYPE_LATEST,
     CollectorRegistry,
@@ -27,12 +31,15 @@ from prometheus_client import (
     generate_latest,
 )
 from pydantic import BaseModel, ConfigDict, SecretStr
+from starlette.datastructures import Headers
 from starlette.exceptions import HTTPException
 from starlette.routing import Match
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from .settings import ServiceSettings
 
 Next = Callable[[Request], Awaitable[Response]]
+T = TypeVar("T")
 
 
 class ApiError(Exception):
@@ -66,6 +73,7 @@ REASONS = {
     405: "method not allowed (the Allow header lists those that are)",
     409: "the request conflicts with the stored state",
     413: "the body or one of its lists is larger than the limit",
+    403: "a cross-site request: its Origin is not the service's own",
     415: "the body is not declared as JSON",
     422: "a field is invalid (error.field names it)",
     429: "too busy: retry later",
@@ -74,6 +82,7 @@ REASONS = {
     507: "the disk (or the configured size limit) is full; nothing was stored",
 }
 REQUEST_ERRORS = (400, 413, 415, 422)  # what any route with a JSON body may answer
+GUARD_ERRORS = (400, 401, 403, 413, 415, 422)  # what any route of a service may answer
 
 
 def errors(*statuses: int) -> dict[int | str, dict[str, Any]]:
@@ -105,6 +114,27 @@ def document_limits(app: FastAPI, limits: dict[str, dict[str, dict[str, Any]]]) 
                     if name in models:  # also used in an answer
                         for prop, keywords in properties.items():
                             merge(models[name]["properties"][prop], keywords)
+        return app.openapi_schema or {}
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
+def document_security(app: FastAPI, public: tuple[str, ...]) -> None:
+    """Say in ``/openapi.json`` which operations need the bearer token (when the service
+    has one: the :class:`Guard` enforces it, not the routes)."""
+    build = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            schema = build()
+            schema.setdefault("components", {}).setdefault("securitySchemes", {})["bearer"] = {
+                "type": "http", "scheme": "bearer",
+                "description": "AESOP_ADMIN_TOKEN; required when the service has one"}
+            for path, operations in schema.get("paths", {}).items():
+                if is_public(path, public):
+                    continue
+                for operation in operations.values():
+                    operation["security"] = [{"bearer": []}]
         return app.openapi_schema or {}
 
     app.openapi = openapi  # type: ignore[method-assign]
@@ -194,26 +224,26 @@ def from_state(name: str, default: Any = ...) -> Callable[[Request], Any]:
     return get
 
 
-_BEARER = HTTPBearer(auto_error=False)
+async def unless_client_leaves(request: Request, work: Awaitable[T]) -> T:
+    """Await ``work`` (a route's heavy part) and cancel it if the client disconnects
+    first: nobody would read the answer. Answers 499 to nobody in that case."""
+    task = asyncio.ensure_future(work)
+    watch = asyncio.ensure_future(_client_left(request))
+    try:
+        await asyncio.wait({task, watch}, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        watch.cancel()
+    if not task.done():
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        raise ApiError(499, "client_closed_request", "the client disconnected")
+    return task.result()
 
 
-async def require_token(
-    request: Request,
-    creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_BEARER)],
-) -> None:
-    """The dependency of mutating routes: ``Authorization: Bearer <the app's token>``
-    (``service_app(admin_token=...)``). Without a configured token the service only
-    listens on loopback (``ServiceSettings.check_exposure``) and the check is open."""
-    token: SecretStr | None = request.app.state.admin_token
-    if token is None:
-        return
-    given = b"" if creds is None else creds.credentials.encode()
-    if not hmac.compare_digest(given, token.get_secret_value().encode()):
-        raise ApiError(401, "unauthorized", "a valid 'Authorization: Bearer <token>' "
-                       "header is required", "Authorization")
-
-
-TOKEN = Depends(require_token)  # dependencies=[TOKEN] on a route that needs the token
+async def _client_left(request: Request) -> None:
+    while (await request.receive())["type"] != "http.disconnect":
+        pass
 
 
 class HttpMetrics:
@@ -272,33 +302,139 @@ def ops_router(
     return router
 
 
-def body_limit(app: FastAPI, max_bytes: int) -> None:
-    """Refuse request bodies larger than ``max_bytes`` (413, field "body")."""
-
-    @app.middleware("http")
-    async def limit(request: Request, call_next: Next) -> Response:
-        length = request.headers.get("content-length")
-        if length is not None and length.isdigit() and int(length) > max_bytes:
-            return error_response(
-                413, "too_large", f"request body is {length} bytes; the limit is {max_bytes}",
-                "body")
-        return await call_next(request)
+OPS_PATHS = ("/healthz", "/readyz", "/metrics")
+LOOPBACK_HOSTS = frozenset({"localhost", "127.0.0.1", "::1"})
 
 
-def require_json(app: FastAPI) -> None:
-    """Refuse a request body that is not declared as JSON (415, field "Content-Type")."""
+class Refusal(Exception):
+    """Why the guard turns a request away before any route runs."""
 
-    @app.middleware("http")
-    async def json_only(request: Request, call_next: Next) -> Response:
-        has_body = request.headers.get("content-length", "0") != "0" or \
-            "transfer-encoding" in request.headers
-        kind = request.headers.get("content-type", "")
-        if request.method in ("POST", "PUT", "PATCH") and has_body and "json" not in kind:
-            return error_response(
-                415, "unsupported_media_type",
-                f"send the body as JSON with 'Content-Type: application/json' (got "
-                f"{kind or 'no Content-Type'})", "Content-Type")
-        return await call_next(request)
+    def __init__(self, status: int, code: str, message: str, field: str) -> None:
+        super().__init__(message)
+        self.status, self.code, self.message, self.field = status, code, message, field
+
+
+def host_name(authority: str) -> str:
+    """'127.0.0.1:8001' -> '127.0.0.1', '[::1]:80' -> '::1', 'Example.org' -> 'example.org'."""
+    authority = authority.strip().lower()
+    if authority.startswith("["):
+        return authority[1:authority.find("]")] if "]" in authority else authority
+    return authority.rsplit(":", 1)[0] if authority.count(":") == 1 else authority
+
+
+TOKEN_COOKIE = "aesop_token"  # a browser's token (the dashboard sets it, HttpOnly)
+
+
+def token_of(headers: Headers) -> str:
+    """The token a request carries: ``Authorization: Bearer <token>``, else the cookie."""
+    scheme, _, credentials = headers.get("authorization", "").partition(" ")
+    if scheme.lower() == "bearer":
+        return credentials.strip()
+    for part in headers.get("cookie", "").split(";"):
+        name, _, value = part.strip().partition("=")
+        if name == TOKEN_COOKIE:
+            return value
+    return ""
+
+
+def is_public(path: str, public: tuple[str, ...]) -> bool:
+    """An ops path, or one of ``public``: a path, or every path under one ending in '/'."""
+    return path in OPS_PATHS or any(
+        path == p or (len(p) > 1 and p.endswith("/") and path.startswith(p)) for p in public)
+
+
+def same_token(given: str, token: SecretStr) -> bool:
+    return hmac.compare_digest(given.encode(), token.get_secret_value().encode())
+
+
+def check_request(headers: Headers, path: str, method: str, *, token: SecretStr | None,
+                  public: tuple[str, ...]) -> None:
+    """The checks made on the headers alone, in order; raises :class:`Refusal`.
+
+    - without a token the service listens on loopback only (``check_exposure``), so a
+      ``Host`` that is not a loopback name is DNS rebinding: 400;
+    - an ``Origin`` that is not the service's own is a cross-site request from a web
+      page (a browser always sends it there): 403;
+    - with a token, every path but the :func:`is_public` ones needs it (the bearer
+      header, or a browser's ``aesop_token`` cookie): 401;
+    - a POST/PUT/PATCH body must be declared as JSON: 415.
+    """
+    host = headers.get("host", "")
+    if token is None and host_name(host) not in LOOPBACK_HOSTS:
+        raise Refusal(400, "untrusted_host", f"Host {host!r} is not a loopback name; this "
+                      "service has no token and serves loopback only", "Host")
+    origin = headers.get("origin")
+    if origin is not None and urlsplit(origin).netloc.lower() != host.lower():
+        raise Refusal(403, "cross_origin", f"a request from {origin!r} to {host!r} is "
+                      "cross-site and refused", "Origin")
+    if token is not None and not is_public(path, public) \
+            and not same_token(token_of(headers), token):
+        raise Refusal(401, "unauthorized", "a valid 'Authorization: Bearer <token>' "
+                      "header is required", "Authorization")
+    has_body = headers.get("content-length", "0") != "0" or "transfer-encoding" in headers
+    kind = headers.get("content-type", "")
+    if method in ("POST", "PUT", "PATCH") and has_body and "json" not in kind:
+        raise Refusal(415, "unsupported_media_type", "send the body as JSON with "
+                      f"'Content-Type: application/json' (got {kind or 'no Content-Type'})",
+                      "Content-Type")
+
+
+class Guard:
+    """ASGI middleware in front of every route: :func:`check_request` on the headers,
+    then the body read as it streams in and refused (413) once past ``max_body_bytes``
+    whatever ``Content-Length`` said or did not say. The route then reads the body from
+    memory; later ``receive`` calls go to the client (so a disconnect is still seen).
+    A refused WebSocket is closed with 1008 (policy violation) before it is accepted."""
+
+    def __init__(self, app: ASGIApp, *, token: SecretStr | None, max_body_bytes: int,
+                 public: tuple[str, ...] = ()) -> None:
+        self.app, self.token, self.max_body_bytes, self.public = app, token, max_body_bytes, public
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] not in ("http", "websocket"):
+            await self.app(scope, receive, send)
+            return
+        try:
+            check_request(Headers(scope=scope), scope["path"], scope.get("method", "GET"),
+                          token=self.token, public=self.public)
+            if scope["type"] == "http":
+                receive = await self._read_body(receive)
+        except Refusal as refused:
+            if scope["type"] == "websocket":
+                await send({"type": "websocket.close", "code": 1008, "reason": refused.message})
+            else:
+                response = error_response(refused.status, refused.code, refused.message,
+                                          refused.field)
+                await response(scope, receive, send)
+            return
+        await self.app(scope, receive, send)
+
+    async def _read_body(self, receive: Receive) -> Receive:
+        parts: list[bytes] = []
+        size = 0
+        while True:
+            message = await receive()
+            if message["type"] != "http.request":  # the client left before sending it all
+                first: Message = message
+                break
+            parts.append(message.get("body", b""))
+            size += len(parts[-1])
+            if size > self.max_body_bytes:
+                raise Refusal(413, "too_large", "request body is over the limit of "
+                              f"{self.max_body_bytes} bytes", "body")
+            if not message.get("more_body", False):
+                first = {"type": "http.request", "body": b"".join(parts), "more_body": False}
+                break
+        sent = False
+
+        async def replay() -> Message:
+            nonlocal sent
+            if not sent:
+                sent = True
+                return first
+            return await receive()
+
+        return replay
 
 
 def service_app(
@@ -311,21 +447,21 @@ def service_app(
     refresh: Callable[[], None] | None = None,
     admin_token: SecretStr | None = None,
     limits: dict[str, dict[str, dict[str, Any]]] | None = None,
-    max_body_bytes: int | None = None,
+    max_body_bytes: int,
+    public: tuple[str, ...] = (),
 ) -> FastAPI:
-    """A service's app with what every service has: documented request errors, the error
-    body, the settings ``limits`` in its schema, a body limit, JSON bodies only, request
-    metrics, and ``/healthz`` ``/readyz`` ``/metrics``; ``admin_token`` is what
-    ``require_token`` checks."""
-    app = FastAPI(title=title, version="1", lifespan=lifespan, responses=errors(*REQUEST_ERRORS))
+    """A service's app with what every service has: the :class:`Guard` (host, origin,
+    ``admin_token`` on every path but the ops ones and ``public``, JSON bodies of at most
+    ``max_body_bytes``), documented errors, the error body, the settings ``limits`` in its
+    schema, request metrics, and ``/healthz`` ``/readyz`` ``/metrics``."""
+    app = FastAPI(title=title, version="1", lifespan=lifespan, responses=errors(*GUARD_ERRORS))
     app.state.admin_token = admin_token
     install_error_handlers(app)
     if limits:
         document_limits(app, limits)
-    if max_body_bytes is not None:
-        body_limit(app, max_body_bytes)
-    require_json(app)
-    HttpMetrics(registry, service).install(app)
+    document_security(app, public)
+    app.add_middleware(Guard, token=admin_token, max_body_bytes=max_body_bytes, public=public)
+    HttpMetrics(registry, service).install(app)  # outside the guard: refusals are counted
     app.include_router(ops_router(registry, ready, refresh))
     return app
 

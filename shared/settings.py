@@ -72,6 +72,8 @@ class ServiceSettings(BusSettings):
     data_dir: Path = Field(default=Path("data"), validation_alias=shared("data_dir"))
     log_level: Literal["debug", "info", "warning", "error"] = Field(
         default="info", validation_alias=shared("log_level"))
+    # the largest request body, counted as it streams in (413 past it)
+    max_body_bytes: int = Field(default=1024 * 1024, ge=1024)
 
     @field_validator("admin_token", mode="before")
     @classmethod

@@ -46,6 +46,7 @@ def create_app(settings: ControlSettings, runtime: ControlRuntime,
         "AESOP control-loop service", service=SERVICE, lifespan=lifespan, registry=registry,
         ready=lambda: None if runtime.last is not None else {"reason": "no tick yet"},
         admin_token=settings.admin_token,
+        max_body_bytes=settings.max_body_bytes,
         limits={"ResetBody": {"start": inside},
                 "RegionIn": {"position_lo": inside, "position_hi": inside}})
     app.state.runtime, app.state.settings = runtime, settings

@@ -16,7 +16,7 @@ from prometheus_client import CollectorRegistry
 from shared.bus import Bus
 from shared.http import service_app
 
-from .routes import STATIC, router
+from .routes import PUBLIC, STATIC, router
 from .service import SERVICE, DashboardMetrics, DashboardService
 from .settings import DashboardSettings
 
@@ -48,7 +48,8 @@ def create_app(settings: DashboardSettings, bus_factory: Callable[[], Bus]) -> F
     app = service_app(
         "AESOP dashboard", service=SERVICE, lifespan=lifespan, registry=registry,
         ready=lambda: None if app.state.service is not None else {"reason": "bus not open"},
-        refresh=refresh)
+        refresh=refresh, admin_token=settings.admin_token,
+        max_body_bytes=settings.max_body_bytes, public=PUBLIC)
     app.state.service = None
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     app.include_router(router)

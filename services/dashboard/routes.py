@@ -1,5 +1,6 @@
 """The dashboard's routes, all read-only: ``GET /`` (the page), ``GET /ws`` (the live
-stream), ``GET /v1/snapshot`` (the aggregated state).
+stream), ``GET /v1/snapshot`` (the aggregated state). With a token configured the page
+is public and the flight is not: a browser brings the token as a cookie (``/?token=``).
 
 On ``/ws`` a page first receives ``{"kind": "snapshot", "message": <snapshot>}``,
 then one JSON item per update (``FlightModel.apply``).
@@ -15,9 +16,10 @@ from pathlib import Path
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Request, WebSocket, WebSocketDisconnect
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, RedirectResponse, Response
+from pydantic import SecretStr
 
-from shared.http import ApiError, errors
+from shared.http import TOKEN_COOKIE, ApiError, errors, same_token
 
 from .hub import ClientQueue
 from .model import Snapshot
@@ -38,8 +40,22 @@ RunningDep = Annotated[DashboardService, Depends(_running)]
 router = APIRouter()
 
 
-@router.get("/", include_in_schema=False)
-async def page() -> FileResponse:
+PUBLIC = ("/", "/static/")  # the page itself; the flight (/ws, /v1/snapshot) needs the token
+
+
+@router.get("/", include_in_schema=False, response_model=None)
+async def page(request: Request, token: str | None = None) -> Response:
+    """The page. With a token configured, open it once as ``/?token=<token>``: the token
+    goes into an HttpOnly, SameSite=Strict cookie (the browser then sends it on ``/ws``)
+    and the address bar loses it."""
+    admin_token: SecretStr | None = request.app.state.admin_token
+    if token is not None:
+        if admin_token is None or not same_token(token, admin_token):
+            raise ApiError(401, "unauthorized", "the token in the address is not this "
+                           "dashboard's", "token")
+        back = RedirectResponse("/", status_code=303)
+        back.set_cookie(TOKEN_COOKIE, token, httponly=True, samesite="strict")
+        return back
     return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
 
 

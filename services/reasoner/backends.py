@@ -34,6 +34,7 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol
+from urllib.parse import urlsplit, urlunsplit
 
 import httpx
 
@@ -62,6 +63,29 @@ class BackendError(Exception):
         self.status = status
 
 
+_SECRET_LIKE = re.compile(r"\b(?:sk|pk|rk|key|token)-[A-Za-z0-9_\-]{6,}|\bBearer\s+\S+",
+                          re.IGNORECASE)
+
+
+def redact_url(url: str) -> str:
+    """'http://user:pw@host/v1?api-key=k' -> 'http://***@host/v1?***'."""
+    parts = urlsplit(url)
+    netloc = parts.netloc
+    if "@" in netloc:
+        netloc = "***@" + netloc.rsplit("@", 1)[1]
+    return urlunsplit((parts.scheme, netloc, parts.path, "***" if parts.query else "", ""))
+
+
+def error_snippet(body: str, secrets: tuple[str, ...] = ()) -> str:
+    """The start of a server's error body, on one line, with the configured key and
+    anything shaped like a key or a bearer token replaced by '***' (servers echo them)."""
+    text = " ".join(body.split())[:MAX_ERROR_BODY]
+    for secret in secrets:
+        if secret:
+            text = text.replace(secret, "***")
+    return _SECRET_LIKE.sub("***", text)
+
+
 @dataclass(frozen=True)
 class BackendConfig:
     """Where and how to ask one model; ``base_url`` ends before ``/chat/completions``."""
@@ -83,9 +107,14 @@ class BackendConfig:
         if self.max_tokens < 1 or not 0.0 <= self.temperature <= 2.0:
             raise ValueError("max_tokens must be >= 1 and temperature in [0, 2]")
 
+    @property
+    def public_url(self) -> str:
+        """``base_url`` without what may be a secret in it (user info, the query)."""
+        return redact_url(self.base_url)
+
     def __repr__(self) -> str:  # never show the key
         key = "set" if self.api_key else None
-        return (f"BackendConfig(name={self.name!r}, base_url={self.base_url!r}, "
+        return (f"BackendConfig(name={self.name!r}, base_url={self.public_url!r}, "
                 f"model={self.model!r}, api_key={key!r}, stream={self.stream})")
 
 
@@ -218,7 +247,7 @@ class OpenAIChatBackend:
 
     def _check(self, status: int, body: str) -> None:
         if status >= 400:
-            snippet = " ".join(body.split())[:MAX_ERROR_BODY]
+            snippet = error_snippet(body, (self.config.api_key or "",))
             raise BackendError("http", f"{self.name}: HTTP {status}: {snippet}", status=status)
 
     def _finish(self, text: str, usage: dict[str, Any], *, stopped_early: bool) -> Completion:

@@ -218,18 +218,27 @@ class Stack:
 
 
 def write_token(data_dir: Path, token: str) -> Path:
-    """Keep a generated admin token in ``data_dir/admin-token``, readable by the owner only."""
+    """Keep a generated admin token in ``data_dir/admin-token``, readable by the owner only:
+    written to a new 0600 file (``O_EXCL``, so never through a link) and renamed over the
+    old one, so neither an old file's mode nor a symlink in its place is kept."""
     data_dir.mkdir(parents=True, exist_ok=True)
     path = data_dir / "admin-token"
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    fresh = data_dir / f".admin-token.{os.getpid()}.tmp"
+    fresh.unlink(missing_ok=True)
+    fd = os.open(fresh, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
     with os.fdopen(fd, "w") as f:
+        os.fchmod(f.fileno(), 0o600)  # whatever the umask
         f.write(token + "\n")
+    os.replace(fresh, path)
     return path
 
 
 def urls_text(plan: StackPlan, token_file: Path | None) -> str:
     lines = ["", "AESOP stack is up:"]
     lines += [f"  {s.name:<10} {s.url}" for s in plan.services]
+    if plan.url("dashboard"):
+        lines.append("  (open the dashboard once as <its url>/?token=<admin token>: "
+                     "the browser keeps it as a cookie)")
     lines.append(f"  {'zenoh':<10} tcp/127.0.0.1:{plan.hub.port}  (router; services are peers)")
     if plan.fake_llm:
         lines.append("  LLM: the fake OpenAI-compatible server (set "

@@ -45,6 +45,8 @@ WAIT_MS = 30_000
 FLIGHT_TIMEOUT_S = 300  # the cache (385 texts, a CPU embedder), calibration, a 12 s flight
 
 
+TOKEN = secrets.token_urlsafe(24)  # the stack's admin token
+
 @pytest.fixture
 def stack(tmp_path: Path) -> Iterator[StackPlan]:
     """The demo's stack on free ports (as `aesop demo --random-ports` plans it), logs in
@@ -54,7 +56,8 @@ def stack(tmp_path: Path) -> Iterator[StackPlan]:
     rate = None if os.environ.get("AESOP_CONTROL_RATE_HZ") else 1.0 / scene.dt
     options = StackOptions(data_dir=tmp_path / "data", ports=Ports.free(), scenario=path,
                            rate_hz=rate)
-    plan = plan_stack(options, os.environ, secrets.token_urlsafe(24))
+    environ = {k: v for k, v in os.environ.items() if k != "AESOP_ADMIN_TOKEN"}
+    plan = plan_stack(options, environ, TOKEN)
     running = Stack(plan, file_sink(tmp_path / "logs"))
     try:
         running.start()
@@ -72,7 +75,8 @@ def test_the_page_follows_a_real_demo_scenario(browser: Browser, stack: StackPla
     errors: list[str] = []
     page.on("pageerror", lambda exc: errors.append(str(exc)))
     page.on("console", lambda msg: errors.append(msg.text) if msg.type == "error" else None)
-    page.goto(url)
+    page.goto(f"{url}/?token={TOKEN}")  # as `aesop up` says: the token becomes a cookie
+    assert page.url == f"{url}/"  # and leaves the address bar
     expect(page.locator("#status")).to_have_attribute("data-state", "connected",
                                                       timeout=WAIT_MS)
     expect(page.locator('#services [data-service="control"]')).to_have_attribute(

@@ -34,7 +34,9 @@ def make_client(data_dir: Path, token: str | None = TOKEN, **overrides: object) 
     settings = EmbeddingSettings(data_dir=data_dir, admin_token=token, zenoh_worker=False,
                                  fsync=False, **overrides)
     service = CacheService(settings, embedders=EmbedderPool(loader=loader))
-    return TestClient(create_app(settings, service=service))
+    auth = {"Authorization": f"Bearer {token}"} if token else {}
+    return TestClient(create_app(settings, service=service), headers=auth,
+                      base_url="http://127.0.0.1:8001")
 
 
 @pytest.fixture
@@ -209,21 +211,27 @@ def test_vectors_of_huge_or_tiny_numbers_keep_their_direction(client: TestClient
     assert r.json()["results"][0]["score"] == pytest.approx(-1.0)
 
 
-def test_mutating_routes_need_the_token(client: TestClient) -> None:
+def test_every_route_but_the_ops_ones_needs_the_token(client: TestClient) -> None:
+    """Issue 14: scoring was open to anyone (and shares the compute with the bus verdicts)."""
+    create(client)
+    del client.headers["Authorization"]
     assert client.put("/v1/caches/wm", json={}).status_code == 401
     bad = {"Authorization": "Bearer wrong-token-0123456789"}
     r = client.put("/v1/caches/wm", json={}, headers=bad)
     assert r.status_code == 401 and r.json()["error"]["field"] == "Authorization"
-    create(client)
     for method, path, body in [
         ("post", "/v1/caches/wm/experiences", {"items": [{"text": "a"}]}),
         ("post", "/v1/caches/wm/calibrate", {"method": "loo-quantile"}),
         ("delete", "/v1/caches/wm/experiences/x", None),
+        ("post", "/v1/caches/wm/score", {"texts": ["a"]}),
+        ("get", "/v1/caches/wm", None),
+        ("get", "/v1/caches", None),
+        ("get", "/v1/jobs/j1", None),
     ]:
         kwargs = {"json": body} if body is not None else {}
-        assert getattr(client, method)(path, **kwargs).status_code == 401
-    assert client.get("/v1/caches/wm").status_code == 200  # reads are open
-    assert client.post("/v1/caches/wm/score", json={"texts": ["a"]}).status_code == 409  # k
+        assert getattr(client, method)(path, **kwargs).status_code == 401, path
+    for path in ("/healthz", "/readyz", "/metrics"):
+        assert client.get(path).status_code == 200, path
 
 
 def test_state_survives_a_restart(tmp_path: Path) -> None:
@@ -313,4 +321,4 @@ def test_a_model_this_machine_lacks_is_422_naming_the_field(tmp_path: Path, mode
         r = client.put("/v1/caches/c", json={"model": model}, headers=AUTH)
         assert r.status_code == 422, r.text
         assert r.json()["error"]["field"] == "model"
-        assert client.get("/v1/caches").json()["caches"] == []
+        assert client.get("/v1/caches", headers=AUTH).json()["caches"] == []

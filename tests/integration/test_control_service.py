@@ -127,7 +127,7 @@ class VerdictSource:
 class Stack:
     def __init__(self, proc: ServiceProcess, bus: Bus, source: VerdictSource) -> None:
         self.proc, self.bus, self.source = proc, bus, source
-        self.http = httpx.Client(base_url=proc.url, timeout=10)
+        self.http = httpx.Client(base_url=proc.url, timeout=10, headers=AUTH)
         self.states = Inbox(bus, topics.state(ROBOT), ControlState)
         self.plans = Inbox(bus, topics.plan(ROBOT), PlanSnapshot)
         self.requests = Inbox(bus, topics.reasoner_request(ROBOT), ReasonerRequest)

@@ -45,10 +45,12 @@ def test_up_serves_every_service_and_sigint_stops_them_all(tmp_path: Path) -> No
         assert set(urls) == set(SERVICES)
         for name, url in urls.items():
             assert httpx.get(f"{url}/readyz", timeout=5).status_code == 200, name
-        state = httpx.get(f"{urls['control']}/v1/state", timeout=5).json()
-        assert state["scenario"] == "paper-quadrotor-hardware"
         token_file = tmp_path / "data" / "admin-token"
         assert token_file.stat().st_mode & 0o777 == 0o600
+        auth = {"Authorization": f"Bearer {token_file.read_text().strip()}"}
+        assert httpx.get(f"{urls['control']}/v1/state", timeout=5).status_code == 401
+        state = httpx.get(f"{urls['control']}/v1/state", headers=auth, timeout=5).json()
+        assert state["scenario"] == "paper-quadrotor-hardware"
         children = psutil.Process(proc.pid).children(recursive=True)
         assert len(children) >= 1 + len(SERVICES)  # the hub too
         pids = [c.pid for c in children]

@@ -2,11 +2,23 @@
 
 from __future__ import annotations
 
-from fastapi import FastAPI
-from fastapi.testclient import TestClient
-from pydantic import BaseModel
+from collections.abc import Iterator
 
-from shared.http import REQUEST_ERRORS, document_limits, errors, field_path, install_error_handlers
+import pytest
+from fastapi import FastAPI, WebSocket
+from fastapi.testclient import TestClient
+from prometheus_client import CollectorRegistry
+from pydantic import BaseModel, SecretStr
+from starlette.websockets import WebSocketDisconnect
+
+from shared.http import (
+    REQUEST_ERRORS,
+    document_limits,
+    errors,
+    field_path,
+    install_error_handlers,
+    service_app,
+)
 
 
 class Body(BaseModel):
@@ -67,3 +79,119 @@ def test_field_paths_leave_out_the_union_member_pydantic_tried() -> None:
     assert field_path(("body", "items", 3, "text")) == "items[3].text"
     assert field_path(("body", "texts", "list[constrained-str]", 0)) == "texts[0]"
     assert field_path(("body",)) == "body"
+
+
+# --- the guard every service app has (issue 14: auth before the body, a real body limit) ---
+
+GUARD_TOKEN = "t" * 24
+
+
+def guarded(token: str | None = GUARD_TOKEN, max_body_bytes: int = 1024,
+            public: tuple[str, ...] = ()) -> FastAPI:
+    app = service_app("test", service="test", lifespan=None, registry=CollectorRegistry(),
+                      ready=lambda: None, admin_token=SecretStr(token) if token else None,
+                      max_body_bytes=max_body_bytes, public=public)
+
+    @app.post("/things")
+    async def post_things(body: Body) -> Body:
+        return body
+
+    @app.get("/things")
+    async def list_things() -> Body:
+        return Body(names=["a"])
+
+    return app
+
+
+def chunks(total: int, size: int = 4096) -> Iterator[bytes]:
+    """A JSON body sent chunked, without Content-Length."""
+    yield b'{"names": ["'
+    sent = 0
+    while sent < total:
+        yield b"x" * size
+        sent += size
+    yield b'"]}'
+
+
+AUTH = {"Authorization": f"Bearer {GUARD_TOKEN}", "Content-Type": "application/json"}
+
+
+def test_a_chunked_body_past_the_limit_is_413() -> None:
+    with TestClient(guarded()) as client:
+        r = client.post("/things", content=chunks(40_000), headers=AUTH)
+    assert "content-length" not in r.request.headers  # the old check saw nothing
+    assert r.status_code == 413, r.text
+    assert r.json()["error"] == {"code": "too_large", "field": "body",
+                                 "message": "request body is over the limit of 1024 bytes"}
+
+
+def test_a_body_within_the_limit_still_arrives_whole() -> None:
+    with TestClient(guarded()) as client:
+        r = client.post("/things", content=chunks(500, size=100), headers=AUTH)
+    assert r.status_code == 200, r.text
+    assert r.json()["names"] == ["x" * 500]
+
+
+def test_the_token_is_checked_before_the_body_is_read() -> None:
+    with TestClient(guarded()) as client:
+        bad_json = client.post("/things", content=b"{not json",
+                               headers={"Content-Type": "application/json"})
+        too_big = client.post("/things", content=chunks(40_000),
+                              headers={"Content-Type": "application/json"})
+        not_json = client.post("/things", content=b"x", headers={"Content-Type": "text/plain"})
+    for r in (bad_json, too_big, not_json):
+        assert r.status_code == 401, r.text
+        assert r.json()["error"]["field"] == "Authorization"
+
+
+def test_with_a_token_every_route_but_the_ops_ones_needs_it() -> None:
+    with TestClient(guarded(public=("/open",))) as client:
+        assert client.get("/things").status_code == 401
+        assert client.get("/things", headers=AUTH).status_code == 200
+        for path in ("/healthz", "/readyz", "/metrics"):
+            assert client.get(path).status_code == 200, path
+        assert client.get("/open").status_code == 404  # public, and simply not there
+
+
+def test_without_a_token_only_loopback_host_names_are_served() -> None:
+    """DNS rebinding: a page on evil.example whose name now points at 127.0.0.1 sends
+    'Host: evil.example'."""
+    with TestClient(guarded(token=None), base_url="http://127.0.0.1:8001") as client:
+        assert client.get("/things").status_code == 200
+        for host in ("localhost:8001", "[::1]:8001", "127.0.0.1"):
+            assert client.get("/things", headers={"Host": host}).status_code == 200, host
+        r = client.get("/things", headers={"Host": "evil.example:8001"})
+    assert r.status_code == 400
+    assert r.json()["error"]["field"] == "Host"
+
+
+def test_a_cross_site_request_is_refused() -> None:
+    """A web page may POST to a loopback service without a token: the browser sends its
+    Origin, which is not the service's own."""
+    with TestClient(guarded(token=None), base_url="http://127.0.0.1:8001") as client:
+        r = client.post("/things", content=b"", headers={"Origin": "http://evil.example"})
+        same = client.post("/things", json={"names": []},
+                           headers={"Origin": "http://127.0.0.1:8001"})
+    assert r.status_code == 403
+    assert r.json()["error"]["field"] == "Origin"
+    assert same.status_code == 200
+
+
+def test_a_cross_site_websocket_is_refused() -> None:
+    app = guarded(token=None)
+
+    @app.websocket("/ws")
+    async def ws(websocket: WebSocket) -> None:
+        await websocket.accept()
+        await websocket.send_text("hello")
+        await websocket.close()
+
+    with TestClient(app, base_url="http://127.0.0.1:8001") as client:
+        host = {"Host": "127.0.0.1:8001"}
+        with client.websocket_connect("/ws", headers={**host, "Origin": "http://127.0.0.1:8001"}
+                                      ) as ws_:
+            assert ws_.receive_text() == "hello"
+        with pytest.raises(WebSocketDisconnect) as refused, \
+                client.websocket_connect("/ws", headers={**host, "Origin": "http://evil.example"}):
+            pass
+    assert refused.value.code == 1008

@@ -29,8 +29,9 @@
       apply(JSON.parse(event.data));
       dirty = true;
     };
-    ws.onclose = () => {
-      setStatus("disconnected");
+    ws.onclose = (event) => {
+      // 1008: refused (no token): open the address `aesop up` printed, with ?token=
+      setStatus(event.code === 1008 ? "unauthorized: open /?token=<token>" : "disconnected");
       setTimeout(connect, retryMs);
       retryMs = Math.min(retryMs * 2, 5000);
     };
