@@ -12,7 +12,8 @@ from pydantic import BaseModel, ConfigDict
 
 
 class UnknownJob(KeyError):
-    """No job with this id (or it was forgotten: only the newest ``keep`` are kept)."""
+    """No job with this id (or it was forgotten: only the newest ``keep`` finished ones
+    are kept)."""
 
 
 @dataclass
@@ -46,16 +47,32 @@ class Job:
             "created_at", "finished_at")}
 
 
+class TooManyJobs(Exception):
+    """``max_running`` jobs are running already (answer 429 naming ``setting``)."""
+
+    def __init__(self, limit: int, setting: str) -> None:
+        super().__init__(f"{limit} jobs are running already, the limit ({setting}): "
+                         "retry when one has finished")
+        self.limit, self.setting = limit, setting
+
+
 class Jobs:
-    def __init__(self, keep: int = 1000) -> None:
+    """The jobs of a service: at most ``max_running`` running (:class:`TooManyJobs`
+    past it), and the newest ``keep`` finished ones; a running job is never forgotten."""
+
+    def __init__(self, keep: int = 1000, max_running: int = 16,
+                 setting: str = "max_running") -> None:
         self._jobs: OrderedDict[str, Job] = OrderedDict()
-        self._keep = keep
+        self._keep, self._max_running, self._setting = keep, max_running, setting
 
     def create(self, kind: str, cache: str, total: int) -> Job:
+        if sum(job.state == "running" for job in self._jobs.values()) >= self._max_running:
+            raise TooManyJobs(self._max_running, self._setting)
         job = Job(uuid.uuid4().hex, kind, cache, total)
         self._jobs[job.id] = job
-        while len(self._jobs) > self._keep:
-            self._jobs.popitem(last=False)
+        finished = [j.id for j in self._jobs.values() if j.state != "running"]
+        for job_id in finished[:max(0, len(finished) - self._keep)]:
+            del self._jobs[job_id]
         return job
 
     def get(self, job_id: str) -> Job:

@@ -16,7 +16,7 @@ from prometheus_client import CollectorRegistry
 from shared.http import error_response, service_app
 
 from .embedders import EmbedderError
-from .errors import Conflict, DetectorError, InvalidInput, NotCalibrated, NotFound
+from .errors import Busy, Conflict, DetectorError, InvalidInput, NotCalibrated, NotFound
 from .metrics import Metrics
 from .routes import router
 from .scoring import ScoringError
@@ -26,7 +26,7 @@ from .store import StorageCorrupt, StorageError, StorageFull
 
 log = logging.getLogger(__name__)
 
-STATUS = {InvalidInput: 422, NotFound: 404, Conflict: 409, NotCalibrated: 409}
+STATUS = {InvalidInput: 422, NotFound: 404, Conflict: 409, NotCalibrated: 409, Busy: 429}
 
 
 def create_app(

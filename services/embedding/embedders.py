@@ -27,6 +27,7 @@ from __future__ import annotations
 import importlib
 import sys
 import threading
+from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -591,6 +592,10 @@ class EmbedderPool(Closing):
 
     Two threads asking for the same model wait for one load; different models
     load in parallel. A failed load is not remembered: the next ``get`` retries.
+    At most ``max_loaded`` models stay loaded: the least recently used one is let
+    go (a caller still holding it finishes with it). A model given as a directory
+    must lie inside ``model_dir`` (when one is set): the service's callers name
+    models, they do not pick files of the machine.
     """
 
     def __init__(
@@ -601,6 +606,8 @@ class EmbedderPool(Closing):
         device: str = "cpu",
         hf_cache_dir: str | Path | None = None,
         loader: Callable[[str], Embedder] | None = None,
+        model_dir: Path | None = None,
+        max_loaded: int = 4,
     ) -> None:
         self._loader = loader or (
             lambda model: load_embedder(
@@ -609,19 +616,40 @@ class EmbedderPool(Closing):
             )
         )
         self._lock = threading.Lock()
-        self._slots: dict[str, _Slot] = {}
+        self._slots: OrderedDict[str, _Slot] = OrderedDict()  # least recently used first
         self._closed = False
+        self._model_dir = model_dir.resolve() if model_dir is not None else None
+        self._max_loaded = max_loaded
 
     def get(self, model: str) -> Embedder:
+        self._check_directory(model)
         key = pool_key(model)
         with self._lock:
             if self._closed:
                 raise RuntimeError("the embedder pool is closed")
             slot = self._slots.setdefault(key, _Slot())
+            self._slots.move_to_end(key)
         with slot.lock:
             if slot.embedder is None:
                 slot.embedder = self._loader(model)
-            return slot.embedder
+            embedder = slot.embedder
+        self._evict()
+        return embedder
+
+    def _check_directory(self, model: str) -> None:
+        if self._model_dir is None or model.startswith(OPENAI_PREFIX):
+            return
+        path = Path(model).expanduser()
+        if (_is_dir(path) or path.is_absolute()) and \
+                not path.resolve().is_relative_to(self._model_dir):
+            raise ModelNotFound(f"{model!r}: a model given as a directory must be inside "
+                                f"{self._model_dir} (AESOP_EMBEDDING_MODEL_DIR)")
+
+    def _evict(self) -> None:
+        with self._lock:
+            loaded = [key for key, slot in self._slots.items() if slot.embedder is not None]
+            for key in loaded[:max(0, len(loaded) - self._max_loaded)]:
+                del self._slots[key]  # a caller that holds it keeps using it
 
     def loaded(self) -> list[str]:
         """Names of the embedders loaded so far."""
@@ -633,7 +661,7 @@ class EmbedderPool(Closing):
         """Closes every embedder (HTTP clients let go of their connections); idempotent."""
         with self._lock:
             self._closed = True
-            slots, self._slots = list(self._slots.values()), {}
+            slots, self._slots = list(self._slots.values()), OrderedDict()
         for slot in slots:
             with slot.lock:
                 embedder, slot.embedder = slot.embedder, None

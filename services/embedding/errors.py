@@ -5,6 +5,7 @@ DetectorError
  +-- NotFound          unknown cache, experience or job
  +-- Conflict          the request contradicts stored state (duplicate id, model change)
  +-- NotCalibrated     a threshold is needed and the cache has none
+ +-- Busy              too much work is already waiting; ``field`` names the request part
 """
 
 from __future__ import annotations
@@ -33,3 +34,7 @@ class Conflict(DetectorError):
 
 class NotCalibrated(DetectorError):
     code = "not_calibrated"
+
+
+class Busy(DetectorError):
+    code = "busy"

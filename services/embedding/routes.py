@@ -1,6 +1,7 @@
 """The vector-cache service's routes (shapes in docs/architecture.md). Each takes what it
 needs as ``Annotated`` dependencies: the service, the settings, the metrics (all on
-``app.state``, set by :func:`.api.create_app`); ``TOKEN`` guards the mutating ones."""
+``app.state``, set by :func:`.api.create_app`). The app's guard checks the token (every route
+needs it when the service has one)."""
 
 from __future__ import annotations
 
@@ -8,11 +9,11 @@ import asyncio
 from collections.abc import Awaitable, Sequence
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse
 
-from shared.http import TOKEN, ApiError, errors, from_state
-from shared.jobs import Job, JobAccepted, JobInfo, UnknownJob
+from shared.http import ApiError, errors, from_state, unless_client_leaves
+from shared.jobs import Job, JobAccepted, JobInfo, TooManyJobs, UnknownJob
 
 from .cache import Labelled
 from .errors import DetectorError, InvalidInput, NotFound
@@ -41,7 +42,7 @@ MetricsDep = Annotated[Metrics, Depends(from_state("metrics"))]
 router = APIRouter()
 
 
-@router.put("/v1/caches/{name}", dependencies=[TOKEN], response_model=CacheInfo,
+@router.put("/v1/caches/{name}", response_model=CacheInfo,
             responses={201: {"model": CacheInfo, "description": "created"},
                        **errors(401, 409, 502, 503, 507)})
 async def put_cache(name: str, body: CreateCache, service: ServiceDep,
@@ -62,16 +63,19 @@ async def get_cache(name: str, service: ServiceDep) -> CacheInfo:
     return service.describe(name)
 
 
-@router.post("/v1/caches/{name}/experiences", dependencies=[TOKEN], response_model=Added,
+@router.post("/v1/caches/{name}/experiences", response_model=Added,
              responses={202: {"model": JobAccepted, "description": "?wait=false"},
-                        **errors(401, 404, 409, 502, 503, 507)})
+                        **errors(401, 404, 409, 429, 502, 503, 507)})
 async def add_experiences(
     name: str, body: AddExperiences, service: ServiceDep, settings: SettingsDep,
     wait: Annotated[bool, Query(description="false: answer 202 with a job id")] = True,
 ) -> JSONResponse:
     service.entry(name)
     items = _items(body, settings)
-    job = service.jobs.create("add_experiences", name, len(items))
+    try:
+        job = service.jobs.create("add_experiences", name, len(items))
+    except TooManyJobs as exc:
+        raise ApiError(429, "busy", str(exc), "wait") from None
     if wait:
         added = await _run_job(job, service.add(name, items, job))
         return JSONResponse(added.model_dump(mode="json"))
@@ -86,14 +90,12 @@ async def get_experience(name: str, ident: str, service: ServiceDep) -> Experien
     return service.experience(name, ident)
 
 
-@router.delete("/v1/caches/{name}/experiences/{ident}", dependencies=[TOKEN],
-               responses=errors(401, 404, 503, 507))
+@router.delete("/v1/caches/{name}/experiences/{ident}", responses=errors(401, 404, 503, 507))
 async def delete_experience(name: str, ident: str, service: ServiceDep) -> Deleted:
     return await service.delete(name, ident)
 
 
-@router.post("/v1/caches/{name}/calibrate", dependencies=[TOKEN],
-             responses=errors(401, 404, 409, 502, 503, 507))
+@router.post("/v1/caches/{name}/calibrate", responses=errors(401, 404, 409, 502, 503, 507))
 async def calibrate(name: str, body: Calibrate, service: ServiceDep,
                     settings: SettingsDep) -> Calibrated:
     labelled = [Labelled(x.text, x.label == "anomaly") for x in body.calibration or ()]
@@ -104,18 +106,25 @@ async def calibrate(name: str, body: Calibrate, service: ServiceDep,
                                    calibration=labelled)
 
 
-@router.post("/v1/caches/{name}/score", responses=errors(404, 409, 502))
+@router.post("/v1/caches/{name}/score", responses=errors(404, 409, 429, 502))
 async def score(name: str, body: Score, service: ServiceDep, settings: SettingsDep,
-                metrics: MetricsDep) -> Scores:
+                metrics: MetricsDep, request: Request) -> Scores:
+    """Score texts or vectors: at most ``max_score_items`` per request (413), behind the
+    bus's verdicts, refused while too much is waiting (429), dropped if the client
+    leaves before its answer."""
     with metrics.score_seconds.time():
         if body.texts is not None:
-            _check_count(len(body.texts), "texts", settings)
+            _check_count(len(body.texts), "texts", settings, settings.max_score_items,
+                         "AESOP_EMBEDDING_MAX_SCORE_ITEMS")
             _check_texts(body.texts, "texts", settings)
-            batch = await service.score_texts(name, body.texts, body.k)
+            batch = await unless_client_leaves(request,
+                                               service.score_texts(name, body.texts, body.k))
         else:
             vectors = body.vectors or []
-            _check_count(len(vectors), "vectors", settings)
-            batch = await service.score_vectors(name, vectors, body.k)
+            _check_count(len(vectors), "vectors", settings, settings.max_score_items,
+                         "AESOP_EMBEDDING_MAX_SCORE_ITEMS")
+            batch = await unless_client_leaves(request,
+                                               service.score_vectors(name, vectors, body.k))
     return _score_response(batch)
 
 
@@ -151,12 +160,14 @@ def _items(body: AddExperiences, settings: EmbeddingSettings) -> list[Item]:
     return [Item(vector=v, id=i) for v, i in zip(vectors, ids, strict=True)]
 
 
-def _check_count(n: int, field: str, settings: EmbeddingSettings) -> None:
+def _check_count(n: int, field: str, settings: EmbeddingSettings, limit: int | None = None,
+                 variable: str = "AESOP_EMBEDDING_MAX_ITEMS") -> None:
+    limit = settings.max_items if limit is None else limit
     if n == 0:
         raise InvalidInput(f"'{field}' is empty", field=field)
-    if n > settings.max_items:
+    if n > limit:
         raise ApiError(413, "too_large", f"{n} {field} in one request; the limit is "
-                       f"{settings.max_items} (AESOP_EMBEDDING_MAX_ITEMS)", field)
+                       f"{limit} ({variable})", field)
 
 
 def _check_texts(texts: list[str], field: str, settings: EmbeddingSettings,

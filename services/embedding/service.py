@@ -22,7 +22,6 @@ import logging
 import re
 import threading
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from functools import partial
@@ -33,7 +32,7 @@ import numpy as np
 
 from shared.jobs import Job, Jobs
 
-from .batching import MicroBatcher
+from .batching import NORMAL, URGENT, ComputeThread, MicroBatcher
 from .cache import Add, Cache, CacheConfig, Delete, Labelled, Op, Scored, ScoreKind, unit_vectors
 from .calibration import (
     Calibration,
@@ -46,7 +45,7 @@ from .calibration import (
     tpr_target,
 )
 from .embedders import Embedder, EmbedderPool, ModelNotFound
-from .errors import Conflict, InvalidInput, NotFound
+from .errors import Busy, Conflict, InvalidInput, NotFound
 from .index import IndexKind
 from .legacy import legacy_caches, read_legacy
 from .schemas import Added, CacheInfo, Calibrated, Deleted, Experience, Roc
@@ -102,7 +101,7 @@ class Entry:
     changed: int = 0  # experiences added or deleted since the index file was saved
     writer: asyncio.Lock = field(default_factory=asyncio.Lock)
     rw: RWLock = field(default_factory=RWLock)
-    batchers: dict[int, MicroBatcher[str, Scored]] = field(default_factory=dict)
+    batchers: dict[tuple[int, bool], MicroBatcher[str, Scored]] = field(default_factory=dict)
 
     def index_outdated(self) -> bool:
         """The saved index file is missing, older than the cache, or lacks a built graph."""
@@ -184,12 +183,17 @@ class CacheService:
         self.embedders = embedders or EmbedderPool(
             openai_base_url=settings.openai_base_url,
             openai_api_key=(settings.openai_api_key.get_secret_value()
-                            if settings.openai_api_key else None))
-        self.jobs = Jobs()
+                            if settings.openai_api_key else None),
+            model_dir=settings.model_dir or settings.data_dir / "models",
+            max_loaded=settings.max_models)
+        self.jobs = Jobs(max_running=settings.max_jobs, setting="AESOP_EMBEDDING_MAX_JOBS")
         self._entries: dict[str, Entry] = {}
         self._create_lock = asyncio.Lock()
         self._on_batch = on_batch
-        self._compute = ThreadPoolExecutor(max_workers=1, thread_name_prefix="aesop-compute")
+        self._thread = ComputeThread()
+        self._compute = self._thread.lane(NORMAL)
+        self._urgent = self._thread.lane(URGENT)
+        self._rest_pending = 0  # REST texts being scored or waiting (max_pending_texts)
         self._store: Store | None = None
 
     @property
@@ -235,7 +239,7 @@ class CacheService:
         self._entries.clear()
         if self._store is not None:
             self._store.close()
-        self._compute.shutdown(wait=True)
+        self._thread.shutdown(wait=True)
         self.embedders.close()
 
     def _save_index(self, entry: Entry) -> None:
@@ -440,8 +444,12 @@ class CacheService:
 
     # -- scoring ------------------------------------------------------------------
 
-    async def score_texts(self, name: str, texts: Sequence[str], k: int | None = None
-                          ) -> ScoreBatch:
+    async def score_texts(self, name: str, texts: Sequence[str], k: int | None = None, *,
+                          urgent: bool = False) -> ScoreBatch:
+        """Score ``texts``. ``urgent`` (the bus's verdicts) goes before all other work on
+        the compute thread and is never refused; other work runs as chunks of
+        ``score_chunk`` texts and is refused with :class:`Busy` past
+        ``max_pending_texts``. Cancelling the call drops the chunks not yet started."""
         entry = self.entry(name)
         cache = entry.cache
         k = k or cache.config.k
@@ -450,11 +458,30 @@ class CacheService:
         if cache.config.model is None:
             raise Conflict(f"cache {name!r} has no embedding model: score vectors",
                            field="texts")
-        if self.settings.microbatch:
-            results = await self._batcher(entry, k).submit(list(texts))
-        else:
-            results = await self._on_compute(self._embed_and_score, entry, k, list(texts))
+        if urgent:
+            return self._batch(entry, await self._score_on(entry, k, list(texts), True), k)
+        limit = self.settings.max_pending_texts
+        if self._rest_pending + len(texts) > limit:
+            raise Busy(f"{self._rest_pending} texts are already waiting to be scored; with "
+                       f"these {len(texts)} that is past the limit of {limit} "
+                       "(AESOP_EMBEDDING_MAX_PENDING_TEXTS): retry later", field="texts")
+        self._rest_pending += len(texts)
+        try:
+            results: list[Scored] = []
+            step = self.settings.score_chunk
+            for start in range(0, len(texts), step):
+                results += await self._score_on(entry, k, list(texts[start:start + step]), False)
+        finally:
+            self._rest_pending -= len(texts)
         return self._batch(entry, results, k)
+
+    async def _score_on(self, entry: Entry, k: int, texts: list[str], urgent: bool
+                        ) -> list[Scored]:
+        if self.settings.microbatch:
+            return await self._batcher(entry, k, urgent).submit(texts)
+        return await asyncio.get_running_loop().run_in_executor(
+            self._urgent if urgent else self._compute,
+            partial(self._embed_and_score, entry, k, texts))
 
     async def score_vectors(self, name: str, rows: Sequence[Sequence[float]],
                             k: int | None = None) -> ScoreBatch:
@@ -468,14 +495,16 @@ class CacheService:
         c = entry.cache
         return ScoreBatch(results, c.threshold, c.stale, c.version, k, c.config.model)
 
-    def _batcher(self, entry: Entry, k: int) -> MicroBatcher[str, Scored]:
-        if k not in entry.batchers:
-            entry.batchers[k] = MicroBatcher(
+    def _batcher(self, entry: Entry, k: int, urgent: bool) -> MicroBatcher[str, Scored]:
+        """One batcher per (k, lane): the bus's observations are batched together and
+        apart from REST chunks, which are batched up to one chunk's size."""
+        if (k, urgent) not in entry.batchers:
+            entry.batchers[k, urgent] = MicroBatcher(
                 lambda texts: self._embed_and_score(entry, k, texts),
-                max_items=self.settings.microbatch_max,
+                max_items=self.settings.microbatch_max if urgent else self.settings.score_chunk,
                 window_s=self.settings.microbatch_window_ms / 1000,
-                on_batch=self._on_batch, executor=self._compute)
-        return entry.batchers[k]
+                on_batch=self._on_batch, executor=self._urgent if urgent else self._compute)
+        return entry.batchers[k, urgent]
 
     def _embed_and_score(self, entry: Entry, k: int, texts: list[str]) -> list[Scored]:
         config = entry.cache.config

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from pydantic import AliasChoices, Field, SecretStr
 from pydantic_settings import SettingsConfigDict
 
@@ -16,13 +18,25 @@ class EmbeddingSettings(ServiceSettings):
 
     port: int = Field(default=8001, ge=0, le=65535)
     model: str = DEFAULT_MODEL  # default model of new caches
+    # a model named by a directory must be in here (default: <data_dir>/models); names
+    # (the bundled model, the Hugging Face cache, openai:<name>) are looked up as before
+    model_dir: Path | None = None
+    max_models: int = Field(default=4, ge=1)  # loaded at once; the least used goes first
     openai_base_url: str = "https://api.openai.com/v1"  # for models named "openai:<name>"
     openai_api_key: SecretStr | None = Field(default=None, validation_alias=AliasChoices(
         "AESOP_EMBEDDING_OPENAI_API_KEY", "OPENAI_API_KEY"))
     detector_cache: str = "default"  # the cache the Zenoh worker scores observations against
     default_k: int = Field(default=5, ge=1, le=1000)
     verdict_neighbors: int = Field(default=3, ge=0, le=100)
-    max_items: int = Field(default=10_000, ge=1)  # per request
+    max_items: int = Field(default=10_000, ge=1)  # per request that adds or calibrates
+    max_score_items: int = Field(default=256, ge=1)  # texts or vectors per score request
+    # REST texts being scored or waiting, over all requests: past it, 429 (the bus's
+    # observations are never refused, and go first: see batching.ComputeThread)
+    max_pending_texts: int = Field(default=1024, ge=1)
+    # a REST score request runs as chunks of this many texts, so a bus verdict waits for
+    # at most one chunk, and a caller that leaves stops its request at the next chunk
+    score_chunk: int = Field(default=16, ge=1)
+    max_jobs: int = Field(default=8, ge=1)  # add jobs running at once (429 past it)
     max_text_chars: int = Field(default=4_000, ge=1)
     max_body_bytes: int = Field(default=64 * 1024 * 1024, ge=1024)
     embed_batch_size: int = Field(default=64, ge=1)

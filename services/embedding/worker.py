@@ -78,7 +78,7 @@ class DetectorWorker:
         obs = received.message
         robot = topics.robot_of(received.key)
         try:
-            batch = await self.service.score_texts(self.cache, [obs.text])
+            batch = await self.service.score_texts(self.cache, [obs.text], urgent=True)
         except DetectorError as exc:
             self._alarm(robot, f"cannot score observation {obs.seq}: {exc.message}")
             return

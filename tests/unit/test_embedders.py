@@ -258,6 +258,36 @@ def test_pool_retries_a_failed_load_and_closes_what_it_loaded() -> None:
     pool.close()  # idempotent
 
 
+def test_pool_keeps_at_most_max_loaded_models_and_evicts_the_least_used() -> None:
+    """Issue 14: a model loaded once stayed in memory for good, however many were asked."""
+    loader = SlowLoader()
+    loader.gate.set()
+    pool = EmbedderPool(loader=loader, max_loaded=2)
+    pool.get("m1"), pool.get("m2")
+    pool.get("m1")  # m1 is used again: m2 is now the least recently used
+    pool.get("m3")
+    assert sorted(pool.loaded()) == [pool_key("m1"), pool_key("m3")]
+    pool.get("m2")  # loaded again
+    assert [c for c in loader.calls].count("m2") == 2 and len(pool.loaded()) == 2
+
+
+def test_pool_refuses_a_directory_outside_the_model_directory(tmp_path: Path) -> None:
+    """Issue 14: ``model`` in ``PUT /v1/caches/{name}`` could load any local directory."""
+    models = tmp_path / "models"
+    (models / "mine").mkdir(parents=True)
+    (tmp_path / "elsewhere").mkdir()
+    loader = SlowLoader()
+    loader.gate.set()
+    pool = EmbedderPool(loader=loader, model_dir=models)
+    for outside in (str(tmp_path / "elsewhere"), str(models / ".." / "elsewhere"), "/etc"):
+        with pytest.raises(ModelNotFound, match="AESOP_EMBEDDING_MODEL_DIR"):
+            pool.get(outside)
+    assert loader.calls == []
+    pool.get(str(models / "mine"))
+    pool.get("all-MiniLM-L6-v2")  # a name, not a directory: as before
+    assert len(loader.calls) == 2
+
+
 def test_load_embedder_picks_the_openai_client_without_any_request() -> None:
     embedder = load_embedder("openai:text-embedding-3-small",
                              openai_base_url="http://127.0.0.1:9/v1", openai_api_key=KEY)
