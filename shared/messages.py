@@ -31,6 +31,15 @@ def _not_a_bool(value: Any) -> Any:
 NotBool = BeforeValidator(_not_a_bool)
 Int = Annotated[int, NotBool]  # an int that is not a bool
 Float = Annotated[float, NotBool]  # a float that is not a bool
+Finite = Annotated[float, Field(allow_inf_nan=False), NotBool]  # and neither inf nor NaN
+
+# Ceilings of what crosses the bus, whatever a service's settings allow (each service
+# applies its own, lower, limits too): a message past them is dropped undecoded and
+# counted (shared.bus), like one that is not JSON.
+MAX_TEXT_CHARS = 16_000
+MAX_TASK_CHARS = 1_000
+MAX_DETECTIONS = 64
+MAX_LABEL_CHARS = 200
 # limits of an optional number go before NotBool, or pydantic cannot publish them:
 # Annotated[int, Field(ge=1), NotBool] | None
 
@@ -42,7 +51,7 @@ class Message(BaseModel):
 
     schema_version: Int = SCHEMA_VERSION
     robot: str = Field(default="robot0", min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_\-]+$")
-    stamp: Float = Field(default_factory=time.time)
+    stamp: Finite = Field(default_factory=time.time)
 
     def encode(self) -> bytes:
         return self.model_dump_json().encode()
@@ -57,18 +66,19 @@ class Detection(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    label: str
-    confidence: Float | None = None
-    where: str | None = None  # context, e.g. "on the red box", "on the ground"
+    label: str = Field(min_length=1, max_length=MAX_LABEL_CHARS)
+    confidence: Annotated[float, Field(allow_inf_nan=False), NotBool] | None = None
+    # context, e.g. "on the red box", "on the ground"
+    where: str | None = Field(default=None, max_length=MAX_LABEL_CHARS)
 
 
 class Observation(Message):
     """o_t: the robot's text observation at tick ``seq``."""
 
     seq: Int = Field(ge=0)
-    task: str = ""
-    text: str = Field(min_length=1)
-    detections: tuple[Detection, ...] = ()
+    task: str = Field(default="", max_length=MAX_TASK_CHARS)
+    text: str = Field(min_length=1, max_length=MAX_TEXT_CHARS)
+    detections: tuple[Detection, ...] = Field(default=(), max_length=MAX_DETECTIONS)
 
 
 class Neighbor(BaseModel):
@@ -121,10 +131,10 @@ class Option(BaseModel):
 class ReasonerRequest(Message):
     """Control -> reasoner: decide among ``options`` within ``deadline_s`` (K)."""
 
-    request_id: str
+    request_id: str = Field(min_length=1, max_length=128)
     observation: Observation
-    options: tuple[Option, ...] = Field(min_length=1)
-    deadline_s: Float = Field(gt=0.0)
+    options: tuple[Option, ...] = Field(min_length=1, max_length=64)
+    deadline_s: Finite = Field(gt=0.0)
 
 
 DecisionSource = Literal["llm", "timeout", "parse_error", "backend_error"]
@@ -133,10 +143,10 @@ DecisionSource = Literal["llm", "timeout", "parse_error", "backend_error"]
 class ReasonerDecision(Message):
     """Reasoner -> control: y, the chosen option index, and where it came from."""
 
-    request_id: str
+    request_id: str = Field(min_length=1, max_length=128)
     choice: Int = Field(ge=0)
     source: DecisionSource
-    rationale: str = ""
+    rationale: str = Field(default="", max_length=MAX_TEXT_CHARS)
     latency_ms: Float = Field(ge=0.0)
     model: str = ""
 

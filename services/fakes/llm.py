@@ -227,14 +227,17 @@ _SINGLE = re.compile(
 
 
 def parse_prompt(prompt: str) -> ParsedPrompt:
-    """Read ``Task:``, ``Observation:`` (``> `` lines) and ``Options:`` (``n: label — desc``)."""
+    """Read ``Task:`` (a ``> `` line), ``Observation:`` (``> `` lines) and ``Options:``
+    (``n: label — desc``)."""
     task, observations, options = "", [], []
     section = ""
     for raw in prompt.splitlines():
         line = raw.strip()
         low = line.lower()
-        if low.startswith("task:"):
-            task, section = line[5:].strip(), ""
+        if low.startswith("task:"):  # the task on its line, or quoted on the next
+            task, section = line[5:].strip(), "" if line[5:].strip() else "task"
+        elif section == "task" and line.startswith(">"):
+            task, section = line.lstrip("> ").strip(), ""
         elif re.match(r"observations?\s*:", low):
             section = "obs"
             rest = line.split(":", 1)[1].strip() if ":" in line else ""

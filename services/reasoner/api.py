@@ -12,6 +12,7 @@ from fastapi import FastAPI
 from prometheus_client import CollectorRegistry
 
 from shared.http import service_app
+from shared.jobs import Jobs
 
 from .backends import ChatBackend, Completion, OpenAIChatBackend
 from .deciding import Decider, DeciderConfig, FallbackPolicy
@@ -56,7 +57,8 @@ def create_app(
     registry = CollectorRegistry()
     metrics = Metrics(registry)
     state = {"started": False}
-    work = Work()
+    work = Work(Jobs(max_running=settings.max_calibration_jobs,
+                     setting="AESOP_REASONER_MAX_CALIBRATION_JOBS"))
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -81,6 +83,7 @@ def create_app(
         "AESOP slow-reasoner service", service="reasoner", lifespan=lifespan, registry=registry,
         ready=lambda: None if state["started"] else {"reason": "starting"},
         admin_token=settings.admin_token,
+        max_body_bytes=settings.max_body_bytes,
         limits={"ReasonBody": {"options": {"maxItems": settings.max_options},
                                "deadline_s": {"maximum": settings.max_deadline_s}},
                 "CalibrateBody": {"options": {"maxItems": settings.max_options}},

@@ -7,9 +7,9 @@
   other attempt is cancelled and awaited, so its HTTP connection is closed.
 - ``timeout``: no valid answer by the deadline; everything is cancelled.
 - ``parse_error``: every attempt answered but none parsed (the reason codes of
-  :mod:`services.reasoner.parsing` are in the rationale); also an observation flagged by
-  :func:`~services.reasoner.prompts.suspicious_observation` (reason ``injection``, the
-  LLM is never called) and options the prompt cannot render (reason ``invalid_request``).
+  :mod:`services.reasoner.parsing` are in the rationale); also a task or observation
+  flagged by :func:`~services.reasoner.prompts.suspicious_scene` (reason ``injection``,
+  the LLM is never called) and options the prompt cannot render (reason ``invalid_request``).
 - ``backend_error``: every attempt failed in the backend (kind and HTTP status in the
   rationale). With mixed failures, ``parse_error`` wins: a model did answer.
 
@@ -33,7 +33,7 @@ from shared.messages import DecisionSource, Option, ReasonerDecision, ReasonerRe
 
 from .backends import BackendError, ChatBackend, Completion
 from .parsing import Parsed, ParseError, parse_decision, parse_partial
-from .prompts import Variant, build_messages, load_template, suspicious_observation
+from .prompts import Variant, build_messages, load_template, suspicious_scene
 
 FallbackKind = Literal["first_recovery", "rank"]
 DEFAULT_TASK = "carry out the current mission safely"
@@ -157,10 +157,10 @@ class Decider:
         start = self._clock() if received_at is None else received_at
         deadline = start + request.deadline_s - self._config.margin_s
         observation = request.observation.text
-        flagged = suspicious_observation(observation)
+        flagged = suspicious_scene(task=request.observation.task, observation=observation)
         if flagged:
             return self._fallback(request, start, "parse_error",
-                                  f"injection: observation flagged ({flagged}); LLM not asked")
+                                  f"injection: {flagged}; LLM not asked")
         try:
             messages = self._messages(request)
         except ValueError as exc:

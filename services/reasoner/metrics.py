@@ -21,12 +21,19 @@ class Metrics:
         self.tokens = Counter("aesop_reasoner_tokens", "LLM tokens, as the server reports them "
                               "in 'usage' (streamed answers count only where it does)",
                               ["kind"], registry=registry)
+        self.bus_rejected = Counter(
+            "aesop_reasoner_bus_rejected", "Requests on the bus dropped, unanswered, for a "
+            "field over its limit (max_observation_chars, max_options, max_deadline_s)",
+            ["field"], registry=registry)
 
     def count(self, completion: Completion) -> None:
         if completion.prompt_tokens:
             self.tokens.labels("prompt").inc(completion.prompt_tokens)
         if completion.completion_tokens:
             self.tokens.labels("completion").inc(completion.completion_tokens)
+
+    def reject(self, field: str) -> None:
+        self.bus_rejected.labels(field).inc()
 
     def observe(self, decision: ReasonerDecision) -> None:
         self.decisions.labels(decision.source).inc()

@@ -42,10 +42,14 @@ Reason = Literal[
 MAX_RATIONALE = 2000
 MAX_DIGITS = 6
 
-_DECOR = r"[*_`]{0,3}"
+# Blanks, then optional emphasis (up to three of *, _, `) and blanks: the same texts as
+# blanks, up to three emphasis characters, blanks, but in time linear in the line. The
+# adjacent ``\s*[*_`]{0,3}\s*`` (three in a row after the number) backtracked over every
+# split of a run of blanks: 800 spaces after the number took 1.4 s, 1,600 took 12 s.
+_SPACED = r"\s*(?:[*_`]{1,3}\s*)?"
 _FINAL_LINE = re.compile(
-    rf"^\s*{_DECOR}\s*FINAL ANSWER\s*:\s*{_DECOR}\s*(0|[1-9][0-9]{{0,{MAX_DIGITS - 1}}})"
-    rf"\s*\.?\s*{_DECOR}\s*$",
+    rf"^{_SPACED}FINAL ANSWER\s*:{_SPACED}(0|[1-9][0-9]{{0,{MAX_DIGITS - 1}}})"
+    rf"\s*(?:\.\s*)?(?:[*_`]{{1,3}}\s*)?$",
     re.IGNORECASE | re.ASCII,
 )
 _MARKER = re.compile(r"final\s*answer\W{0,3}:", re.IGNORECASE)

@@ -10,7 +10,8 @@ fake LLM server and :mod:`services.reasoner.parsing` rely on them)::
 
     <monitor paragraph>
 
-    Task: <task>
+    Task:
+    > <task>
     Observation:
     > <observation line 1>
     > <observation line 2>
@@ -21,9 +22,10 @@ fake LLM server and :mod:`services.reasoner.parsing` rely on them)::
     <instruction>
     End your answer with one line exactly: FINAL ANSWER: <option number>
 
-The observation is untrusted text: every line is quoted with ``"> "`` so it
-cannot open its own ``Options:`` or ``FINAL ANSWER:`` line, and
-:func:`suspicious_observation` flags text that tries to inject instructions.
+The task and the observation are untrusted text: every line is quoted with ``"> "``
+(the task is one line, its line breaks folded to spaces) so neither can open its own
+``Options:`` or ``FINAL ANSWER:`` line, and :func:`suspicious_scene` flags either one
+when it tries to inject instructions.
 """
 
 from __future__ import annotations
@@ -141,7 +143,7 @@ def build_messages(
 def render_scene(*, task: str, observation: str, options: Sequence[Option]) -> str:
     """The ``Task:`` / ``Observation:`` / ``Options:`` block."""
     return (
-        f"Task: {_single_line(task, 'task')}\n"
+        f"Task:\n{QUOTE}{_single_line(task, 'task')}\n"
         f"Observation:\n{quote_observation(observation)}\n"
         f"Options:\n{render_options(options)}"
     )
@@ -200,6 +202,15 @@ def _single_line(text: str, field: str) -> str:
     return collapsed
 
 
+# Every pattern runs in time linear in the text (it runs on each streamed chunk, on the
+# event loop that holds every deadline): no two adjacent or nested quantifiers may match
+# the same characters. A line-start pattern therefore skips only the blanks and quote
+# marks of its own line, never a line break: ``^[\s>]*`` rescanned every blank line that
+# follows from every line start (8,000 newlines took 2.6 s). It flags the same texts: a
+# run of blanks and line breaks before a marker ends in the marker's own line. A bounded
+# gap such as ``.{0,40}?`` costs at most 41 steps per start, so it stays.
+_BLANK = r"[^\S\n]"  # whitespace other than "\n", which ends the line for ``^``
+_QUOTED = rf"(?:{_BLANK}|>)"
 _INJECTION_PATTERNS: tuple[tuple[str, re.Pattern[str]], ...] = tuple(
     (reason, re.compile(pattern, re.IGNORECASE | re.MULTILINE))
     for reason, pattern in (
@@ -210,10 +221,11 @@ _INJECTION_PATTERNS: tuple[tuple[str, re.Pattern[str]], ...] = tuple(
             r"\b(?:instructions?|prompts?|rules|directions|context)\b",
         ),
         ("role reassignment", r"\byou\s+are\s+now\b|\bpretend\s+(?:to\s+be|you)\b"),
-        ("chat role marker", r"\b(?:system|assistant|developer)\s*:|^\s*user\s*:"),
+        ("chat role marker", rf"\b(?:system|assistant|developer)\s*:|^{_BLANK}*user\s*:"),
         ("chat template token", r"<\|[a-z_]+\|>|\[/?inst\]|<</?sys>>"),
-        ("prompt section header", r"^[\s>]*(?:options|task|observation|instructions?)\s*:"),
-        ("option line", r"^[\s>]*\d+\s*:\s*continue\s+nominal"),
+        ("prompt section header",
+         rf"^{_QUOTED}*(?:options|task|observation|instructions?)\s*:"),
+        ("option line", rf"^{_QUOTED}*\d+\s*:\s*continue\s+nominal"),
         ("new instructions", r"\bnew\s+instructions?\b|\bsystem\s+prompt\b"),
         ("answer steering", r"\b(?:choose|select|pick|answer|respond\s+with|output)\s+option\s*\d"),
     )
@@ -232,6 +244,16 @@ def suspicious_observation(text: str) -> str | None:
         match = pattern.search(normalised)
         if match:
             return f"{reason}: {match.group(0).strip()!r}"
+    return None
+
+
+def suspicious_scene(*, task: str, observation: str) -> str | None:
+    """Which of the scene's untrusted texts tries to inject instructions, and how
+    (``task flagged (...)``, ``observation flagged (...)``), else None."""
+    for name, text in (("observation", observation), ("task", task)):
+        flagged = suspicious_observation(text)
+        if flagged:
+            return f"{name} flagged ({flagged})"
     return None
 
 

@@ -1,7 +1,7 @@
 """The slow-reasoner service's routes (shapes in docs/architecture.md). Each takes what it
 needs as ``Annotated`` dependencies from ``app.state`` (set by :func:`.api.create_app`):
-the decider, the settings, the metrics, the background work; ``TOKEN`` guards the
-mutating ones."""
+the decider, the settings, the metrics, the background work. The app's guard checks the
+token (every route needs it when the service has one)."""
 
 from __future__ import annotations
 
@@ -13,10 +13,11 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends
 
-from shared.http import TOKEN, ApiError, errors, from_state
-from shared.jobs import Job, JobAccepted, JobInfo, Jobs, UnknownJob
+from shared.http import ApiError, errors, from_state
+from shared.jobs import Job, JobAccepted, JobInfo, Jobs, TooManyJobs, UnknownJob
 from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
 
+from . import limits
 from .calibrating import CalibrationPlan, measure
 from .deciding import Decider
 from .latency import LatencyError, min_samples
@@ -51,7 +52,7 @@ WorkDep = Annotated[Work, Depends(from_state("work"))]
 router = APIRouter()
 
 
-@router.post("/v1/reason", dependencies=[TOKEN], responses=errors(401))
+@router.post("/v1/reason", responses=errors(401))
 async def reason(body: ReasonBody, decider: DeciderDep, settings: SettingsDep,
                  metrics: MetricsDep) -> ReasonerDecision:
     check_request(body, settings)
@@ -64,8 +65,8 @@ async def reason(body: ReasonBody, decider: DeciderDep, settings: SettingsDep,
     return decision
 
 
-@router.post("/v1/latency/calibrate", dependencies=[TOKEN], status_code=202,
-             responses=errors(401, 409))
+@router.post("/v1/latency/calibrate", status_code=202,
+             responses=errors(401, 409, 429))
 async def calibrate(body: CalibrateBody, decider: DeciderDep, settings: SettingsDep,
                     work: WorkDep) -> JobAccepted:
     check_request(body, settings)
@@ -89,7 +90,10 @@ async def calibrate(body: CalibrateBody, decider: DeciderDep, settings: Settings
         raise ApiError(422, "invalid", str(exc), exc.field) from None
     plan = CalibrationPlan(n=body.n, warmup=body.warmup, quantile=body.quantile,
                            confidence=body.confidence, timeout_s=body.timeout_s)
-    job = work.jobs.create("latency_calibration", body.backend, body.warmup + body.n)
+    try:
+        job = work.jobs.create("latency_calibration", body.backend, body.warmup + body.n)
+    except TooManyJobs as exc:
+        raise ApiError(429, "busy", str(exc), "backend") from None
     task = asyncio.create_task(_calibrate(job, backend, messages, plan))
     work.tasks.add(task)
     task.add_done_callback(work.tasks.discard)
@@ -107,7 +111,7 @@ async def get_job(job_id: str, work: WorkDep) -> JobInfo:
 @router.get("/v1/backends")
 async def backends(settings: SettingsDep) -> Backends:
     return Backends(
-        backends=[BackendInfo(name=c.name, base_url=c.base_url, model=c.model,
+        backends=[BackendInfo(name=c.name, base_url=c.public_url, model=c.model,
                               stream=c.stream, json_schema=c.json_schema)
                   for c in settings.backends()],
         hedge_after_s=settings.hedge_after_s, domain=settings.domain,
@@ -122,22 +126,17 @@ async def _calibrate(job: Job, backend: Any, messages: list[dict[str, str]],
         job.fail("invalid", str(exc), exc.field)
     except Exception as exc:  # recorded in the job; the service keeps running
         log.exception("latency calibration failed")
-        job.fail("internal", str(exc))
+        job.fail("internal", f"{type(exc).__name__} (the details are in the service log: "
+                 "a job record may be read by anyone with the token)")
     else:
         job.succeed(report.to_dict())
 
 
 def check_request(body: ReasonBody | CalibrateBody, settings: ReasonerSettings) -> None:
-    """The limits that depend on settings (the shape is checked by pydantic; the same
-    limits are written into ``/openapi.json``)."""
-    if body.observation is not None and \
-            len(body.observation.text) > settings.max_observation_chars:
-        raise ApiError(422, "invalid", f"observation has {len(body.observation.text)} "
-                       f"characters; the limit is {settings.max_observation_chars}",
-                       "observation.text")
-    if body.options is not None and len(body.options) > settings.max_options:
-        raise ApiError(422, "invalid", f"{len(body.options)} options; the limit is "
-                       f"{settings.max_options}", "options")
-    if isinstance(body, ReasonBody) and body.deadline_s > settings.max_deadline_s:
-        raise ApiError(422, "invalid", f"deadline_s {body.deadline_s} is over the limit "
-                       f"{settings.max_deadline_s}", "deadline_s")
+    """The limits that depend on settings, as the Zenoh worker checks them (the shape is
+    checked by pydantic; the same limits are written into ``/openapi.json``)."""
+    try:
+        limits.check_request(settings, observation=body.observation, options=body.options,
+                             deadline_s=body.deadline_s if isinstance(body, ReasonBody) else None)
+    except limits.LimitError as exc:
+        raise ApiError(422, "invalid", exc.problem, exc.field) from None

@@ -38,6 +38,8 @@ class ReasonerSettings(ServiceSettings):
     max_observation_chars: int = Field(default=4000, ge=1)
     max_options: int = Field(default=16, ge=1)
     max_deadline_s: float = Field(default=120.0, gt=0.0)
+    # latency calibrations running at once: each of their queries is an LLM call
+    max_calibration_jobs: int = Field(default=1, ge=1)
 
     @field_validator("hedge_base_url", "hedge_model", mode="before")
     @classmethod

@@ -45,7 +45,7 @@ def settings_for(llm_url: str, **kw: object) -> ReasonerSettings:
 
 @pytest.fixture
 def client(llm_url: str) -> Iterator[TestClient]:
-    with TestClient(create_app(settings_for(llm_url))) as c:
+    with TestClient(create_app(settings_for(llm_url)), headers=AUTH) as c:
         yield c
 
 
@@ -60,7 +60,7 @@ def test_reason_answers_with_the_llm_choice(client: TestClient) -> None:
 
 
 def test_tokens_are_counted(llm_url: str) -> None:
-    with TestClient(create_app(settings_for(llm_url, llm_stream=False))) as c:
+    with TestClient(create_app(settings_for(llm_url, llm_stream=False)), headers=AUTH) as c:
         c.post("/v1/reason", headers=AUTH, json={
             "observation": RED_BOX, "options": OPTIONS, "deadline_s": 5.0})
         text = c.get("/metrics").text
@@ -70,7 +70,7 @@ def test_tokens_are_counted(llm_url: str) -> None:
 
 
 def test_a_stalled_llm_gets_a_labelled_fallback(llm_url: str) -> None:
-    with TestClient(create_app(settings_for(llm_url, llm_model="fake-stall"))) as c:
+    with TestClient(create_app(settings_for(llm_url, llm_model="fake-stall")), headers=AUTH) as c:
         r = c.post("/v1/reason", headers=AUTH, json={
             "observation": RED_BOX, "options": OPTIONS, "deadline_s": 0.3})
     d = r.json()
@@ -93,12 +93,20 @@ def test_bad_requests_name_the_field(client: TestClient, change: dict, field: st
     assert r.json()["error"]["field"] == field
 
 
-def test_reason_needs_the_token_and_backends_are_listed(client: TestClient) -> None:
+def test_every_route_needs_the_token_and_backends_hide_credentials(llm_url: str) -> None:
+    """Issue 14: ``/v1/backends`` was open and showed ``base_url`` with its credentials."""
     body = {"observation": RED_BOX, "options": OPTIONS, "deadline_s": 2.0}
-    assert client.post("/v1/reason", json=body).status_code == 401
-    backends = client.get("/v1/backends").json()["backends"]
+    secret_url = llm_url.replace("http://", "http://user:hunter2@") + "?api-key=k3y"
+    with TestClient(create_app(settings_for(secret_url))) as client:
+        assert client.post("/v1/reason", json=body).status_code == 401
+        assert client.get("/v1/backends").status_code == 401
+        assert client.get("/v1/jobs/nope").status_code == 401
+        r = client.get("/v1/backends", headers=AUTH)
+    backends = r.json()["backends"]
     assert backends[0]["name"] == "primary" and backends[0]["model"] == "fake"
     assert "api_key" not in backends[0]
+    assert "hunter2" not in r.text and "k3y" not in r.text
+    assert backends[0]["base_url"] == llm_url.replace("http://", "http://***@") + "?***"
 
 
 async def test_zenoh_round_trip(llm_url: str, listener: Bus, connector: Bus) -> None:
@@ -156,3 +164,15 @@ def test_latency_calibration_of_a_backend_not_configured_is_a_conflict(
         client: TestClient) -> None:
     r = client.post("/v1/latency/calibrate", headers=AUTH, json={"backend": "hedge"})
     assert r.status_code == 409 and r.json()["error"]["field"] == "backend"
+
+
+def test_latency_calibrations_running_at_once_are_capped(llm_url: str) -> None:
+    """Issue 14: each query of a calibration is a (paid) LLM call, and any number ran at
+    once (past the job registry's own cap it was a 500)."""
+    settings = settings_for(llm_url, llm_model="fake-stall", max_calibration_jobs=1)
+    with TestClient(create_app(settings), headers=AUTH) as client:
+        plan = {"n": 60, "warmup": 0, "timeout_s": 30}
+        assert client.post("/v1/latency/calibrate", json=plan).status_code == 202
+        r = client.post("/v1/latency/calibrate", json=plan)
+    assert r.status_code == 429, r.text
+    assert "AESOP_REASONER_MAX_CALIBRATION_JOBS" in r.json()["error"]["message"]

@@ -85,3 +85,27 @@ def test_settings_from_environment(monkeypatch: pytest.MonkeyPatch) -> None:
     ServiceSettings(host="0.0.0.0", admin_token="x" * 16).check_exposure()
     with pytest.raises(ValidationError, match="at least 16"):
         ServiceSettings(admin_token="short")
+
+
+@pytest.mark.parametrize("payload", [
+    b'{"seq": 1, "text": "' + b"x" * 16_001 + b'"}',  # a text past the bus's ceiling
+    b'{"seq": 1, "text": "x", "task": "' + b"t" * 1_001 + b'"}',
+    b'{"seq": 1, "text": "x", "detections": [' + b",".join([b'{"label": "a"}'] * 65) + b"]}",
+    b'{"seq": 1, "text": "x", "detections": [{"label": "' + b"l" * 201 + b'"}]}',
+    b'{"seq": 1, "text": "x", "stamp": Infinity}',
+], ids=["text", "task", "detections", "label", "stamp"])
+def test_the_bus_refuses_observations_past_its_limits(payload: bytes) -> None:
+    """Issue 14: the bus path skipped the HTTP limits (no length on text or task)."""
+    with pytest.raises(ValidationError):
+        Observation.decode(payload)
+
+
+@pytest.mark.parametrize("deadline", [b"Infinity", b"NaN", b"-Infinity", b"1e400"])
+def test_a_request_deadline_is_finite(deadline: bytes) -> None:
+    """Issue 14: 'deadline_s: Infinity' on the bus ran the backends with no timeout."""
+    request = ReasonerRequest(request_id="q1", observation=OBS, deadline_s=1.0,
+                              options=(Option(index=0, label="continue"),))
+    payload = request.encode().replace(b'"deadline_s":1.0', b'"deadline_s":' + deadline)
+    assert payload != request.encode()
+    with pytest.raises(ValidationError):
+        ReasonerRequest.decode(payload)
