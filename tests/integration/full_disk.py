@@ -39,7 +39,7 @@ def client(data: Path) -> TestClient:
     # every commit also saves the index file, so saves meet the full disk too
     settings = EmbeddingSettings(data_dir=data, admin_token=TOKEN, zenoh_worker=False,
                                  fsync=True, index_save_changes=1)
-    return TestClient(create_app(settings, service=CacheService(settings)))
+    return TestClient(create_app(settings, service=CacheService(settings)), headers=AUTH)
 
 
 def batch(n: int) -> tuple[list[str], list[list[float]]]:

@@ -231,7 +231,8 @@ def test_regions_routes(stack: Stack) -> None:
     assert len(listing["goal"]) == 3  # the nominal goal (m), for the dashboard
     before = listing["regions"]
     assert [r["name"] for r in before] == ["hold", "roof", "lot"]
-    assert http.post("/v1/regions", json={"regions": REGIONS}).status_code == 401
+    assert httpx.post(f"{stack.proc.url}/v1/regions", json={"regions": REGIONS}).status_code == 401
+    assert httpx.get(f"{stack.proc.url}/v1/regions").status_code == 401  # reads too
     bad = [({"regions": [{k: v for k, v in REGIONS[0].items() if k != "name"}]},
             "regions[0].name"),
            ({"regions": [{k: v for k, v in REGIONS[0].items() if k != "position_hi"}]},
@@ -281,7 +282,7 @@ def test_the_regions_and_goal_go_out_on_the_bus_again_for_late_subscribers(
 
 def test_reset_and_ops_routes(stack: Stack) -> None:
     http = stack.http
-    assert http.post("/v1/reset", json={}).status_code == 401
+    assert httpx.post(f"{stack.proc.url}/v1/reset", json={}).status_code == 401
     r = http.post("/v1/reset", headers=AUTH, json={"start": [0.0, 0.0, 99.0]})
     assert r.status_code == 422 and r.json()["error"]["field"] == "start"
     assert http.post("/v1/reset", headers=AUTH).status_code == 200  # no body: a fresh draw
