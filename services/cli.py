@@ -264,6 +264,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 def serve_reasoner(overrides: dict[str, Any]) -> int:
     from services.reasoner.api import create_app
+    from services.reasoner.deciding import keep_deadlines, settle
     from services.reasoner.settings import ReasonerSettings
     from services.reasoner.worker import ReasonerWorker
     from shared.http import serve
@@ -273,7 +274,9 @@ def serve_reasoner(overrides: dict[str, Any]) -> int:
         settings.check_exposure()
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    serve(create_app(settings, worker_factory=ReasonerWorker.factory(settings)), settings)
+    keep_deadlines()
+    serve(create_app(settings, worker_factory=ReasonerWorker.factory(settings),
+                     on_started=settle), settings)
     return 0
 
 
@@ -380,11 +383,13 @@ def cmd_bench_detector(args: argparse.Namespace) -> int:
 
 def cmd_bench_reasoner(args: argparse.Namespace) -> int:
     from services.bench.reasoner import run_reasoner_bench
+    from services.reasoner.deciding import keep_deadlines
 
     if args.requests < 1 or args.concurrency < 1 or not args.scale > 0:
         raise CliError("--requests and --concurrency must be >= 1 and --scale > 0")
     if args.hedge_after is not None and args.hedge_after < 0:
         raise CliError("--hedge-after must be >= 0")
+    keep_deadlines()  # as `aesop serve reasoner` does
     result = run_reasoner_bench(requests=args.requests, scale=args.scale,
                                 concurrency=args.concurrency, seed=args.seed,
                                 hedge_after_s=args.hedge_after, table=not args.json)

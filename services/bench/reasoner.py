@@ -53,7 +53,7 @@ from services.reasoner.backends import (
     StopWhen,
     make_client,
 )
-from services.reasoner.deciding import Decider, DeciderConfig
+from services.reasoner.deciding import Decider, DeciderConfig, settle
 from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
 from shared.process import ServiceProcess, free_port
 from shared.tables import table
@@ -225,6 +225,7 @@ async def _phase(urls: Sequence[str], model: str, n: int, deadline_s: float,
     decider = Decider(backends, DeciderConfig(domain="quadrotor", hedge_after_s=hedge_after_s))
     try:
         await _warm_up(client, urls, concurrency)
+        settle()  # as the service does once started: what exists now is long-lived
         gate = asyncio.Semaphore(concurrency)
         stop = asyncio.Event()
         lag_task = asyncio.create_task(_loop_lag(stop))
@@ -234,9 +235,12 @@ async def _phase(urls: Sequence[str], model: str, n: int, deadline_s: float,
                 calls: list[Call] = []
                 token = _CALLS.set(calls)
                 try:
+                    sent: list[float] = []
                     start = time.monotonic()
-                    decision = await decider.decide(_request(i, deadline_s), received_at=start)
-                    end = time.monotonic()
+                    decision = await decider.decide_and_send(
+                        _request(i, deadline_s), lambda _: sent.append(time.monotonic()),
+                        received_at=start)
+                    end = sent[0]  # when it was published, from the loop or the timer
                 finally:
                     _CALLS.reset(token)
                 return Sample(start, end, decision, calls)

@@ -53,6 +53,7 @@ def create_app(
     settings: ReasonerSettings,
     decider: Decider | None = None,
     worker_factory: Callable[[Decider, Metrics], Any] | None = None,
+    on_started: Callable[[], None] | None = None,
 ) -> FastAPI:
     registry = CollectorRegistry()
     metrics = Metrics(registry)
@@ -66,6 +67,8 @@ def create_app(
         worker = worker_factory(app.state.decider, metrics) if worker_factory else None
         task = asyncio.create_task(worker.run()) if worker else None
         state["started"] = True
+        if on_started is not None:  # the entry point's process tuning (deciding.settle)
+            on_started()
         try:
             yield
         finally:

@@ -1,10 +1,12 @@
 """The slow reasoner's decision under a deadline: always an answer by ``K``.
 
 :class:`Decider` asks the LLM backends for y in the offered options and returns a
-:class:`~shared.messages.ReasonerDecision` before ``received_at + deadline_s - margin_s``:
+:class:`~shared.messages.ReasonerDecision` before ``received_at + deadline_s - margin``
+(``Decider.margin_s``: the configured margin plus how late the event loop has lately
+woken up, so a loaded loop still answers by K):
 
 - ``llm``: the first answer that parses (strictly) into an offered option wins; every
-  other attempt is cancelled and awaited, so its HTTP connection is closed.
+  other attempt is cancelled, and its HTTP connection closed once the decision has left.
 - ``timeout``: no valid answer by the deadline; everything is cancelled.
 - ``parse_error``: every attempt answered but none parsed (the reason codes of
   :mod:`services.reasoner.parsing` are in the rationale); also a task or observation
@@ -22,7 +24,13 @@ answer before the deadline. Every non-LLM answer is :func:`fallback_choice`.
 from __future__ import annotations
 
 import asyncio
+import gc
+import heapq
+import itertools
+import logging
 import math
+import sys
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -34,6 +42,8 @@ from shared.messages import DecisionSource, Option, ReasonerDecision, ReasonerRe
 from .backends import BackendError, ChatBackend, Completion
 from .parsing import Parsed, ParseError, parse_decision, parse_partial
 from .prompts import Variant, build_messages, load_template, suspicious_scene
+
+log = logging.getLogger(__name__)
 
 FallbackKind = Literal["first_recovery", "rank"]
 DEFAULT_TASK = "carry out the current mission safely"
@@ -115,7 +125,7 @@ class DeciderConfig:
     domain: str = "quadrotor"
     variant: Variant = "cot"
     hedge_after_s: float | None = None
-    margin_s: float = 0.005
+    margin_s: float = 0.010  # covers the deadline thread waiting out a collection
 
     def __post_init__(self) -> None:
         if self.hedge_after_s is not None and self.hedge_after_s < 0:
@@ -141,13 +151,18 @@ class Decider:
         self._policy = policy
         self._clock = clock
         self._template = load_template(config.domain)
+        self._closing: set[asyncio.Future[list[Win | Failure | BaseException]]] = set()
+        self._timer = DeadlineTimer()
 
     @property
     def backends(self) -> tuple[ChatBackend, ...]:
         return self._backends
 
     async def aclose(self) -> None:
-        """Close every backend (their HTTP clients)."""
+        """Wait for the cancelled attempts to close, then close every backend."""
+        self._timer.close()
+        if self._closing:
+            await asyncio.gather(*self._closing, return_exceptions=True)
         for backend in self._backends:
             await backend.aclose()
 
@@ -168,6 +183,29 @@ class Decider:
         offered = [o.index for o in request.options]
         outcome = await self._race(messages, offered, observation, deadline)
         return self._decision(request, start, outcome)
+
+    async def decide_and_send(self, request: ReasonerRequest, send: Send, *,
+                              received_at: float | None = None) -> ReasonerDecision:
+        """Call ``send`` exactly once, by the deadline whatever the event loop's load: with
+        the decision :meth:`decide` reaches in time, or else, from the timer thread at the
+        deadline, with the timeout fallback (computed without the loop). Returns what was
+        sent. This is the bus's contract: a loaded loop (many answers streaming in at once)
+        wakes late, a thread with its own timer does not."""
+        start = self._clock() if received_at is None else received_at
+        once = _Once(send)
+        # the timer thread may wait up to a switch interval for the GIL: it starts that
+        # much earlier than the loop's own deadline
+        due = time.monotonic() + (start + request.deadline_s - self._config.margin_s
+                                  - sys.getswitchinterval() - self._clock())
+        why = f"no valid answer within the deadline of {request.deadline_s:g} s"
+        handle = self._timer.at(due, lambda: once(self._fallback(request, start, "timeout", why)))
+        try:
+            decision = await self.decide(request, received_at=start)
+        finally:
+            self._timer.cancel(handle)
+        once(decision)
+        assert once.sent is not None
+        return once.sent
 
     def _messages(self, request: ReasonerRequest) -> list[dict[str, str]]:
         return build_messages(self._template, task=request.observation.task or DEFAULT_TASK,
@@ -213,7 +251,17 @@ class Decider:
                 if queue and wake is not None and self._clock() >= wake:
                     launch()
         finally:
-            await _cancel_all(running)
+            self._close_later(running)
+
+    def _close_later(self, tasks: set[asyncio.Task[Win | Failure]]) -> None:
+        """Cancel the attempts still running; their HTTP responses are closed after the
+        decision has left (awaiting that first made answers late under load)."""
+        for task in tasks:
+            task.cancel()
+        if tasks:
+            closing = asyncio.ensure_future(asyncio.gather(*tasks, return_exceptions=True))
+            self._closing.add(closing)
+            closing.add_done_callback(self._closing.discard)
 
     def _next_hedge(self, last_start: float) -> float | None:
         hedge = self._config.hedge_after_s
@@ -269,12 +317,91 @@ async def _attempt(backend: ChatBackend, messages: list[dict[str, str]], offered
     return Win(parsed=parsed, model=backend.model, completion=completion)
 
 
-async def _cancel_all(tasks: set[asyncio.Task[Win | Failure]]) -> None:
-    """Cancel and await, so every HTTP response is closed before the decision leaves."""
-    for task in tasks:
-        task.cancel()
-    if tasks:
-        await asyncio.gather(*tasks, return_exceptions=True)
+Send = Callable[[ReasonerDecision], None]
+SWITCH_INTERVAL_S = 0.001  # the GIL hand-over a deadline process asks for
+
+
+def keep_deadlines(process_switch_interval_s: float = SWITCH_INTERVAL_S) -> None:
+    """Tune this process for the deadline thread (call once, from the entry point): a
+    thread that wants the GIL waits at most ``process_switch_interval_s`` for it
+    (Python's default is 5 ms). See also :func:`settle`."""
+    sys.setswitchinterval(process_switch_interval_s)
+
+
+def settle() -> None:
+    """Once started: move the objects alive now (models, clients, schemas) out of the
+    garbage collector's generations. Its full collections hold the GIL, and the timer
+    thread with it, for as long as they walk every live object (18 ms were measured in
+    the bench before; the deadline thread cannot run during one)."""
+    gc.collect()
+    gc.freeze()
+
+
+class _Once:
+    """``send`` for the first decision offered, from whichever thread; the rest dropped."""
+
+    def __init__(self, send: Send) -> None:
+        self._send, self._lock = send, threading.Lock()
+        self.sent: ReasonerDecision | None = None
+
+    def __call__(self, decision: ReasonerDecision) -> None:
+        with self._lock:
+            if self.sent is not None:
+                return
+            self.sent = decision
+        self._send(decision)
+
+
+class DeadlineTimer:
+    """One thread that runs callbacks at ``time.monotonic()`` deadlines, earliest first,
+    independent of any event loop (it needs only the GIL, which a busy thread hands over
+    every ``sys.getswitchinterval()``)."""
+
+    def __init__(self) -> None:
+        self._heap: list[tuple[float, int]] = []
+        self._pending: dict[int, Callable[[], None]] = {}  # not yet run nor cancelled
+        self._ready = threading.Condition()
+        self._order = itertools.count()
+        self._thread: threading.Thread | None = None
+        self._closed = False
+
+    def at(self, due: float, fn: Callable[[], None]) -> int:
+        with self._ready:
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._serve, name="aesop-deadlines",
+                                                daemon=True)
+                self._thread.start()
+            handle = next(self._order)
+            self._pending[handle] = fn
+            heapq.heappush(self._heap, (due, handle))
+            self._ready.notify()
+        return handle
+
+    def cancel(self, handle: int) -> None:
+        with self._ready:
+            self._pending.pop(handle, None)
+
+    def close(self) -> None:
+        with self._ready:
+            self._closed = True
+            self._ready.notify()
+
+    def _serve(self) -> None:
+        while True:
+            with self._ready:
+                while not self._closed and (
+                        not self._heap or self._heap[0][0] > time.monotonic()):
+                    self._ready.wait(None if not self._heap
+                                     else self._heap[0][0] - time.monotonic())
+                if self._closed:
+                    return
+                _, handle = heapq.heappop(self._heap)
+                fn = self._pending.pop(handle, None)
+            if fn is not None:
+                try:
+                    fn()
+                except Exception:
+                    log.exception("a deadline callback failed")
 
 
 def _describe(failures: Sequence[Failure]) -> str:

@@ -2,7 +2,9 @@
 
 Subscribes ``aesop/*/reasoner/request`` and answers every ``ReasonerRequest``
 with a ``ReasonerDecision`` on ``aesop/{robot}/reasoner/decision``. The
-deadline counts from the moment the request reached this process.
+deadline counts from the moment the request reached this process, and the decision is
+published by then whatever the event loop's load (``Decider.decide_and_send``: a timer
+thread publishes the fallback if the loop is late).
 
 A request over the limits that HTTP applies (:func:`.limits.check_request`: the
 observation's length, the number of options, a finite deadline no longer than
@@ -25,7 +27,7 @@ from typing import Any
 
 from shared import topics
 from shared.bus import Bus, Received
-from shared.messages import ReasonerRequest
+from shared.messages import ReasonerDecision, ReasonerRequest
 from shared.pump import MessagePump
 
 from .deciding import Decider
@@ -75,9 +77,12 @@ class ReasonerWorker:
         except LimitError as exc:
             self._dropped(received.key, exc)
             return
-        decision = await self.decider.decide(request, received_at=received.received_at)
-        decision = decision.model_copy(update={"robot": robot})
-        self.bus.publish(topics.reasoner_decision(robot), decision)
+        def send(decision: ReasonerDecision) -> None:  # from the loop or the timer thread
+            self.bus.publish(topics.reasoner_decision(robot),
+                             decision.model_copy(update={"robot": robot}))
+
+        decision = await self.decider.decide_and_send(request, send,
+                                                      received_at=received.received_at)
         if self.metrics is not None:
             self.metrics.observe(decision)
 
