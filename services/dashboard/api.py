@@ -32,6 +32,7 @@ def create_app(settings: DashboardSettings, bus_factory: Callable[[], Bus]) -> F
             service = DashboardService(settings, bus.session, metrics)
             app.state.service = service
             task = asyncio.create_task(service.run())
+            app.state.feed = task
             try:
                 yield
             finally:
@@ -47,10 +48,21 @@ def create_app(settings: DashboardSettings, bus_factory: Callable[[], Bus]) -> F
 
     app = service_app(
         "AESOP dashboard", service=SERVICE, lifespan=lifespan, registry=registry,
-        ready=lambda: None if app.state.service is not None else {"reason": "bus not open"},
+        ready=lambda: _ready(app),
         refresh=refresh, admin_token=settings.admin_token,
         max_body_bytes=settings.max_body_bytes, public=PUBLIC)
     app.state.service = None
+    app.state.feed = None
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     app.include_router(router)
     return app
+
+
+def _ready(app: FastAPI) -> dict[str, str] | None:
+    """Ready while the bus is open and the feed runs (a feed that ended is not ready)."""
+    if app.state.service is None:
+        return {"reason": "bus not open"}
+    feed: asyncio.Task[None] | None = app.state.feed
+    if feed is not None and feed.done():
+        return {"reason": "the feed from the bus has stopped: see the log"}
+    return None

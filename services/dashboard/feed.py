@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -91,9 +92,21 @@ async def _pump(kind: str, sub: Subscription[Any], sink: Sink,
 
 
 async def _pump_health(watch: LivelinessWatch, sink: Sink, clock: Callable[[], float]) -> None:
+    """Health changes as updates; a token whose name is not a service name (anyone on the
+    bus may declare one) is dropped, logged at most once per 10 s, and the feed goes on."""
+    dropped, logged_at = 0, -math.inf
     async for change in watch:
-        sink(Update("health", topics.health(change.service),
-                    {"service": change.service, "alive": change.alive}, clock()))
+        try:
+            topic = topics.health(change.service)
+        except ValueError as exc:
+            dropped += 1
+            if time.monotonic() - logged_at >= 10.0:
+                log.warning("dropped %d liveliness change(s) with a bad name (latest: %s)",
+                            dropped, exc)
+                dropped, logged_at = 0, time.monotonic()
+            continue
+        sink(Update("health", topic, {"service": change.service, "alive": change.alive},
+                    clock()))
 
 
 def _guard(sink: Sink) -> Sink:
