@@ -39,10 +39,13 @@ _C = TypeVar("_C", bound="_Closeable")
 
 HEALTH_ALL = f"{topics.PREFIX}/health/*"
 _ERROR_LOG_INTERVAL_S = 10.0
+# how a session retries a lost router: at once, then backing off to once a second
+RECONNECT = {"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 2}
 
 
 def zenoh_config(settings: BusSettings) -> zenoh.Config:
-    """A Zenoh config: the JSON5 file if any, then mode, endpoints and multicast from settings.
+    """A Zenoh config: the JSON5 file if any, then mode, endpoints, multicast, the
+    reconnection backoff and the user/password from settings.
 
     With a file, only settings given explicitly (init or ``AESOP_*``) override it;
     without one, all apply (multicast scouting off by default, and a peer with no
@@ -65,6 +68,12 @@ def zenoh_config(settings: BusSettings) -> zenoh.Config:
         conf.insert_json5("connect/endpoints", json.dumps(settings.zenoh_connect))
     if "zenoh_multicast" in given:
         conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.zenoh_multicast))
+    if settings.zenoh_connect:  # back within a second of the router's return
+        conf.insert_json5("connect/retry", json.dumps(RECONNECT))
+    secret = settings.zenoh_secret()
+    if settings.zenoh_user is not None and secret is not None:
+        conf.insert_json5("transport/auth/usrpwd", json.dumps(
+            {"user": settings.zenoh_user, "password": secret}))
     return conf
 
 

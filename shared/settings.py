@@ -25,7 +25,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar
 
-from pydantic import AliasChoices, Field, SecretStr, field_validator
+from pydantic import AliasChoices, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, EnvSettingsSource, NoDecode, SettingsConfigDict
 
 Endpoints = Annotated[list[str], NoDecode]
@@ -58,8 +58,39 @@ class BusSettings(BaseSettings):
     zenoh_multicast: bool = Field(default=False, validation_alias=shared("zenoh_multicast"))
     # a zenoh JSON5 config file, applied first
     zenoh_config: Path | None = Field(default=None, validation_alias=shared("zenoh_config"))
+    # user/password authentication to the router (its dictionary must list the user);
+    # the password from the environment, or from a file (a secret mounted by compose)
+    zenoh_user: str | None = Field(default=None, min_length=1, max_length=64,
+                                   pattern=r"^[A-Za-z0-9_\-]+$",
+                                   validation_alias=shared("zenoh_user"))
+    zenoh_password: SecretStr | None = Field(default=None,
+                                             validation_alias=shared("zenoh_password"))
+    zenoh_password_file: Path | None = Field(default=None,
+                                             validation_alias=shared("zenoh_password_file"))
 
     _split_listen = field_validator("zenoh_listen", "zenoh_connect", mode="before")(_split)
+
+    @model_validator(mode="after")
+    def _credentials(self) -> BusSettings:
+        has_password = self.zenoh_password is not None or self.zenoh_password_file is not None
+        if has_password and self.zenoh_user is None:
+            raise ValueError("AESOP_ZENOH_PASSWORD(_FILE) needs AESOP_ZENOH_USER")
+        if self.zenoh_user is not None and not has_password:
+            raise ValueError("AESOP_ZENOH_USER needs AESOP_ZENOH_PASSWORD or "
+                             "AESOP_ZENOH_PASSWORD_FILE")
+        return self
+
+    def zenoh_secret(self) -> str | None:
+        """The password to the router: the variable, else the file's first line."""
+        if self.zenoh_password is not None:
+            return self.zenoh_password.get_secret_value()
+        if self.zenoh_password_file is not None:
+            try:
+                return self.zenoh_password_file.read_text().strip()
+            except OSError as exc:
+                raise ValueError(f"AESOP_ZENOH_PASSWORD_FILE: cannot read "
+                                 f"{self.zenoh_password_file}: {exc.strerror}") from None
+        return None
 
 
 class ServiceSettings(BusSettings):

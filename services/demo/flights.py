@@ -32,6 +32,7 @@ from services.control.client import ControlClient
 from services.control.scenario import Scenario, load_scenario
 from services.embedding.client import EmbeddingClient
 from services.scenes.hardware import SCENARIOS, DemoScenario, build_scene_cache, observation_text
+from services.stack.acl import robot_user
 from services.stack.up import (
     DETECTOR_CACHE,
     FAKE_LLM_LATENCY_S,
@@ -135,8 +136,7 @@ def fly_scenarios(plan: StackPlan, names: Sequence[str] | None = None, *,
     if scenario is None:
         scenario = load_scenario(plan.scenario)
     demos = SCENARIOS if names is None else tuple(demo_scenario(n) for n in names)
-    settings = BusSettings(robot=robot or plan.robot,
-                           zenoh_connect=[f"tcp/127.0.0.1:{plan.hub.port}"])
+    settings = plan.bus_settings(robot_user(plan.robot), robot=robot or plan.robot)
     return asyncio.run(_demo(plan.url("embedding"), plan.url("control"), plan.token, settings,
                              scenario, model, demos))
 

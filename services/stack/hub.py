@@ -1,10 +1,14 @@
 """The Zenoh hub of ``aesop up``: a session in router mode on a loopback endpoint.
 
 The ``eclipse-zenoh`` wheel ships no ``zenohd``; this process stands in for it.
-Every service of the stack is a peer that connects here, with multicast
-scouting off, so nothing leaves the machine. It serves until SIGINT/SIGTERM.
+Every service of the stack is a client that connects here, with multicast
+scouting off, so nothing leaves the machine. With ``--users`` every session must
+authenticate (a ``user:password`` dictionary) and the access-control list of
+:mod:`.acl` applies (``--robot`` names the robots it lets publish observations);
+a message past ``--max-message-bytes`` is dropped. It serves until SIGINT/SIGTERM.
 
-    python -m services.stack.hub --listen tcp/127.0.0.1:7447
+    python -m services.stack.hub --listen tcp/127.0.0.1:7447 \
+        --users aesop-data/zenoh/users.txt --robot robot0
 """
 
 from __future__ import annotations
@@ -14,31 +18,50 @@ import json
 import signal
 import sys
 import threading
+from collections.abc import Sequence
+from pathlib import Path
 
 import zenoh
 
+from .acl import MAX_MESSAGE_BYTES, size_cap, stack_acl
 
-def hub_config(listen: str) -> zenoh.Config:
+
+def hub_config(listen: str, *, users: Path | None = None, robots: Sequence[str] = (),
+               max_message_bytes: int = MAX_MESSAGE_BYTES) -> zenoh.Config:
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps("router"))
     conf.insert_json5("listen/endpoints", json.dumps([listen]))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("low_pass_filter", json.dumps(size_cap(max_message_bytes)))
+    if users is not None:
+        conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(users)))
+        conf.insert_json5("access_control", json.dumps(stack_acl(robots)))
     return conf
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="aesop-hub", description=__doc__.splitlines()[0])
     parser.add_argument("--listen", required=True, help="endpoint, e.g. tcp/127.0.0.1:7447")
+    parser.add_argument("--users", type=Path,
+                        help="user:password dictionary: authenticate every session and "
+                             "apply the stack's access-control list")
+    parser.add_argument("--robot", action="append", default=[],
+                        help="a robot whose user may publish its observations (repeat)")
+    parser.add_argument("--max-message-bytes", type=int, default=MAX_MESSAGE_BYTES)
     args = parser.parse_args(argv)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     try:
-        session = zenoh.open(hub_config(args.listen))
+        session = zenoh.open(hub_config(args.listen, users=args.users, robots=args.robot,
+                                        max_message_bytes=args.max_message_bytes))
     except zenoh.ZError as exc:
         print(f"hub: cannot listen on {args.listen}: {exc}", file=sys.stderr)
         return 2
-    print(f"zenoh router {session.zid()} listening on {args.listen}", file=sys.stderr, flush=True)
+    guard = (f"users from {args.users}, access control for robots {', '.join(args.robot)}"
+             if args.users else "no authentication")
+    print(f"zenoh router {session.zid()} listening on {args.listen} ({guard}; messages "
+          f"up to {args.max_message_bytes} bytes)", file=sys.stderr, flush=True)
     try:
         stop.wait()
     finally:

@@ -3,7 +3,10 @@
 A Zenoh hub (:mod:`services.stack.hub`, router mode on loopback), then the
 fake LLM (unless ``AESOP_REASONER_LLM_BASE_URL`` names a real backend), the vector-cache
 (embedding), the slow reasoner, the control loop with its simulated quadrotor
-and the dashboard, all as ``python -m services.cli serve ...`` peers of the hub.
+and the dashboard, all as ``python -m services.cli serve ...`` clients of the hub.
+Every Zenoh session authenticates to the hub with its own user and a password
+generated per start (:mod:`.acl`; kept in ``<data-dir>/zenoh``, 0600), and the hub's
+access-control list lets each publish only its own keys.
 
 * :func:`plan_stack` is pure: environment and options in, the child specs out.
 * :class:`Stack` starts the children (:class:`shared.process.Child`, each in its
@@ -17,14 +20,13 @@ and the dashboard, all as ``python -m services.cli serve ...`` peers of the hub.
 
 from __future__ import annotations
 
-import os
 import secrets
 import signal
 import socket
 import sys
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -44,7 +46,9 @@ from shared.process import (
     free_port,
     stderr_sink,
 )
-from shared.settings import ServiceSettings, read_settings, to_env
+from shared.settings import BusSettings, ServiceSettings, read_settings, to_env
+
+from .acl import new_passwords, users_of, write_credentials, write_private
 
 DETECTOR_CACHE = "quadrotor"
 FAKE_LLM_LATENCY_S = 3.1  # the paper's mean GPT-3.5-turbo CoT latency (Table "jetson timings")
@@ -99,12 +103,26 @@ class StackPlan:
     fake_llm: bool
     robot: str  # the robot the services serve
     scenario: Path  # the scene the control loop flies
+    zenoh_dir: Path  # the hub's user dictionary and each user's password file
+    passwords: Mapping[str, str] = field(repr=False)  # Zenoh user -> password
 
     def url(self, name: str) -> str | None:
         return next((s.url for s in self.services if s.name == name), None)
 
+    @property
+    def endpoint(self) -> str:
+        return f"tcp/127.0.0.1:{self.hub.port}"
 
-def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str) -> StackPlan:
+    def bus_settings(self, user: str, **fields: Any) -> BusSettings:
+        """How a session of ``user`` (``monitor``, ``robot-<id>``, a service) joins the
+        hub: a client with that user's password."""
+        return BusSettings(zenoh_mode="client", zenoh_connect=[self.endpoint], zenoh_user=user,
+                           zenoh_password_file=self.zenoh_dir / f"{user}.password", **fields)
+
+
+def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
+               passwords: Callable[[Sequence[str]], dict[str, str]] = new_passwords
+               ) -> StackPlan:
     """The children of the stack and their environments (pure).
 
     Each service's settings are read from ``environ`` (as that service would read
@@ -112,14 +130,21 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str) ->
     ports, the data directories, the token (``token`` when ``environ`` has no
     ``AESOP_ADMIN_TOKEN``), the scene and the rate. A bad value fails here, naming
     the field (``pydantic.ValidationError``), not in a child. Each child's
-    environment is the caller's without any ``AESOP_*`` variable, plus its settings.
+    environment is the caller's without any ``AESOP_*`` variable, plus its settings;
+    each service is a Zenoh client of the hub with its own user (``passwords`` makes
+    one per user: the services, ``monitor`` and the robot's ``robot-<id>``).
     """
     ports, py = options.ports, options.python
     given = environ.get("AESOP_ADMIN_TOKEN", "")
     endpoint = f"tcp/127.0.0.1:{ports.hub}"
     common: dict[str, Any] = {"zenoh_connect": [endpoint], "zenoh_listen": [],
-                              "zenoh_mode": "peer", "zenoh_multicast": False,
+                              "zenoh_mode": "client", "zenoh_multicast": False,
                               "zenoh_config": None, "admin_token": given or token}
+    robot = read_settings(BusSettings, environ).robot
+    secret = passwords(users_of([robot]))
+
+    def user(name: str) -> dict[str, Any]:  # a service's Zenoh credentials
+        return {"zenoh_user": name, "zenoh_password": secret[name]}
 
     def data(name: str) -> Path:
         return options.data_dir / name
@@ -127,12 +152,14 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str) ->
     fake = "AESOP_REASONER_LLM_BASE_URL" not in environ
     reasoner = read_settings(
         ReasonerSettings, environ, defaults={"llm_model": "fake"} if fake else None, **common,
-        port=ports.reasoner, data_dir=data("reasoner"),
+        **user("reasoner"), port=ports.reasoner, data_dir=data("reasoner"),
         **({"llm_base_url": f"http://127.0.0.1:{ports.fake_llm}/v1"} if fake else {}))
     embedding = read_settings(EmbeddingSettings, environ,
                               defaults={"detector_cache": DETECTOR_CACHE}, **common,
-                              port=ports.embedding, data_dir=data("embedding"))
-    forced: dict[str, Any] = {**common, "port": ports.control, "data_dir": data("control")}
+                              **user("embedding"), port=ports.embedding,
+                              data_dir=data("embedding"))
+    forced: dict[str, Any] = {**common, **user("control"), "port": ports.control,
+                              "data_dir": data("control")}
     if options.rate_hz is not None:
         forced["rate_hz"] = options.rate_hz
     control = read_settings(ControlSettings, environ, **forced)
@@ -145,7 +172,7 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str) ->
     settings += [("embedding", embedding), ("reasoner", reasoner), ("control", control)]
     if options.dashboard:
         settings.append(("dashboard", read_settings(DashboardSettings, environ, **common,
-                                                    port=ports.dashboard,
+                                                    **user("dashboard"), port=ports.dashboard,
                                                     data_dir=data("dashboard"))))
     inherited = {k: v for k, v in environ.items() if not k.startswith("AESOP_")}
     fake_llm = to_env(read_settings(FakeLLMSettings, environ, defaults={
@@ -156,10 +183,12 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str) ->
         env = {**inherited, **to_env(service), **(fake_llm if name == "fake-llm" else {})}
         return ChildSpec(name, argv, service.port, env)
 
-    hub = ChildSpec("hub", (py, "-m", "services.stack.hub", "--listen", endpoint), ports.hub,
-                    inherited, ready="tcp")
+    zenoh_dir = options.data_dir / "zenoh"
+    hub = ChildSpec("hub", (py, "-m", "services.stack.hub", "--users",
+                            str(zenoh_dir / "users.txt"), "--robot", robot, "--listen", endpoint),
+                    ports.hub, inherited, ready="tcp")
     return StackPlan(hub, tuple(child(n, s) for n, s in settings), given or token, not given,
-                     fake, control.robot, scenario)
+                     fake, control.robot, scenario, zenoh_dir, secret)
 
 
 # --------------------------------------------------------------------------- processes
@@ -181,7 +210,9 @@ class Stack:
         return {c.name: c.pid for c in [self.hub, *self.children] if c.proc is not None}
 
     def start(self) -> None:
-        """Hub first, then every service at once; returns when all are ready."""
+        """The Zenoh credentials, the hub, then every service at once; returns when all
+        are ready."""
+        write_credentials(self.plan.zenoh_dir, self.plan.passwords)
         self.hub.start()
         self._await_ready([self.hub])
         for child in self.children:
@@ -218,18 +249,11 @@ class Stack:
 
 
 def write_token(data_dir: Path, token: str) -> Path:
-    """Keep a generated admin token in ``data_dir/admin-token``, readable by the owner only:
-    written to a new 0600 file (``O_EXCL``, so never through a link) and renamed over the
-    old one, so neither an old file's mode nor a symlink in its place is kept."""
+    """Keep a generated admin token in ``data_dir/admin-token``, readable by the owner only
+    (never written through a link, never keeping an old file's mode)."""
     data_dir.mkdir(parents=True, exist_ok=True)
     path = data_dir / "admin-token"
-    fresh = data_dir / f".admin-token.{os.getpid()}.tmp"
-    fresh.unlink(missing_ok=True)
-    fd = os.open(fresh, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
-    with os.fdopen(fd, "w") as f:
-        os.fchmod(f.fileno(), 0o600)  # whatever the umask
-        f.write(token + "\n")
-    os.replace(fresh, path)
+    write_private(path, token + "\n")
     return path
 
 
@@ -239,7 +263,11 @@ def urls_text(plan: StackPlan, token_file: Path | None) -> str:
     if plan.url("dashboard"):
         lines.append("  (open the dashboard once as <its url>/?token=<admin token>: "
                      "the browser keeps it as a cookie)")
-    lines.append(f"  {'zenoh':<10} tcp/127.0.0.1:{plan.hub.port}  (router; services are peers)")
+    lines.append(f"  {'zenoh':<10} {plan.endpoint}  (router; services are clients, each with "
+                 f"its own user)")
+    lines.append(f"  watch it: AESOP_ZENOH_MODE=client AESOP_ZENOH_USER=monitor "
+                 f"AESOP_ZENOH_PASSWORD_FILE={plan.zenoh_dir / 'monitor.password'} "
+                 f"aesop watch --connect {plan.endpoint}")
     if plan.fake_llm:
         lines.append("  LLM: the fake OpenAI-compatible server (set "
                      "AESOP_REASONER_LLM_BASE_URL for a real one)")

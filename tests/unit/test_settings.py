@@ -60,7 +60,8 @@ def test_a_name_of_another_service_is_not_read(monkeypatch: pytest.MonkeyPatch) 
 def test_every_field_has_one_name_of_its_service_or_a_shared_one(cls: type[BaseSettings]
                                                                  ) -> None:
     shared = {"robot", "zenoh_mode", "zenoh_listen", "zenoh_connect", "zenoh_multicast",
-              "zenoh_config", "admin_token", "data_dir", "log_level"}
+              "zenoh_config", "zenoh_user", "zenoh_password", "zenoh_password_file",
+              "admin_token", "data_dir", "log_level"}
     prefix = str(cls.model_config["env_prefix"])
     assert prefix.startswith("AESOP_") and prefix != "AESOP_"
     for name in cls.model_fields:

@@ -148,6 +148,17 @@ def test_plan_starts_the_fake_llm_without_a_backend_and_generates_the_token(
     assert not any(k.startswith("AESOP_") for k in plan.hub.env)
     assert plan.services[1].env["AESOP_DATA_DIR"] == str(tmp_path / "embedding")
     assert plan.services[1].env["AESOP_EMBEDDING_DETECTOR_CACHE"] == "quadrotor"
+    # every service is a client of the hub with a user of its own; the hub checks them
+    for spec in plan.services[1:]:
+        assert spec.env["AESOP_ZENOH_MODE"] == "client", spec.name
+        assert spec.env["AESOP_ZENOH_USER"] == spec.name
+        assert spec.env["AESOP_ZENOH_PASSWORD"] == plan.passwords[spec.name]
+    assert len(set(plan.passwords.values())) == len(plan.passwords)  # one each
+    assert set(plan.passwords) == {"embedding", "reasoner", "control", "dashboard", "monitor",
+                                   "robot-robot0"}
+    assert plan.hub.argv[plan.hub.argv.index("--users") + 1] == str(plan.zenoh_dir / "users.txt")
+    assert plan.hub.argv[plan.hub.argv.index("--robot") + 1] == "robot0"
+    assert "AESOP_ZENOH_USER" not in plan.services[0].env  # the fake LLM has no bus
 
 
 def test_plan_uses_a_configured_backend_and_token(tmp_path: Path) -> None:

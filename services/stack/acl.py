@@ -1,0 +1,119 @@
+"""Who may do what on the stack's Zenoh router: users, and the access-control list.
+
+Every session authenticates with a user name and password (Zenoh ``usrpwd``); the
+router's ACL then allows, per user, only what that part of the stack does
+(docs/architecture.md, "Zenoh key expressions"). Everything else is denied:
+
+- everyone may subscribe to ``aesop/**`` (messages, liveliness) and receive it;
+- each service may publish only its own keys and declare only its own health token;
+- a robot ``robot-<id>`` may publish only its own observations and events
+  (``aesop/<id>/observation``, ``aesop/<id>/event``);
+- ``monitor`` (``aesop watch``, a recorder) only reads.
+
+An ACL is enforced on what passes through the router, so sessions must be clients
+of it (``AESOP_ZENOH_MODE=client``): peers would open direct links around it. A
+message larger than ``max_message_bytes`` is dropped by the router.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+ALL = "aesop/**"
+SERVICE_PUTS: Mapping[str, tuple[str, ...]] = {
+    "embedding": ("aesop/*/anomaly", "aesop/*/event"),
+    "reasoner": ("aesop/*/reasoner/decision", "aesop/*/event"),
+    "control": ("aesop/*/state", "aesop/*/plan", "aesop/*/reasoner/request",
+                "aesop/*/regions", "aesop/*/event"),
+    "dashboard": ("aesop/*/event",),
+}
+MONITOR = "monitor"
+MAX_MESSAGE_BYTES = 1024 * 1024  # the largest message the router passes on
+
+
+def robot_user(robot: str) -> str:
+    """The user a robot's session authenticates as."""
+    return f"robot-{robot}"
+
+
+def users_of(robots: Iterable[str]) -> list[str]:
+    return [*SERVICE_PUTS, MONITOR, *(robot_user(r) for r in robots)]
+
+
+def stack_acl(robots: Sequence[str]) -> dict[str, Any]:
+    """The router's ``access_control`` block for the four services, ``monitor`` and
+    ``robots`` (a rule names its message kinds and the flows as the router sees them:
+    ingress from a session, egress to it)."""
+    rules: list[dict[str, Any]] = [
+        _rule("subscribe", "ingress", ["declare_subscriber", "declare_liveliness_subscriber",
+                                       "liveliness_query"], [ALL]),
+        # subscriber declarations must reach the publishers too: a session drops a
+        # put for which it knows no subscriber
+        _rule("receive", "egress", ["put", "delete", "declare_subscriber", "liveliness_token"],
+              [ALL]),
+    ]
+    policies: list[dict[str, Any]] = [
+        {"id": "everyone", "rules": ["subscribe", "receive"], "subjects": users_of(robots)}]
+    for service, keys in SERVICE_PUTS.items():
+        rules += [_rule(f"{service}-puts", "ingress", ["put", "delete"], list(keys)),
+                  _rule(f"{service}-health", "ingress", ["liveliness_token"],
+                        [f"aesop/health/{service}"])]
+        policies.append({"id": service, "rules": [f"{service}-puts", f"{service}-health"],
+                         "subjects": [service]})
+    for robot in robots:
+        user = robot_user(robot)
+        rules.append(_rule(f"{user}-puts", "ingress", ["put", "delete"],
+                           [f"aesop/{robot}/observation", f"aesop/{robot}/event"]))
+        policies.append({"id": user, "rules": [f"{user}-puts"], "subjects": [user]})
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": [{"id": user, "usernames": [user]} for user in users_of(robots)],
+        "policies": policies,
+    }
+
+
+def size_cap(max_message_bytes: int = MAX_MESSAGE_BYTES) -> list[dict[str, Any]]:
+    """The router's ``low_pass_filter``: drop what a session sends past the size."""
+    return [{"id": "size-cap", "flows": ["ingress"],
+             "messages": ["put", "delete", "query", "reply"], "key_exprs": [ALL],
+             "size_limit": max_message_bytes}]
+
+
+def new_passwords(users: Iterable[str]) -> dict[str, str]:
+    return {user: secrets.token_urlsafe(24) for user in users}
+
+
+def write_credentials(folder: Path, passwords: Mapping[str, str]) -> Path:
+    """The router's dictionary ``users.txt`` (``user:password`` per line) and
+    ``<user>.password`` for each session, all 0600 in ``folder`` (0700); returns the
+    dictionary's path."""
+    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    folder.chmod(0o700)
+    users = folder / "users.txt"
+    write_private(users, "".join(f"{u}:{p}\n" for u, p in passwords.items()))
+    for user, password in passwords.items():
+        write_private(folder / f"{user}.password", password + "\n")
+    return users
+
+
+def write_private(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` readable by the owner only: a new 0600 file (``O_EXCL``,
+    so never through a link) renamed over the old one, whose mode is not kept."""
+    fresh = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    fresh.unlink(missing_ok=True)
+    fd = os.open(fresh, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
+    with os.fdopen(fd, "w") as f:
+        os.fchmod(f.fileno(), 0o600)
+        f.write(text)
+    os.replace(fresh, path)
+
+
+def _rule(rule_id: str, flow: str, messages: list[str], keys: list[str]) -> dict[str, Any]:
+    return {"id": rule_id, "permission": "allow", "flows": [flow], "messages": messages,
+            "key_exprs": keys}

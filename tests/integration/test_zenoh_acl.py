@@ -1,0 +1,142 @@
+"""The hub of ``aesop up`` authenticates every session and applies the stack's ACL
+(issue 14: identities were self-declared, anything reaching the router port could
+publish ``is_anomaly: false``, one robot could publish every robot's observations, and
+there was no message-size cap). A real hub process and real client sessions."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from services.stack.acl import new_passwords, robot_user, users_of, write_credentials
+from shared.bus import Bus
+from shared.messages import AnomalyVerdict, Observation
+from shared.process import free_port
+from shared.settings import BusSettings
+
+pytestmark = pytest.mark.timeout(90)
+
+ROBOTS = ("robot-a", "robot-b")
+
+
+class Hub:
+    def __init__(self, folder: Path) -> None:
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.passwords = new_passwords(users_of(ROBOTS))
+        write_credentials(folder, self.passwords)
+        argv = [sys.executable, "-m", "services.stack.hub", "--listen", self.endpoint,
+                "--users", str(folder / "users.txt"), "--max-message-bytes", "100000"]
+        for robot in ROBOTS:
+            argv += ["--robot", robot]
+        self.proc = subprocess.Popen(argv, stderr=subprocess.PIPE, text=True)
+        assert self.proc.stderr is not None
+        line = self.proc.stderr.readline()  # printed once it listens
+        assert "listening" in line, line
+
+    def settings(self, user: str, password: str | None = None) -> BusSettings:
+        return BusSettings(zenoh_mode="client", zenoh_connect=[self.endpoint], zenoh_user=user,
+                           zenoh_password=password or self.passwords[user])
+
+    def session(self, user: str) -> Bus:
+        return Bus.open(self.settings(user), user)
+
+
+@pytest.fixture
+def hub(tmp_path: Path) -> Iterator[Hub]:
+    hub = Hub(tmp_path / "zenoh")
+    yield hub
+    hub.proc.terminate()
+    hub.proc.wait(10)
+
+
+class Heard:
+    """What a monitor session receives on a key expression (raw samples)."""
+
+    def __init__(self, bus: Bus, key_expr: str) -> None:
+        self.keys: list[str] = []
+        self.sizes: list[int] = []
+        self.payloads: list[bytes] = []
+        self._lock = threading.Lock()
+        self._sub = bus.session.declare_subscriber(key_expr, self._on)
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        with self._lock:
+            self.keys.append(str(sample.key_expr))
+            self.sizes.append(len(sample.payload.to_bytes()))
+            self.payloads.append(sample.payload.to_bytes())
+
+    def senders(self) -> set[str]:
+        """Which verdicts came: the detector's say ``is_anomaly: true`` here."""
+        return {"embedding" if AnomalyVerdict.decode(p).is_anomaly else "someone else"
+                for p in self.payloads}
+
+
+def verdict(robot: str, anomaly: bool) -> AnomalyVerdict:
+    return AnomalyVerdict(robot=robot, seq=1, score=0.1, threshold=0.5, is_anomaly=anomaly, k=1,
+                          model="m", cache="c", cache_version=1, latency_ms=1.0)
+
+
+def observation(robot: str, seq: int) -> Observation:
+    return Observation(robot=robot, seq=seq, text="a red box on the ground")
+
+
+def test_a_wrong_password_opens_no_session(hub: Hub) -> None:
+    for user, password in (("embedding", "not-the-password"), ("intruder", "whatever")):
+        with pytest.raises(zenoh.ZError):
+            Bus.open(hub.settings(user, password), "embedding")
+    with pytest.raises(zenoh.ZError):  # and no credentials at all
+        Bus.open(BusSettings(zenoh_mode="client", zenoh_connect=[hub.endpoint]), "embedding")
+
+
+def routed(publish: Callable[[], None], heard: Heard, what: str) -> None:
+    """Publish until ``heard`` has one more message (routes and declarations settle)."""
+    before = len(heard.keys)
+    deadline = time.monotonic() + 20
+    while len(heard.keys) == before:
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        publish()
+        time.sleep(0.1)
+    time.sleep(0.2)  # anything sent just before has arrived by now
+
+
+def test_only_the_detector_may_publish_verdicts(hub: Hub) -> None:
+    with hub.session("monitor") as monitor, hub.session("embedding") as embedding, \
+            hub.session(robot_user("robot-a")) as robot, hub.session("dashboard") as dashboard:
+        heard = Heard(monitor, "aesop/*/anomaly")
+        key = "aesop/robot-a/anomaly"
+        routed(lambda: embedding.publish(key, verdict("robot-a", True)), heard, "a verdict")
+        heard.keys.clear()
+        robot.publish(key, verdict("robot-a", anomaly=False))
+        dashboard.publish(key, verdict("robot-a", anomaly=False))
+        routed(lambda: embedding.publish(key, verdict("robot-a", True)), heard, "a verdict")
+    assert set(heard.keys) == {key} and len(heard.keys) >= 1
+    assert all(size > 0 for size in heard.sizes)
+    assert heard.senders() == {"embedding"}
+
+
+def test_a_robot_publishes_only_its_own_observations(hub: Hub) -> None:
+    with hub.session("monitor") as monitor, hub.session(robot_user("robot-a")) as robot_a:
+        heard = Heard(monitor, "aesop/*/observation")
+        own = "aesop/robot-a/observation"
+        routed(lambda: robot_a.publish(own, observation("robot-a", 1)), heard, "its own")
+        robot_a.publish("aesop/robot-b/observation", observation("robot-b", 2))
+        routed(lambda: robot_a.publish(own, observation("robot-a", 3)), heard, "its own")
+    assert "aesop/robot-b/observation" not in heard.keys
+
+
+def test_a_message_past_the_size_cap_is_dropped_and_the_session_goes_on(hub: Hub) -> None:
+    with hub.session("monitor") as monitor, hub.session(robot_user("robot-a")) as robot_a:
+        heard = Heard(monitor, "aesop/robot-a/observation")
+        own = "aesop/robot-a/observation"
+        routed(lambda: robot_a.publish(own, observation("robot-a", 1)), heard, "a message")
+        robot_a.session.put(own, b"x" * 200_000)
+        routed(lambda: robot_a.publish(own, observation("robot-a", 2)), heard,
+               "a small message after the big one")
+    assert max(heard.sizes) < 100_000
