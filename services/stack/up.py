@@ -15,7 +15,8 @@ access-control list lets each publish only its own keys.
   to every group, SIGKILL to what is left after a grace period, the hub last.
 * :func:`run_up` is the command: it generates an admin token when
   ``AESOP_ADMIN_TOKEN`` is unset (kept in a 0600 file, not printed), prints the
-  URLs and serves until SIGINT/SIGTERM or until a child dies.
+  URLs and serves until SIGINT/SIGTERM or until a service dies (a hub that dies is
+  started again).
 """
 
 from __future__ import annotations
@@ -198,12 +199,15 @@ class Stack:
     """Starts a :class:`StackPlan`'s children, watches them and stops them all."""
 
     def __init__(self, plan: StackPlan, sink: Sink, *, ready_timeout_s: float = 180.0,
-                 stop_event: threading.Event | None = None) -> None:
+                 stop_event: threading.Event | None = None,
+                 hub_restart_delay_s: float = 1.0) -> None:
         self.plan, self.sink = plan, sink
         self.hub = Child(plan.hub, sink)
         self.children = [Child(spec, sink) for spec in plan.services]
         self.ready_timeout_s = ready_timeout_s
         self.stopping = stop_event or threading.Event()
+        self.hub_restarts = 0
+        self.hub_restart_delay_s = hub_restart_delay_s  # a crashing hub is not a busy loop
 
     @property
     def pids(self) -> dict[str, int]:
@@ -224,9 +228,20 @@ class Stack:
                     on_ready=lambda c: self.sink("up", f"{c.name} ready on port {c.spec.port}"))
 
     def watch(self) -> str | None:
-        """Block until ``stopping`` is set (None) or a child exits (its description)."""
+        """Block until ``stopping`` is set (None) or a service exits (its description).
+        A hub that exits is started again on its port: the services are Zenoh clients
+        that reconnect by themselves, and meanwhile the control loop takes the silence
+        as an anomaly."""
         while not self.stopping.wait(0.2):
-            for child in [self.hub, *self.children]:
+            status = self.hub.exited()
+            if status is not None:
+                self.hub_restarts += 1
+                self.sink("up", f"hub exited with status {status}: starting it again in "
+                          f"{self.hub_restart_delay_s:g} s")
+                if self.stopping.wait(self.hub_restart_delay_s):
+                    break
+                self.hub.start()
+            for child in self.children:
                 status = child.exited()
                 if status is not None:
                     return f"{child.name} exited with status {status}"
