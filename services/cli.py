@@ -200,6 +200,19 @@ def build_parser() -> argparse.ArgumentParser:
                        help="at most one state line per S seconds (default 1)")
     watch.set_defaults(func=cmd_watch)
 
+    zn = sub.add_parser("zenoh", help="the router's access control for docker compose")
+    zsub = zn.add_subparsers(dest="zenoh_command", required=True)
+    rc = zsub.add_parser("router-config", help="print the router config (the stack's ACL)")
+    rc.add_argument("--robot", action="append", default=None,
+                    help="a robot that may publish its observations (repeatable; robot0)")
+    rc.set_defaults(func=cmd_zenoh_router_config)
+    cr = zsub.add_parser("credentials", help="a fresh password for every Zenoh user: the "
+                         "router's users.txt and <user>.password files (0600)")
+    cr.add_argument("folder", type=Path, help="e.g. deploy/secrets (compose reads it)")
+    cr.add_argument("--robot", action="append", default=None,
+                    help="a robot to make a user for (repeatable; robot0)")
+    cr.set_defaults(func=cmd_zenoh_credentials)
+
     up = sub.add_parser("up", help="the whole stack on this machine as processes (Ctrl-C stops)")
     up.add_argument("--data-dir", type=Path, default=Path("aesop-data"),
                     help="one subdirectory per service (default ./aesop-data)")
@@ -317,6 +330,26 @@ def serve_dashboard(overrides: dict[str, Any]) -> int:
     except ValueError as exc:
         raise CliError(str(exc)) from None
     serve(create_app(settings, bus_factory=lambda: Bus.open(settings, SERVICE)), settings)
+    return 0
+
+
+def cmd_zenoh_router_config(args: argparse.Namespace) -> int:
+    from services.stack.acl import router_config_text
+
+    print(router_config_text(args.robot or ["robot0"]), end="")
+    return 0
+
+
+def cmd_zenoh_credentials(args: argparse.Namespace) -> int:
+    from services.stack.acl import new_passwords, users_of, write_credentials
+
+    users = users_of(args.robot or ["robot0"])
+    try:
+        write_credentials(args.folder, new_passwords(users))
+    except OSError as exc:
+        raise CliError(f"cannot write the credentials into {args.folder}: {exc}") from None
+    print(f"wrote {args.folder}/users.txt (the router's) and a password file for each of "
+          f"{', '.join(users)}", file=sys.stderr)
     return 0
 
 

@@ -17,6 +17,7 @@ message larger than ``max_message_bytes`` is dropped by the router.
 
 from __future__ import annotations
 
+import json
 import os
 import secrets
 from collections.abc import Iterable, Mapping, Sequence
@@ -117,3 +118,29 @@ def write_private(path: Path, text: str) -> None:
 def _rule(rule_id: str, flow: str, messages: list[str], keys: list[str]) -> dict[str, Any]:
     return {"id": rule_id, "permission": "allow", "flows": [flow], "messages": messages,
             "key_exprs": keys}
+
+
+ROUTER_HEADER = """\
+// The Zenoh router of the compose stack (image eclipse/zenoh, same version as the
+// eclipse-zenoh wheel). Written by `aesop zenoh router-config --robot robot0`, from the
+// same code as the ACL of `aesop up`'s hub (services/stack/acl.py): regenerate it, do not
+// edit it. Every session authenticates (user:password, the dictionary is the compose
+// secret zenoh-users, made by `aesop zenoh credentials deploy/secrets`); each service may
+// publish only its own keys, robot-<id> only its own observations and events, monitor
+// only reads; a message past the size limit is dropped. See deploy/README.md.
+"""
+
+
+def router_config_text(robots: Sequence[str], *, listen: str = "tcp/[::]:7447",
+                       users_file: str = "/run/secrets/zenoh-users",
+                       max_message_bytes: int = MAX_MESSAGE_BYTES) -> str:
+    """A router config file (JSON5: a comment, then JSON) with the stack's ACL."""
+    config = {
+        "mode": "router",
+        "listen": {"endpoints": [listen]},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {"auth": {"usrpwd": {"dictionary_file": users_file}}},
+        "access_control": stack_acl(robots),
+        "low_pass_filter": size_cap(max_message_bytes),
+    }
+    return ROUTER_HEADER + json.dumps(config, indent=2) + "\n"

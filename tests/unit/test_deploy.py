@@ -32,6 +32,7 @@ from pydantic import AliasChoices
 from pydantic_settings import BaseSettings
 
 from services.cli import build_parser
+from services.stack.acl import new_passwords, router_config_text, write_credentials
 from shared import topics
 from shared.bus import HEALTH_ALL, Bus, zenoh_config
 from shared.messages import Event
@@ -271,7 +272,7 @@ def test_settings_load_in_the_container_and_ports_agree(
 
 @pytest.mark.parametrize("name", sorted(STACK))
 def test_services_are_zenoh_clients_of_the_router(
-        name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+        name: str, monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     svc = aesop_services()[name]
     settings = settings_in_container(svc, monkeypatch)
     assert isinstance(settings, BusSettings)
@@ -280,12 +281,20 @@ def test_services_are_zenoh_clients_of_the_router(
                            .split("/", 1)[1]).port
     assert settings.zenoh_connect == [f"tcp/zenoh:{router_port}"]
     assert container_port(compose()["services"]["zenoh"]) == router_port
+    # it authenticates as itself, with the password compose mounts as its secret
+    assert settings.zenoh_user == name and name in acl_users()
+    assert settings.zenoh_password_file == Path(f"/run/secrets/zenoh-{name}")
+    assert svc["secrets"] == [f"zenoh-{name}"]
+    assert compose()["secrets"][f"zenoh-{name}"] == {"file": f"./deploy/secrets/{name}.password"}
+    secret = tmp_path / f"{name}.password"
+    secret.write_text("a-password\n")
     monkeypatch.setenv("AESOP_ZENOH_CONFIG", str(host_path(svc, str(settings.zenoh_config))))
+    monkeypatch.setenv("AESOP_ZENOH_PASSWORD_FILE", str(secret))
     conf = zenoh_config(type(settings)())  # what Bus.open gives zenoh.open in the container
     assert json.loads(conf.get_json("mode")) == "client"
     assert json.loads(conf.get_json("connect/endpoints")) == [f"tcp/zenoh:{router_port}"]
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
-    assert json.loads(conf.get_json("id")) in subject_zids()[name]
+    assert json.loads(conf.get_json("transport/auth/usrpwd/user")) == name
 
 
 def test_secrets_come_from_the_operators_environment() -> None:
@@ -295,9 +304,14 @@ def test_secrets_come_from_the_operators_environment() -> None:
         with pytest.raises(KeyError, match="AESOP_ADMIN_TOKEN"):
             container_env(svc, {})
         for var, value in env.items():
-            if re.search(r"TOKEN|KEY|PASSWORD|SECRET", var):
+            if var.endswith("_FILE"):  # a secret compose mounts from a file, not in git
+                assert str(value).startswith("/run/secrets/"), f"{name}: {var}"
+            elif re.search(r"TOKEN|KEY|PASSWORD|SECRET", var):
                 assert value is None or re.fullmatch(r"\$\{\w+(:?\?[^}]*)?\}", value), \
                     f"{name}: {var} must come from the environment, without a default"
+    assert all(spec["file"].startswith("./deploy/secrets/")
+               for spec in compose()["secrets"].values())  # deploy/secrets/ is git-ignored
+    assert "deploy/secrets/" in (ROOT / ".gitignore").read_text().splitlines()
 
 
 def test_the_reasoner_asks_the_fake_llm_unless_told_otherwise(
@@ -410,23 +424,27 @@ def acl() -> dict[str, Any]:
     return json.loads(router_config().get_json("access_control"))
 
 
-def subject_zids() -> dict[str, list[str]]:
-    return {s["id"]: s.get("zids") or [] for s in acl()["subjects"]}
+def acl_users() -> set[str]:
+    return {user for s in acl()["subjects"] for user in s["usernames"]}
 
 
-def test_the_router_denies_by_default_and_knows_every_service() -> None:
+def test_the_router_is_the_hubs_acl_and_denies_by_default() -> None:
+    """The shipped router.json5 is what `aesop zenoh router-config` writes: the ACL of
+    `aesop up`'s hub, every session authenticated, a size cap."""
+    assert ROUTER.read_text() == router_config_text([ROBOT])
     conf = router_config()
     assert json.loads(conf.get_json("mode")) == "router"
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(conf.get_json("transport/auth/usrpwd/dictionary_file")) == \
+        "/run/secrets/zenoh-users"
     rules = acl()
     assert rules["enabled"] is True and rules["default_permission"] == "deny"
-    assert set(subject_zids()) == {*STACK, "robot"}
+    assert acl_users() == {*STACK, "monitor", f"robot-{ROBOT}"}
     rule_ids = {r["id"] for r in rules["rules"]}
     for policy in rules["policies"]:
-        assert set(policy["rules"]) <= rule_ids and set(policy["subjects"]) <= set(subject_zids())
-    for name in (*STACK, "robot"):
-        client = zenoh.Config.from_file(str(CLIENTS / f"{name}.json5"))
-        assert subject_zids()[name] == [json.loads(client.get_json("id"))]
+        assert set(policy["rules"]) <= rule_ids and set(policy["subjects"]) <= acl_users()
+    assert compose()["services"]["zenoh"]["secrets"] == ["zenoh-users"]
+    assert compose()["secrets"]["zenoh-users"] == {"file": "./deploy/secrets/users.txt"}
 
 
 class Tap:
@@ -452,22 +470,37 @@ class Tap:
 
 
 @pytest.fixture(scope="module")
-def router() -> Iterator[str]:
+def credentials(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, str]]:
+    """What `aesop zenoh credentials` writes, for the shipped router and clients."""
+    folder = tmp_path_factory.mktemp("secrets")
+    passwords = new_passwords(acl_users())
+    write_credentials(folder, passwords)
+    return folder, passwords
+
+
+@pytest.fixture(scope="module")
+def router(credentials: tuple[Path, dict[str, str]]) -> Iterator[str]:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     conf = router_config()
     conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("transport/auth/usrpwd/dictionary_file",
+                      json.dumps(str(credentials[0] / "users.txt")))
     with zenoh.open(conf):
         yield endpoint
 
 
 @pytest.fixture(scope="module")
-def stack(router: str) -> Iterator[dict[str, tuple[Bus, Tap]]]:
-    """A session per ACL subject, each with its shipped client config, and a tap on it."""
+def stack(router: str, credentials: tuple[Path, dict[str, str]]
+          ) -> Iterator[dict[str, tuple[Bus, Tap]]]:
+    """A session per ACL subject, each with its shipped client config and its own user,
+    and a tap on it ("robot" is the user robot-robot0)."""
     opened: dict[str, tuple[Bus, Tap]] = {}
     try:
         for name in (*sorted(STACK), "robot"):
+            user = f"robot-{ROBOT}" if name == "robot" else name
             settings = BusSettings(zenoh_config=CLIENTS / f"{name}.json5", zenoh_mode="client",
-                                   zenoh_connect=[router])
+                                   zenoh_connect=[router], zenoh_user=user,
+                                   zenoh_password_file=credentials[0] / f"{user}.password")
             bus = Bus.open(settings, name)
             opened[name] = (bus, Tap(bus))
         yield opened
@@ -504,7 +537,7 @@ def test_only_services_declare_health_and_strangers_see_nothing(
     wait_until(lambda: seen >= STACK, "the services' liveliness tokens")
     assert dashboard.alive() == STACK  # the robot's token is refused
     stranger_name = f"stranger-{uuid.uuid4().hex[:8]}"
-    settings = BusSettings(zenoh_mode="client", zenoh_connect=[router])  # a random Zenoh ID
-    with Bus.open(settings, stranger_name) as stranger:
-        assert stranger.alive(timeout=1.0) & STACK == set()  # its query is refused
-        assert stranger_name not in dashboard.alive()  # and so is its token
+    settings = BusSettings(zenoh_mode="client", zenoh_connect=[router])  # no credentials
+    with pytest.raises(zenoh.ZError):  # a session without a user is refused outright
+        Bus.open(settings, stranger_name)
+    assert stranger_name not in dashboard.alive()
