@@ -100,11 +100,14 @@ class _Closeable(Protocol):
 
 
 class _Decoder(Generic[M]):
-    """Sample -> ``Received[M]`` on the Zenoh thread; counts and rate-limits decode errors."""
+    """Sample -> ``Received[M]`` on the Zenoh thread; counts and rate-limits decode errors
+    (``on_error`` is told of each, e.g. to count it in a service's metrics)."""
 
-    def __init__(self, key_expr: str, model: type[M]) -> None:
+    def __init__(self, key_expr: str, model: type[M],
+                 on_error: Callable[[], None] | None = None) -> None:
         self.key_expr = key_expr
         self.model = model
+        self.on_error = on_error
         self.received = 0
         self.decode_errors = 0
         self._lock = threading.Lock()
@@ -126,6 +129,11 @@ class _Decoder(Generic[M]):
         return Received(key, message, received_at)
 
     def _count_error(self, key: str, exc: Exception) -> None:
+        if self.on_error is not None:
+            try:
+                self.on_error()
+            except Exception:  # a callback must never break the Zenoh thread
+                log.exception("on_error of %s failed", self.key_expr)
         now = time.monotonic()
         with self._lock:
             self.decode_errors += 1
@@ -282,10 +290,11 @@ class Subscription(_Stream[Received[M]], _Decoding[M]):
     """
 
     def __init__(
-        self, session: zenoh.Session, key_expr: str, model: type[M], *, maxsize: int = 64
+        self, session: zenoh.Session, key_expr: str, model: type[M], *, maxsize: int = 64,
+        on_error: Callable[[], None] | None = None,
     ) -> None:
         self._queue: _LoopQueue[Received[M]] = _LoopQueue(maxsize)
-        self._decoder = _Decoder(key_expr, model)
+        self._decoder = _Decoder(key_expr, model, on_error)
         self._subscriber = session.declare_subscriber(key_expr, self._on_sample)
         self._undeclare = _once(self._subscriber.undeclare)
 
@@ -425,9 +434,12 @@ class Bus:
                 self._publishers[key] = publisher
         publisher.put(msg.encode())
 
-    def subscribe(self, key_expr: str, model: type[M], *, maxsize: int = 64) -> Subscription[M]:
-        """An async iterator of ``model`` messages; call from inside the running loop."""
-        return self._adopt(Subscription(self._open_session(), key_expr, model, maxsize=maxsize))
+    def subscribe(self, key_expr: str, model: type[M], *, maxsize: int = 64,
+                  on_error: Callable[[], None] | None = None) -> Subscription[M]:
+        """An async iterator of ``model`` messages; call from inside the running loop.
+        ``on_error`` is called (on a Zenoh thread) for each sample that does not decode."""
+        return self._adopt(Subscription(self._open_session(), key_expr, model, maxsize=maxsize,
+                                        on_error=on_error))
 
     def latest(self, key_expr: str, model: type[M]) -> Latest[M]:
         """A slot holding the newest ``model`` message on ``key_expr``; no loop needed."""

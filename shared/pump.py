@@ -3,7 +3,9 @@
 The loop every service's Zenoh worker runs: subscribe ``key_expr``, start
 ``handler(received)`` as a task per message (at most ``max_in_flight`` at once;
 the subscription's drop-oldest queue absorbs bursts), log a handler that
-fails, and on ``stop()`` close the subscription and wait for the handlers.
+fails, count a message that does not decode (``on_undecodable``, e.g. into the
+service's metrics; the bus logs it, rate-limited), and on ``stop()`` close the
+subscription and wait for the handlers.
 """
 
 from __future__ import annotations
@@ -21,15 +23,17 @@ log = logging.getLogger(__name__)
 class MessagePump(Generic[M]):
     def __init__(self, bus: Bus, key_expr: str, model: type[M],
                  handler: Callable[[Received[M]], Coroutine[Any, Any, None]], *,
-                 max_in_flight: int = 64, maxsize: int = 256) -> None:
+                 max_in_flight: int = 64, maxsize: int = 256,
+                 on_undecodable: Callable[[], None] | None = None) -> None:
         self.bus, self.key_expr, self.model, self.handler = bus, key_expr, model, handler
-        self.maxsize = maxsize
+        self.maxsize, self.on_undecodable = maxsize, on_undecodable
         self._slots = asyncio.Semaphore(max_in_flight)
         self._tasks: set[asyncio.Task[None]] = set()
         self._subscription: Subscription[M] | None = None
 
     async def run(self) -> None:
-        self._subscription = self.bus.subscribe(self.key_expr, self.model, maxsize=self.maxsize)
+        self._subscription = self.bus.subscribe(self.key_expr, self.model, maxsize=self.maxsize,
+                                                on_error=self.on_undecodable)
         async for received in self._subscription:
             await self._slots.acquire()
             task = asyncio.create_task(self.handler(received))

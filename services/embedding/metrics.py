@@ -17,6 +17,10 @@ class Metrics:
             registry=registry, buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256))
         self.verdicts = Counter("aesop_embedding_verdicts", "Anomaly verdicts published",
                                 ["anomaly"], registry=registry)
+        self.bus_rejected = Counter(
+            "aesop_embedding_bus_rejected", "Observations on the bus not scored: a field over "
+            "its HTTP limit (no verdict answers them; the control loop sees silence)",
+            ["field"], registry=registry)
         size = Gauge("aesop_embedding_cache_size", "Experiences per cache", ["cache"],
                      registry=registry)
         self.size = size

@@ -44,14 +44,17 @@ def make_verdict(obs: Observation, robot: str, batch: ScoreBatch, cache: str,
 
 class DetectorWorker:
     def __init__(self, service: CacheService, bus: Bus, *, cache: str,
-                 max_in_flight: int = 256, metrics: Any = None, owns_bus: bool = False) -> None:
+                 max_in_flight: int = 256, metrics: Any = None, owns_bus: bool = False,
+                 max_text_chars: int = 4000) -> None:
         self.service = service
+        self.max_text_chars = max_text_chars  # as over HTTP (AESOP_EMBEDDING_MAX_TEXT_CHARS)
         self.bus = bus
         self.owns_bus = owns_bus
         self.cache = cache
         self.metrics = metrics
         self._pump = MessagePump(bus, topics.observation(topics.ANY_ROBOT), Observation,
-                                 self._handle, max_in_flight=max_in_flight, maxsize=1024)
+                                 self._handle, max_in_flight=max_in_flight, maxsize=1024,
+                                 on_undecodable=self._undecodable)
         self._last_alarm = 0.0
 
     @classmethod
@@ -61,7 +64,7 @@ class DetectorWorker:
         def make(service: CacheService, metrics: Any) -> DetectorWorker:
             bus = Bus.open(settings, "embedding")
             return cls(service, bus, cache=settings.detector_cache, metrics=metrics,
-                       owns_bus=True)
+                       owns_bus=True, max_text_chars=settings.max_text_chars)
 
         return make
 
@@ -77,6 +80,13 @@ class DetectorWorker:
         start = time.perf_counter()
         obs = received.message
         robot = topics.robot_of(received.key)
+        if len(obs.text) > self.max_text_chars:  # no verdict: the loop sees silence
+            if self.metrics is not None:
+                self.metrics.bus_rejected.labels("text").inc()
+            self._alarm(robot, f"observation {obs.seq} has {len(obs.text)} characters; the "
+                        f"limit is {self.max_text_chars} (AESOP_EMBEDDING_MAX_TEXT_CHARS): "
+                        "not scored")
+            return
         try:
             batch = await self.service.score_texts(self.cache, [obs.text], urgent=True)
         except DetectorError as exc:
@@ -90,6 +100,10 @@ class DetectorWorker:
         self.bus.publish(topics.anomaly(robot), verdict)
         if self.metrics is not None:
             self.metrics.verdicts.labels(str(verdict.is_anomaly).lower()).inc()
+
+    def _undecodable(self) -> None:  # on a Zenoh thread; the bus logs it, rate-limited
+        if self.metrics is not None:
+            self.metrics.bus_rejected.labels("message").inc()
 
     def _alarm(self, robot: str, message: str) -> None:
         """At most one alarm event per 10 s; the control loop sees missing verdicts as stale."""

@@ -55,7 +55,8 @@ class ReasonerWorker:
         self._logged_at: dict[str, float] = {}
         self._unlogged: Counter[str] = Counter()
         self._pump = MessagePump(bus, topics.reasoner_request(topics.ANY_ROBOT),
-                                 ReasonerRequest, self._answer, max_in_flight=max_in_flight)
+                                 ReasonerRequest, self._answer, max_in_flight=max_in_flight,
+                                 on_undecodable=self._undecodable)
 
     @classmethod
     def factory(cls, settings: ReasonerSettings) -> Callable[[Decider, Any], ReasonerWorker]:
@@ -85,6 +86,10 @@ class ReasonerWorker:
                                                       received_at=received.received_at)
         if self.metrics is not None:
             self.metrics.observe(decision)
+
+    def _undecodable(self) -> None:  # on a Zenoh thread; the bus logs it, rate-limited
+        if self.metrics is not None:
+            self.metrics.reject("message")
 
     def _dropped(self, key: str, exc: LimitError) -> None:
         """Count a dropped request; log at most once per field per ``LOG_INTERVAL_S``."""

@@ -67,6 +67,10 @@ async def test_requests_over_the_limits_are_dropped(
     bad = [request("long", text="x" * 101), request("late", deadline_s=10.5),
            request("crowded", options=(*OPTIONS, Option(index=3, label="land")))]
     with caplog.at_level(logging.WARNING, logger="services.reasoner.worker"):
+        # not a request at all (an infinite deadline is not JSON a request may carry)
+        connector.session.put(topics.reasoner_request("drone7"),
+                              request("inf").encode().replace(b'"deadline_s":5.0',
+                                                              b'"deadline_s":Infinity'))
         for message in [*bad, request("good")]:
             connector.publish(topics.reasoner_request("drone7"), message)
         got = await asyncio.wait_for(anext(decisions), DEADLINE_S)
@@ -82,8 +86,9 @@ async def test_requests_over_the_limits_are_dropped(
         answered.append((await asyncio.wait_for(anext(decisions), DEADLINE_S)).message.request_id)
     assert answered == ["good", "end"] and got.message.source == "llm"
     assert backend.calls == 1
-    for field in ("observation.text", "deadline_s", "options"):
+    for field in ("observation.text", "deadline_s", "options", "message"):
         assert registry.get_sample_value("aesop_reasoner_bus_rejected_total",
                                          {"field": field}) == 1
-        assert any(field in r.getMessage() and "dropped 1 reasoner request(s)" in r.getMessage()
-                   for r in caplog.records)
+        assert field == "message" or any(
+            field in r.getMessage() and "dropped 1 reasoner request(s)" in r.getMessage()
+            for r in caplog.records)

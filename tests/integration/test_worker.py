@@ -7,14 +7,16 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
+from prometheus_client import CollectorRegistry
 
 from services.embedding.embedders import EmbedderPool
+from services.embedding.metrics import Metrics
 from services.embedding.service import CacheService, Item
 from services.embedding.settings import EmbeddingSettings
 from services.embedding.worker import DetectorWorker
 from shared import topics
 from shared.bus import Bus
-from shared.messages import AnomalyVerdict, Observation
+from shared.messages import AnomalyVerdict, Event, Observation
 from tests.fakes.hash_embedder import HashEmbedder
 from tests.zenoh_peers import DEADLINE_S, routed
 
@@ -88,5 +90,42 @@ async def test_uncalibrated_cache_is_a_fail_safe_anomaly(
     (verdict,) = await verdicts(sub, 1)
     assert verdict.is_anomaly and verdict.threshold is None
     assert "not calibrated" in (verdict.reason or "")
+    await worker.stop()
+    await asyncio.wait_for(task, DEADLINE_S)
+
+
+async def test_an_observation_past_the_text_limit_is_not_scored(
+        service: tuple[CacheService, HashEmbedder], listener: Bus, connector: Bus) -> None:
+    """Issue 14: the bus skipped the HTTP limits (4,000 characters per text by default):
+    such an observation is not embedded, no verdict answers it (the control loop takes the
+    silence as an anomaly), an alarm event says why, and it is counted; so is a message
+    that does not decode."""
+    svc, embedder = service
+    await svc.calibrate("scene", "loo-quantile", alpha=0.9)
+    registry = CollectorRegistry()
+    metrics = Metrics(registry, svc)
+    worker = DetectorWorker(svc, listener, cache="scene", metrics=metrics, max_text_chars=100)
+    task = asyncio.create_task(worker.run())
+    verdict_sub = connector.subscribe(topics.anomaly("robot0"), AnomalyVerdict)
+    events = connector.subscribe(topics.event("robot0"), Event)
+    await routed(connector, listener)
+    await routed(listener, connector)
+    embedder.calls.clear()
+    connector.publish(topics.observation("robot0"), Observation(seq=1, text="a box " * 50))
+    event = (await asyncio.wait_for(anext(events), DEADLINE_S)).message
+    assert event.kind == "detector_unavailable" and "300 characters" in event.message
+    connector.publish(topics.observation("robot0"), Observation(seq=2, text=NOMINAL[0]))
+    (verdict,) = await verdicts(verdict_sub, 1)
+    assert verdict.seq == 2  # the long one got no verdict
+    assert sum(embedder.calls) == 1
+    assert registry.get_sample_value("aesop_embedding_bus_rejected_total",
+                                     {"field": "text"}) == 1.0
+    # a message that is not an Observation at all: dropped by the bus, counted here
+    connector.session.put(topics.observation("robot0"), b'{"seq": "not a number"}')
+    connector.publish(topics.observation("robot0"), Observation(seq=3, text=NOMINAL[0]))
+    (verdict,) = await verdicts(verdict_sub, 1)
+    assert verdict.seq == 3
+    assert registry.get_sample_value("aesop_embedding_bus_rejected_total",
+                                     {"field": "message"}) == 1.0
     await worker.stop()
     await asyncio.wait_for(task, DEADLINE_S)
