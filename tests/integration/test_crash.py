@@ -107,3 +107,21 @@ def test_a_corrupt_database_stops_the_service_naming_the_file(tmp_path: Path) ->
     assert f"refusing to start: {database}" in proc.log_path.read_text()
     assert proc.proc is not None and proc.proc.returncode != 0
     assert database.read_bytes() == bytes(data)  # never overwritten
+
+
+def test_a_new_cache_is_durable_once_its_2xx_is_sent(tmp_path: Path) -> None:
+    """Issue 14: a cache acknowledged by PUT and killed at once is there after a restart
+    (its row is committed, with synchronous=FULL, before the 201 is sent)."""
+    port = free_port()
+    with server(tmp_path, port) as proc:
+        for name in ("fresh-a", "fresh-b"):
+            r = httpx.put(f"http://127.0.0.1:{port}/v1/caches/{name}",
+                          json={"model": None, "dim": DIM}, headers=AUTH)
+            assert r.status_code == 201, r.text
+        proc.kill()  # right after the last 201: no clean shutdown, no index save
+    port = free_port()
+    with server(tmp_path, port), \
+            httpx.Client(base_url=f"http://127.0.0.1:{port}", headers=AUTH) as client:
+        names = [c["name"] for c in client.get("/v1/caches").json()["caches"]]
+        assert {"fresh-a", "fresh-b"} <= set(names)
+        assert client.get("/v1/caches/fresh-b").json()["dim"] == DIM
