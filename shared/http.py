@@ -69,11 +69,11 @@ class ErrorBody(BaseModel):
 REASONS = {
     400: "the body is not valid JSON",
     401: "a valid 'Authorization: Bearer <token>' header is missing",
+    403: "a cross-site request: its Origin is not the service's own",
     404: "no such resource (error.field names which)",
     405: "method not allowed (the Allow header lists those that are)",
     409: "the request conflicts with the stored state",
     413: "the body or one of its lists is larger than the limit",
-    403: "a cross-site request: its Origin is not the service's own",
     415: "the body is not declared as JSON",
     422: "a field is invalid (error.field names it)",
     429: "too busy: retry later",
