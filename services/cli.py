@@ -357,6 +357,8 @@ def cmd_watch(args: argparse.Namespace) -> int:
     import asyncio
     import signal
 
+    import zenoh
+
     from services.dashboard.watch import watch
     from shared.settings import BusSettings
 
@@ -373,6 +375,11 @@ def cmd_watch(args: argparse.Namespace) -> int:
         asyncio.run(watch(settings, sys.stdout, args.state_every))
     except KeyboardInterrupt:
         return 0
+    except zenoh.ZError as exc:
+        raise CliError(f"cannot join the Zenoh network ({exc}); a router that checks users "
+                       "needs AESOP_ZENOH_MODE=client, AESOP_ZENOH_USER and "
+                       "AESOP_ZENOH_PASSWORD(_FILE), e.g. the monitor user aesop up "
+                       "prints") from None
     return 0
 
 

@@ -5,6 +5,7 @@ there was no message-size cap). A real hub process and real client sessions."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import threading
@@ -140,3 +141,12 @@ def test_a_message_past_the_size_cap_is_dropped_and_the_session_goes_on(hub: Hub
         routed(lambda: robot_a.publish(own, observation("robot-a", 2)), heard,
                "a small message after the big one")
     assert max(heard.sizes) < 100_000
+
+
+def test_aesop_watch_without_credentials_says_what_it_needs(hub: Hub) -> None:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("AESOP_")}
+    run = subprocess.run([sys.executable, "-m", "services.cli", "watch", "--connect",
+                          hub.endpoint], env={**env, "AESOP_ZENOH_MODE": "client"},
+                         capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+    assert run.returncode != 0
+    assert "AESOP_ZENOH_USER" in run.stderr and "Traceback" not in run.stderr, run.stderr
