@@ -1,9 +1,9 @@
 """The slow reasoner's decision under a deadline: always an answer by ``K``.
 
 :class:`Decider` asks the LLM backends for y in the offered options and returns a
-:class:`~shared.messages.ReasonerDecision` before ``received_at + deadline_s - margin``
-(``Decider.margin_s``: the configured margin plus how late the event loop has lately
-woken up, so a loaded loop still answers by K):
+:class:`~shared.messages.ReasonerDecision` before ``received_at + deadline_s - margin_s``;
+on the bus (:meth:`Decider.decide_and_send`) a timer thread sends the timeout fallback at
+that moment if the event loop has not answered, so a loaded loop still answers by K:
 
 - ``llm``: the first answer that parses (strictly) into an offered option wins; every
   other attempt is cancelled, and its HTTP connection closed once the decision has left.
