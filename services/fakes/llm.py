@@ -26,14 +26,19 @@ Model-name grammar (per-request overrides, so one server serves many behaviours)
              | "garbage" ["-" KIND]             malformed output; KIND is one of
                                                 noanswer | two | badindex | nonjson
                                                 (random when omitted)
+             | "reasoning"                      as OpenAI's reasoning models: 400 for
+                                                max_tokens or a temperature other than 1
+                                                (they want max_completion_tokens), and
+                                                reasoning_content deltas before the answer
 
 e.g. ``fake-fixed-0.2``, ``fake-normal-1.0-0.2-scale-0.1``, ``fake-stall``, ``fake-500``,
 ``fake-429``, ``fake-garbage-two``, ``fake-bimodal``. An unknown segment -> 404
 ``model_not_found``. Without a failure segment, failures are injected at the configured
 rates (``rate_429``, ``rate_5xx``, ``rate_garbage``) from a seeded RNG.
 
-When ``response_format`` asks for JSON (``json_object`` / ``json_schema``) the content is
-``{"reasoning": str, "answer": int}``.
+A stream ends with a usage chunk when ``stream_options.include_usage`` is true (as
+OpenAI's API does). When ``response_format`` asks for JSON (``json_object`` /
+``json_schema``) the content is ``{"reasoning": str, "answer": int}``.
 
 Run: ``python -m services.fakes.llm --port 8010 [--profile bimodal]``; every
 flag also from ``AESOP_FAKE_LLM_*`` (``AESOP_FAKE_LLM_HOST``, ``AESOP_FAKE_LLM_PORT`` too).
@@ -109,6 +114,7 @@ class FakeLLMConfig:
     retry_after_s: int = 1  # Retry-After header of a 429
     error_status: int = 0  # 0, or an HTTP status to answer every request with
     garbage: GarbageKind | Literal["random", ""] = ""  # "" = only at rate_garbage
+    reasoning: bool = False  # behave as an OpenAI reasoning model (module docstring)
 
     def __post_init__(self) -> None:
         checks = [
@@ -187,6 +193,8 @@ def config_for_model(model: str, base: FakeLLMConfig) -> FakeLLMConfig:
             changes["time_scale"] = number()
         elif seg == "429" or re.fullmatch(r"5\d\d", seg):
             changes["error_status"] = int(seg)
+        elif seg == "reasoning":
+            changes["reasoning"] = True
         elif seg == "garbage":
             kind = "random"
             if i < len(parts) and parts[i] in GARBAGE_KINDS:
@@ -385,9 +393,14 @@ class ChatRequest(BaseModel):
     model: str = "fake"
     messages: list[ChatMessage] = Field(min_length=1)
     max_tokens: int | None = Field(default=None, ge=1)
+    max_completion_tokens: int | None = Field(default=None, ge=1)
     temperature: float | None = Field(default=None, ge=0, le=2)
     stream: bool = False
+    stream_options: dict[str, Any] | None = None
     response_format: dict[str, Any] | None = None
+
+    def wants_usage(self) -> bool:
+        return bool((self.stream_options or {}).get("include_usage"))
 
     def prompt(self) -> str:
         """The last user message if it carries options, else all messages concatenated."""
@@ -480,6 +493,10 @@ def create_app(config: FakeLLMConfig) -> FastAPI:
         except UnknownModel as exc:
             stats.outcome("unknown_model")
             return error_response(404, "model_not_found", str(exc), "model")
+        refused = _refused(body, cfg)
+        if refused is not None:
+            stats.outcome("400")
+            return refused
         draw = rng.random()
         if cfg.error_status == 429 or (not cfg.error_status and draw < cfg.rate_429):
             stats.outcome("429")
@@ -492,7 +509,10 @@ def create_app(config: FakeLLMConfig) -> FastAPI:
         latency = sample_latency(cfg, rng) * cfg.time_scale
         content = _content(body, cfg, rng)
         if body.stream:
-            return StreamingResponse(_stream(body.model, content, latency, request, stats),
+            usage = _usage(body, content) if body.wants_usage() else None
+            thought = "Let me look at the options first." if cfg.reasoning else ""
+            return StreamingResponse(_stream(body.model, content, latency, request, stats,
+                                             usage=usage, thought=thought),
                                      media_type="text/event-stream")
         stats.enter()
         try:
@@ -502,16 +522,41 @@ def create_app(config: FakeLLMConfig) -> FastAPI:
         finally:
             stats.leave()
         stats.outcome("ok")
-        prompt_tokens, completion_tokens = _tokens(body.prompt()), _tokens(content)
+        message = {"role": "assistant", "content": content}
+        if cfg.reasoning:
+            message["reasoning_content"] = "Let me look at the options first."
         return JSONResponse({
             "id": f"chatcmpl-{uuid.uuid4().hex[:24]}", "object": "chat.completion",
             "created": int(time.time()), "model": body.model,
-            "choices": [{"index": 0, "message": {"role": "assistant", "content": content},
-                         "finish_reason": "stop"}],
-            "usage": {"prompt_tokens": prompt_tokens, "completion_tokens": completion_tokens,
-                      "total_tokens": prompt_tokens + completion_tokens}})
+            "choices": [{"index": 0, "message": message, "finish_reason": "stop"}],
+            "usage": _usage(body, content)})
 
     return app
+
+
+def _usage(body: ChatRequest, content: str) -> dict[str, int]:
+    prompt_tokens, completion_tokens = _tokens(body.prompt()), _tokens(content)
+    return {"prompt_tokens": prompt_tokens, "completion_tokens": completion_tokens,
+            "total_tokens": prompt_tokens + completion_tokens}
+
+
+def _refused(body: ChatRequest, cfg: FakeLLMConfig) -> JSONResponse | None:
+    """What OpenAI's reasoning models answer to the older parameters (their wording)."""
+    if not cfg.reasoning:
+        return None
+    if body.max_tokens is not None:
+        message = ("Unsupported parameter: 'max_tokens' is not supported with this model. "
+                   "Use 'max_completion_tokens' instead.")
+        return JSONResponse({"error": {"message": message, "type": "invalid_request_error",
+                                       "param": "max_tokens", "code": "unsupported_parameter"}},
+                            status_code=400)
+    if body.temperature is not None and body.temperature != 1:
+        message = (f"Unsupported value: 'temperature' does not support {body.temperature} with "
+                   "this model. Only the default (1) value is supported.")
+        return JSONResponse({"error": {"message": message, "type": "invalid_request_error",
+                                       "param": "temperature", "code": "unsupported_value"}},
+                            status_code=400)
+    return None
 
 
 def _content(body: ChatRequest, cfg: FakeLLMConfig, rng: random.Random) -> str:
@@ -533,8 +578,10 @@ def _content(body: ChatRequest, cfg: FakeLLMConfig, rng: random.Random) -> str:
 
 
 async def _stream(model: str, content: str, latency: float, request: Request,
-                  stats: Stats) -> AsyncIterator[str]:
-    """SSE chunks: half the latency before the first token, the rest spread between chunks."""
+                  stats: Stats, *, usage: dict[str, int] | None = None, thought: str = ""
+                  ) -> AsyncIterator[str]:
+    """SSE chunks: half the latency before the first token, the rest spread between chunks;
+    ``thought`` first as ``reasoning_content`` deltas, ``usage`` in a last chunk."""
     cid, created = f"chatcmpl-{uuid.uuid4().hex[:24]}", int(time.time())
 
     def chunk(delta: dict[str, str], finish: str | None = None) -> str:
@@ -550,11 +597,17 @@ async def _stream(model: str, content: str, latency: float, request: Request,
         pieces = _chunks(content)
         gap = latency / 2 / max(1, len(pieces))
         yield chunk({"role": "assistant", "content": ""})
+        for piece in _chunks(thought) if thought else []:
+            yield chunk({"reasoning_content": piece})
         for piece in pieces:
             if not await wait_or_disconnect(request, gap):
                 return
             yield chunk({"content": piece})
         yield chunk({}, "stop")
+        if usage is not None:
+            yield "data: " + json.dumps({
+                "id": cid, "object": "chat.completion.chunk", "created": created,
+                "model": model, "choices": [], "usage": usage}) + "\n\n"
         yield "data: [DONE]\n\n"
         outcome = "ok"
     finally:

@@ -20,6 +20,12 @@ cloud OpenAI, Ollama (``/v1``), vLLM, llama.cpp's server and the fake LLM
   marker in the reasoning stays, so the parser rejects the ambiguity. Reply content that
   is not such JSON is passed through unchanged (the parser then rejects it).
   ``stop_when`` is not consulted in JSON mode (partial JSON is not a final-answer line).
+- **The API as it is now**: the completion limit goes by ``token_field``
+  (``max_completion_tokens`` for OpenAI, whose reasoning models refuse ``max_tokens``),
+  ``temperature`` is left out when None (those models refuse any but the default), a
+  stream asks for ``stream_options.include_usage`` (the usage comes in a last chunk),
+  and only ``content`` is read: ``reasoning_content`` / ``reasoning`` deltas are not the
+  answer. A 400 for a refused parameter names the setting to change.
 
 Errors (:class:`BackendError.kind`): ``http`` (status >= 400, ``status`` set), ``connect``
 (cannot reach the server), ``timeout`` (an httpx timeout, only if the caller configured
@@ -39,6 +45,7 @@ from urllib.parse import urlsplit, urlunsplit
 import httpx
 
 ErrorKind = Literal["http", "timeout", "protocol", "connect"]
+TokenField = Literal["max_tokens", "max_completion_tokens"]
 StopWhen = Callable[[str], bool]
 
 ANSWER_SCHEMA: dict[str, Any] = {
@@ -95,17 +102,22 @@ class BackendConfig:
     model: str
     api_key: str | None = None
     max_tokens: int = 512
-    temperature: float = 0.0
+    temperature: float | None = 0.0  # None: not sent (reasoning models refuse any but 1)
     stream: bool = True
     json_schema: bool = False
+    # the name of the completion limit: OpenAI's current API (and its reasoning models,
+    # which refuse max_tokens) wants max_completion_tokens; llama.cpp, vLLM, Ollama take
+    # max_tokens
+    token_field: TokenField = "max_tokens"
 
     def __post_init__(self) -> None:
         if not self.name or not self.model:
             raise ValueError("name and model must be non-empty")
         if not self.base_url.startswith(("http://", "https://")):
             raise ValueError("base_url must start with http:// or https://")
-        if self.max_tokens < 1 or not 0.0 <= self.temperature <= 2.0:
-            raise ValueError("max_tokens must be >= 1 and temperature in [0, 2]")
+        if self.max_tokens < 1 or not (self.temperature is None
+                                       or 0.0 <= self.temperature <= 2.0):
+            raise ValueError("max_tokens must be >= 1 and temperature in [0, 2] or None")
 
     @property
     def public_url(self) -> str:
@@ -183,8 +195,12 @@ class OpenAIChatBackend:
     def _payload(self, messages: list[dict[str, str]]) -> dict[str, Any]:
         payload: dict[str, Any] = {
             "model": self.config.model, "messages": messages, "stream": self.config.stream,
-            "max_tokens": self.config.max_tokens, "temperature": self.config.temperature,
+            self.config.token_field: self.config.max_tokens,
         }
+        if self.config.temperature is not None:
+            payload["temperature"] = self.config.temperature
+        if self.config.stream:  # the usage comes in a last chunk only when asked for
+            payload["stream_options"] = {"include_usage": True}
         if self.config.json_schema:
             payload["response_format"] = {"type": "json_schema", "json_schema": ANSWER_SCHEMA}
         return payload
@@ -248,7 +264,8 @@ class OpenAIChatBackend:
     def _check(self, status: int, body: str) -> None:
         if status >= 400:
             snippet = error_snippet(body, (self.config.api_key or "",))
-            raise BackendError("http", f"{self.name}: HTTP {status}: {snippet}", status=status)
+            raise BackendError("http", f"{self.name}: HTTP {status}: {snippet}{_hint(body)}",
+                               status=status)
 
     def _finish(self, text: str, usage: dict[str, Any], *, stopped_early: bool) -> Completion:
         if self.config.json_schema and not stopped_early:
@@ -256,6 +273,20 @@ class OpenAIChatBackend:
         return Completion(text=text, prompt_tokens=_int_or_none(usage.get("prompt_tokens")),
                           completion_tokens=_int_or_none(usage.get("completion_tokens")),
                           stopped_early=stopped_early)
+
+
+def _hint(body: str) -> str:
+    """The setting to change when a server refuses a parameter we sent."""
+    refused = re.search(r"unsupported (?:parameter|value): '(\w+)'", body, re.IGNORECASE)
+    if refused is None:
+        return ""
+    if refused.group(1) == "max_tokens":
+        return " (set AESOP_REASONER_LLM_TOKEN_FIELD=max_completion_tokens)"
+    if refused.group(1) == "max_completion_tokens":
+        return " (set AESOP_REASONER_LLM_TOKEN_FIELD=max_tokens)"
+    if refused.group(1) == "temperature":
+        return " (set AESOP_REASONER_LLM_TEMPERATURE=omit)"
+    return ""
 
 
 def _delta_text(chunk: dict[str, Any]) -> str:

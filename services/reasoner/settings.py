@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import re
 from typing import Literal
+from urllib.parse import urlsplit
 
 from pydantic import AliasChoices, Field, SecretStr, field_validator
 from pydantic_settings import SettingsConfigDict
 
 from shared.settings import ServiceSettings
 
-from .backends import BackendConfig
+from .backends import BackendConfig, TokenField
+
+OPENAI_REASONING = re.compile(r"(?:openai/)?(?:o\d|gpt-5)", re.IGNORECASE)
 
 
 class ReasonerSettings(ServiceSettings):
@@ -25,7 +29,12 @@ class ReasonerSettings(ServiceSettings):
     llm_stream: bool = True
     llm_json_schema: bool = False  # ask for {"reasoning", "answer"} where servers support it
     llm_max_tokens: int = Field(default=512, ge=1)
-    llm_temperature: float = Field(default=0.0, ge=0.0, le=2.0)
+    # the name the limit is sent under; auto: max_completion_tokens for api.openai.com
+    # (its reasoning models refuse max_tokens), max_tokens for every other server
+    llm_token_field: Literal["auto", "max_tokens", "max_completion_tokens"] = "auto"
+    # a number in [0, 2], or "omit" (not sent); auto: 0, left out for OpenAI's reasoning
+    # models (o1, o3, o4, gpt-5 ...), which refuse any but their default
+    llm_temperature: float | Literal["auto", "omit"] = "auto"
     # an optional second backend, asked when the first has not answered after hedge_after_s
     hedge_base_url: str | None = None
     hedge_model: str | None = None
@@ -46,17 +55,39 @@ class ReasonerSettings(ServiceSettings):
     def _empty_is_none(cls, v: object) -> object:
         return None if v == "" else v
 
+    @field_validator("llm_temperature")
+    @classmethod
+    def _temperature_range(cls, v: float | str) -> float | str:
+        if isinstance(v, float) and not 0.0 <= v <= 2.0:
+            raise ValueError("a temperature is in [0, 2] (or auto, or omit)")
+        return v
+
+    def token_field(self, base_url: str) -> TokenField:
+        if self.llm_token_field != "auto":
+            return self.llm_token_field
+        host = (urlsplit(base_url).hostname or "").lower()
+        return "max_completion_tokens" if host.endswith("openai.com") else "max_tokens"
+
+    def temperature(self, model: str) -> float | None:
+        if self.llm_temperature == "omit":
+            return None
+        if self.llm_temperature == "auto":
+            return None if OPENAI_REASONING.match(model) else 0.0
+        return self.llm_temperature
+
     def backends(self) -> list[BackendConfig]:
         """The configured LLM backends: the primary, then the hedge if there is one."""
         key = self.llm_api_key.get_secret_value() if self.llm_api_key else None
         configs = [BackendConfig(
             name="primary", base_url=self.llm_base_url, model=self.llm_model, api_key=key,
-            max_tokens=self.llm_max_tokens, temperature=self.llm_temperature,
-            stream=self.llm_stream, json_schema=self.llm_json_schema)]
+            max_tokens=self.llm_max_tokens, temperature=self.temperature(self.llm_model),
+            stream=self.llm_stream, json_schema=self.llm_json_schema,
+            token_field=self.token_field(self.llm_base_url))]
         if self.hedge_model:
+            base_url = self.hedge_base_url or self.llm_base_url
             configs.append(BackendConfig(
-                name="hedge", base_url=self.hedge_base_url or self.llm_base_url,
-                model=self.hedge_model, api_key=key, max_tokens=self.llm_max_tokens,
-                temperature=self.llm_temperature, stream=self.llm_stream,
-                json_schema=self.llm_json_schema))
+                name="hedge", base_url=base_url, model=self.hedge_model, api_key=key,
+                max_tokens=self.llm_max_tokens, temperature=self.temperature(self.hedge_model),
+                stream=self.llm_stream, json_schema=self.llm_json_schema,
+                token_field=self.token_field(base_url)))
         return configs

@@ -21,9 +21,10 @@ from typing import Any
 import httpx
 import pytest
 
-from services.reasoner.backends import BackendConfig, OpenAIChatBackend
+from services.reasoner.backends import BackendConfig, BackendError, OpenAIChatBackend
 from services.reasoner.deciding import Decider, DeciderConfig
 from services.reasoner.prompts import build_messages, load_template
+from services.reasoner.settings import ReasonerSettings
 from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
 from shared.process import ServiceProcess, free_port
 
@@ -210,3 +211,63 @@ async def test_unreachable_backend_is_backend_error_without_key() -> None:
     assert decision.source == "backend_error"
     assert "connect" in decision.rationale
     assert "sk-test-secret" not in decision.rationale
+
+
+# --------------------------------------------------------------------------- the API as it is now
+# (issue 13: OpenAI's reasoning models refuse max_tokens and a non-default temperature,
+# stream usage needs stream_options, and reasoning fields are not the answer)
+
+
+@pytest.mark.parametrize("stream", [True, False])
+async def test_a_reasoning_model_refuses_the_old_parameters_naming_the_setting(
+        fake_llm: str, stream: bool) -> None:
+    old = backend(fake_llm, "fake-reasoning", stream=stream)  # max_tokens, temperature 0
+    with pytest.raises(BackendError) as refused:
+        await old.complete([{"role": "user", "content": "hi"}])
+    assert refused.value.status == 400
+    assert "AESOP_REASONER_LLM_TOKEN_FIELD=max_completion_tokens" in str(refused.value)
+    no_temp = backend(fake_llm, "fake-reasoning", stream=stream,
+                      token_field="max_completion_tokens")
+    with pytest.raises(BackendError) as refused:
+        await no_temp.complete([{"role": "user", "content": "hi"}])
+    assert "AESOP_REASONER_LLM_TEMPERATURE=omit" in str(refused.value)
+    await old.aclose()
+    await no_temp.aclose()
+
+
+@pytest.mark.parametrize("stream", [True, False])
+async def test_a_reasoning_model_answers_with_the_current_api(fake_llm: str,
+                                                              stream: bool) -> None:
+    chat = backend(fake_llm, "fake-reasoning", stream=stream, temperature=None,
+                   token_field="max_completion_tokens")
+    decider = Decider([chat], DeciderConfig())
+    try:
+        decision = await decider.decide(request())
+    finally:
+        await decider.aclose()
+    assert (decision.source, decision.choice) == ("llm", 1)
+    assert "look at the options" not in decision.rationale  # reasoning_content is not content
+
+
+async def test_streamed_usage_is_counted(fake_llm: str) -> None:
+    chat = backend(fake_llm, "fake-fixed-0.05")
+    completion = await chat.complete([{"role": "user", "content": request().observation.text}])
+    await chat.aclose()
+    assert not completion.stopped_early  # no stop_when: read to the end, usage chunk included
+    assert completion.prompt_tokens and completion.completion_tokens
+
+
+def test_the_settings_pick_the_parameters_a_server_takes() -> None:
+    openai = ReasonerSettings(llm_base_url="https://api.openai.com/v1", llm_model="o3-mini")
+    (config,) = openai.backends()
+    assert config.token_field == "max_completion_tokens" and config.temperature is None
+    local = ReasonerSettings(llm_base_url="http://127.0.0.1:8080/v1", llm_model="qwen2.5")
+    (config,) = local.backends()
+    assert config.token_field == "max_tokens" and config.temperature == 0.0
+    forced = ReasonerSettings(llm_token_field="max_completion_tokens", llm_temperature="omit",
+                              llm_model="gpt-4o-mini")
+    (config,) = forced.backends()
+    assert config.token_field == "max_completion_tokens" and config.temperature is None
+    assert ReasonerSettings(llm_temperature=0.7).backends()[0].temperature == 0.7
+    with pytest.raises(ValueError, match="temperature"):
+        ReasonerSettings(llm_temperature=3.0)
