@@ -200,6 +200,18 @@ def build_parser() -> argparse.ArgumentParser:
                        help="at most one state line per S seconds (default 1)")
     watch.set_defaults(func=cmd_watch)
 
+    rec = sub.add_parser("record", help="the stack's Zenoh topics into an MCAP file "
+                         "(Foxglove opens it); Ctrl-C stops")
+    rec.add_argument("--out", type=Path, default=None,
+                     help="the file (default ./aesop-<robot or all>-<UTC time>.mcap)")
+    rec.add_argument("--robot", help="only this robot (default: every robot)")
+    rec.add_argument("--topics", nargs="+", metavar="TOPIC",
+                     help="only these: observation anomaly state plan reasoner/request "
+                          "reasoner/decision event regions (default: all)")
+    rec.add_argument("--connect", action="append", metavar="ENDPOINT",
+                     help="Zenoh endpoint (repeatable; default: AESOP_ZENOH_CONNECT)")
+    rec.set_defaults(func=cmd_record)
+
     zn = sub.add_parser("zenoh", help="the router's access control for docker compose")
     zsub = zn.add_subparsers(dest="zenoh_command", required=True)
     rc = zsub.add_parser("router-config", help="print the router config (the stack's ACL)")
@@ -330,6 +342,42 @@ def serve_dashboard(overrides: dict[str, Any]) -> int:
     except ValueError as exc:
         raise CliError(str(exc)) from None
     serve(create_app(settings, bus_factory=lambda: Bus.open(settings, SERVICE)), settings)
+    return 0
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+    import time
+
+    import zenoh
+
+    from services.recording.record import key_exprs, record
+    from shared.settings import BusSettings
+
+    try:
+        key_exprs(args.robot, args.topics)
+    except ValueError as exc:
+        raise CliError(f"--topics: {exc}") from None
+    overrides = {"zenoh_connect": args.connect} if args.connect else {}
+    settings = BusSettings(**overrides)
+    out = args.out or Path(f"aesop-{args.robot or 'all'}-"
+                           f"{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}.mcap")
+    if out.parent != Path() and not out.parent.is_dir():
+        raise CliError(f"--out: no directory {out.parent}")
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):  # also where SIGINT started ignored
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        totals = record(settings, out, robot=args.robot, wanted=args.topics, stop=stop,
+                        say=lambda line: print(line, file=sys.stderr, flush=True))
+    except zenoh.ZError as exc:
+        raise CliError(f"cannot join the Zenoh network ({exc}); a router that checks users "
+                       "needs AESOP_ZENOH_MODE=client, AESOP_ZENOH_USER and "
+                       "AESOP_ZENOH_PASSWORD(_FILE)") from None
+    rate = totals.messages / totals.seconds if totals.seconds > 0 else 0.0
+    print(f"recorded {totals.messages} messages ({totals.bytes / 1e3:.1f} kB, {rate:.1f} "
+          f"messages/s) in {totals.seconds:.1f} s into {out}", file=sys.stderr)
     return 0
 
 

@@ -1,0 +1,1 @@
+"""Flights as MCAP files: ``aesop record`` (the stack's Zenoh topics to a file)."""
