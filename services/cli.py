@@ -345,6 +345,13 @@ def serve_dashboard(overrides: dict[str, Any]) -> int:
     return 0
 
 
+def not_joined(exc: Exception) -> CliError:
+    """A Zenoh session that could not open, with what a router that checks users needs."""
+    return CliError(f"cannot join the Zenoh network ({exc}); a router that checks users "
+                    "needs AESOP_ZENOH_MODE=client, AESOP_ZENOH_USER and "
+                    "AESOP_ZENOH_PASSWORD(_FILE), e.g. the monitor user aesop up prints")
+
+
 def cmd_record(args: argparse.Namespace) -> int:
     import signal
     import threading
@@ -372,9 +379,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         totals = record(settings, out, robot=args.robot, wanted=args.topics, stop=stop,
                         say=lambda line: print(line, file=sys.stderr, flush=True))
     except zenoh.ZError as exc:
-        raise CliError(f"cannot join the Zenoh network ({exc}); a router that checks users "
-                       "needs AESOP_ZENOH_MODE=client, AESOP_ZENOH_USER and "
-                       "AESOP_ZENOH_PASSWORD(_FILE)") from None
+        raise not_joined(exc) from None
     rate = totals.messages / totals.seconds if totals.seconds > 0 else 0.0
     print(f"recorded {totals.messages} messages ({totals.bytes / 1e3:.1f} kB, {rate:.1f} "
           f"messages/s) in {totals.seconds:.1f} s into {out}", file=sys.stderr)
@@ -424,10 +429,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         return 0
     except zenoh.ZError as exc:
-        raise CliError(f"cannot join the Zenoh network ({exc}); a router that checks users "
-                       "needs AESOP_ZENOH_MODE=client, AESOP_ZENOH_USER and "
-                       "AESOP_ZENOH_PASSWORD(_FILE), e.g. the monitor user aesop up "
-                       "prints") from None
+        raise not_joined(exc) from None
     return 0
 
 

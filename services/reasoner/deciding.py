@@ -171,8 +171,8 @@ class Decider:
         """y for ``request``, by ``received_at + deadline_s - margin_s`` (clock seconds)."""
         start = self._clock() if received_at is None else received_at
         deadline = start + request.deadline_s - self._config.margin_s
-        observation = request.observation.text
-        flagged = suspicious_scene(task=request.observation.task, observation=observation)
+        flagged = suspicious_scene(task=request.observation.task,
+                                   observation=request.observation.text)
         if flagged:
             return self._fallback(request, start, "parse_error",
                                   f"injection: {flagged}; LLM not asked")
@@ -181,7 +181,7 @@ class Decider:
         except ValueError as exc:
             return self._fallback(request, start, "parse_error", f"invalid_request: {exc}")
         offered = [o.index for o in request.options]
-        outcome = await self._race(messages, offered, observation, deadline)
+        outcome = await self._race(messages, offered, deadline)
         return self._decision(request, start, outcome)
 
     async def decide_and_send(self, request: ReasonerRequest, send: Send, *,
@@ -215,7 +215,7 @@ class Decider:
     # ------------------------------------------------------------------ the race
 
     async def _race(self, messages: list[dict[str, str]], offered: list[int],
-                    observation: str, deadline: float) -> Outcome:
+                    deadline: float) -> Outcome:
         queue = list(self._backends)
         running: set[asyncio.Task[Win | Failure]] = set()
         failures: list[Failure] = []
@@ -224,7 +224,7 @@ class Decider:
         def launch() -> None:
             nonlocal last_start
             backend = queue.pop(0)
-            running.add(asyncio.create_task(_attempt(backend, messages, offered, observation)))
+            running.add(asyncio.create_task(_attempt(backend, messages, offered)))
             last_start = self._clock()
 
         launch()
@@ -298,12 +298,14 @@ class Decider:
         return max(0.0, (self._clock() - start) * 1000.0)
 
 
-async def _attempt(backend: ChatBackend, messages: list[dict[str, str]], offered: list[int],
-                   observation: str) -> Win | Failure:
-    """One backend's answer, parsed; errors become a :class:`Failure` (never raised)."""
+async def _attempt(backend: ChatBackend, messages: list[dict[str, str]], offered: list[int]
+                   ) -> Win | Failure:
+    """One backend's answer, parsed; errors become a :class:`Failure` (never raised). The
+    scene was checked for injection once, before any backend was asked: each streamed
+    chunk is only parsed, not scanned again."""
 
     def stop_when(text: str) -> bool:
-        return parse_partial(text, offered, observation=observation) is not None
+        return parse_partial(text, offered) is not None
 
     try:
         completion = await backend.complete(messages, stop_when=stop_when)
@@ -311,7 +313,7 @@ async def _attempt(backend: ChatBackend, messages: list[dict[str, str]], offered
         status = f" {exc.status}" if exc.status is not None else ""
         return Failure("backend_error", f"{backend.name}: {exc.kind}{status}")
     try:
-        parsed = parse_decision(completion.text, offered, observation=observation)
+        parsed = parse_decision(completion.text, offered)
     except ParseError as exc:
         return Failure("parse_error", f"{backend.name}: {exc.reason} ({exc.detail})")
     return Win(parsed=parsed, model=backend.model, completion=completion)

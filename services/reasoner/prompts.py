@@ -202,8 +202,8 @@ def _single_line(text: str, field: str) -> str:
     return collapsed
 
 
-# Every pattern runs in time linear in the text (it runs on each streamed chunk, on the
-# event loop that holds every deadline): no two adjacent or nested quantifiers may match
+# Every pattern runs in time linear in the text (it runs on the event loop that holds
+# every deadline, on the scene before the LLM is asked and on what the LLM answers): no two adjacent or nested quantifiers may match
 # the same characters. A line-start pattern therefore skips only the blanks and quote
 # marks of its own line, never a line break: ``^[\s>]*`` rescanned every blank line that
 # follows from every line start (8,000 newlines took 2.6 s). It flags the same texts: a

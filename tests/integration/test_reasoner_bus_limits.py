@@ -5,12 +5,10 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from typing import Any
 
 import pytest
 from prometheus_client import CollectorRegistry
 
-from services.reasoner.backends import Completion
 from services.reasoner.deciding import Decider, DeciderConfig
 from services.reasoner.metrics import Metrics
 from services.reasoner.settings import ReasonerSettings
@@ -18,6 +16,7 @@ from services.reasoner.worker import ReasonerWorker
 from shared import topics
 from shared.bus import Bus
 from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
+from tests.fakes.chat_backends import Recording
 from tests.zenoh_peers import DEADLINE_S, routed
 
 pytestmark = pytest.mark.timeout(60)
@@ -26,24 +25,6 @@ LIMITS = ReasonerSettings(max_observation_chars=100, max_options=3, max_deadline
 OPTIONS = (Option(index=0, label="continue"),
            Option(index=1, label="alternative landing site", description="the blue box"),
            Option(index=2, label="holding zone", description="hover and wait"))
-
-
-class Recording:
-    """A backend that counts its calls and always answers 1."""
-
-    name = model = "recording"
-
-    def __init__(self) -> None:
-        self.calls = 0
-
-    async def complete(self, messages: list[dict[str, str]], *,
-                       stop_when: Any = None) -> Completion:
-        self.calls += 1
-        return Completion(text="FINAL ANSWER: 1\n", prompt_tokens=None,
-                          completion_tokens=None, stopped_early=False)
-
-    async def aclose(self) -> None:
-        pass
 
 
 def request(request_id: str, *, text: str = "a quadrotor on the red box",
