@@ -203,12 +203,13 @@ def _single_line(text: str, field: str) -> str:
 
 
 # Every pattern runs in time linear in the text (it runs on the event loop that holds
-# every deadline, on the scene before the LLM is asked and on what the LLM answers): no two adjacent or nested quantifiers may match
-# the same characters. A line-start pattern therefore skips only the blanks and quote
-# marks of its own line, never a line break: ``^[\s>]*`` rescanned every blank line that
-# follows from every line start (8,000 newlines took 2.6 s). It flags the same texts: a
-# run of blanks and line breaks before a marker ends in the marker's own line. A bounded
-# gap such as ``.{0,40}?`` costs at most 41 steps per start, so it stays.
+# every deadline, on the scene before the LLM is asked and on what the LLM answers): no
+# two adjacent or nested quantifiers may match the same characters. A line-start
+# pattern therefore skips only the blanks and quote marks of its own line, never a line
+# break: ``^[\s>]*`` rescanned every blank line that follows from every line start
+# (8,000 newlines took 2.6 s). It flags the same texts: a run of blanks and line breaks
+# before a marker ends in the marker's own line. A bounded gap such as ``.{0,40}?`` costs
+# at most 41 steps per start, so it stays.
 _BLANK = r"[^\S\n]"  # whitespace other than "\n", which ends the line for ``^``
 _QUOTED = rf"(?:{_BLANK}|>)"
 _INJECTION_PATTERNS: tuple[tuple[str, re.Pattern[str]], ...] = tuple(
