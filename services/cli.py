@@ -34,6 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request is noise
+    logging.getLogger("faiss.loader").setLevel(logging.WARNING)  # which build it found
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
     if args.command in ("serve", "up", "demo"):
@@ -50,6 +51,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+
+
+DEFAULT_EMBEDDING_URL = "http://127.0.0.1:8001"  # aesop up's embedding service
 
 
 class CliError(Exception):
@@ -109,9 +113,22 @@ def build_parser() -> argparse.ArgumentParser:
     detector = sub.add_parser("detector", help="offline tools for the fast anomaly detector")
     dsub = detector.add_subparsers(dest="detector_command", required=True)
     ev = dsub.add_parser("eval", help="evaluate the detector on labelled JSONL text sets")
-    ev.add_argument("--nominal", type=Path, required=True, help="JSONL of nominal experiences")
+    ev.add_argument("--nominal", type=Path, help="JSONL of nominal experiences (required "
+                    "but with --recording against a running cache: --cache)")
     ev.add_argument("--calibration", type=Path, help="JSONL labelled calibration set")
-    ev.add_argument("--test", type=Path, required=True, help="JSONL labelled test set")
+    what = ev.add_mutually_exclusive_group(required=True)
+    what.add_argument("--test", type=Path, help="JSONL labelled test set")
+    what.add_argument("--recording", type=Path, metavar="FILE.mcap",
+                      help="re-score a recorded flight: each observation's recorded verdict "
+                           "and today's, and where they differ")
+    ev.add_argument("--cache", help="with --recording: score against this cache of a running "
+                    "embedding service (--url) instead of --nominal")
+    ev.add_argument("--url", default=DEFAULT_EMBEDDING_URL,
+                    help=f"the embedding service (default {DEFAULT_EMBEDDING_URL}); the token "
+                         "from AESOP_ADMIN_TOKEN")
+    ev.add_argument("--robot", help="with --recording: only this robot's observations")
+    ev.add_argument("--changed-only", action="store_true",
+                    help="with --recording: list only the observations whose verdict changed")
     ev.add_argument("--k", type=int, default=5)
     ev.add_argument("--alpha", type=float, default=0.95)
     ev.add_argument("--tpr", type=float, default=0.9, help="target TPR for tpr-target")
@@ -211,6 +228,50 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--connect", action="append", metavar="ENDPOINT",
                      help="Zenoh endpoint (repeatable; default: AESOP_ZENOH_CONNECT)")
     rec.set_defaults(func=cmd_record)
+
+    rp = sub.add_parser("replay", help="publish a recording on Zenoh again with its timing "
+                        "(the dashboard and aesop watch show the flight); Ctrl-C stops")
+    rp.add_argument("file", type=Path, metavar="FILE.mcap")
+    rp.add_argument("--speed", type=float, default=1.0, help="time scale (2: twice as fast)")
+    rp.add_argument("--topics", nargs="+", metavar="TOPIC",
+                    help="only these (e.g. observation: a live stack's detector sees the "
+                         "recorded scenes; default: all)")
+    rp.add_argument("--loop", action="store_true", help="start over at the end")
+    rp.add_argument("--connect", action="append", metavar="ENDPOINT",
+                    help="Zenoh endpoint (repeatable; default: AESOP_ZENOH_CONNECT)")
+    rp.add_argument("--listen", action="append", metavar="ENDPOINT",
+                    help="listen here instead, for a dashboard to connect to (repeatable)")
+    rp.set_defaults(func=cmd_replay)
+
+    ca = sub.add_parser("cache", help="nominal experience caches of a running embedding service")
+    casub = ca.add_subparsers(dest="cache_command", required=True)
+    ci = casub.add_parser("import", help="add a recorded flight's distinct scenes as nominal "
+                          "experiences (then calibrate)")
+    ci.add_argument("--recording", type=Path, required=True, action="append",
+                    metavar="FILE.mcap", help="a recorded flight (repeatable)")
+    ci.add_argument("--cache", required=True, help="the cache (created if there is none)")
+    ci.add_argument("--since", help="from here: seconds from each recording's start (12.5) "
+                    "or an ISO 8601 time (UTC unless it says)")
+    ci.add_argument("--until", help="up to here, as --since")
+    ci.add_argument("--robot", help="only this robot's observations (default: all)")
+    ci.add_argument("--model", default=None, help="embedding model of a new cache")
+    ci.add_argument("--k", type=int, default=None,
+                    help="neighbours a new cache scores with (default 5; the paper's "
+                         "hardware cache: 1)")
+    ci.add_argument("--url", default=DEFAULT_EMBEDDING_URL,
+                    help=f"the embedding service (default {DEFAULT_EMBEDDING_URL}); the token "
+                         "from AESOP_ADMIN_TOKEN")
+    ci.add_argument("--json", action="store_true")
+    ci.set_defaults(func=cmd_cache_import)
+    cc = casub.add_parser("calibrate", help="tau of a cache from its own experiences (eq. 2: "
+                          "the alpha quantile of the leave-one-out scores)")
+    cc.add_argument("--cache", required=True)
+    cc.add_argument("--alpha", type=float, default=0.95)
+    cc.add_argument("--url", default=DEFAULT_EMBEDDING_URL,
+                    help=f"the embedding service (default {DEFAULT_EMBEDDING_URL}); the token "
+                         "from AESOP_ADMIN_TOKEN")
+    cc.add_argument("--json", action="store_true")
+    cc.set_defaults(func=cmd_cache_calibrate)
 
     zn = sub.add_parser("zenoh", help="the router's access control for docker compose")
     zsub = zn.add_subparsers(dest="zenoh_command", required=True)
@@ -386,6 +447,120 @@ def cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_replay(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    import zenoh
+
+    from services.recording.recorded import RecordingError, check_recording
+    from services.recording.replay import replay, topic_filter
+    from shared.settings import BusSettings
+
+    try:
+        topic_filter(args.topics)
+    except ValueError as exc:
+        raise CliError(f"--topics: {exc}") from None
+    if not args.speed > 0:
+        raise CliError("--speed must be > 0")
+    try:
+        check_recording(args.file)
+    except RecordingError as exc:
+        raise CliError(str(exc)) from None
+    overrides = {k: v for k, v in (("zenoh_connect", args.connect),
+                                   ("zenoh_listen", args.listen)) if v}
+    settings = BusSettings(**overrides)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        done = replay(settings, args.file, speed=args.speed, wanted=args.topics,
+                      loop=args.loop, stop=stop,
+                      say=lambda line: print(line, file=sys.stderr, flush=True))
+    except zenoh.ZError as exc:
+        raise not_joined(exc) from None
+    print(f"replayed {done.messages} messages ({done.bytes / 1e3:.1f} kB) in "
+          f"{done.seconds:.1f} s", file=sys.stderr)
+    return 0
+
+
+def _admin_token() -> str | None:
+    return os.environ.get("AESOP_ADMIN_TOKEN") or None
+
+
+def _service_failure(exc: Exception, url: str) -> CliError:
+    """A service that answered with an error, or none that answered."""
+    import httpx
+
+    if isinstance(exc, httpx.TransportError):
+        return CliError(f"no embedding service at {url} ({exc.__class__.__name__}): is the "
+                        "stack up? (--url)")
+    return CliError(str(exc))
+
+
+def cmd_cache_import(args: argparse.Namespace) -> int:
+    import asyncio
+
+    import httpx
+
+    from services.embedding.client import EmbeddingClient
+    from services.recording.importer import import_recording
+    from services.recording.recorded import RecordingError, check_recording
+    from shared.client import ServiceError
+
+    def say(line: str) -> None:
+        print(line, file=sys.stderr, flush=True)
+
+    def progress(job: Any) -> None:
+        if job.total:
+            say(f"  embedding {job.done}/{job.total}")
+
+    async def run() -> Any:
+        async with EmbeddingClient(args.url, token=_admin_token(), timeout_s=120) as client:
+            return await import_recording(client, args.cache, args.recording,
+                                          robot=args.robot, since=args.since,
+                                          until=args.until, model=args.model, k=args.k,
+                                          say=say, progress=progress)
+    try:
+        for path in args.recording:
+            check_recording(path)
+        done = asyncio.run(run())
+    except RecordingError as exc:
+        raise CliError(str(exc)) from None
+    except (ServiceError, httpx.TransportError) as exc:
+        raise _service_failure(exc, args.url) from None
+    result = {"cache": args.cache, "observations": done.observations, "scenes": done.scenes,
+              "already_in_cache": done.already, "added": done.added, "size": done.size,
+              "version": done.version}
+    emit(result, args.json)
+    if not args.json:
+        print(f"next: aesop cache calibrate --cache {args.cache}", file=sys.stderr)
+    return 0
+
+
+def cmd_cache_calibrate(args: argparse.Namespace) -> int:
+    import asyncio
+
+    import httpx
+
+    from services.embedding.client import EmbeddingClient
+    from shared.client import ServiceError
+
+    if not 0 < args.alpha < 1:
+        raise CliError("--alpha must be in (0, 1)")
+
+    async def run() -> Any:
+        async with EmbeddingClient(args.url, token=_admin_token(), timeout_s=120) as client:
+            return await client.calibrate(args.cache, "loo-quantile", alpha=args.alpha)
+    try:
+        done = asyncio.run(run())
+    except (ServiceError, httpx.TransportError) as exc:
+        raise _service_failure(exc, args.url) from None
+    emit({"cache": done.cache, "method": done.method, "alpha": done.alpha,
+          "threshold": done.threshold, "n": done.n, "version": done.version}, args.json)
+    return 0
+
+
 def cmd_zenoh_router_config(args: argparse.Namespace) -> int:
     from services.stack.acl import router_config_text
 
@@ -439,7 +614,7 @@ def cmd_detector_eval(args: argparse.Namespace) -> int:
     from services.embedding.errors import DetectorError
     from services.embedding.settings import DEFAULT_MODEL
 
-    for name in ("nominal", "calibration", "test"):
+    for name in ("nominal", "calibration", "test", "recording"):
         path = getattr(args, name)
         if path is not None and not path.is_file():
             raise CliError(f"--{name}: no such file: {path}")
@@ -447,6 +622,12 @@ def cmd_detector_eval(args: argparse.Namespace) -> int:
         raise CliError("--alpha must be in (0, 1)")
     if args.k < 1:
         raise CliError("--k must be at least 1")
+    if args.recording is None and (args.cache or args.robot or args.changed_only):
+        raise CliError("--cache, --robot and --changed-only go with --recording")
+    if args.recording is not None:
+        return rescore_recording(args)
+    if args.nominal is None:
+        raise CliError("--nominal is required (the JSONL of nominal experiences)")
     try:
         config = EvalConfig(k=args.k, alpha=args.alpha, method=args.method, score=args.score,
                             tpr=args.tpr)
@@ -459,6 +640,96 @@ def cmd_detector_eval(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     emit(result, args.json)
     return 0
+
+
+def rescore_recording(args: argparse.Namespace) -> int:
+    """``aesop detector eval --recording``: see :mod:`services.recording.rescore`."""
+    from services.recording.recorded import (
+        RecordingError,
+        check_recording,
+        observations,
+        verdicts,
+    )
+    from services.recording.rescore import compare, distinct_texts, summary, table
+
+    if (args.nominal is None) == (args.cache is None):
+        raise CliError("--recording needs either --nominal (a JSONL set to build a cache "
+                       "from) or --cache (a cache of the running service at --url)")
+    try:
+        check_recording(args.recording)
+        recorded = list(observations(args.recording, robot=args.robot))
+        old = verdicts(args.recording, args.robot)
+    except RecordingError as exc:
+        raise CliError(str(exc)) from None
+    if not recorded:
+        raise CliError(f"{args.recording} has no observations"
+                       + (f" of robot {args.robot}" if args.robot else ""))
+    texts = distinct_texts(recorded)
+    print(f"{len(recorded)} observations, {len(texts)} distinct scenes, {len(old)} recorded "
+          "verdicts", file=sys.stderr)
+    if args.cache is not None:
+        new, threshold, source = _scores_over_rest(args, texts)
+    else:
+        new, threshold, source = _scores_offline(args, texts)
+    rows = compare(recorded, old, new)
+    result = {"recording": str(args.recording), "against": source} | summary(rows, threshold)
+    if args.json:
+        print(json.dumps(result | {"rows": [r.row() for r in rows
+                                            if r.changed or not args.changed_only]},
+                         allow_nan=False))
+        return 0
+    print(table(rows, only_changed=args.changed_only))
+    print()
+    emit(result, False)
+    return 0
+
+
+def _scores_offline(args: argparse.Namespace, texts: list[str]):
+    from services.bench.evaluate import EvalConfig, fit, read_jsonl, score_all
+    from services.embedding.embedders import EmbedderError, load_embedder
+    from services.embedding.errors import DetectorError
+    from services.embedding.settings import DEFAULT_MODEL
+    from services.recording.rescore import NewScore
+
+    try:
+        config = EvalConfig(k=args.k, alpha=args.alpha, method=args.method, score=args.score,
+                            tpr=args.tpr)
+        calibration = read_jsonl(args.calibration) if args.calibration else []
+        embedder = load_embedder(args.model or DEFAULT_MODEL)
+        cache, cal = fit(embedder, read_jsonl(args.nominal), calibration, config)
+        scores = score_all(cache, embedder, texts, config.k)
+    except (DetectorError, EmbedderError, ValueError) as exc:
+        raise CliError(str(exc)) from None
+    new = {t: NewScore(float(s), bool(s > cal.threshold)) for t, s in zip(texts, scores,
+                                                                          strict=True)}
+    return new, cal.threshold, f"{args.nominal} ({embedder.name}, {cal.method})"
+
+
+def _scores_over_rest(args: argparse.Namespace, texts: list[str]):
+    import asyncio
+
+    import httpx
+
+    from services.embedding.client import EmbeddingClient
+    from services.recording.rescore import NewScore
+    from shared.client import ServiceError
+
+    async def run() -> tuple[dict[str, Any], float | None, str]:
+        new: dict[str, NewScore] = {}
+        threshold: float | None = None
+        async with EmbeddingClient(args.url, token=_admin_token(), timeout_s=120) as client:
+            info = await client.cache(args.cache)
+            for i in range(0, len(texts), 256):  # the service's default per-request limit
+                chunk = texts[i:i + 256]
+                got = await client.score(args.cache, chunk)
+                threshold = got.threshold
+                new |= {t: NewScore(r.score, r.is_anomaly)
+                        for t, r in zip(chunk, got.results, strict=True)}
+        return new, threshold, f"cache {args.cache} v{info.version} at {args.url}"
+    try:
+        return asyncio.run(run())
+    except (ServiceError, httpx.TransportError) as exc:
+        raise _service_failure(exc, args.url) from None
 
 
 def cmd_bench_detector(args: argparse.Namespace) -> int:

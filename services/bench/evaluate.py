@@ -88,6 +88,16 @@ def evaluate(
     config: EvalConfig = EvalConfig(),
 ) -> dict[str, Any]:
     """Build, calibrate, test; the ``aesop detector eval --json`` object."""
+    cache, cal = fit(embedder, nominal, calibration, config)
+    scores = score_all(cache, embedder, [x.text for x in test], config.k)
+    labels = np.array([x.is_anomaly for x in test])
+    return report(cal, scores, labels, config, embedder.name, len(nominal), len(calibration))
+
+
+def fit(embedder: Embedder, nominal: Sequence[Labelled],
+        calibration: Sequence[Labelled] = (), config: EvalConfig = EvalConfig()
+        ) -> tuple[Cache, Calibration]:
+    """An in-memory cache of ``nominal`` and its tau by ``config.method``."""
     if any(x.is_anomaly for x in nominal):
         raise InvalidInput("the nominal set contains anomalies", field="nominal")
     cache = build_cache(embedder.embed([x.text for x in nominal]), config, embedder.name)
@@ -95,10 +105,7 @@ def evaluate(
     if calibration:
         cal_scores = score_all(cache, embedder, [x.text for x in calibration], config.k)
         cal_labels = np.array([x.is_anomaly for x in calibration])
-    cal = calibrate(cache, config, cal_scores, cal_labels)
-    scores = score_all(cache, embedder, [x.text for x in test], config.k)
-    labels = np.array([x.is_anomaly for x in test])
-    return report(cal, scores, labels, config, embedder.name, len(nominal), len(calibration))
+    return cache, calibrate(cache, config, cal_scores, cal_labels)
 
 
 def score_all(cache: Cache, embedder: Embedder, texts: Sequence[str], k: int) -> np.ndarray:

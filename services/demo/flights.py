@@ -31,8 +31,9 @@ from services.bench.sim import count_violations
 from services.control.client import ControlClient
 from services.control.scenario import Scenario, load_scenario
 from services.embedding.client import EmbeddingClient
+from services.recording.record import Background, Totals
 from services.scenes.hardware import SCENARIOS, DemoScenario, build_scene_cache, observation_text
-from services.stack.acl import robot_user
+from services.stack.acl import MONITOR, robot_user
 from services.stack.up import (
     DETECTOR_CACHE,
     FAKE_LLM_LATENCY_S,
@@ -77,7 +78,7 @@ def run_stack_demo(options: StackOptions, environ: Mapping[str, str], out: Path,
         if dashboard:
             _say(f"dashboard: {dashboard}  (watch the flights live)")
         result, flights = fly_scenarios(plan, scenario=scenario, model=model,
-                                        robot=plan.robot)
+                                        robot=plan.robot, record_dir=out / "recordings")
         result.update(scene=scenario.name, rate_hz=1.0 / scenario.dt,
                       llm=(f"the fake LLM, {FAKE_LLM_LATENCY_S:g} s per answer" if plan.fake_llm
                            else "the configured LLM backend"),
@@ -125,20 +126,38 @@ def demo_scenario(name: str) -> DemoScenario:
 
 def fly_scenarios(plan: StackPlan, names: Sequence[str] | None = None, *,
                   scenario: Scenario | None = None, model: str | None = None,
-                  robot: str | None = None) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+                  robot: str | None = None, record_dir: Path | None = None
+                  ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Build and calibrate the cache on the running stack of ``plan``, then fly the named
     demo scenarios (all of :data:`SCENARIOS` by default) in turn, as ``aesop demo`` does.
 
     ``scenario`` defaults to the scene the stack's services were given, ``robot`` to the
-    one they serve. Returns the result (``ok``, one row per scenario, the detector's
-    calibration) and each flight's states.
+    one they serve. With ``record_dir``, each flight's topics are recorded there as
+    ``<scenario>.mcap`` (by the read-only ``monitor`` user). Returns the result (``ok``,
+    one row per scenario, the detector's calibration) and each flight's states.
     """
     if scenario is None:
         scenario = load_scenario(plan.scenario)
     demos = SCENARIOS if names is None else tuple(demo_scenario(n) for n in names)
-    settings = plan.bus_settings(robot_user(plan.robot), robot=robot or plan.robot)
+    robot = robot or plan.robot
+    settings = plan.bus_settings(robot_user(plan.robot), robot=robot)
+    recorders = None if record_dir is None else Recorders(
+        plan.bus_settings(MONITOR, robot=robot), record_dir, robot)
     return asyncio.run(_demo(plan.url("embedding"), plan.url("control"), plan.token, settings,
-                             scenario, model, demos))
+                             scenario, model, demos, recorders))
+
+
+@dataclass(frozen=True)
+class Recorders:
+    """Where and as whom each flight is recorded."""
+
+    settings: BusSettings
+    folder: Path
+    robot: str
+
+    def of(self, demo: DemoScenario) -> Background:
+        self.folder.mkdir(parents=True, exist_ok=True)
+        return Background(self.settings, self.folder / f"{demo.name}.mcap", robot=self.robot)
 
 
 @dataclass
@@ -159,7 +178,7 @@ class Recorder:
 
 async def _demo(embedding_url: str | None, control_url: str | None, token: str,
                 settings: BusSettings, scenario: Scenario, model: str | None,
-                demos: Sequence[DemoScenario] = SCENARIOS
+                demos: Sequence[DemoScenario] = SCENARIOS, recorders: Recorders | None = None
                 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     assert embedding_url and control_url
     async with EmbeddingClient(embedding_url, token=token, timeout_s=60) as client:
@@ -188,7 +207,8 @@ async def _demo(embedding_url: str | None, control_url: str | None, token: str,
             await _first_verdict(verdicts)
             async with ControlClient(control_url, token=token, timeout_s=60) as control:
                 for demo in demos:
-                    row, states = await fly(control, camera, verdicts, rec, demo, scenario)
+                    row, states = await fly(control, camera, verdicts, rec, demo, scenario,
+                                            None if recorders is None else recorders.of(demo))
                     rows.append(row)
                     flights[demo.name] = states
                     _say(f"  {demo.name}: {row['outcome']}")
@@ -230,10 +250,12 @@ class Camera:
 
 
 async def fly(control: ControlClient, camera: Camera, verdicts: Subscription[AnomalyVerdict],
-              rec: Recorder, demo: DemoScenario, scenario: Scenario
-              ) -> tuple[dict[str, Any], np.ndarray]:
+              rec: Recorder, demo: DemoScenario, scenario: Scenario,
+              recorder: Background | None = None) -> tuple[dict[str, Any], np.ndarray]:
     camera.scene, camera.flying = demo, False
     await _calm(camera, verdicts)
+    if recorder is not None:
+        await asyncio.to_thread(recorder.start)
     rec.recording = False
     rec.states, rec.requests, rec.decisions, rec.events = [], [], [], []
     rec.detector_alarms = 0
@@ -249,7 +271,20 @@ async def fly(control: ControlClient, camera: Camera, verdicts: Subscription[Ano
         await asyncio.sleep(0.05)
     camera.flying = False
     rec.recording = False
-    return summarize(rec, demo, scenario, time.monotonic() - wall)
+    row, states = summarize(rec, demo, scenario, time.monotonic() - wall)
+    if recorder is not None:
+        row["recording"] = recording_row(await asyncio.to_thread(recorder.stop), recorder.out)
+    return row, states
+
+
+def recording_row(totals: Totals, path: Path) -> dict[str, Any]:
+    """What a flight's recording holds, and what recording it cost (per second)."""
+    seconds = max(totals.seconds, 1e-9)
+    return {"file": f"{path.parent.name}/{path.name}", "messages": totals.messages,
+            "bytes": totals.bytes, "file_bytes": path.stat().st_size,
+            "seconds": round(totals.seconds, 2),
+            "messages_per_s": round(totals.messages / seconds, 1),
+            "bytes_per_s": round(totals.bytes / seconds)}
 
 
 def add_time_lost(rows: list[dict[str, Any]]) -> None:

@@ -184,6 +184,26 @@ def plot_flights(flights: dict[str, np.ndarray], scenario: Scenario, path: Path)
     plt.close(fig)
 
 
+def recordings_section(rows: Sequence[dict[str, Any]]) -> str:
+    """Links to each flight's MCAP file, with what recording it cost."""
+    items = []
+    for row in rows:
+        rec = row.get("recording")
+        if rec:
+            link = html.escape(rec["file"], quote=True)
+            items.append(
+                f'<li><a href="{link}">{html.escape(rec["file"])}</a>: {rec["messages"]} '
+                f'messages, {rec["file_bytes"] / 1e3:.0f} kB on disk, '
+                f'{rec["messages_per_s"]:g} messages/s, {rec["bytes_per_s"] / 1e3:.1f} kB/s '
+                "of JSON</li>")
+    if not items:
+        return ""
+    return ("<h2>Recordings</h2><p>Each flight's Zenoh topics as MCAP (Foxglove opens them; "
+            "<code>aesop replay FILE</code> flies them again into a dashboard, "
+            "<code>aesop detector eval --recording FILE</code> re-scores them).</p><ul>"
+            + "".join(items) + "</ul>")
+
+
 def write_report(out: Path, result: dict[str, Any], flights: dict[str, np.ndarray],
                  scenario: Scenario) -> Path:
     """``out/index.html`` (summary, detector, PNG of the flights) and ``out/result.json``."""
@@ -207,6 +227,7 @@ processes over Zenoh (vector cache, reasoner with {html.escape(result['llm'])}, 
 <table><tr>{head}</tr>{body}</table>
 <p>{'All scenarios ended as expected.' if result['ok'] else 'SOME SCENARIOS FAILED.'}</p>
 <h2>Flights</h2><img src="flights.png" alt="flights, top and side view" width="100%">
+{recordings_section(result["scenarios"])}
 <h2>Fast anomaly detector</h2><pre>{detector}</pre>
 </body></html>
 """

@@ -3,7 +3,7 @@ query a cache over HTTP (the demo, ``aesop bench bus``, the tests)."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, Literal
 
 from shared.client import JobClient, Progress
@@ -43,7 +43,14 @@ class EmbeddingClient(JobClient):
         """Add nominal experiences (durable when this returns). ``background`` (or a
         ``progress`` callback, given each poll of the job) lets the service work as a job
         polled every ``poll_s``, so that no single request waits for a long build."""
-        body = {"items": [{"text": t} for t in texts]}
+        return await self.add_items(name, [{"text": t} for t in texts], background=background,
+                                    progress=progress, poll_s=poll_s)
+
+    async def add_items(self, name: str, items: Sequence[Mapping[str, Any]], *,
+                        background: bool = False, progress: Progress | None = None,
+                        poll_s: float = 0.5) -> Added:
+        """:meth:`add_texts` with each item's ``id`` and ``metadata`` too."""
+        body = {"items": list(items)}
         if not background and progress is None:
             return await self.request("POST", f"/v1/caches/{name}/experiences", Added, json=body)
         accepted = await self.request("POST", f"/v1/caches/{name}/experiences", JobAccepted,

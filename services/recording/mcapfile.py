@@ -13,7 +13,7 @@ the file indexed.
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
@@ -49,6 +49,16 @@ MODELS: dict[str, type[Message]] = {
     "regions": Regions,
 }
 CHUNK_BYTES = 64 * 1024  # a SIGKILL loses at most this much of the newest messages
+
+
+def check_topics(wanted: Sequence[str] | None) -> list[str]:
+    """The topic names asked for (every one when None), or ValueError naming the ones
+    that are not in :data:`MODELS`."""
+    unknown = [t for t in wanted or () if t not in MODELS]
+    if unknown:
+        raise ValueError(f"unknown topic(s) {', '.join(unknown)}: choose from "
+                         f"{', '.join(MODELS)}")
+    return list(wanted or MODELS)
 
 
 def model_of(key: str) -> type[Message] | None:

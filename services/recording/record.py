@@ -23,7 +23,7 @@ from shared import topics
 from shared.bus import zenoh_config
 from shared.settings import BusSettings
 
-from .mcapfile import MODELS, FlightWriter
+from .mcapfile import FlightWriter, check_topics
 
 Say = Callable[[str], None]
 
@@ -39,18 +39,15 @@ class Totals:
 def key_exprs(robot: str | None, wanted: Sequence[str] | None) -> list[str]:
     """What to subscribe: every known topic of ``robot`` (``*``: any), or ``wanted``
     of them (names as in :data:`~.mcapfile.MODELS`)."""
-    unknown = [t for t in wanted or () if t not in MODELS]
-    if unknown:
-        raise ValueError(f"unknown topic(s) {', '.join(unknown)}: choose from "
-                         f"{', '.join(MODELS)}")
     who = robot or topics.ANY_ROBOT
-    return [f"{topics.PREFIX}/{who}/{name}" for name in (wanted or MODELS)]
+    return [f"{topics.PREFIX}/{who}/{name}" for name in check_topics(wanted)]
 
 
 def record(settings: BusSettings, out: Path, *, robot: str | None = None,
            wanted: Sequence[str] | None = None, stop: threading.Event,
-           say: Say, every_s: float = 1.0) -> Totals:
-    """Record until ``stop`` is set; the file is finished (indexed) on return."""
+           say: Say, every_s: float = 1.0, ready: threading.Event | None = None) -> Totals:
+    """Record until ``stop`` is set; the file is finished (indexed) on return. ``ready``
+    is set once the subscribers are declared."""
     exprs = key_exprs(robot, wanted)
     samples: queue.SimpleQueue[tuple[str, bytes, int]] = queue.SimpleQueue()
 
@@ -65,6 +62,8 @@ def record(settings: BusSettings, out: Path, *, robot: str | None = None,
     session = zenoh.open(zenoh_config(settings))
     subscribers = [session.declare_subscriber(expr, on_sample) for expr in exprs]
     try:
+        if ready is not None:
+            ready.set()
         say(f"recording {', '.join(exprs)} into {out}; Ctrl-C to stop")
         while not stop.is_set():
             try:
@@ -96,3 +95,44 @@ def _stamp_ns(payload: bytes) -> int | None:
     except (ValueError, AttributeError):
         return None
     return int(stamp * 1e9) if isinstance(stamp, int | float) and stamp >= 0 else None
+
+
+class Background:
+    """:func:`record` on a thread of its own (``aesop demo`` records each flight):
+    :meth:`start` returns once it listens, :meth:`stop` once the file is finished."""
+
+    def __init__(self, settings: BusSettings, out: Path, *, robot: str | None = None,
+                 wanted: Sequence[str] | None = None) -> None:
+        self.out = out
+        self._stop = threading.Event()
+        self._ready = threading.Event()
+        self._totals: Totals | None = None
+        self._error: BaseException | None = None
+
+        def run() -> None:
+            try:
+                self._totals = record(settings, out, robot=robot, wanted=wanted,
+                                      stop=self._stop, say=lambda _: None,
+                                      every_s=float("inf"), ready=self._ready)
+            except BaseException as exc:  # handed to the caller by start/stop
+                self._error = exc
+                self._ready.set()
+
+        self._thread = threading.Thread(target=run, name=f"record {out.name}", daemon=True)
+
+    def start(self, timeout_s: float = 30.0) -> None:
+        self._thread.start()
+        if not self._ready.wait(timeout_s):
+            raise TimeoutError(f"the recorder of {self.out} did not join Zenoh in "
+                               f"{timeout_s:g} s")
+        if self._error is not None:
+            raise self._error
+
+    def stop(self, timeout_s: float = 30.0) -> Totals:
+        self._stop.set()
+        self._thread.join(timeout_s)
+        if self._error is not None:
+            raise self._error
+        if self._totals is None:
+            raise TimeoutError(f"the recorder of {self.out} did not finish in {timeout_s:g} s")
+        return self._totals

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from services.recording.mcapfile import read_messages
+
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
 
@@ -37,4 +39,15 @@ def test_demo_flies_the_papers_hardware_scenarios(tmp_path: Path) -> None:
         assert rows[name]["decision_source"] == "llm"  # the fake LLM answered within K
     report = tmp_path / "report"
     assert (report / "flights.png").stat().st_size > 10_000
-    assert "<table>" in (report / "index.html").read_text()
+    page = (report / "index.html").read_text()
+    assert "<table>" in page
+    # every flight recorded, linked from the report, and its file holds the flight
+    for name, row in rows.items():
+        rec = row["recording"]
+        assert rec["file"] == f"recordings/{name}.mcap" and f'href="{rec["file"]}"' in page
+        got = list(read_messages(report / rec["file"]))
+        assert len(got) == rec["messages"] > 100 and rec["messages_per_s"] > 10
+        kinds = {r.key.split("/", 2)[2] for r in got}
+        assert {"observation", "anomaly", "state", "plan"} <= kinds, kinds
+        if name in decisions:
+            assert {"reasoner/request", "reasoner/decision"} <= kinds, kinds

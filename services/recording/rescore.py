@@ -1,0 +1,98 @@
+"""``aesop detector eval --recording``: a recorded flight's observations against a
+detector of today, beside the verdicts they got when they were recorded.
+
+Pure: :func:`compare` pairs each observation with its recorded verdict (by robot and
+seq) and its new score; the caller scores (an in-memory cache built from a nominal
+set, or a running cache over REST). A scene seen many times is scored once.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from shared.messages import AnomalyVerdict
+
+from .recorded import RecordedObservation
+
+
+@dataclass(frozen=True)
+class NewScore:
+    score: float
+    is_anomaly: bool | None  # None: the cache has no threshold
+
+
+@dataclass(frozen=True)
+class Rescored:
+    robot: str
+    seq: int
+    t_s: float  # since the first observation compared
+    text: str
+    old: AnomalyVerdict | None  # what the detector said when it was recorded
+    new: NewScore
+
+    @property
+    def changed(self) -> bool:
+        return (self.old is not None and self.new.is_anomaly is not None
+                and self.old.is_anomaly != self.new.is_anomaly)
+
+    def row(self) -> dict[str, Any]:
+        old = self.old
+        return {"robot": self.robot, "seq": self.seq, "t_s": round(self.t_s, 3),
+                "text": self.text,
+                "old": None if old is None else {
+                    "score": old.score, "threshold": old.threshold,
+                    "is_anomaly": old.is_anomaly, "cache": old.cache,
+                    "cache_version": old.cache_version, "model": old.model},
+                "new": {"score": self.new.score, "is_anomaly": self.new.is_anomaly},
+                "changed": self.changed}
+
+
+def distinct_texts(recorded: Sequence[RecordedObservation]) -> list[str]:
+    """Each text once, in the order first seen: what to score."""
+    return list(dict.fromkeys(r.observation.text for r in recorded))
+
+
+def compare(recorded: Sequence[RecordedObservation],
+            old: Mapping[tuple[str, int], AnomalyVerdict],
+            new: Mapping[str, NewScore]) -> list[Rescored]:
+    """One row per observation; ``new`` maps each distinct text to its new score."""
+    first = recorded[0].log_time_ns if recorded else 0
+    return [Rescored(r.observation.robot, r.observation.seq, (r.log_time_ns - first) / 1e9,
+                     r.observation.text, old.get((r.observation.robot, r.observation.seq)),
+                     new[r.observation.text]) for r in recorded]
+
+
+def summary(rows: Sequence[Rescored], threshold: float | None) -> dict[str, Any]:
+    with_old = [r for r in rows if r.old is not None]
+    return {
+        "observations": len(rows),
+        "with_recorded_verdict": len(with_old),
+        "threshold": threshold,
+        "anomalies_recorded": sum(r.old.is_anomaly for r in with_old if r.old is not None),
+        "anomalies_now": sum(bool(r.new.is_anomaly) for r in rows),
+        "changed": sum(r.changed for r in rows),
+        "now_anomaly": sum(r.changed and bool(r.new.is_anomaly) for r in rows),
+        "now_nominal": sum(r.changed and not r.new.is_anomaly for r in rows),
+    }
+
+
+def table(rows: Sequence[Rescored], *, only_changed: bool = False, width: int = 48) -> str:
+    """One line per observation: when, the recorded and the new verdict, the scene;
+    a ``*`` where they differ."""
+    lines = [f"  {'t (s)':>8} {'seq':>6}  {'recorded':<18} {'now':<18} scene"]
+    for r in rows:
+        if only_changed and not r.changed:
+            continue
+        text = " / ".join(r.text.splitlines())  # one line per detection: one row here
+        text = text if len(text) <= width else text[:width - 1] + "…"
+        lines.append(f"{'*' if r.changed else ' '} {r.t_s:8.2f} {r.seq:>6}  "
+                     f"{_verdict(r.old.score, r.old.is_anomaly) if r.old else '—':<18} "
+                     f"{_verdict(r.new.score, r.new.is_anomaly):<18} {text}")
+    return "\n".join(lines)
+
+
+def _verdict(score: float, is_anomaly: bool | None) -> str:
+    word = "no tau" if is_anomaly is None else "ANOMALY" if is_anomaly else "nominal"
+    return f"{word} {score:.4f}"

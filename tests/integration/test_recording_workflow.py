@@ -1,0 +1,174 @@
+"""The paper's workflow from recordings, as a user runs it (issue 13): a recorded nominal
+flight imported into a cache of a real ``aesop serve embedding`` (real model), the
+cache calibrated, and a recorded incident re-scored against it, over REST and offline."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from services.recording.importer import scene_id
+from services.recording.mcapfile import FlightWriter
+from shared.messages import AnomalyVerdict, Detection, Observation
+from shared.process import ServiceProcess, free_port
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
+
+TOKEN = "recording-workflow-token-0123"
+T0 = 1_763_000_000_000_000_000
+OBJECTS = ["a cardboard package", "a padded envelope", "a plastic tote", "a shrink-wrapped box",
+           "a barcode label", "a small parcel", "a shipping crate", "a sealed carton"]
+PLACES = ["on the conveyor belt", "next to the storage shelf", "on a pallet"]
+NOMINAL = [f"{o} {p}" for o in OBJECTS for p in PLACES]
+INCIDENT = "a smoking lithium battery on the conveyor belt"
+
+
+def observation(seq: int, text: str) -> Observation:
+    label, where = text.split(" on ", 1) if " on " in text else (text, None)
+    return Observation(seq=seq, text=text, task="sort the parcels",
+                       detections=(Detection(label=label, where=where and f"on {where}"),))
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """20 s of nominal flight (each scene seen ten times, 10 Hz), then an incident the
+    detector of the day called nominal (its recorded verdict)."""
+    path = tmp_path_factory.mktemp("rec") / "flight.mcap"
+    writer = FlightWriter(path)
+    seq = 0
+    for text in NOMINAL * 10:
+        writer.add("aesop/robot0/observation", observation(seq, text).encode(),
+                   T0 + seq * 100_000_000)  # 10 Hz
+        seq += 1
+    for _ in range(5):
+        at = T0 + seq * 100_000_000
+        writer.add("aesop/robot0/observation", observation(seq, INCIDENT).encode(), at)
+        writer.add("aesop/robot0/anomaly", AnomalyVerdict(
+            seq=seq, score=0.2, threshold=0.5, is_anomaly=False, k=1, model="old",
+            cache="nominal", cache_version=1, latency_ms=5.0).encode(), at + 1000)
+        seq += 1
+    writer.close()
+    return path
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceProcess]:
+    data = tmp_path_factory.mktemp("embedding")
+    port = free_port()
+    with ServiceProcess(["serve", "embedding", "--port", str(port), "--data-dir", str(data)],
+                        port=port, log_path=data / "server.log",
+                        env={"AESOP_ADMIN_TOKEN": TOKEN,
+                             "AESOP_EMBEDDING_ZENOH_WORKER": "false"}) as proc:
+        yield proc
+
+
+def aesop(*args: str, token: str | None = TOKEN) -> subprocess.CompletedProcess[str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("AESOP_")}
+    if token:
+        env["AESOP_ADMIN_TOKEN"] = token
+    return subprocess.run([sys.executable, "-m", "services.cli", *args], capture_output=True,
+                          text=True, timeout=240, stdin=subprocess.DEVNULL, env=env)
+
+
+def test_import_calibrate_and_rescore_over_rest(flight: Path, service: ServiceProcess) -> None:
+    # the nominal part only: the incident starts at 24 s
+    r = aesop("cache", "import", "--recording", str(flight), "--cache", "warehouse",
+              "--until", "23.9", "--url", service.url, "--json")
+    assert r.returncode == 0, r.stderr
+    got = json.loads(r.stdout)
+    assert got == {"cache": "warehouse", "observations": 240, "scenes": 24,
+                   "already_in_cache": 0, "added": 24, "size": 24, "version": got["version"]}
+    assert "240 observations, 24 distinct scenes" in r.stderr
+    again = aesop("cache", "import", "--recording", str(flight), "--cache", "warehouse",
+                  "--until", "23.9", "--url", service.url, "--json")
+    assert json.loads(again.stdout)["added"] == 0  # the same scenes: nothing twice
+    assert json.loads(again.stdout)["already_in_cache"] == 24
+
+    cal = aesop("cache", "calibrate", "--cache", "warehouse", "--url", service.url, "--json")
+    assert cal.returncode == 0, cal.stderr
+    assert json.loads(cal.stdout)["n"] == 24
+
+    r = aesop("detector", "eval", "--recording", str(flight), "--cache", "warehouse",
+              "--url", service.url, "--json")
+    assert r.returncode == 0, r.stderr
+    result = json.loads(r.stdout)
+    assert result["observations"] == 245 and result["with_recorded_verdict"] == 5
+    # today's cache flags the battery the recorded detector let through
+    assert result["changed"] == result["now_anomaly"] == 5 == result["anomalies_now"]
+    assert result["threshold"] == json.loads(cal.stdout)["threshold"]
+    changed = [row for row in result["rows"] if row["changed"]]
+    assert {row["text"] for row in changed} == {INCIDENT}
+    assert changed[0]["old"]["is_anomaly"] is False and changed[0]["new"]["is_anomaly"] is True
+
+    table = aesop("detector", "eval", "--recording", str(flight), "--cache", "warehouse",
+                  "--url", service.url, "--changed-only")
+    assert table.returncode == 0, table.stderr
+    lines = [line for line in table.stdout.splitlines() if line.startswith("*")]
+    assert len(lines) == 5 and all("ANOMALY" in line and "battery" in line for line in lines)
+
+
+def test_an_experience_keeps_its_detections_and_origin(flight: Path,
+                                                       service: ServiceProcess) -> None:
+    r = aesop("cache", "import", "--recording", str(flight), "--cache", "origin",
+              "--since", "0", "--until", "0.05", "--url", service.url, "--json")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["added"] == 1
+    listed = httpx.get(f"{service.url}/v1/caches/origin",
+                       headers={"Authorization": f"Bearer {TOKEN}"}).json()
+    assert listed["size"] == 1
+    ident = scene_id(observation(0, NOMINAL[0]))
+    exp = httpx.get(f"{service.url}/v1/caches/origin/experiences/{ident}",
+                    headers={"Authorization": f"Bearer {TOKEN}"}).json()
+    assert exp["text"] == NOMINAL[0]
+    assert exp["metadata"]["detections"] == [{"label": "a cardboard package",
+                                              "where": "on the conveyor belt"}]
+    assert exp["metadata"]["source"] == "flight.mcap" and exp["metadata"]["seen"] == 1
+
+
+def test_rescore_offline_against_a_nominal_set(flight: Path, tmp_path: Path) -> None:
+    nominal = tmp_path / "nominal.jsonl"
+    nominal.write_text("".join(json.dumps({"text": t}) + "\n" for t in NOMINAL))
+    r = aesop("detector", "eval", "--recording", str(flight), "--nominal", str(nominal),
+              "--json")
+    assert r.returncode == 0, r.stderr
+    result = json.loads(r.stdout)
+    assert result["observations"] == 245 and result["now_anomaly"] == 5
+    assert result["against"].startswith(str(nominal))
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["detector", "eval", "--recording", "{bad}", "--cache", "c"], "not an MCAP file"),
+    (["detector", "eval", "--recording", "{flight}"], "either --nominal"),
+    (["detector", "eval", "--recording", "{flight}", "--cache", "c", "--nominal", "{flight}"],
+     "either --nominal"),
+    (["detector", "eval", "--test", "{flight}", "--nominal", "{flight}", "--cache", "c"],
+     "go with --recording"),
+    (["cache", "import", "--recording", "{flight}", "--cache", "c", "--since", "9",
+      "--until", "2"], "before --since"),
+    (["cache", "import", "--recording", "{flight}", "--cache", "c", "--since", "soon"],
+     "ISO 8601"),
+    (["cache", "import", "--recording", "{flight}", "--cache", "c", "--url",
+      "http://127.0.0.1:9"], "no embedding service at http://127.0.0.1:9"),
+    (["replay", "{bad}"], "not an MCAP file"),
+    (["replay", "{flight}", "--speed", "0"], "--speed"),
+])
+def test_user_errors_are_named_without_a_traceback(flight: Path, tmp_path: Path,
+                                                   args: list[str], message: str) -> None:
+    bad = tmp_path / "bad.mcap"
+    bad.write_text("not a recording")
+    r = aesop(*(a.format(bad=bad, flight=flight) for a in args))
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert message in r.stderr and "Traceback" not in r.stderr
+
+
+def test_a_wrong_token_is_the_services_401_named(flight: Path, service: ServiceProcess) -> None:
+    r = aesop("cache", "import", "--recording", str(flight), "--cache", "c", "--url",
+              service.url, token="wrong")
+    assert r.returncode == 2 and "401" in r.stderr and "Traceback" not in r.stderr

@@ -1,0 +1,116 @@
+"""``aesop replay`` as a user runs it, into a real Zenoh peer (issue 13): the recorded
+payloads on their keys in order, never ahead of the recorded timing, only the topics
+asked for, and over again with ``--loop`` until Ctrl-C."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from services.recording.mcapfile import FlightWriter, read_messages
+from shared.bus import zenoh_config
+from shared.messages import ControlState, Observation
+from shared.settings import BusSettings
+
+pytestmark = pytest.mark.timeout(120)
+
+T0 = 1_763_000_000_000_000_000
+N = 20
+PERIOD_NS = 100_000_000  # 10 Hz: the recording spans 1.9 s
+
+
+@pytest.fixture
+def flight(tmp_path: Path) -> Path:
+    path = tmp_path / "flight.mcap"
+    writer = FlightWriter(path)
+    for seq in range(N):
+        at = T0 + seq * PERIOD_NS
+        writer.add("aesop/robot0/observation",
+                   Observation(seq=seq, text=f"a red box, look {seq}").encode(), at)
+        writer.add("aesop/robot0/state", ControlState(t=seq * 0.1, x=(0.0,) * 12,
+                                                      u=(9.81, 0, 0, 0), mode="nominal"
+                                                      ).encode(), at + 1)
+    writer.close()
+    return path
+
+
+class Heard:
+    """Everything that arrives on ``aesop/**`` at a listening peer, with arrival times."""
+
+    def __init__(self, endpoint: str) -> None:
+        self.got: list[tuple[str, bytes, float]] = []
+        self._lock = threading.Lock()
+        self.session = zenoh.open(zenoh_config(BusSettings(zenoh_listen=[endpoint])))
+        self.sub = self.session.declare_subscriber("aesop/**", self._on)
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        with self._lock:
+            self.got.append((str(sample.key_expr), sample.payload.to_bytes(), time.monotonic()))
+
+    def count(self) -> int:
+        with self._lock:
+            return len(self.got)
+
+    def close(self) -> None:
+        self.sub.undeclare()
+        self.session.close()
+
+
+@pytest.fixture
+def heard(endpoint: str) -> Iterator[Heard]:
+    h = Heard(endpoint)
+    yield h
+    h.close()
+
+
+def replay(*args: str) -> subprocess.Popen[str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("AESOP_")}
+    return subprocess.Popen([sys.executable, "-m", "services.cli", "replay", *args], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            stdin=subprocess.DEVNULL)
+
+
+def test_replay_publishes_the_recording_in_order_at_its_pace(flight: Path, endpoint: str,
+                                                             heard: Heard) -> None:
+    proc = replay(str(flight), "--connect", endpoint, "--speed", "2")
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    recorded = [(r.key, r.data) for r in read_messages(flight)]
+    assert [(key, data) for key, data, _ in heard.got] == recorded  # payloads untouched
+    assert f"replayed {2 * N} messages" in err
+    # never ahead of the recording's own clock, scaled: 1.9 s at 2x
+    span = heard.got[-1][2] - heard.got[0][2]
+    assert span >= (N - 1) * PERIOD_NS / 1e9 / 2 - 0.1, span  # not all at once
+
+
+def test_replay_of_some_topics_in_a_loop_until_ctrl_c(flight: Path, endpoint: str,
+                                                      heard: Heard) -> None:
+    proc = replay(str(flight), "--connect", endpoint, "--speed", "20", "--topics",
+                  "observation", "--loop")
+    deadline = time.monotonic() + 60
+    while heard.count() < 2 * N + 1:  # the second pass has begun
+        assert proc.poll() is None, proc.communicate()[1]
+        assert time.monotonic() < deadline, heard.count()
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    keys = {key for key, _, _ in heard.got}
+    assert keys == {"aesop/robot0/observation"}
+    seqs = [Observation.decode(data).seq for _, data, _ in heard.got]
+    assert seqs[:2 * N] == list(range(N)) * 2
+
+
+def test_an_unknown_topic_is_named(flight: Path) -> None:
+    proc = replay(str(flight), "--topics", "nonsense")
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2 and "nonsense" in err and "Traceback" not in err
