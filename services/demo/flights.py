@@ -284,7 +284,8 @@ def recording_row(totals: Totals, path: Path) -> dict[str, Any]:
             "bytes": totals.bytes, "file_bytes": path.stat().st_size,
             "seconds": round(totals.seconds, 2),
             "messages_per_s": round(totals.messages / seconds, 1),
-            "bytes_per_s": round(totals.bytes / seconds)}
+            "bytes_per_s": round(totals.bytes / seconds),
+            "cpu_percent": round(100 * totals.cpu_s / seconds, 1)}
 
 
 def add_time_lost(rows: list[dict[str, Any]]) -> None:

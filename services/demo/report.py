@@ -195,7 +195,7 @@ def recordings_section(rows: Sequence[dict[str, Any]]) -> str:
                 f'<li><a href="{link}">{html.escape(rec["file"])}</a>: {rec["messages"]} '
                 f'messages, {rec["file_bytes"] / 1e3:.0f} kB on disk, '
                 f'{rec["messages_per_s"]:g} messages/s, {rec["bytes_per_s"] / 1e3:.1f} kB/s '
-                "of JSON</li>")
+                f'of JSON, {rec.get("cpu_percent", 0):g}% of a core to write</li>')
     if not items:
         return ""
     return ("<h2>Recordings</h2><p>Each flight's Zenoh topics as MCAP (Foxglove opens them; "

@@ -33,6 +33,7 @@ class Totals:
     messages: int
     bytes: int
     seconds: float
+    cpu_s: float  # the writing thread's CPU time (decoding the stamp, compressing, writing)
     skipped: int  # samples on keys of no known type
 
 
@@ -58,6 +59,7 @@ def record(settings: BusSettings, out: Path, *, robot: str | None = None,
     writer = FlightWriter(out)
     skipped = 0
     start = time.monotonic()
+    cpu_start = time.thread_time()
     last_said = start
     session = zenoh.open(zenoh_config(settings))
     subscribers = [session.declare_subscriber(expr, on_sample) for expr in exprs]
@@ -85,7 +87,8 @@ def record(settings: BusSettings, out: Path, *, robot: str | None = None,
             key, payload, received_ns = samples.get_nowait()
             writer.add(key, payload, received_ns, _stamp_ns(payload))
         writer.close()
-    return Totals(writer.messages, writer.bytes, time.monotonic() - start, skipped)
+    return Totals(writer.messages, writer.bytes, time.monotonic() - start,
+                  time.thread_time() - cpu_start, skipped)
 
 
 def _stamp_ns(payload: bytes) -> int | None:
