@@ -8,7 +8,15 @@ STAMP  := $(VENV)/.installed-$(shell cksum pyproject.toml | cut -d' ' -f1)
 # the browser tests drive Debian's chromium; apt-get needs root (sudo when not root)
 SUDO   := $(if $(filter 0,$(shell id -u)),,sudo)
 
-.PHONY: setup browser test demo bench lint clean
+# a real OpenAI-compatible server that is not ours, for tests/integration/test_llama_server.py:
+# llama-cpp-python's server in a venv of its own; PyPI ships it as source, so its wheel is
+# built once (about 6 minutes on 2 cores) and kept in .cache/wheels
+LLAMA_VERSION := 0.3.36
+LLAMA_VENV    ?= .venv-llama
+WHEELS        := .cache/wheels
+LLAMA_STAMP   := $(LLAMA_VENV)/.installed-$(LLAMA_VERSION)
+
+.PHONY: setup browser llama test demo bench lint clean
 
 setup: $(STAMP)
 
@@ -24,7 +32,18 @@ browser:
 	command -v chromium >/dev/null || { $(SUDO) apt-get update && \
 		$(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y chromium; }
 
-test: $(STAMP) browser
+llama: $(LLAMA_STAMP)
+
+$(LLAMA_STAMP):
+	test -x $(LLAMA_VENV)/bin/python || $(PYTHON) -m venv $(LLAMA_VENV)
+	ls $(WHEELS)/llama_cpp_python-$(LLAMA_VERSION)-*.whl >/dev/null 2>&1 || \
+		$(LLAMA_VENV)/bin/python -m pip wheel --no-deps -w $(WHEELS) \
+		'llama-cpp-python==$(LLAMA_VERSION)'
+	$(LLAMA_VENV)/bin/python -m pip install --find-links $(WHEELS) \
+		'llama-cpp-python[server]==$(LLAMA_VERSION)'
+	touch $@
+
+test: $(STAMP) browser llama
 	$(VENV)/bin/ruff check shared services tests
 	$(VENV)/bin/mypy
 	$(PY) -m pytest -q
@@ -40,4 +59,4 @@ lint: $(STAMP)
 	$(VENV)/bin/mypy
 
 clean:
-	rm -rf $(VENV) .pytest_cache build *.egg-info
+	rm -rf $(VENV) $(LLAMA_VENV) .pytest_cache build *.egg-info

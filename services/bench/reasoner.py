@@ -102,13 +102,15 @@ class TimedBackend:
         self.model = inner.model
 
     async def complete(self, messages: list[dict[str, str]], *,
-                       stop_when: StopWhen | None = None) -> Completion:
+                       stop_when: StopWhen | None = None,
+                       answers: Sequence[int] | None = None) -> Completion:
         call = Call(self.name, time.monotonic())
         calls = _CALLS.get()
         if calls is not None:
             calls.append(call)
         try:
-            completion = await self._inner.complete(messages, stop_when=stop_when)
+            completion = await self._inner.complete(messages, stop_when=stop_when,
+                                                    answers=answers)
             call.ok = True
             return completion
         finally:

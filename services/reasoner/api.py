@@ -4,7 +4,7 @@ worker, background calibrations); the routes are in :mod:`.routes`."""
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import asynccontextmanager
 from typing import Any
 
@@ -29,8 +29,9 @@ class MeteredBackend:
         self.name, self.model = inner.name, inner.model
 
     async def complete(self, messages: list[dict[str, str]], *,
-                       stop_when: Callable[[str], bool] | None = None) -> Completion:
-        completion = await self.inner.complete(messages, stop_when=stop_when)
+                       stop_when: Callable[[str], bool] | None = None,
+                       answers: Sequence[int] | None = None) -> Completion:
+        completion = await self.inner.complete(messages, stop_when=stop_when, answers=answers)
         self.on_completion(completion)
         return completion
 

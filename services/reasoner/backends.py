@@ -13,7 +13,12 @@ cloud OpenAI, Ollama (``/v1``), vLLM, llama.cpp's server and the fake LLM
   ``stop_when(text_so_far)`` is asked; when it says True the stream is closed at once
   and the :class:`Completion` has ``stopped_early=True``.
 - **JSON mode** (``json_schema=True``): the request carries a ``response_format``
-  json_schema for ``{"reasoning": str, "answer": int}`` and the reply is turned back
+  with the schema of ``{"reasoning": str, "answer": int}`` (the answer one of the
+  offered options, the reasoning at most ``max_reasoning_chars`` where set, so that a
+  small local model's grammar closes the string) in the shape the server takes
+  (``response_format``: OpenAI's ``json_schema``, which vLLM, Ollama and llama.cpp's
+  own server take too, or ``json_object`` with a ``schema``, which llama-cpp-python's
+  server takes), and the reply is turned back
   into ``"<reasoning>\\nFINAL ANSWER: <answer>"`` so the one strict parser
   (:mod:`services.reasoner.parsing`) applies to both modes. A reasoning line that is
   exactly ``FINAL ANSWER: <answer>`` (same number) is dropped as a duplicate; any other
@@ -37,7 +42,7 @@ from __future__ import annotations
 
 import json
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol
 from urllib.parse import urlsplit, urlunsplit
@@ -46,18 +51,32 @@ import httpx
 
 ErrorKind = Literal["http", "timeout", "protocol", "connect"]
 TokenField = Literal["max_tokens", "max_completion_tokens"]
+ResponseFormat = Literal["json_schema", "json_object"]
 StopWhen = Callable[[str], bool]
 
-ANSWER_SCHEMA: dict[str, Any] = {
-    "name": "aesop_decision",
-    "strict": True,
-    "schema": {
-        "type": "object",
-        "properties": {"reasoning": {"type": "string"}, "answer": {"type": "integer"}},
-        "required": ["reasoning", "answer"],
-        "additionalProperties": False,
-    },
-}
+
+
+def answer_schema(answers: Sequence[int] | None = None,
+                  max_reasoning_chars: int | None = None) -> dict[str, Any]:
+    """The JSON Schema of a JSON-mode reply: the answer one of ``answers`` (any integer
+    when None), the reasoning at most ``max_reasoning_chars`` long (unbounded when None)."""
+    reasoning: dict[str, Any] = {"type": "string"}
+    if max_reasoning_chars is not None:
+        reasoning["maxLength"] = max_reasoning_chars
+    answer: dict[str, Any] = {"type": "integer"}
+    if answers:
+        answer["enum"] = sorted(set(answers))
+    return {"type": "object", "properties": {"reasoning": reasoning, "answer": answer},
+            "required": ["reasoning", "answer"], "additionalProperties": False}
+
+
+def response_format(shape: ResponseFormat, schema: dict[str, Any]) -> dict[str, Any]:
+    """``response_format`` as a server of ``shape`` takes it."""
+    if shape == "json_object":
+        return {"type": "json_object", "schema": schema}
+    return {"type": "json_schema",
+            "json_schema": {"name": "aesop_decision", "strict": True, "schema": schema}}
+
 MAX_ERROR_BODY = 200  # characters of a server's error body kept in a BackendError
 
 
@@ -109,6 +128,8 @@ class BackendConfig:
     # which refuse max_tokens) wants max_completion_tokens; llama.cpp, vLLM, Ollama take
     # max_tokens
     token_field: TokenField = "max_tokens"
+    response_format: ResponseFormat = "json_schema"  # the shape of JSON mode's request
+    max_reasoning_chars: int | None = None  # JSON mode: the reasoning's maxLength
 
     def __post_init__(self) -> None:
         if not self.name or not self.model:
@@ -118,6 +139,8 @@ class BackendConfig:
         if self.max_tokens < 1 or not (self.temperature is None
                                        or 0.0 <= self.temperature <= 2.0):
             raise ValueError("max_tokens must be >= 1 and temperature in [0, 2] or None")
+        if self.max_reasoning_chars is not None and self.max_reasoning_chars < 1:
+            raise ValueError("max_reasoning_chars must be >= 1 or None")
 
     @property
     def public_url(self) -> str:
@@ -147,7 +170,8 @@ class ChatBackend(Protocol):
     model: str
 
     async def complete(
-        self, messages: list[dict[str, str]], *, stop_when: StopWhen | None = None
+        self, messages: list[dict[str, str]], *, stop_when: StopWhen | None = None,
+        answers: Sequence[int] | None = None,
     ) -> Completion: ...
 
     async def aclose(self) -> None: ...
@@ -173,12 +197,16 @@ class OpenAIChatBackend:
         return self.config.base_url.rstrip("/") + "/chat/completions"
 
     async def complete(
-        self, messages: list[dict[str, str]], *, stop_when: StopWhen | None = None
+        self, messages: list[dict[str, str]], *, stop_when: StopWhen | None = None,
+        answers: Sequence[int] | None = None,
     ) -> Completion:
+        """The model's reply to ``messages``; ``answers``: the option indices offered
+        (JSON mode asks for one of them)."""
+        payload = self._payload(messages, answers)
         try:
             if self.config.stream:
-                return await self._streamed(messages, stop_when)
-            return await self._plain(messages)
+                return await self._streamed(payload, stop_when)
+            return await self._plain(payload)
         except httpx.TimeoutException as exc:
             raise BackendError("timeout", f"{self.name}: {type(exc).__name__}") from None
         except httpx.ConnectError as exc:
@@ -192,7 +220,8 @@ class OpenAIChatBackend:
 
     # ------------------------------------------------------------------ internals
 
-    def _payload(self, messages: list[dict[str, str]]) -> dict[str, Any]:
+    def _payload(self, messages: list[dict[str, str]], answers: Sequence[int] | None
+                 ) -> dict[str, Any]:
         payload: dict[str, Any] = {
             "model": self.config.model, "messages": messages, "stream": self.config.stream,
             self.config.token_field: self.config.max_tokens,
@@ -202,7 +231,9 @@ class OpenAIChatBackend:
         if self.config.stream:  # the usage comes in a last chunk only when asked for
             payload["stream_options"] = {"include_usage": True}
         if self.config.json_schema:
-            payload["response_format"] = {"type": "json_schema", "json_schema": ANSWER_SCHEMA}
+            payload["response_format"] = response_format(
+                self.config.response_format,
+                answer_schema(answers, self.config.max_reasoning_chars))
         return payload
 
     def _headers(self) -> dict[str, str]:
@@ -210,9 +241,8 @@ class OpenAIChatBackend:
             return {"Authorization": f"Bearer {self.config.api_key}"}
         return {}
 
-    async def _plain(self, messages: list[dict[str, str]]) -> Completion:
-        response = await self._client.post(self.url, json=self._payload(messages),
-                                           headers=self._headers())
+    async def _plain(self, payload: dict[str, Any]) -> Completion:
+        response = await self._client.post(self.url, json=payload, headers=self._headers())
         self._check(response.status_code, response.text)
         try:
             body = response.json()
@@ -222,12 +252,12 @@ class OpenAIChatBackend:
         usage = body.get("usage") or {}
         return self._finish(str(text), usage, stopped_early=False)
 
-    async def _streamed(self, messages: list[dict[str, str]], stop_when: StopWhen | None
+    async def _streamed(self, payload: dict[str, Any], stop_when: StopWhen | None
                         ) -> Completion:
         check = None if self.config.json_schema else stop_when
         parts: list[str] = []
         usage: dict[str, Any] = {}
-        async with self._client.stream("POST", self.url, json=self._payload(messages),
+        async with self._client.stream("POST", self.url, json=payload,
                                        headers=self._headers()) as response:
             if response.status_code >= 400:
                 await response.aread()
@@ -277,6 +307,8 @@ class OpenAIChatBackend:
 
 def _hint(body: str) -> str:
     """The setting to change when a server refuses a parameter we sent."""
+    if "should be 'text' or 'json_object'" in body:  # llama-cpp-python, on json_schema
+        return " (set AESOP_REASONER_LLM_RESPONSE_FORMAT=json_object)"
     refused = re.search(r"unsupported (?:parameter|value): '(\w+)'", body, re.IGNORECASE)
     if refused is None:
         return ""
@@ -310,8 +342,8 @@ def json_to_text(content: str) -> str:
     Pure. Content that is not that JSON is returned unchanged, for the strict parser to
     reject. Reasoning lines that merely repeat ``FINAL ANSWER: <answer>`` are dropped.
     """
-    try:
-        data = json.loads(content)
+    try:  # not strict: a grammar-bound server may leave control characters in strings
+        data = json.loads(content, strict=False)
     except ValueError:
         return content
     if not isinstance(data, dict):

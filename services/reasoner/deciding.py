@@ -308,7 +308,7 @@ async def _attempt(backend: ChatBackend, messages: list[dict[str, str]], offered
         return parse_partial(text, offered) is not None
 
     try:
-        completion = await backend.complete(messages, stop_when=stop_when)
+        completion = await backend.complete(messages, stop_when=stop_when, answers=offered)
     except BackendError as exc:
         status = f" {exc.status}" if exc.status is not None else ""
         return Failure("backend_error", f"{backend.name}: {exc.kind}{status}")

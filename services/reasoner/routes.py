@@ -112,7 +112,8 @@ async def get_job(job_id: str, work: WorkDep) -> JobInfo:
 async def backends(settings: SettingsDep) -> Backends:
     return Backends(
         backends=[BackendInfo(name=c.name, base_url=c.public_url, model=c.model,
-                              stream=c.stream, json_schema=c.json_schema)
+                              stream=c.stream, json_schema=c.json_schema,
+                              response_format=c.response_format)
                   for c in settings.backends()],
         hedge_after_s=settings.hedge_after_s, domain=settings.domain,
         variant=settings.variant, fallback=settings.fallback)

@@ -45,6 +45,7 @@ class BackendInfo(BaseModel):
     model: str
     stream: bool
     json_schema: bool
+    response_format: str  # the shape of JSON mode's request: json_schema or json_object
 
 
 class Backends(BaseModel):

@@ -28,6 +28,12 @@ class ReasonerSettings(ServiceSettings):
         "AESOP_REASONER_LLM_API_KEY", "OPENAI_API_KEY"))
     llm_stream: bool = True
     llm_json_schema: bool = False  # ask for {"reasoning", "answer"} where servers support it
+    # the shape of that request: OpenAI's json_schema (vLLM, Ollama, llama.cpp's server),
+    # or json_object with a schema (llama-cpp-python's server)
+    llm_response_format: Literal["json_schema", "json_object"] = "json_schema"
+    # JSON mode: the reasoning's maxLength, so that a small local model's grammar closes
+    # the string before max_tokens cuts the JSON off (OpenAI's strict mode may refuse it)
+    llm_max_reasoning_chars: int | None = Field(default=None, ge=1)
     llm_max_tokens: int = Field(default=512, ge=1)
     # the name the limit is sent under; auto: max_completion_tokens for api.openai.com
     # (its reasoning models refuse max_tokens), max_tokens for every other server
@@ -82,12 +88,16 @@ class ReasonerSettings(ServiceSettings):
             name="primary", base_url=self.llm_base_url, model=self.llm_model, api_key=key,
             max_tokens=self.llm_max_tokens, temperature=self.temperature(self.llm_model),
             stream=self.llm_stream, json_schema=self.llm_json_schema,
-            token_field=self.token_field(self.llm_base_url))]
+            token_field=self.token_field(self.llm_base_url),
+            response_format=self.llm_response_format,
+            max_reasoning_chars=self.llm_max_reasoning_chars)]
         if self.hedge_model:
             base_url = self.hedge_base_url or self.llm_base_url
             configs.append(BackendConfig(
                 name="hedge", base_url=base_url, model=self.hedge_model, api_key=key,
                 max_tokens=self.llm_max_tokens, temperature=self.temperature(self.hedge_model),
                 stream=self.llm_stream, json_schema=self.llm_json_schema,
-                token_field=self.token_field(base_url)))
+                token_field=self.token_field(base_url),
+                response_format=self.llm_response_format,
+                max_reasoning_chars=self.llm_max_reasoning_chars))
         return configs

@@ -18,7 +18,7 @@ class Recording:
         self.calls = 0
 
     async def complete(self, messages: list[dict[str, str]], *,
-                       stop_when: Any = None) -> Completion:
+                       stop_when: Any = None, answers: Any = None) -> Completion:
         self.calls += 1
         return Completion(text="FINAL ANSWER: 1\n", prompt_tokens=None,
                           completion_tokens=None, stopped_early=False)
@@ -33,7 +33,7 @@ class Stalling:
     name = model = "stall"
 
     async def complete(self, messages: list[dict[str, str]], *,
-                       stop_when: Any = None) -> Completion:
+                       stop_when: Any = None, answers: Any = None) -> Completion:
         await asyncio.sleep(3600)
         raise AssertionError("not reached")
 

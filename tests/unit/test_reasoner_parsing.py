@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 
+from services.reasoner.backends import answer_schema, json_to_text, response_format
 from services.reasoner.parsing import (
     MAX_RATIONALE,
     Parsed,
@@ -164,3 +165,28 @@ def test_partial_streaming_exits_on_complete_line() -> None:
     assert all(r is None for r in results[:-1])
     assert results[-1] == Parsed(choice=2, rationale=COT.strip())
     assert parse_partial("**FINAL ANSWER: 1**\r\n", OFFERED) == Parsed(choice=1, rationale="")
+
+
+# --------------------------------------------------------------------------- JSON mode's request
+# (issue 13: real servers take response_format their own way; a small model's grammar
+# must be able to close the reasoning and can only pick an offered option)
+
+
+def test_the_answer_schema_offers_only_the_options_and_bounds_the_reasoning() -> None:
+    schema = answer_schema([2, 0, 1, 1], max_reasoning_chars=200)
+    assert schema["properties"]["answer"] == {"type": "integer", "enum": [0, 1, 2]}
+    assert schema["properties"]["reasoning"] == {"type": "string", "maxLength": 200}
+    assert schema["required"] == ["reasoning", "answer"]
+    assert answer_schema()["properties"] == {"reasoning": {"type": "string"},
+                                             "answer": {"type": "integer"}}
+
+
+def test_response_format_in_each_servers_shape() -> None:
+    schema = answer_schema([0, 1])
+    assert response_format("json_schema", schema) == {"type": "json_schema", "json_schema": {
+        "name": "aesop_decision", "strict": True, "schema": schema}}
+    assert response_format("json_object", schema) == {"type": "json_object", "schema": schema}
+
+
+def test_a_json_reply_with_a_raw_control_character_still_parses() -> None:
+    assert json_to_text('{"reasoning": "a\tb", "answer": 1}') == "a\tb\nFINAL ANSWER: 1"
