@@ -19,6 +19,8 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from services.commands import CliError, emit, not_joined
+
 
 def main(argv: list[str] | None = None) -> int:
     given = sys.argv[1:] if argv is None else argv
@@ -54,10 +56,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 DEFAULT_EMBEDDING_URL = "http://127.0.0.1:8001"  # aesop up's embedding service
-
-
-class CliError(Exception):
-    """A user error: printed without a traceback, exit status 2."""
 
 
 def warn_unknown_settings(environ: Mapping[str, str]) -> list[str]:
@@ -406,159 +404,28 @@ def serve_dashboard(overrides: dict[str, Any]) -> int:
     return 0
 
 
-def not_joined(exc: Exception) -> CliError:
-    """A Zenoh session that could not open, with what a router that checks users needs."""
-    return CliError(f"cannot join the Zenoh network ({exc}); a router that checks users "
-                    "needs AESOP_ZENOH_MODE=client, AESOP_ZENOH_USER and "
-                    "AESOP_ZENOH_PASSWORD(_FILE), e.g. the monitor user aesop up prints")
-
-
 def cmd_record(args: argparse.Namespace) -> int:
-    import signal
-    import threading
-    import time
+    from services.recording.cli import record_command
 
-    import zenoh
-
-    from services.recording.record import key_exprs, record
-    from shared.settings import BusSettings
-
-    try:
-        key_exprs(args.robot, args.topics)
-    except ValueError as exc:
-        raise CliError(f"--topics: {exc}") from None
-    overrides = {"zenoh_connect": args.connect} if args.connect else {}
-    settings = BusSettings(**overrides)
-    out = args.out or Path(f"aesop-{args.robot or 'all'}-"
-                           f"{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}.mcap")
-    if out.parent != Path() and not out.parent.is_dir():
-        raise CliError(f"--out: no directory {out.parent}")
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):  # also where SIGINT started ignored
-        signal.signal(sig, lambda *_: stop.set())
-    try:
-        totals = record(settings, out, robot=args.robot, wanted=args.topics, stop=stop,
-                        say=lambda line: print(line, file=sys.stderr, flush=True))
-    except zenoh.ZError as exc:
-        raise not_joined(exc) from None
-    rate = totals.messages / totals.seconds if totals.seconds > 0 else 0.0
-    print(f"recorded {totals.messages} messages ({totals.bytes / 1e3:.1f} kB, {rate:.1f} "
-          f"messages/s) in {totals.seconds:.1f} s into {out}", file=sys.stderr)
-    return 0
+    return record_command(args)
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    import signal
-    import threading
+    from services.recording.cli import replay_command
 
-    import zenoh
-
-    from services.recording.recorded import RecordingError, check_recording
-    from services.recording.replay import replay, topic_filter
-    from shared.settings import BusSettings
-
-    try:
-        topic_filter(args.topics)
-    except ValueError as exc:
-        raise CliError(f"--topics: {exc}") from None
-    if not args.speed > 0:
-        raise CliError("--speed must be > 0")
-    try:
-        check_recording(args.file)
-    except RecordingError as exc:
-        raise CliError(str(exc)) from None
-    overrides = {k: v for k, v in (("zenoh_connect", args.connect),
-                                   ("zenoh_listen", args.listen)) if v}
-    settings = BusSettings(**overrides)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    try:
-        done = replay(settings, args.file, speed=args.speed, wanted=args.topics,
-                      loop=args.loop, stop=stop,
-                      say=lambda line: print(line, file=sys.stderr, flush=True))
-    except zenoh.ZError as exc:
-        raise not_joined(exc) from None
-    print(f"replayed {done.messages} messages ({done.bytes / 1e3:.1f} kB) in "
-          f"{done.seconds:.1f} s", file=sys.stderr)
-    return 0
-
-
-def _admin_token() -> str | None:
-    return os.environ.get("AESOP_ADMIN_TOKEN") or None
-
-
-def _service_failure(exc: Exception, url: str) -> CliError:
-    """A service that answered with an error, or none that answered."""
-    import httpx
-
-    if isinstance(exc, httpx.TransportError):
-        return CliError(f"no embedding service at {url} ({exc.__class__.__name__}): is the "
-                        "stack up? (--url)")
-    return CliError(str(exc))
+    return replay_command(args)
 
 
 def cmd_cache_import(args: argparse.Namespace) -> int:
-    import asyncio
+    from services.recording.cli import cache_import_command
 
-    import httpx
-
-    from services.embedding.client import EmbeddingClient
-    from services.recording.importer import import_recording
-    from services.recording.recorded import RecordingError, check_recording
-    from shared.client import ServiceError
-
-    def say(line: str) -> None:
-        print(line, file=sys.stderr, flush=True)
-
-    def progress(job: Any) -> None:
-        if job.total:
-            say(f"  embedding {job.done}/{job.total}")
-
-    async def run() -> Any:
-        async with EmbeddingClient(args.url, token=_admin_token(), timeout_s=120) as client:
-            return await import_recording(client, args.cache, args.recording,
-                                          robot=args.robot, since=args.since,
-                                          until=args.until, model=args.model, k=args.k,
-                                          say=say, progress=progress)
-    try:
-        for path in args.recording:
-            check_recording(path)
-        done = asyncio.run(run())
-    except RecordingError as exc:
-        raise CliError(str(exc)) from None
-    except (ServiceError, httpx.TransportError) as exc:
-        raise _service_failure(exc, args.url) from None
-    result = {"cache": args.cache, "observations": done.observations, "scenes": done.scenes,
-              "already_in_cache": done.already, "added": done.added, "size": done.size,
-              "version": done.version}
-    emit(result, args.json)
-    if not args.json:
-        print(f"next: aesop cache calibrate --cache {args.cache}", file=sys.stderr)
-    return 0
+    return cache_import_command(args)
 
 
 def cmd_cache_calibrate(args: argparse.Namespace) -> int:
-    import asyncio
+    from services.recording.cli import cache_calibrate_command
 
-    import httpx
-
-    from services.embedding.client import EmbeddingClient
-    from shared.client import ServiceError
-
-    if not 0 < args.alpha < 1:
-        raise CliError("--alpha must be in (0, 1)")
-
-    async def run() -> Any:
-        async with EmbeddingClient(args.url, token=_admin_token(), timeout_s=120) as client:
-            return await client.calibrate(args.cache, "loo-quantile", alpha=args.alpha)
-    try:
-        done = asyncio.run(run())
-    except (ServiceError, httpx.TransportError) as exc:
-        raise _service_failure(exc, args.url) from None
-    emit({"cache": done.cache, "method": done.method, "alpha": done.alpha,
-          "threshold": done.threshold, "n": done.n, "version": done.version}, args.json)
-    return 0
+    return cache_calibrate_command(args)
 
 
 def cmd_zenoh_router_config(args: argparse.Namespace) -> int:
@@ -625,6 +492,8 @@ def cmd_detector_eval(args: argparse.Namespace) -> int:
     if args.recording is None and (args.cache or args.robot or args.changed_only):
         raise CliError("--cache, --robot and --changed-only go with --recording")
     if args.recording is not None:
+        from services.recording.cli import rescore_recording
+
         return rescore_recording(args)
     if args.nominal is None:
         raise CliError("--nominal is required (the JSONL of nominal experiences)")
@@ -640,96 +509,6 @@ def cmd_detector_eval(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     emit(result, args.json)
     return 0
-
-
-def rescore_recording(args: argparse.Namespace) -> int:
-    """``aesop detector eval --recording``: see :mod:`services.recording.rescore`."""
-    from services.recording.recorded import (
-        RecordingError,
-        check_recording,
-        observations,
-        verdicts,
-    )
-    from services.recording.rescore import compare, distinct_texts, summary, table
-
-    if (args.nominal is None) == (args.cache is None):
-        raise CliError("--recording needs either --nominal (a JSONL set to build a cache "
-                       "from) or --cache (a cache of the running service at --url)")
-    try:
-        check_recording(args.recording)
-        recorded = list(observations(args.recording, robot=args.robot))
-        old = verdicts(args.recording, args.robot)
-    except RecordingError as exc:
-        raise CliError(str(exc)) from None
-    if not recorded:
-        raise CliError(f"{args.recording} has no observations"
-                       + (f" of robot {args.robot}" if args.robot else ""))
-    texts = distinct_texts(recorded)
-    print(f"{len(recorded)} observations, {len(texts)} distinct scenes, {len(old)} recorded "
-          "verdicts", file=sys.stderr)
-    if args.cache is not None:
-        new, threshold, source = _scores_over_rest(args, texts)
-    else:
-        new, threshold, source = _scores_offline(args, texts)
-    rows = compare(recorded, old, new)
-    result = {"recording": str(args.recording), "against": source} | summary(rows, threshold)
-    if args.json:
-        print(json.dumps(result | {"rows": [r.row() for r in rows
-                                            if r.changed or not args.changed_only]},
-                         allow_nan=False))
-        return 0
-    print(table(rows, only_changed=args.changed_only))
-    print()
-    emit(result, False)
-    return 0
-
-
-def _scores_offline(args: argparse.Namespace, texts: list[str]):
-    from services.bench.evaluate import EvalConfig, fit, read_jsonl, score_all
-    from services.embedding.embedders import EmbedderError, load_embedder
-    from services.embedding.errors import DetectorError
-    from services.embedding.settings import DEFAULT_MODEL
-    from services.recording.rescore import NewScore
-
-    try:
-        config = EvalConfig(k=args.k, alpha=args.alpha, method=args.method, score=args.score,
-                            tpr=args.tpr)
-        calibration = read_jsonl(args.calibration) if args.calibration else []
-        embedder = load_embedder(args.model or DEFAULT_MODEL)
-        cache, cal = fit(embedder, read_jsonl(args.nominal), calibration, config)
-        scores = score_all(cache, embedder, texts, config.k)
-    except (DetectorError, EmbedderError, ValueError) as exc:
-        raise CliError(str(exc)) from None
-    new = {t: NewScore(float(s), bool(s > cal.threshold)) for t, s in zip(texts, scores,
-                                                                          strict=True)}
-    return new, cal.threshold, f"{args.nominal} ({embedder.name}, {cal.method})"
-
-
-def _scores_over_rest(args: argparse.Namespace, texts: list[str]):
-    import asyncio
-
-    import httpx
-
-    from services.embedding.client import EmbeddingClient
-    from services.recording.rescore import NewScore
-    from shared.client import ServiceError
-
-    async def run() -> tuple[dict[str, Any], float | None, str]:
-        new: dict[str, NewScore] = {}
-        threshold: float | None = None
-        async with EmbeddingClient(args.url, token=_admin_token(), timeout_s=120) as client:
-            info = await client.cache(args.cache)
-            for i in range(0, len(texts), 256):  # the service's default per-request limit
-                chunk = texts[i:i + 256]
-                got = await client.score(args.cache, chunk)
-                threshold = got.threshold
-                new |= {t: NewScore(r.score, r.is_anomaly)
-                        for t, r in zip(chunk, got.results, strict=True)}
-        return new, threshold, f"cache {args.cache} v{info.version} at {args.url}"
-    try:
-        return asyncio.run(run())
-    except (ServiceError, httpx.TransportError) as exc:
-        raise _service_failure(exc, args.url) from None
 
 
 def cmd_bench_detector(args: argparse.Namespace) -> int:
@@ -893,16 +672,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"scenarios": result["scenarios"]}, allow_nan=False))
     return 0 if result["ok"] else 1
-
-
-def emit(result: dict[str, Any], as_json: bool) -> None:
-    if as_json:
-        print(json.dumps(result, allow_nan=False))
-        return
-    width = max(len(k) for k in result)
-    for key, value in result.items():
-        shown = f"{value:.4f}" if isinstance(value, float) else value
-        print(f"{key:<{width}}  {shown}")
 
 
 if __name__ == "__main__":

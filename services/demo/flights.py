@@ -254,8 +254,19 @@ async def fly(control: ControlClient, camera: Camera, verdicts: Subscription[Ano
               recorder: Background | None = None) -> tuple[dict[str, Any], np.ndarray]:
     camera.scene, camera.flying = demo, False
     await _calm(camera, verdicts)
-    if recorder is not None:
-        await asyncio.to_thread(recorder.start)
+    if recorder is None:
+        return await _fly(control, camera, rec, demo, scenario)
+    await asyncio.to_thread(recorder.start)
+    try:
+        row, states = await _fly(control, camera, rec, demo, scenario)
+    finally:  # a failed flight's recording is finished (indexed) too
+        totals = await asyncio.to_thread(recorder.stop)
+    row["recording"] = recording_row(totals, recorder.out)
+    return row, states
+
+
+async def _fly(control: ControlClient, camera: Camera, rec: Recorder, demo: DemoScenario,
+               scenario: Scenario) -> tuple[dict[str, Any], np.ndarray]:
     rec.recording = False
     rec.states, rec.requests, rec.decisions, rec.events = [], [], [], []
     rec.detector_alarms = 0
@@ -271,10 +282,7 @@ async def fly(control: ControlClient, camera: Camera, verdicts: Subscription[Ano
         await asyncio.sleep(0.05)
     camera.flying = False
     rec.recording = False
-    row, states = summarize(rec, demo, scenario, time.monotonic() - wall)
-    if recorder is not None:
-        row["recording"] = recording_row(await asyncio.to_thread(recorder.stop), recorder.out)
-    return row, states
+    return summarize(rec, demo, scenario, time.monotonic() - wall)
 
 
 def recording_row(totals: Totals, path: Path) -> dict[str, Any]:

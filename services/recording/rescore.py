@@ -1,9 +1,10 @@
 """``aesop detector eval --recording``: a recorded flight's observations against a
 detector of today, beside the verdicts they got when they were recorded.
 
-Pure: :func:`compare` pairs each observation with its recorded verdict (by robot and
-seq) and its new score; the caller scores (an in-memory cache built from a nominal
-set, or a running cache over REST). A scene seen many times is scored once.
+:func:`compare` (pure) pairs each observation with its recorded verdict (by robot and
+seq) and its new score, from :func:`scores_offline` (an in-memory cache built from a
+nominal set) or :func:`scores_from_cache` (a running cache over REST). A scene seen
+many times is scored once.
 """
 
 from __future__ import annotations
@@ -12,9 +13,15 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from services.bench.evaluate import EvalConfig, fit, score_all
+from services.embedding.cache import Labelled
+from services.embedding.client import EmbeddingClient
+from services.embedding.embedders import Embedder
 from shared.messages import AnomalyVerdict
 
 from .recorded import RecordedObservation
+
+SCORE_CHUNK = 256  # texts per score request: the service's default limit
 
 
 @dataclass(frozen=True)
@@ -96,3 +103,30 @@ def table(rows: Sequence[Rescored], *, only_changed: bool = False, width: int = 
 def _verdict(score: float, is_anomaly: bool | None) -> str:
     word = "no tau" if is_anomaly is None else "ANOMALY" if is_anomaly else "nominal"
     return f"{word} {score:.4f}"
+
+
+def scores_offline(embedder: Embedder, nominal: Sequence[Labelled],
+                   calibration: Sequence[Labelled], config: EvalConfig,
+                   texts: Sequence[str]) -> tuple[dict[str, NewScore], float, str]:
+    """Each text's score against a cache of ``nominal`` built in memory and calibrated
+    by ``config``; with tau and the method's name."""
+    cache, cal = fit(embedder, nominal, calibration, config)
+    scores = score_all(cache, embedder, texts, config.k)
+    new = {t: NewScore(float(s), bool(s > cal.threshold))
+           for t, s in zip(texts, scores, strict=True)}
+    return new, cal.threshold, cal.method
+
+
+async def scores_from_cache(client: EmbeddingClient, cache: str, texts: Sequence[str]
+                            ) -> tuple[dict[str, NewScore], float | None, int]:
+    """Each text's score and verdict from a running cache; with its tau and version."""
+    info = await client.cache(cache)
+    new: dict[str, NewScore] = {}
+    threshold = info.threshold
+    for i in range(0, len(texts), SCORE_CHUNK):
+        chunk = texts[i:i + SCORE_CHUNK]
+        got = await client.score(cache, chunk)
+        threshold = got.threshold
+        new |= {t: NewScore(r.score, r.is_anomaly)
+                for t, r in zip(chunk, got.results, strict=True)}
+    return new, threshold, info.version

@@ -1,0 +1,246 @@
+"""The ``aesop`` commands on recordings: ``record``, ``replay``, ``cache import``,
+``cache calibrate`` and ``detector eval --recording`` (:mod:`services.cli` parses their
+flags and calls these). Each turns user errors into a
+:class:`~services.commands.CliError`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from services.commands import CliError, emit, not_joined
+
+
+def record_command(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+    import time
+
+    import zenoh
+
+    from services.recording.record import key_exprs, record
+    from shared.settings import BusSettings
+
+    try:
+        key_exprs(args.robot, args.topics)
+    except ValueError as exc:
+        raise CliError(f"--topics: {exc}") from None
+    overrides = {"zenoh_connect": args.connect} if args.connect else {}
+    settings = BusSettings(**overrides)
+    out = args.out or Path(f"aesop-{args.robot or 'all'}-"
+                           f"{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}.mcap")
+    if out.parent != Path() and not out.parent.is_dir():
+        raise CliError(f"--out: no directory {out.parent}")
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):  # also where SIGINT started ignored
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        totals = record(settings, out, robot=args.robot, wanted=args.topics, stop=stop,
+                        say=lambda line: print(line, file=sys.stderr, flush=True))
+    except zenoh.ZError as exc:
+        raise not_joined(exc) from None
+    rate = totals.messages / totals.seconds if totals.seconds > 0 else 0.0
+    print(f"recorded {totals.messages} messages ({totals.bytes / 1e3:.1f} kB, {rate:.1f} "
+          f"messages/s) in {totals.seconds:.1f} s into {out}", file=sys.stderr)
+    return 0
+
+
+def replay_command(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    import zenoh
+
+    from services.recording.recorded import RecordingError, check_recording
+    from services.recording.replay import replay, topic_filter
+    from shared.settings import BusSettings
+
+    try:
+        topic_filter(args.topics)
+    except ValueError as exc:
+        raise CliError(f"--topics: {exc}") from None
+    if not args.speed > 0:
+        raise CliError("--speed must be > 0")
+    try:
+        check_recording(args.file)
+    except RecordingError as exc:
+        raise CliError(str(exc)) from None
+    overrides = {k: v for k, v in (("zenoh_connect", args.connect),
+                                   ("zenoh_listen", args.listen)) if v}
+    settings = BusSettings(**overrides)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        done = replay(settings, args.file, speed=args.speed, wanted=args.topics,
+                      loop=args.loop, stop=stop,
+                      say=lambda line: print(line, file=sys.stderr, flush=True))
+    except zenoh.ZError as exc:
+        raise not_joined(exc) from None
+    print(f"replayed {done.messages} messages ({done.bytes / 1e3:.1f} kB) in "
+          f"{done.seconds:.1f} s", file=sys.stderr)
+    return 0
+
+
+def _admin_token() -> str | None:
+    return os.environ.get("AESOP_ADMIN_TOKEN") or None
+
+
+def _service_failure(exc: Exception, url: str) -> CliError:
+    """A service that answered with an error, or none that answered."""
+    import httpx
+
+    if isinstance(exc, httpx.TransportError):
+        return CliError(f"no embedding service at {url} ({exc.__class__.__name__}): is the "
+                        "stack up? (--url)")
+    return CliError(str(exc))
+
+
+def cache_import_command(args: argparse.Namespace) -> int:
+    import asyncio
+
+    import httpx
+
+    from services.embedding.client import EmbeddingClient
+    from services.recording.importer import import_recording
+    from services.recording.recorded import RecordingError, check_recording
+    from shared.client import ServiceError
+
+    def say(line: str) -> None:
+        print(line, file=sys.stderr, flush=True)
+
+    def progress(job: Any) -> None:
+        if job.total:
+            say(f"  embedding {job.done}/{job.total}")
+
+    async def run() -> Any:
+        async with EmbeddingClient(args.url, token=_admin_token(), timeout_s=120) as client:
+            return await import_recording(client, args.cache, args.recording,
+                                          robot=args.robot, since=args.since,
+                                          until=args.until, model=args.model, k=args.k,
+                                          say=say, progress=progress)
+    try:
+        for path in args.recording:
+            check_recording(path)
+        done = asyncio.run(run())
+    except RecordingError as exc:
+        raise CliError(str(exc)) from None
+    except (ServiceError, httpx.TransportError) as exc:
+        raise _service_failure(exc, args.url) from None
+    result = {"cache": args.cache, "observations": done.observations, "scenes": done.scenes,
+              "already_in_cache": done.already, "added": done.added, "size": done.size,
+              "version": done.version}
+    emit(result, args.json)
+    if not args.json:
+        print(f"next: aesop cache calibrate --cache {args.cache}", file=sys.stderr)
+    return 0
+
+
+def cache_calibrate_command(args: argparse.Namespace) -> int:
+    import asyncio
+
+    import httpx
+
+    from services.embedding.client import EmbeddingClient
+    from shared.client import ServiceError
+
+    if not 0 < args.alpha < 1:
+        raise CliError("--alpha must be in (0, 1)")
+
+    async def run() -> Any:
+        async with EmbeddingClient(args.url, token=_admin_token(), timeout_s=120) as client:
+            return await client.calibrate(args.cache, "loo-quantile", alpha=args.alpha)
+    try:
+        done = asyncio.run(run())
+    except (ServiceError, httpx.TransportError) as exc:
+        raise _service_failure(exc, args.url) from None
+    emit({"cache": done.cache, "method": done.method, "alpha": done.alpha,
+          "threshold": done.threshold, "n": done.n, "version": done.version}, args.json)
+    return 0
+
+
+def rescore_recording(args: argparse.Namespace) -> int:
+    """``aesop detector eval --recording``: see :mod:`services.recording.rescore`."""
+    from services.recording.recorded import (
+        RecordingError,
+        check_recording,
+        observations,
+        verdicts,
+    )
+    from services.recording.rescore import compare, distinct_texts, summary, table
+
+    if (args.nominal is None) == (args.cache is None):
+        raise CliError("--recording needs either --nominal (a JSONL set to build a cache "
+                       "from) or --cache (a cache of the running service at --url)")
+    try:
+        check_recording(args.recording)
+        recorded = list(observations(args.recording, robot=args.robot))
+        old = verdicts(args.recording, args.robot)
+    except RecordingError as exc:
+        raise CliError(str(exc)) from None
+    if not recorded:
+        raise CliError(f"{args.recording} has no observations"
+                       + (f" of robot {args.robot}" if args.robot else ""))
+    texts = distinct_texts(recorded)
+    print(f"{len(recorded)} observations, {len(texts)} distinct scenes, {len(old)} recorded "
+          "verdicts", file=sys.stderr)
+    if args.cache is not None:
+        new, threshold, source = _scores_over_rest(args, texts)
+    else:
+        new, threshold, source = _scores_offline(args, texts)
+    rows = compare(recorded, old, new)
+    result = {"recording": str(args.recording), "against": source} | summary(rows, threshold)
+    if args.json:
+        print(json.dumps(result | {"rows": [r.row() for r in rows
+                                            if r.changed or not args.changed_only]},
+                         allow_nan=False))
+        return 0
+    print(table(rows, only_changed=args.changed_only))
+    print()
+    emit(result, False)
+    return 0
+
+
+def _scores_offline(args: argparse.Namespace, texts: list[str]
+                    ) -> tuple[dict[str, Any], float | None, str]:
+    from services.bench.evaluate import EvalConfig, read_jsonl
+    from services.embedding.embedders import EmbedderError, load_embedder
+    from services.embedding.errors import DetectorError
+    from services.embedding.settings import DEFAULT_MODEL
+    from services.recording.rescore import scores_offline
+
+    try:
+        config = EvalConfig(k=args.k, alpha=args.alpha, method=args.method, score=args.score,
+                            tpr=args.tpr)
+        calibration = read_jsonl(args.calibration) if args.calibration else []
+        embedder = load_embedder(args.model or DEFAULT_MODEL)
+        new, threshold, method = scores_offline(embedder, read_jsonl(args.nominal),
+                                                calibration, config, texts)
+    except (DetectorError, EmbedderError, ValueError) as exc:
+        raise CliError(str(exc)) from None
+    return new, threshold, f"{args.nominal} ({embedder.name}, {method})"
+
+
+def _scores_over_rest(args: argparse.Namespace, texts: list[str]
+                      ) -> tuple[dict[str, Any], float | None, str]:
+    import asyncio
+
+    import httpx
+
+    from services.embedding.client import EmbeddingClient
+    from services.recording.rescore import scores_from_cache
+    from shared.client import ServiceError
+
+    async def run() -> tuple[dict[str, Any], float | None, int]:
+        async with EmbeddingClient(args.url, token=_admin_token(), timeout_s=120) as client:
+            return await scores_from_cache(client, args.cache, texts)
+    try:
+        new, threshold, version = asyncio.run(run())
+    except (ServiceError, httpx.TransportError) as exc:
+        raise _service_failure(exc, args.url) from None
+    return new, threshold, f"cache {args.cache} v{version} at {args.url}"
