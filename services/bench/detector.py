@@ -74,6 +74,7 @@ PAPER_MPNET_VTOL = {0.75: 0.83, 0.85: 0.89, 0.90: 0.91, 0.95: 0.93}  # tab:quant
 LATENCY_TARGET_MS = {"median": 15.0, "p99": 30.0}
 LOO_TARGET_S = 2.0
 MEMORY_TARGET_MB = 1024.0
+EF_SEARCH_SWEEP = (64, 128, 256, 512)  # HNSW efSearch values measured on each graph
 HNSW_BUILD_BUDGET_S = 300.0  # lower M for a larger size if the projected build exceeds it
 CLUSTERS = 2000  # Gaussian cluster centres of the synthetic vectors
 
@@ -654,8 +655,13 @@ def _search_at(n: int, m: int, projected: float | None, clusters: _Clusters,
     approx_1 = _stats(_time_each(lambda i: index.search(queries[i:i + 1], K), len(queries)))
     labels = _stats(_time_each(lambda i: index.labels(), 20))
     _, truth = index.search_exact(queries, K)
-    _, found = index.search(queries, K)
-    recall = np.mean([len(set(t) & set(f)) / K for t, f in zip(truth, found, strict=True)])
+    recall = _recall(index, queries, truth)
+    ef_default, sweep = index.ef_search, []
+    for ef in EF_SEARCH_SWEEP:  # recall against single-query time (one thread), same graph
+        index.set_ef_search(ef)
+        timed = _stats(_time_each(lambda i: index.search(queries[i:i + 1], K), len(queries)))
+        sweep.append({"ef_search": ef, "recall_at_5": _recall(index, queries, truth),
+                      "median_ms": timed["median_ms"], "p99_ms": timed["p99_ms"]})
     return {
         "n": n, "faiss_threads": faiss.omp_get_max_threads(), "exact": exact, "hnsw": approx,
         "speedup_exact_over_hnsw": exact["median_ms"] / approx["median_ms"],
@@ -664,9 +670,16 @@ def _search_at(n: int, m: int, projected: float | None, clusters: _Clusters,
         "recall_at_5": float(recall),
         "flat_build_s": flat_build, "hnsw_build_s": hnsw_build,
         "hnsw_m": m, "hnsw_ef_construction": faiss.IndexHNSWFlat(8, m).hnsw.efConstruction,
-        "hnsw_ef_search": index.ef_search, "hnsw_projected_build_s": projected,
+        "hnsw_ef_search": ef_default, "hnsw_projected_build_s": projected,
         "labels_copy_ms": labels["median_ms"],  # paid by every HNSW search (index.labels())
+        "ef_search_sweep": sweep,
     }
+
+
+def _recall(index: Any, queries: np.ndarray, truth: np.ndarray) -> float:
+    """recall@K of the index's (HNSW) search against the exact neighbours ``truth``."""
+    _, found = index.search(queries, K)
+    return float(np.mean([len(set(t) & set(f)) / K for t, f in zip(truth, found, strict=True)]))
 
 
 # -- 4. leave-one-out ------------------------------------------------------------------
@@ -1038,8 +1051,14 @@ def _render_search(r: Mapping[str, Any]) -> str:
               for s in r["sizes"]]
     title = (f"[search] k={r['k']}, clustered unit vectors dim {r['dim']} "
              f"({r['clusters']} centres)")
+    sweep = [{"n": s["n"], "M": s["hnsw_m"], "efSearch": row["ef_search"],
+              "recall@5": row["recall_at_5"], "med ms": row["median_ms"],
+              "p99 ms": row["p99_ms"], "recall >= 0.95": "yes" if row["recall_at_5"] >= 0.95
+              else "no"} for s in r["sizes"] for row in s.get("ef_search_sweep", ())]
     return (table(f"{title}: single-query latency (FAISS OpenMP threads)", rows) + "\n"
-            + table(f"{title}: builds and HNSW recall@5 over {r['queries']} queries", builds))
+            + table(f"{title}: builds and HNSW recall@5 over {r['queries']} queries", builds)
+            + "\n" + table(f"{title}: HNSW efSearch against recall@5 and single-query time "
+                           "(1 thread)", sweep))
 
 
 def _render_loo(r: Mapping[str, Any]) -> str:

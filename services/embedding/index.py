@@ -64,6 +64,14 @@ class VectorIndex:
     def __len__(self) -> int:
         return int(self._index.ntotal)
 
+    def set_ef_search(self, ef_search: int) -> None:
+        """The HNSW candidate list of a search (more: better recall, slower queries)."""
+        if ef_search < 1:
+            raise ValueError("ef_search must be positive")
+        self.ef_search = ef_search
+        if self._hnsw is not None:
+            self._hnsw.hnsw.efSearch = ef_search
+
     @property
     def graph_ready(self) -> bool:
         """An HNSW graph is built and current (a search will not rebuild it)."""

@@ -141,9 +141,9 @@ class Stack:
         time.sleep(0.3)  # let a nominal verdict replace any flagged one
         wait_until(lambda: self.http.get("/v1/state").json()["verdict_stale"] is False,
                    "fresh verdicts", WAIT_S)
+        since = self.states.mark()  # before the reset: its first state may come before 200
         r = self.http.post("/v1/reset", headers=AUTH, json={"start": [0.0, 0.0, 1.0]})
         assert r.status_code == 200, r.text
-        since = self.states.mark()
         self.states.wait_for(lambda s: s.mode == "nominal" and s.t == 0.0, "the reset", since)
 
 
