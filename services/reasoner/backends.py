@@ -53,7 +53,7 @@ ErrorKind = Literal["http", "timeout", "protocol", "connect"]
 TokenField = Literal["max_tokens", "max_completion_tokens"]
 ResponseFormat = Literal["json_schema", "json_object"]
 StopWhen = Callable[[str], bool]
-
+MAX_ERROR_BODY = 200  # characters of a server's error body kept in a BackendError
 
 
 def answer_schema(answers: Sequence[int] | None = None,
@@ -76,8 +76,6 @@ def response_format(shape: ResponseFormat, schema: dict[str, Any]) -> dict[str, 
         return {"type": "json_object", "schema": schema}
     return {"type": "json_schema",
             "json_schema": {"name": "aesop_decision", "strict": True, "schema": schema}}
-
-MAX_ERROR_BODY = 200  # characters of a server's error body kept in a BackendError
 
 
 class BackendError(Exception):
