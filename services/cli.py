@@ -132,10 +132,22 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--tpr", type=float, default=0.9, help="target TPR for tpr-target")
     ev.add_argument("--method", choices=["loo-quantile", "conformal", "tpr-target"],
                     default="loo-quantile")
-    ev.add_argument("--score", choices=["topk", "mahalanobis"], default="topk")
+    ev.add_argument("--score", choices=["topk", "mahalanobis", "detections", "combined"],
+                    default="topk", help="detections, combined: each line's 'detections' "
+                    "against the nominal set's (combined: with topk, as conformal p-values)")
     ev.add_argument("--model", default=None, help="embedding model (default: all-MiniLM-L6-v2)")
     ev.add_argument("--json", action="store_true")
     ev.set_defaults(func=cmd_detector_eval)
+
+    dd = dsub.add_parser("domains", help="write the synthetic domains as JSONL sets for "
+                         "eval: <domain>-nominal.jsonl (80%% of the nominal samples) and "
+                         "<domain>-test.jsonl (the other 20%% and every anomaly), with "
+                         "their detections")
+    dd.add_argument("--out", type=Path, required=True, help="the folder")
+    dd.add_argument("--seed", type=int, default=0)
+    dd.add_argument("--form", choices=["brief", "prompt"], default="brief",
+                    help="the text: the observation (brief) or the paper's whole prompt")
+    dd.set_defaults(func=cmd_detector_domains)
 
     bench = sub.add_parser("bench", help="benchmarks (tables, or one JSON object with --json)")
     bsub = bench.add_subparsers(dest="bench_command", required=True)
@@ -508,6 +520,19 @@ def cmd_detector_eval(args: argparse.Namespace) -> int:
     except (DetectorError, EmbedderError, ValueError) as exc:
         raise CliError(str(exc)) from None
     emit(result, args.json)
+    return 0
+
+
+def cmd_detector_domains(args: argparse.Namespace) -> int:
+    from services.scenes.base import write_jsonl
+    from services.scenes.registry import DOMAINS, generate
+
+    for name in DOMAINS:
+        nominal, test = generate(name, seed=args.seed).split_for_eval(args.seed)
+        write_jsonl(args.out / f"{name}-nominal.jsonl", nominal, args.form)
+        write_jsonl(args.out / f"{name}-test.jsonl", test, args.form)
+        print(f"{name}: {len(nominal)} nominal, {len(test)} test -> {args.out}",
+              file=sys.stderr)
     return 0
 
 

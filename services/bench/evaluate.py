@@ -3,11 +3,18 @@
 ``aesop detector eval`` builds an in-memory cache from nominal texts, calibrates
 tau with the chosen method, scores a labelled test set and reports AUROC and
 the confusion-matrix rates at tau. Nothing is written to disk.
+
+``--score detections`` and ``combined`` use each line's ``detections``
+(:mod:`services.embedding.detections`): the worst detection against the nominal
+set's distinct detections, alone or combined with the whole-observation top-k score
+through conformal p-values (Bonferroni). Their scores are ``1 - p`` and tau is
+``alpha``: an observation is flagged when ``p < 1 - alpha``.
 """
 
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,7 +22,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from services.embedding.cache import Cache, CacheConfig, Labelled, ScoreKind
+from services.embedding.cache import Cache, CacheConfig, Labelled, ScoreKind, unit_vectors
 from services.embedding.calibration import (
     Calibration,
     auroc,
@@ -24,10 +31,19 @@ from services.embedding.calibration import (
     loo_quantile,
     tpr_target,
 )
+from services.embedding.detections import (
+    NominalDetections,
+    combined_p,
+    distinct,
+    loo_scores,
+    p_values,
+    worst,
+)
 from services.embedding.embedders import Embedder
 from services.embedding.errors import InvalidInput
 
 Method = Literal["loo-quantile", "conformal", "tpr-target"]
+EvalScore = Literal["topk", "mahalanobis", "detections", "combined"]
 
 
 @dataclass(frozen=True)
@@ -35,12 +51,13 @@ class EvalConfig:
     k: int = 5
     alpha: float = 0.95
     method: Method = "loo-quantile"
-    score: ScoreKind = "topk"
+    score: EvalScore = "topk"
     tpr: float = 0.9  # the target of "tpr-target" (the hardware appendix uses 0.9)
 
 
 def read_jsonl(path: Path) -> list[Labelled]:
-    """Lines ``{"text": ..., "label": "nominal"|"anomaly"}``; errors name file and line."""
+    """Lines ``{"text": ..., "label": "nominal"|"anomaly", "detections"?: [...]}``, a
+    detection a string or ``{"label", "where"?}``; errors name file and line."""
     out = []
     with open(path, encoding="utf-8") as fh:
         for lineno, line in enumerate(fh, 1):
@@ -55,14 +72,32 @@ def read_jsonl(path: Path) -> list[Labelled]:
             if label not in ("nominal", "anomaly") or not isinstance(text, str) or not text:
                 raise InvalidInput(f"{path}:{lineno}: 'label' must be nominal|anomaly and "
                                    "'text' a non-empty string", field=str(path))
-            out.append(Labelled(text, label == "anomaly"))
+            out.append(Labelled(text, label == "anomaly",
+                                _detections(row.get("detections"), path, lineno)))
     if not out:
         raise InvalidInput(f"{path} has no examples", field=str(path))
     return out
 
 
+def _detections(value: Any, path: Path, lineno: int) -> tuple[str, ...]:
+    if value is None:
+        return ()
+    out = []
+    for item in value if isinstance(value, list) else [None]:
+        if isinstance(item, dict) and isinstance(item.get("label"), str):
+            where = item.get("where")
+            out.append(f"{item['label']} {where}" if isinstance(where, str) else item["label"])
+        elif isinstance(item, str):
+            out.append(item)
+        else:
+            raise InvalidInput(f"{path}:{lineno}: 'detections' must be a list of strings or "
+                               "of {\"label\", \"where\"} objects", field=str(path))
+    return tuple(d for d in out if d.strip())
+
+
 def build_cache(vectors: np.ndarray, config: EvalConfig, model: str | None) -> Cache:
-    cache = Cache(CacheConfig("eval", model, vectors.shape[1], config.k, config.score))
+    kind: ScoreKind = "mahalanobis" if config.score == "mahalanobis" else "topk"
+    cache = Cache(CacheConfig("eval", model, vectors.shape[1], config.k, kind))
     n = len(vectors)
     cache.apply(cache.plan_add(vectors, ids=[str(i) for i in range(n)], texts=[None] * n,
                                metadata=[{}] * n))
@@ -88,6 +123,8 @@ def evaluate(
     config: EvalConfig = EvalConfig(),
 ) -> dict[str, Any]:
     """Build, calibrate, test; the ``aesop detector eval --json`` object."""
+    if config.score in ("detections", "combined"):
+        return evaluate_structured(embedder, nominal, test, calibration, config)
     cache, cal = fit(embedder, nominal, calibration, config)
     scores = score_all(cache, embedder, [x.text for x in test], config.k)
     labels = np.array([x.is_anomaly for x in test])
@@ -132,3 +169,65 @@ def report(cal: Calibration, scores: np.ndarray, labels: np.ndarray, config: Eva
         "alpha": cal.alpha,
         "model": model,
     }
+
+
+def evaluate_structured(embedder: Embedder, nominal: Sequence[Labelled],
+                        test: Sequence[Labelled], calibration: Sequence[Labelled],
+                        config: EvalConfig) -> dict[str, Any]:
+    """``--score detections|combined``: see the module docstring. The calibration scores
+    are the nominal set's leave-one-out scores (``loo-quantile``) or the calibration
+    set's nominal ones (``conformal``)."""
+    if config.method == "tpr-target":
+        raise InvalidInput(f"--score {config.score} takes --method loo-quantile or conformal",
+                           field="method")
+    if any(x.is_anomaly for x in nominal):
+        raise InvalidInput("the nominal set contains anomalies", field="nominal")
+    cache = build_cache(embedder.embed([x.text for x in nominal]), config, embedder.name)
+    labels, counts = distinct([x.detections for x in nominal])
+    if not labels:
+        raise InvalidInput(f"--score {config.score} needs 'detections' in the nominal set",
+                           field="nominal")
+    found = NominalDetections(tuple(labels), unit_vectors(embedder.embed(labels)), counts)
+    if config.method == "loo-quantile":
+        where = {label: i for i, label in enumerate(labels)}
+        whole_cal = cache.loo_scores(config.k)
+        det_cal = loo_scores(found, [[where[d] for d in dict.fromkeys(x.detections)]
+                                     for x in nominal], found.vectors)
+    else:
+        held = [x for x in calibration if not x.is_anomaly]
+        if not held:
+            raise InvalidInput("--method conformal needs nominal lines in --calibration",
+                               field="calibration")
+        whole_cal = score_all(cache, embedder, [x.text for x in held], config.k)
+        det_cal = detection_scores(found, embedder, held)
+    tests = 2 if config.score == "combined" else 1
+    n = int(min(np.sum(~np.isnan(whole_cal)), np.sum(~np.isnan(det_cal))))
+    if tests / (n + 1) >= 1 - config.alpha:  # the smallest p-value, corrected
+        raise InvalidInput(
+            f"{n} calibration scores cannot flag anything at alpha {config.alpha}: the "
+            f"smallest p-value is 1/(n+1), {tests}/(n+1) after the correction, and needs to "
+            f"be below 1 - alpha (at least {math.ceil(tests / (1 - config.alpha))} nominal "
+            "examples with detections, or a lower --alpha)", field="alpha")
+    p_whole = p_values(whole_cal, score_all(cache, embedder, [x.text for x in test], config.k))
+    p_det = p_values(det_cal, detection_scores(found, embedder, test))
+    p = combined_p(p_whole, p_det) if config.score == "combined" else \
+        np.where(np.isnan(p_det), p_whole, p_det)
+    cal = Calibration(config.method, config.alpha, config.alpha, len(whole_cal))
+    labels_test = np.array([x.is_anomaly for x in test])
+    return report(cal, 1.0 - p, labels_test, config, embedder.name, len(nominal),
+                  len(calibration)) | {"score": config.score,
+                                       "nominal_detections": len(labels)}
+
+
+def detection_scores(found: NominalDetections, embedder: Embedder,
+                     items: Sequence[Labelled]) -> np.ndarray:
+    """Each item's worst-detection score (NaN for one without detections)."""
+    texts = list(dict.fromkeys(d for x in items for d in x.detections))
+    vectors = unit_vectors(embedder.embed(texts)) if texts else np.zeros((0, 1))
+    row = {t: i for i, t in enumerate(texts)}
+    out = np.full(len(items), np.nan)
+    for i, x in enumerate(items):
+        got = worst(found, vectors[[row[d] for d in x.detections]]) if x.detections else None
+        if got is not None:
+            out[i] = got.score
+    return out

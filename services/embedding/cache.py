@@ -49,10 +49,11 @@ class Experience:
 
 @dataclass(frozen=True)
 class Labelled:
-    """A labelled text of a calibration or test set."""
+    """A labelled text of a calibration or test set, with its detections if any."""
 
     text: str
     is_anomaly: bool
+    detections: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

@@ -95,6 +95,7 @@ class Sample:
             "label": self.label,
             "task": self.task,
             "concepts": list(self.concepts),
+            "detections": list(self.concepts),  # what a detector reports: one per concept
         }
 
 
@@ -238,6 +239,15 @@ class Dataset:
     def samples(self) -> tuple[Sample, ...]:
         return self.nominal + self.anomalies
 
+    def split_for_eval(self, seed: int = 0, held_out: float = 0.2
+                       ) -> tuple[list[Sample], list[Sample]]:
+        """(nominal set, test set): a random ``held_out`` share of the nominal samples,
+        with every anomaly, is the test set."""
+        nominal = list(self.nominal)
+        random.Random(seed).shuffle(nominal)
+        cut = round(len(nominal) * held_out)
+        return nominal[cut:], nominal[:cut] + list(self.anomalies)
+
 
 def _rng(domain: Domain, seed: int, stream: str) -> random.Random:
     # String seeds are hashed with SHA-512 by `random`, independent of PYTHONHASHSEED.
@@ -378,7 +388,8 @@ def concept_subset(domain: Domain, fraction: float, *, seed: int) -> tuple[str, 
 def write_jsonl(
     path: str | os.PathLike[str], samples: Iterable[Sample], form: TextForm = "prompt"
 ) -> None:
-    """Write one JSON object per line: ``{"text", "label", "task", "concepts"}``,
+    """Write one JSON object per line: ``{"text", "label", "task", "concepts",
+    "detections"}``,
     ``text`` being the full prompt or the brief form."""
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)

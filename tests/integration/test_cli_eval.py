@@ -88,3 +88,62 @@ def test_eval_bad_files(files: dict[str, Path], tmp_path: Path) -> None:
     assert r.returncode == 2 and "missing.jsonl" in r.stderr
     r = aesop("detector", "eval", "--nominal", str(files["bad"]), "--test", str(files["test"]))
     assert r.returncode == 2 and "bad.jsonl:1" in r.stderr
+
+
+# --------------------------------------------------------------------------- structured scores
+# (issue 12: an odd object among nominal ones is averaged away in the whole observation,
+# not in its own detection; on the synthetic domains that lifts AUROC, see the README)
+
+ODD = ["a smoking lithium battery", "a leaking bleach bottle", "a broken glass bottle",
+       "a live snake", "a burning cigarette"]
+
+
+def scene(objects: list[str]) -> dict[str, object]:
+    return {"text": "\n".join(objects), "detections": [{"label": o} for o in objects]}
+
+
+@pytest.fixture(scope="module")
+def structured(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    import itertools
+
+    d = tmp_path_factory.mktemp("structured")
+    triples = [list(t) for t in itertools.combinations(OBJECTS, 3)]  # 56 nominal scenes
+    nominal = [scene(t) | {"label": "nominal"} for t in triples[::2]]
+    test = [scene(t) | {"label": "nominal"} for t in triples[1::2]]
+    test += [scene(t[:2] + [odd]) | {"label": "anomaly"} for t, odd in
+             zip(triples[1::2], ODD * 6, strict=False)]
+    out = {}
+    for name, rows in (("nominal", nominal), ("test", test)):
+        out[name] = d / f"{name}.jsonl"
+        out[name].write_text("".join(json.dumps(r) + "\n" for r in rows))
+    return out
+
+
+def test_each_detection_is_scored_and_every_odd_object_flagged(
+        structured: dict[str, Path]) -> None:
+    got = {}
+    for score in ("topk", "detections", "combined"):  # 28 nominal scenes: alpha 0.9 (below)
+        r = aesop("detector", "eval", "--nominal", str(structured["nominal"]), "--test",
+                  str(structured["test"]), "--score", score, "--alpha", "0.9", "--json")
+        assert r.returncode == 0, r.stderr
+        got[score] = json.loads(r.stdout)
+    assert got["detections"]["nominal_detections"] == len(OBJECTS)
+    assert got["detections"]["score"] == "detections" and got["combined"]["score"] == "combined"
+    assert got["detections"]["auroc"] >= got["topk"]["auroc"]  # (the domains: README)
+    assert got["combined"]["auroc"] >= got["topk"]["auroc"]
+    # flagged at p < 1 - alpha: few nominal scenes, every odd object
+    assert got["combined"]["fpr"] <= 0.2 and got["combined"]["tpr"] == 1.0
+    # at 0.95 the 28 scenes are too few for the corrected p-value to ever be that small
+    r = aesop("detector", "eval", "--nominal", str(structured["nominal"]), "--test",
+              str(structured["test"]), "--score", "combined", "--json")
+    assert r.returncode == 2 and "28 calibration scores cannot flag anything" in r.stderr
+
+
+def test_structured_user_errors(structured: dict[str, Path], files: dict[str, Path]) -> None:
+    r = aesop("detector", "eval", "--nominal", str(structured["nominal"]), "--test",
+              str(structured["test"]), "--calibration", str(structured["test"]),
+              "--score", "combined", "--method", "tpr-target", "--json")
+    assert r.returncode == 2 and "--method" in r.stderr and "Traceback" not in r.stderr
+    r = aesop("detector", "eval", "--nominal", str(files["nominal"]), "--test",
+              str(structured["test"]), "--score", "detections", "--json")
+    assert r.returncode == 2 and "needs 'detections'" in r.stderr and "Traceback" not in r.stderr

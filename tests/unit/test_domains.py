@@ -392,7 +392,8 @@ def test_write_jsonl_round_trip(tmp_path) -> None:  # type: ignore[no-untyped-de
     back = []
     for line in lines:
         rec = json.loads(line)
-        assert set(rec) == {"text", "label", "task", "concepts"}
+        assert set(rec) == {"text", "label", "task", "concepts", "detections"}
+        assert rec["detections"] == rec["concepts"]
         back.append(
             Sample(
                 text=rec["text"],
@@ -408,3 +409,14 @@ def test_write_jsonl_round_trip(tmp_path) -> None:  # type: ignore[no-untyped-de
     first = json.loads(path.read_text(encoding="utf-8").splitlines()[0])
     assert first["text"] == data.samples[0].brief
     assert data.domain.template.split("\n")[0] not in first["text"]  # no preamble
+
+
+def test_the_eval_split_holds_out_a_fifth_of_the_nominal_samples_and_every_anomaly() -> None:
+    from services.scenes.registry import generate
+
+    data = generate("quadrotor", seed=3)
+    nominal, test = data.split_for_eval(3)
+    assert len(nominal) == 240 and len(test) == 60 + len(data.anomalies)
+    assert not any(s.label == "anomaly" for s in nominal)
+    assert sorted(map(id, nominal + test)) == sorted(map(id, data.samples))  # a partition
+    assert data.split_for_eval(3) == (nominal, test)  # deterministic by seed
