@@ -13,7 +13,7 @@ import json
 import logging
 import os
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +56,12 @@ def main(argv: list[str] | None = None) -> int:
 
 
 DEFAULT_EMBEDDING_URL = "http://127.0.0.1:8001"  # aesop up's embedding service
+
+
+def add_url_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--url", default=DEFAULT_EMBEDDING_URL,
+                        help=f"the embedding service (default {DEFAULT_EMBEDDING_URL}); the "
+                             "token from AESOP_ADMIN_TOKEN")
 
 
 def warn_unknown_settings(environ: Mapping[str, str]) -> list[str]:
@@ -121,9 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
                            "and today's, and where they differ")
     ev.add_argument("--cache", help="with --recording: score against this cache of a running "
                     "embedding service (--url) instead of --nominal")
-    ev.add_argument("--url", default=DEFAULT_EMBEDDING_URL,
-                    help=f"the embedding service (default {DEFAULT_EMBEDDING_URL}); the token "
-                         "from AESOP_ADMIN_TOKEN")
+    add_url_argument(ev)
     ev.add_argument("--robot", help="with --recording: only this robot's observations")
     ev.add_argument("--changed-only", action="store_true",
                     help="with --recording: list only the observations whose verdict changed")
@@ -237,7 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "reasoner/decision event regions (default: all)")
     rec.add_argument("--connect", action="append", metavar="ENDPOINT",
                      help="Zenoh endpoint (repeatable; default: AESOP_ZENOH_CONNECT)")
-    rec.set_defaults(func=cmd_record)
+    rec.set_defaults(func=recording_command("record_command"))
 
     rp = sub.add_parser("replay", help="publish a recording on Zenoh again with its timing "
                         "(the dashboard and aesop watch show the flight); Ctrl-C stops")
@@ -251,7 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="Zenoh endpoint (repeatable; default: AESOP_ZENOH_CONNECT)")
     rp.add_argument("--listen", action="append", metavar="ENDPOINT",
                     help="listen here instead, for a dashboard to connect to (repeatable)")
-    rp.set_defaults(func=cmd_replay)
+    rp.set_defaults(func=recording_command("replay_command"))
 
     ca = sub.add_parser("cache", help="nominal experience caches of a running embedding service")
     casub = ca.add_subparsers(dest="cache_command", required=True)
@@ -268,20 +272,16 @@ def build_parser() -> argparse.ArgumentParser:
     ci.add_argument("--k", type=int, default=None,
                     help="neighbours a new cache scores with (default 5; the paper's "
                          "hardware cache: 1)")
-    ci.add_argument("--url", default=DEFAULT_EMBEDDING_URL,
-                    help=f"the embedding service (default {DEFAULT_EMBEDDING_URL}); the token "
-                         "from AESOP_ADMIN_TOKEN")
+    add_url_argument(ci)
     ci.add_argument("--json", action="store_true")
-    ci.set_defaults(func=cmd_cache_import)
+    ci.set_defaults(func=recording_command("cache_import_command"))
     cc = casub.add_parser("calibrate", help="tau of a cache from its own experiences (eq. 2: "
                           "the alpha quantile of the leave-one-out scores)")
     cc.add_argument("--cache", required=True)
     cc.add_argument("--alpha", type=float, default=0.95)
-    cc.add_argument("--url", default=DEFAULT_EMBEDDING_URL,
-                    help=f"the embedding service (default {DEFAULT_EMBEDDING_URL}); the token "
-                         "from AESOP_ADMIN_TOKEN")
+    add_url_argument(cc)
     cc.add_argument("--json", action="store_true")
-    cc.set_defaults(func=cmd_cache_calibrate)
+    cc.set_defaults(func=recording_command("cache_calibrate_command"))
 
     zn = sub.add_parser("zenoh", help="the router's access control for docker compose")
     zsub = zn.add_subparsers(dest="zenoh_command", required=True)
@@ -416,28 +416,14 @@ def serve_dashboard(overrides: dict[str, Any]) -> int:
     return 0
 
 
-def cmd_record(args: argparse.Namespace) -> int:
-    from services.recording.cli import record_command
+def recording_command(name: str) -> Callable[[argparse.Namespace], int]:
+    """``services.recording.cli.<name>``, imported when the command runs."""
+    def run(args: argparse.Namespace) -> int:
+        from services.recording import cli
 
-    return record_command(args)
-
-
-def cmd_replay(args: argparse.Namespace) -> int:
-    from services.recording.cli import replay_command
-
-    return replay_command(args)
-
-
-def cmd_cache_import(args: argparse.Namespace) -> int:
-    from services.recording.cli import cache_import_command
-
-    return cache_import_command(args)
-
-
-def cmd_cache_calibrate(args: argparse.Namespace) -> int:
-    from services.recording.cli import cache_calibrate_command
-
-    return cache_calibrate_command(args)
+        command: Callable[[argparse.Namespace], int] = getattr(cli, name)
+        return command(args)
+    return run
 
 
 def cmd_zenoh_router_config(args: argparse.Namespace) -> int:

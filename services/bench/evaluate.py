@@ -82,16 +82,19 @@ def read_jsonl(path: Path) -> list[Labelled]:
 def _detections(value: Any, path: Path, lineno: int) -> tuple[str, ...]:
     if value is None:
         return ()
+    wrong = InvalidInput(f"{path}:{lineno}: 'detections' must be a list of strings or of "
+                         "{\"label\", \"where\"} objects", field=str(path))
+    if not isinstance(value, list):
+        raise wrong
     out = []
-    for item in value if isinstance(value, list) else [None]:
-        if isinstance(item, dict) and isinstance(item.get("label"), str):
+    for item in value:
+        if isinstance(item, str):
+            out.append(item)
+        elif isinstance(item, dict) and isinstance(item.get("label"), str):
             where = item.get("where")
             out.append(f"{item['label']} {where}" if isinstance(where, str) else item["label"])
-        elif isinstance(item, str):
-            out.append(item)
         else:
-            raise InvalidInput(f"{path}:{lineno}: 'detections' must be a list of strings or "
-                               "of {\"label\", \"where\"} objects", field=str(path))
+            raise wrong
     return tuple(d for d in out if d.strip())
 
 

@@ -51,11 +51,6 @@ def parse_when(text: str, start_ns: int) -> int:
     return round(when.timestamp() * 1e9)
 
 
-def first_time_ns(path: Path) -> int | None:
-    """When the recording's first message arrived (ns), None for an empty one."""
-    return next((r.log_time_ns for r in read_messages(path)), None)
-
-
 @dataclass(frozen=True)
 class RecordedObservation:
     observation: Observation
@@ -67,17 +62,18 @@ class RecordedObservation:
 def observations(path: Path, *, robot: str | None = None, since: str | None = None,
                  until: str | None = None) -> Iterator[RecordedObservation]:
     """The observations of ``robot`` (every robot by default) that arrived in the
-    window [since, until] (see :func:`parse_when`), in the order recorded. A message
+    window [since, until] (see :func:`parse_when`; the recording starts with its first
+    message of any kind), in the order recorded, in one pass over the file. A message
     that does not decode (recorded by another version) is skipped."""
-    start = first_time_ns(path)
-    if start is None:
-        return
-    low = parse_when(since, start) if since is not None else None
-    high = parse_when(until, start) if until is not None else None
-    if low is not None and high is not None and high < low:
-        raise RecordingError(f"--until ({until}) is before --since ({since})")
-    for record in _of_kind(path, "observation", robot):
-        if (low is not None and record.log_time_ns < low) or (
+    low = high = None
+    for i, record in enumerate(read_messages(path)):
+        if i == 0:
+            low = parse_when(since, record.log_time_ns) if since is not None else None
+            high = parse_when(until, record.log_time_ns) if until is not None else None
+            if low is not None and high is not None and high < low:
+                raise RecordingError(f"--until ({until}) is before --since ({since})")
+        if not _is_kind(record, "observation", robot) or (
+                low is not None and record.log_time_ns < low) or (
                 high is not None and record.log_time_ns > high):
             continue
         try:
@@ -100,7 +96,9 @@ def verdicts(path: Path, robot: str | None = None) -> dict[tuple[str, int], Anom
 
 
 def _of_kind(path: Path, kind: str, robot: str | None) -> Iterator[Recorded]:
-    for record in read_messages(path):
-        parts = record.key.split("/", 2)
-        if len(parts) == 3 and parts[2] == kind and robot in (None, parts[1]):
-            yield record
+    return (record for record in read_messages(path) if _is_kind(record, kind, robot))
+
+
+def _is_kind(record: Recorded, kind: str, robot: str | None) -> bool:
+    parts = record.key.split("/", 2)
+    return len(parts) == 3 and parts[2] == kind and robot in (None, parts[1])
