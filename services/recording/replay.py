@@ -54,32 +54,36 @@ def due_s(log_time_ns: int, first_ns: int, speed: float) -> float:
 
 def replay(settings: BusSettings, path: Path, *, speed: float = 1.0,
            wanted: Sequence[str] | None = None, loop: bool = False, stop: threading.Event,
-           say: Say, every_s: float = 1.0, settle_s: float = 0.5) -> Replayed:
+           say: Say, every_s: float = 1.0, settle_s: float = 0.5,
+           clock: Callable[[], float] = time.monotonic,
+           wait: Callable[[float], bool] | None = None) -> Replayed:
     """Publish ``path`` until it ends (or, with ``loop``, until ``stop`` is set).
     ``settle_s``: a pause after joining, so that the subscribers the session has just
-    met have been told of before the first message goes."""
+    met have been told of before the first message goes. ``clock`` and ``wait`` (True:
+    stop; default ``stop.wait``) keep the schedule: a test gives its own."""
     if not speed > 0:
         raise ValueError("speed must be > 0")
+    wait = wait or stop.wait
     keep = topic_filter(wanted)
     messages = sent_bytes = passes = 0
-    start = time.monotonic()
+    start = clock()
     last_said = start
     session = zenoh.open(zenoh_config(settings))
     publishers: dict[str, zenoh.Publisher] = {}
     try:
-        if stop.wait(settle_s):
+        if wait(settle_s):
             return Replayed(0, 0, 0.0, 0)
         say(f"replaying {path} at {speed:g}x{' in a loop' if loop else ''}; Ctrl-C to stop")
         while not stop.is_set():
-            began = time.monotonic()
+            began = clock()
             first: int | None = None
             this_pass = 0
             for record in read_messages(path):
                 if not keep(record.key):
                     continue
                 first = record.log_time_ns if first is None else first
-                wait = began + due_s(record.log_time_ns, first, speed) - time.monotonic()
-                if wait > 0 and stop.wait(wait):
+                ahead = began + due_s(record.log_time_ns, first, speed) - clock()
+                if ahead > 0 and wait(ahead):
                     break
                 publisher = publishers.get(record.key)
                 if publisher is None:
@@ -87,7 +91,7 @@ def replay(settings: BusSettings, path: Path, *, speed: float = 1.0,
                 publisher.put(record.data)
                 this_pass += 1
                 sent_bytes += len(record.data)
-                now = time.monotonic()
+                now = clock()
                 if now - last_said >= every_s:
                     last_said = now
                     say(f"replaying: {messages + this_pass} messages, "
@@ -102,4 +106,4 @@ def replay(settings: BusSettings, path: Path, *, speed: float = 1.0,
         for publisher in publishers.values():
             publisher.undeclare()
         session.close()
-    return Replayed(messages, sent_bytes, time.monotonic() - start, passes)
+    return Replayed(messages, sent_bytes, clock() - start, passes)

@@ -1,9 +1,11 @@
 """``aesop replay`` as a user runs it, into a real Zenoh peer (issue 13): the recorded
-payloads on their keys in order, never ahead of the recorded timing, only the topics
-asked for, and over again with ``--loop`` until Ctrl-C."""
+payloads on their keys in order, the recorded timing scaled (on the test's own clock,
+no time measured), only the topics asked for, and over again with ``--loop`` until
+Ctrl-C."""
 
 from __future__ import annotations
 
+import itertools
 import os
 import signal
 import subprocess
@@ -17,6 +19,7 @@ import pytest
 import zenoh
 
 from services.recording.mcapfile import FlightWriter, read_messages
+from services.recording.replay import replay as replay_file
 from shared.bus import zenoh_config
 from shared.messages import ControlState, Observation
 from shared.settings import BusSettings
@@ -44,17 +47,17 @@ def flight(tmp_path: Path) -> Path:
 
 
 class Heard:
-    """Everything that arrives on ``aesop/**`` at a listening peer, with arrival times."""
+    """Everything that arrives on ``aesop/**`` at a listening peer, in order."""
 
     def __init__(self, endpoint: str) -> None:
-        self.got: list[tuple[str, bytes, float]] = []
+        self.got: list[tuple[str, bytes]] = []
         self._lock = threading.Lock()
         self.session = zenoh.open(zenoh_config(BusSettings(zenoh_listen=[endpoint])))
         self.sub = self.session.declare_subscriber("aesop/**", self._on)
 
     def _on(self, sample: zenoh.Sample) -> None:
         with self._lock:
-            self.got.append((str(sample.key_expr), sample.payload.to_bytes(), time.monotonic()))
+            self.got.append((str(sample.key_expr), sample.payload.to_bytes()))
 
     def count(self) -> int:
         with self._lock:
@@ -85,11 +88,30 @@ def test_replay_publishes_the_recording_in_order_at_its_pace(flight: Path, endpo
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err
     recorded = [(r.key, r.data) for r in read_messages(flight)]
-    assert [(key, data) for key, data, _ in heard.got] == recorded  # payloads untouched
+    assert heard.got == recorded  # payloads untouched, in order
     assert f"replayed {2 * N} messages" in err
-    # never ahead of the recording's own clock, scaled: 1.9 s at 2x
-    span = heard.got[-1][2] - heard.got[0][2]
-    assert span >= (N - 1) * PERIOD_NS / 1e9 / 2 - 0.1, span  # not all at once
+
+
+def test_each_message_waits_for_its_recorded_time_scaled(flight: Path, endpoint: str,
+                                                         heard: Heard) -> None:
+    """The schedule on a clock of the test's own: the waits replay asks for."""
+    now, waits = [0.0], []
+
+    def wait(seconds: float) -> bool:
+        waits.append(seconds)
+        now[0] += seconds
+        return False
+
+    done = replay_file(BusSettings(zenoh_connect=[endpoint]), flight, speed=2.0,
+                       stop=threading.Event(), say=lambda _: None, clock=lambda: now[0],
+                       wait=wait)
+    assert done.messages == 2 * N
+    # the settling pause, then each message's gap to the one before, halved: 50 ms
+    # before each observation but the first, 0.5 ns before the state 1 ns after it
+    gaps = [(b.log_time_ns - a.log_time_ns) / 1e9 / 2
+            for a, b in itertools.pairwise(read_messages(flight))]
+    assert waits == pytest.approx([0.5, *gaps], rel=1e-9, abs=1e-12)
+    assert sum(waits) == pytest.approx(0.5 + (N - 1) * PERIOD_NS / 1e9 / 2 + 0.5e-9)
 
 
 def test_replay_of_some_topics_in_a_loop_until_ctrl_c(flight: Path, endpoint: str,
@@ -104,9 +126,9 @@ def test_replay_of_some_topics_in_a_loop_until_ctrl_c(flight: Path, endpoint: st
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 0, err
-    keys = {key for key, _, _ in heard.got}
+    keys = {key for key, _ in heard.got}
     assert keys == {"aesop/robot0/observation"}
-    seqs = [Observation.decode(data).seq for _, data, _ in heard.got]
+    seqs = [Observation.decode(data).seq for _, data in heard.got]
     assert seqs[:2 * N] == list(range(N)) * 2
 
 
