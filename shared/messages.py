@@ -71,6 +71,11 @@ class Detection(BaseModel):
     # context, e.g. "on the red box", "on the ground"
     where: str | None = Field(default=None, max_length=MAX_LABEL_CHARS)
 
+    @property
+    def phrase(self) -> str:
+        """What the detector embeds: "a drill on the ground" (label, then where)."""
+        return self.label if not self.where else f"{self.label} {self.where}"
+
 
 class Observation(Message):
     """o_t: the robot's text observation at tick ``seq``."""
@@ -91,11 +96,28 @@ class Neighbor(BaseModel):
     similarity: Float
 
 
+class DetectionMatch(BaseModel):
+    """One of an observation's detections beside the nearest detection of the cache's
+    nominal experiences: "a keyboard on the ground", nearest "a drill on the ground", 0.61.
+    ``p_value``: its own conformal p-value against the cache's calibration (None when
+    the cache's detections are not calibrated)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    detection: str
+    nearest: str
+    similarity: Float
+    p_value: Float | None = None
+
+
 class AnomalyVerdict(Message):
     """Fast reasoner output for observation ``seq``: s(e_t) compared with tau.
 
     ``threshold`` is None when the cache has no calibration; the verdict is
-    then an anomaly (fail-safe) and ``reason`` says so.
+    then an anomaly (fail-safe) and ``reason`` says so. For an observation with
+    detections, scored against a cache whose experiences have them, ``p_value`` is the
+    combined conformal p-value (anomaly iff it is below 1 - alpha) and ``detections``
+    the observation's least nominal detections, worst first.
     """
 
     seq: Int = Field(ge=0)
@@ -109,6 +131,8 @@ class AnomalyVerdict(Message):
     cache_version: Int = Field(ge=0)
     latency_ms: Float = Field(ge=0.0)
     reason: str | None = None
+    p_value: Float | None = None
+    detections: tuple[DetectionMatch, ...] = ()
 
     @field_validator("score")
     @classmethod

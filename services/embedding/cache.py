@@ -4,6 +4,13 @@ Every mutation is planned first (validated, turned into an ``Op``), made durable
 the store, then applied by ``Cache.apply``, the single mutation path. Planning never
 changes state, so a rejected request leaves the cache exactly as it was. A cache is
 its ``Header`` (config, version, calibration...) plus its experiences and their index.
+
+Experiences may carry detections (``shared.messages.Detection``). Beside the experience
+index a cache keeps the vector of every distinct detection phrase it has seen and how
+many experiences hold it; those held by at least one are its *nominal detections*,
+against which an observation's detections are scored (:mod:`.detections`). A cache
+calibrated by ``loo-quantile`` or ``conformal`` keeps the nominal calibration scores of
+both components, and judges an observation with detections by their combined p-value.
 """
 
 from __future__ import annotations
@@ -16,8 +23,9 @@ from typing import Any, Literal
 
 import numpy as np
 
-from shared.messages import Neighbor
+from shared.messages import Detection, DetectionMatch, Neighbor
 
+from . import detections as det
 from .calibration import Calibration
 from .embedders import normalize
 from .errors import Conflict, InvalidInput, NotFound
@@ -40,38 +48,81 @@ class CacheConfig:
     shrinkage: float = 0.1  # Mahalanobis covariance shrinkage lambda
 
 
+MAX_MATCHES = 3  # detections a verdict names
+
+
 @dataclass(frozen=True)
 class Experience:
     id: str
     text: str | None
     metadata: Mapping[str, Any] = field(default_factory=dict)
+    detections: tuple[Detection, ...] = ()
+
+    @property
+    def phrases(self) -> tuple[str, ...]:
+        """Its distinct detection phrases, in order."""
+        return tuple(dict.fromkeys(d.phrase for d in self.detections))
 
 
 @dataclass(frozen=True)
 class Labelled:
-    """A labelled text of a calibration or test set, with its detections if any."""
+    """A labelled text of a calibration or test set, with its detection phrases if any."""
 
     text: str
     is_anomaly: bool
     detections: tuple[str, ...] = ()
 
 
+@dataclass(frozen=True, eq=False)
+class Detections:
+    """A query's detection phrases (distinct) and their unit vectors, one row each."""
+
+    phrases: tuple[str, ...]
+    vectors: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationScores:
+    """The nominal calibration scores behind a calibration's p-values, sorted: the
+    observation scores, and the detection scores (empty: the cache had no detections)."""
+
+    observation: np.ndarray
+    detection: np.ndarray
+
+    @classmethod
+    def of(cls, observation: np.ndarray, detection: np.ndarray) -> CalibrationScores:
+        """From raw scores; NaN (an observation without detections) left out."""
+        def clean(x: np.ndarray) -> np.ndarray:
+            x = np.asarray(x, dtype=np.float64)
+            return np.sort(x[~np.isnan(x)])
+        return cls(clean(observation), clean(detection))
+
+
 @dataclass(frozen=True)
 class Scored:
-    """s(e_t; D_e) for one query, with its nearest nominal experiences."""
+    """s(e_t; D_e) for one query, with its nearest nominal experiences; for a query with
+    detections, its worst detection's score, its least nominal detections and, when the
+    cache's calibration has detection scores, the combined p-value. ``is_anomaly``:
+    None while the cache has no tau."""
 
     score: float
     neighbors: tuple[Neighbor, ...]
+    is_anomaly: bool | None = None
+    detection_score: float | None = None
+    p_value: float | None = None
+    matches: tuple[DetectionMatch, ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
 class Add:
-    """New experiences under fresh ``labels``, with their (n, dim) unit float32 vectors."""
+    """New experiences under fresh ``labels``, with their (n, dim) unit float32 vectors,
+    and the vectors of the detection phrases the cache has not seen before."""
 
     labels: tuple[int, ...]
     experiences: tuple[Experience, ...]
     vectors: np.ndarray
     version: int
+    detection_vectors: Mapping[str, np.ndarray] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -81,10 +132,11 @@ class Delete:
     version: int
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Calibrate:
     calibration: Calibration
     version: int
+    scores: CalibrationScores | None = None  # loo-quantile and conformal keep theirs
 
 
 @dataclass(frozen=True)
@@ -144,16 +196,26 @@ class Cache:
         self.index = index if index is not None else VectorIndex(config.dim, config.index)
         self.experiences: dict[int, Experience] = {}
         self.labels_by_id: dict[str, int] = {}
+        self.detection_vectors: dict[str, np.ndarray] = {}  # every phrase seen: unit float32
+        self.detection_counts: dict[str, int] = {}  # phrase: experiences holding it (> 0)
+        self.calibration_scores: CalibrationScores | None = None
         self._mahalanobis: tuple[int, MahalanobisModel] | None = None
+        self._nominal: tuple[int, det.NominalDetections] | None = None
 
     @classmethod
     def restored(cls, header: Header, experiences: Mapping[int, Experience],
-                 index: VectorIndex) -> Cache:
-        """A cache as stored: ``index`` holds exactly the labels of ``experiences``."""
+                 index: VectorIndex, detection_vectors: Mapping[str, np.ndarray] | None = None,
+                 calibration_scores: CalibrationScores | None = None) -> Cache:
+        """A cache as stored: ``index`` holds exactly the labels of ``experiences``,
+        ``detection_vectors`` every phrase they hold (and maybe more)."""
         cache = cls(header.config, index)
         cache.header = header
         cache.experiences = dict(experiences)
         cache.labels_by_id = {e.id: label for label, e in experiences.items()}
+        cache.detection_vectors = dict(detection_vectors or {})
+        for exp in experiences.values():
+            cache._count(exp, +1)
+        cache.calibration_scores = calibration_scores
         return cache
 
     # -- queries ---------------------------------------------------------------
@@ -193,19 +255,80 @@ class Cache:
             )
         return k
 
-    def score(self, vectors: np.ndarray, k: int | None = None, neighbors: int = 3) -> list[Scored]:
+    @property
+    def has_detections(self) -> bool:
+        return bool(self.detection_counts)
+
+    def score(self, vectors: np.ndarray, k: int | None = None, neighbors: int = 3,
+              detections: Sequence[Detections | None] = ()) -> list[Scored]:
         """Score unit query vectors (nq, dim): top-k mean cosine similarity negated, or
-        the Mahalanobis distance, per the cache's score function."""
+        the Mahalanobis distance, per the cache's score function; and judge each (see
+        :meth:`judge`), with its ``detections`` if given (one per query, or none)."""
         k = self.check_k(k or self.config.k)
         sims, labels = self.index.search(vectors, max(k, neighbors))
         if self.config.score == "mahalanobis":
             scores = self._mahalanobis_model().score(vectors)
         else:
             scores = topk_score(sims, k)
+        per_query = list(detections) or [None] * len(scores)
         return [
-            Scored(float(s), self._neighbors(row_sims[:neighbors], row_labels[:neighbors]))
-            for s, row_sims, row_labels in zip(scores, sims, labels, strict=True)
+            self.judge(float(s), self._neighbors(row_sims[:neighbors], row_labels[:neighbors]),
+                       found)
+            for s, row_sims, row_labels, found in zip(scores, sims, labels, per_query,
+                                                      strict=True)
         ]
+
+    def judge(self, score: float, neighbors: tuple[Neighbor, ...],
+              found: Detections | None) -> Scored:
+        """h(o_t). Without detections (or a cache without any): ``score > tau``, as
+        always. With them, and a calibration that kept detection scores: the Bonferroni
+        combination of the two conformal p-values, anomaly iff ``p < 1 - alpha``;
+        otherwise ``score > tau`` still, the detections only named."""
+        threshold = self.threshold
+        plain = Scored(score, neighbors, None if threshold is None else score > threshold)
+        nominal = self.nominal_detections()
+        if found is None or not found.phrases or not len(nominal.labels):
+            return plain
+        index, sims = det.nearest(nominal, found.vectors)
+        worst = float(-sims.min())
+        cal, scores = self.calibration, self.calibration_scores
+        calibrated = (cal is not None and cal.alpha is not None and scores is not None
+                      and len(scores.detection) > 0 and len(scores.observation) > 0)
+        p_each: list[float | None] = [None] * len(sims)
+        p_value = None
+        is_anomaly = plain.is_anomaly
+        if calibrated:
+            assert cal is not None and cal.alpha is not None and scores is not None
+            p_each = det.p_values(scores.detection, -sims).tolist()
+            p_obs = det.p_values(scores.observation, np.array([score]))
+            p_det = det.p_values(scores.detection, np.array([worst]))
+            p_value = float(det.combined_p(p_obs, p_det)[0])
+            is_anomaly = p_value < 1.0 - cal.alpha
+        order = [int(i) for i in np.argsort(sims, kind="stable") if sims[i] < 1.0]
+        matches = tuple(
+            DetectionMatch(detection=found.phrases[i], nearest=nominal.labels[int(index[i])],
+                           similarity=float(sims[i]), p_value=p_each[i])
+            for i in order[:MAX_MATCHES])
+        return Scored(score, neighbors, is_anomaly, worst, p_value, matches)
+
+    def nominal_detections(self) -> det.NominalDetections:
+        """The distinct detections of the experiences (in phrase order), built once per
+        version."""
+        if self._nominal is None or self._nominal[0] != self.version:
+            phrases = tuple(sorted(self.detection_counts))
+            vectors = (np.stack([self.detection_vectors[p] for p in phrases]) if phrases
+                       else np.zeros((0, self.config.dim), dtype=np.float32))
+            counts = np.array([self.detection_counts[p] for p in phrases], dtype=np.int64)
+            self._nominal = (self.version, det.NominalDetections(phrases, vectors, counts))
+        return self._nominal[1]
+
+    def loo_detection_scores(self) -> np.ndarray:
+        """Each experience's detection score with what only it holds left out (NaN for
+        one without detections): the detection component's scores behind eq. (2)."""
+        nominal = self.nominal_detections()
+        where = {p: i for i, p in enumerate(nominal.labels)}
+        held = [[where[p] for p in exp.phrases] for exp in self.experiences.values()]
+        return det.loo_scores(nominal, held, nominal.vectors)
 
     def loo_scores(self, k: int | None = None) -> np.ndarray:
         """s(e_i; D_e minus {e_i}) for every member: the scores behind eq. (2)."""
@@ -242,8 +365,12 @@ class Cache:
         ids: Sequence[str | None],
         texts: Sequence[str | None],
         metadata: Sequence[Mapping[str, Any]],
+        detections: Sequence[Sequence[Detection]] = (),
+        detection_vectors: Mapping[str, np.ndarray] | None = None,
         field_prefix: str = "items",
     ) -> Add:
+        """``detections``: each experience's (or none), ``detection_vectors`` the vector
+        of every phrase among them that the cache has not seen (any unit-length rows)."""
         n = len(vectors)
         if vectors.ndim != 2 or vectors.shape[1] != self.config.dim:
             got = vectors.shape[1] if vectors.ndim == 2 else vectors.shape
@@ -268,21 +395,29 @@ class Cache:
             seen.add(ident)
             resolved.append(ident)
         first = self.next_label
-        return Add(
-            labels=tuple(range(first, first + n)),
-            experiences=tuple(Experience(ident, text, dict(meta)) for ident, text, meta
-                              in zip(resolved, texts, metadata, strict=True)),
-            vectors=unit, version=self.version + 1)
+        held = [tuple(d) for d in detections] or [()] * n
+        experiences = tuple(Experience(ident, text, dict(meta), found) for ident, text, meta,
+                            found in zip(resolved, texts, metadata, held, strict=True))
+        new: dict[str, np.ndarray] = {}
+        for exp in experiences:
+            for phrase in exp.phrases:
+                if phrase not in self.detection_vectors and phrase not in new:
+                    if detection_vectors is None or phrase not in detection_vectors:
+                        raise Conflict(f"no vector for detection {phrase!r}", field="detections")
+                    new[phrase] = np.asarray(detection_vectors[phrase], dtype=np.float32)
+        return Add(labels=tuple(range(first, first + n)), experiences=experiences,
+                   vectors=unit, version=self.version + 1, detection_vectors=new)
 
     def plan_delete(self, ident: str) -> Delete:
         if ident not in self.labels_by_id:
             raise NotFound(f"no experience {ident!r} in cache {self.name!r}", field="id")
         return Delete(ident, self.labels_by_id[ident], self.version + 1)
 
-    def plan_calibration(self, calibration: Calibration) -> Calibrate:
+    def plan_calibration(self, calibration: Calibration,
+                         scores: CalibrationScores | None = None) -> Calibrate:
         if not math.isfinite(calibration.threshold):
             raise InvalidInput("calibration gave a non-finite threshold", field="calibration")
-        return Calibrate(calibration, self.version + 1)
+        return Calibrate(calibration, self.version + 1, scores)
 
     def plan_configure(self, *, k: int, score: ScoreKind) -> Configure | None:
         if (k, score) == (self.config.k, self.config.score):
@@ -295,11 +430,23 @@ class Cache:
         header = self.header.after(op)
         if isinstance(op, Add):
             self.index.add(op.vectors, np.array(op.labels, dtype=np.int64))
+            self.detection_vectors.update(op.detection_vectors)
             for label, exp in zip(op.labels, op.experiences, strict=True):
                 self.experiences[label] = exp
                 self.labels_by_id[exp.id] = label
+                self._count(exp, +1)
         elif isinstance(op, Delete):
             del self.labels_by_id[op.id]
-            del self.experiences[op.label]
+            self._count(self.experiences.pop(op.label), -1)
             self.index.remove(np.array([op.label], dtype=np.int64))
+        elif isinstance(op, Calibrate):
+            self.calibration_scores = op.scores
         self.header = header
+
+    def _count(self, exp: Experience, step: int) -> None:
+        for phrase in exp.phrases:
+            left = self.detection_counts.get(phrase, 0) + step
+            if left > 0:
+                self.detection_counts[phrase] = left
+            else:
+                self.detection_counts.pop(phrase, None)

@@ -8,6 +8,7 @@ from typing import Any, Literal
 
 from shared.client import JobClient, Progress
 from shared.jobs import JobAccepted
+from shared.messages import Detection
 
 from .schemas import (
     Added,
@@ -60,19 +61,29 @@ class EmbeddingClient(JobClient):
 
     async def calibrate(self, name: str, method: Method, *, alpha: float | None = None,
                         tpr: float | None = None,
-                        calibration: Sequence[tuple[str, bool]] = ()) -> Calibrated:
-        """Compute tau; ``calibration`` is (text, is_anomaly) pairs for ``tpr-target``."""
+                        calibration: Sequence[tuple[str, bool]] = (),
+                        detections: Sequence[Sequence[Detection]] = ()) -> Calibrated:
+        """Compute tau; ``calibration`` is (text, is_anomaly) pairs for ``conformal`` and
+        ``tpr-target``, ``detections`` each one's detections (or none)."""
         body: dict[str, Any] = {"method": method}
         body |= {key: value for key, value in (("alpha", alpha), ("tpr", tpr))
                  if value is not None}
         if calibration:
-            body["calibration"] = [{"text": text, "label": "anomaly" if bad else "nominal"}
-                                   for text, bad in calibration]
+            found = detections or [()] * len(calibration)
+            body["calibration"] = [
+                {"text": text, "label": "anomaly" if bad else "nominal",
+                 "detections": [d.model_dump(exclude_none=True) for d in seen]}
+                for (text, bad), seen in zip(calibration, found, strict=True)]
         return await self.request("POST", f"/v1/caches/{name}/calibrate", Calibrated,
                                   json=body)
 
-    async def score(self, name: str, texts: Sequence[str], k: int | None = None) -> Scores:
-        body: dict[str, Any] = {"texts": list(texts)} | ({} if k is None else {"k": k})
+    async def score(self, name: str, texts: Sequence[str], k: int | None = None, *,
+                    detections: Sequence[Sequence[Detection]] = ()) -> Scores:
+        """Score ``texts``, each with its ``detections`` if given (one list per text)."""
+        body: dict[str, Any] = {"texts": list(texts)} if not detections else {"queries": [
+            {"text": text, "detections": [d.model_dump(exclude_none=True) for d in seen]}
+            for text, seen in zip(texts, detections, strict=True)]}
+        body |= {} if k is None else {"k": k}
         return await self.request("POST", f"/v1/caches/{name}/score", Scores, json=body)
 
     async def experience(self, name: str, ident: str) -> Experience:

@@ -15,6 +15,10 @@ component, so ``P(p <= t) <= t``: flagging ``p <= 1 - alpha`` keeps the false-po
 rate at most ``1 - alpha``, the split-conformal guarantee of one detector. An
 observation without detections has only ``p_obs`` (no correction): a text-only
 observation is judged exactly as before.
+
+Similarities are rounded to :data:`DECIMALS` places: the same phrase embedded in two
+batches can differ in the seventh decimal, and a nominal detection seen again must tie
+with its calibration scores, not score a hair above them.
 """
 
 from __future__ import annotations
@@ -23,6 +27,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+
+DECIMALS = 4
 
 
 @dataclass(frozen=True)
@@ -56,21 +62,30 @@ def distinct(per_observation: Sequence[Sequence[str]]) -> tuple[list[str], np.nd
     return list(order), np.array(list(order.values()), dtype=np.int64)
 
 
+def nearest(nominal: NominalDetections, vectors: np.ndarray,
+            left_out: Sequence[int] = ()) -> tuple[np.ndarray, np.ndarray]:
+    """Each detection's (``vectors``, unit rows) nearest nominal detection (index, -1 when
+    all are left out) and their similarity, rounded (-inf when all are left out);
+    ``left_out``: nominal detections not to match (leave-one-out)."""
+    sims = (vectors @ nominal.vectors.T).astype(np.float64)
+    if left_out:
+        sims[:, list(left_out)] = -np.inf
+    index = np.argmax(sims, axis=1)
+    best = np.round(sims[np.arange(len(vectors)), index], DECIMALS)
+    return np.where(np.isfinite(best), index, -1), best
+
+
 def worst(nominal: NominalDetections, vectors: np.ndarray,
           left_out: Sequence[int] = ()) -> Worst | None:
     """The worst of an observation's detections (``vectors``, unit rows), None when it
     has none; ``left_out``: nominal detections not to match (leave-one-out)."""
     if len(vectors) == 0 or len(nominal.labels) == 0:
         return None
-    sims = vectors @ nominal.vectors.T
-    if left_out:
-        sims[:, list(left_out)] = -np.inf
-    nearest = np.argmax(sims, axis=1)
-    best = sims[np.arange(len(vectors)), nearest]
+    index, best = nearest(nominal, vectors, left_out)
     which = int(np.argmin(best))
     if not np.isfinite(best[which]):  # every nominal detection left out
         return Worst(1.0, which, -1, -1.0)
-    return Worst(float(-best[which]), which, int(nearest[which]), float(best[which]))
+    return Worst(float(-best[which]), which, int(index[which]), float(best[which]))
 
 
 def loo_scores(nominal: NominalDetections, observations: Sequence[Sequence[int]],

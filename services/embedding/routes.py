@@ -98,7 +98,8 @@ async def delete_experience(name: str, ident: str, service: ServiceDep) -> Delet
 @router.post("/v1/caches/{name}/calibrate", responses=errors(401, 404, 409, 502, 503, 507))
 async def calibrate(name: str, body: Calibrate, service: ServiceDep,
                     settings: SettingsDep) -> Calibrated:
-    labelled = [Labelled(x.text, x.label == "anomaly") for x in body.calibration or ()]
+    labelled = [Labelled(x.text, x.label == "anomaly",
+                         tuple(d.phrase for d in x.detections)) for x in body.calibration or ()]
     if labelled:
         _check_count(len(labelled), "calibration", settings)
     _check_texts([x.text for x in labelled], "calibration", settings, key="text")
@@ -113,12 +114,15 @@ async def score(name: str, body: Score, service: ServiceDep, settings: SettingsD
     bus's verdicts, refused while too much is waiting (429), dropped if the client
     leaves before its answer."""
     with metrics.score_seconds.time():
-        if body.texts is not None:
-            _check_count(len(body.texts), "texts", settings, settings.max_score_items,
+        if body.texts is not None or body.queries is not None:
+            field = "texts" if body.texts is not None else "queries"
+            texts = body.texts or [q.text for q in body.queries or ()]
+            detections = [q.detections for q in body.queries or ()]
+            _check_count(len(texts), field, settings, settings.max_score_items,
                          "AESOP_EMBEDDING_MAX_SCORE_ITEMS")
-            _check_texts(body.texts, "texts", settings)
-            batch = await unless_client_leaves(request,
-                                               service.score_texts(name, body.texts, body.k))
+            _check_texts(texts, field, settings, key=None if body.texts else "text")
+            batch = await unless_client_leaves(request, service.score_texts(
+                name, texts, body.k, detections=detections))
         else:
             vectors = body.vectors or []
             _check_count(len(vectors), "vectors", settings, settings.max_score_items,
@@ -153,7 +157,8 @@ def _items(body: AddExperiences, settings: EmbeddingSettings) -> list[Item]:
     if body.items is not None:
         _check_count(len(body.items), "items", settings)
         _check_texts([it.text for it in body.items], "items", settings, key="text")
-        return [Item(text=it.text, id=it.id, metadata=it.metadata) for it in body.items]
+        return [Item(text=it.text, id=it.id, metadata=it.metadata,
+                     detections=tuple(it.detections)) for it in body.items]
     vectors = body.vectors or []
     _check_count(len(vectors), "vectors", settings)
     ids: Sequence[str | None] = body.ids or [None] * len(vectors)
@@ -180,11 +185,10 @@ def _check_texts(texts: list[str], field: str, settings: EmbeddingSettings,
 
 
 def _score_response(batch: ScoreBatch) -> Scores:
-    threshold = batch.threshold
     return Scores(
-        results=[ScoreResult(score=r.score,
-                             is_anomaly=None if threshold is None else r.score > threshold,
-                             neighbors=list(r.neighbors))
+        results=[ScoreResult(score=r.score, is_anomaly=r.is_anomaly, neighbors=list(r.neighbors),
+                             detection_score=r.detection_score, p_value=r.p_value,
+                             detections=list(r.matches))
                  for r in batch.results],
-        threshold=threshold, stale=batch.stale, k=batch.k, model=batch.model,
+        threshold=batch.threshold, stale=batch.stale, k=batch.k, model=batch.model,
         version=batch.version)

@@ -13,7 +13,7 @@ from typing import Annotated, Any, Literal, TypeVar
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 from pydantic.json_schema import SkipJsonSchema
 
-from shared.messages import Float, Int, Neighbor, NotBool
+from shared.messages import MAX_DETECTIONS, Detection, DetectionMatch, Float, Int, Neighbor, NotBool
 
 from .cache import Cache, ScoreKind
 from .calibration import Method
@@ -79,10 +79,14 @@ class CreateCache(Body):
     index: IndexKind = "flat"
 
 
+Detections = Annotated[list[Detection], Field(max_length=MAX_DETECTIONS)]
+
+
 class ItemIn(Body):
     text: Text
     id: Id | None = None
     metadata: dict[str, Any] = Field(default_factory=dict)
+    detections: Detections = Field(default_factory=list)  # as Observation.detections
 
 
 class AddExperiences(Body):
@@ -114,6 +118,7 @@ class AddExperiences(Body):
 class LabelledIn(Body):
     text: Text
     label: Literal["nominal", "anomaly"]
+    detections: Detections = Field(default_factory=list)
 
 
 class Calibrate(Body):
@@ -140,25 +145,32 @@ class Calibrate(Body):
         return value
 
 
-class Score(Body):
-    """Either ``texts`` or ``vectors``; ``k`` defaults to the cache's."""
+class QueryIn(Body):
+    text: Text
+    detections: Detections = Field(default_factory=list)  # as Observation.detections
 
-    model_config = ConfigDict(extra="forbid",
-                              json_schema_extra=schema_extra(**exactly_one_of("texts", "vectors")))
+
+class Score(Body):
+    """One of ``texts``, ``queries`` (texts with their detections) or ``vectors``; ``k``
+    defaults to the cache's."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra=schema_extra(
+        **exactly_one_of("texts", "queries", "vectors")))
 
     texts: NonEmpty[Text] | SkipJsonSchema[None] = None
+    queries: NonEmpty[QueryIn] | SkipJsonSchema[None] = None
     vectors: NonEmpty[Vector] | SkipJsonSchema[None] = None
     k: Annotated[int, Field(ge=1, le=1000), NotBool] | None = None
 
     @model_validator(mode="before")
     @classmethod
     def _no_nulls(cls, data: Any) -> Any:
-        return refuse_nulls(data, "texts", "vectors")
+        return refuse_nulls(data, "texts", "queries", "vectors")
 
     @model_validator(mode="after")
     def _one_kind(self) -> Score:
-        if (self.texts is None) == (self.vectors is None):
-            raise ValueError("send either 'texts' or 'vectors'")
+        if sum(x is not None for x in (self.texts, self.queries, self.vectors)) != 1:
+            raise ValueError("send one of 'texts', 'queries' or 'vectors'")
         return self
 
 
@@ -195,6 +207,7 @@ class CacheInfo(Answer):
     threshold: Float | None
     calibration: CacheCalibration | None
     version: Int
+    detections: Int = 0  # distinct detections of the experiences (the nominal ones)
 
     @classmethod
     def of(cls, cache: Cache) -> CacheInfo:
@@ -204,7 +217,7 @@ class CacheInfo(Answer):
         c = cache.config
         return cls(name=c.name, size=cache.size, dim=c.dim, model=c.model, k=c.k,
                    score=c.score, index=c.index, threshold=cache.threshold, calibration=cal,
-                   version=cache.version)
+                   version=cache.version, detections=len(cache.detection_counts))
 
 
 class CacheList(Answer):
@@ -224,6 +237,7 @@ class Experience(Answer):
     id: str
     text: str | None
     metadata: dict[str, Any]
+    detections: list[Detection] = Field(default_factory=list)
 
 
 class Deleted(Answer):
@@ -250,6 +264,9 @@ class ScoreResult(Answer):
     score: Float  # s(e_t; D_e): higher is more anomalous
     is_anomaly: bool | None  # None while the cache has no tau
     neighbors: list[Neighbor]
+    detection_score: Float | None = None  # the worst detection's (with detections)
+    p_value: Float | None = None  # combined; anomaly iff below 1 - alpha
+    detections: list[DetectionMatch] = Field(default_factory=list)  # least nominal first
 
 
 class Scores(Answer):

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import re
 import threading
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -31,9 +32,22 @@ from typing import Any, TypeVar
 import numpy as np
 
 from shared.jobs import Job, Jobs
+from shared.messages import Detection
 
 from .batching import NORMAL, URGENT, ComputeThread, MicroBatcher
-from .cache import Add, Cache, CacheConfig, Delete, Labelled, Op, Scored, ScoreKind, unit_vectors
+from .cache import (
+    Add,
+    Cache,
+    CacheConfig,
+    CalibrationScores,
+    Delete,
+    Detections,
+    Labelled,
+    Op,
+    Scored,
+    ScoreKind,
+    unit_vectors,
+)
 from .calibration import (
     Calibration,
     CalibrationError,
@@ -101,7 +115,7 @@ class Entry:
     changed: int = 0  # experiences added or deleted since the index file was saved
     writer: asyncio.Lock = field(default_factory=asyncio.Lock)
     rw: RWLock = field(default_factory=RWLock)
-    batchers: dict[tuple[int, bool], MicroBatcher[str, Scored]] = field(default_factory=dict)
+    batchers: dict[tuple[int, bool], MicroBatcher[Query, Scored]] = field(default_factory=dict)
 
     def index_outdated(self) -> bool:
         """The saved index file is missing, older than the cache, or lacks a built graph."""
@@ -117,6 +131,19 @@ class Item:
     vector: Sequence[float] | None = None
     id: str | None = None
     metadata: Mapping[str, Any] = field(default_factory=dict)
+    detections: tuple[Detection, ...] = ()
+
+
+@dataclass(frozen=True)
+class Query:
+    """A text to score, with its detection phrases (distinct, in order)."""
+
+    text: str
+    phrases: tuple[str, ...] = ()
+
+    @classmethod
+    def of(cls, text: str, detections: Sequence[Detection] = ()) -> Query:
+        return cls(text, tuple(dict.fromkeys(d.phrase for d in detections)))
 
 
 @dataclass(frozen=True)
@@ -278,7 +305,8 @@ class CacheService:
             if label is None:
                 raise NotFound(f"no experience {ident!r} in cache {name!r}", field="id")
             exp = entry.cache.experiences[label]
-            return Experience(id=exp.id, text=exp.text, metadata=dict(exp.metadata))
+            return Experience(id=exp.id, text=exp.text, metadata=dict(exp.metadata),
+                              detections=list(exp.detections))
 
     # -- mutations --------------------------------------------------------------
 
@@ -334,10 +362,18 @@ class CacheService:
         entry = self.entry(name)
         config = entry.cache.config
         vectors = await self._vectors_for(config, items, job)
+        phrases = list(dict.fromkeys(d.phrase for it in items for d in it.detections))
+        if phrases and config.model is None:
+            raise Conflict(f"cache {name!r} has no embedding model to embed detections with",
+                           field="items")
+        with entry.rw.read():
+            unknown = [p for p in phrases if p not in entry.cache.detection_vectors]
+        found = await self._embed_phrases(config, unknown)
         async with entry.writer:
             op = entry.cache.plan_add(
                 vectors, ids=[it.id for it in items], texts=[it.text for it in items],
-                metadata=[it.metadata for it in items])
+                metadata=[it.metadata for it in items],
+                detections=[it.detections for it in items], detection_vectors=found)
             await self._commit(entry, op)
             result = Added(ids=[e.id for e in op.experiences],
                            size=entry.cache.size, version=entry.cache.version,
@@ -367,6 +403,17 @@ class CacheService:
             vectors[[i for i, _ in texts]] = embedded
         return vectors
 
+    async def _embed_phrases(self, config: CacheConfig, phrases: Sequence[str]
+                             ) -> dict[str, np.ndarray]:
+        """Unit vectors of detection ``phrases`` by the cache's model."""
+        if not phrases:
+            return {}
+        assert config.model is not None
+        embedder = await self._embedder(config.model)
+        rows = await self._on_compute(embedder.embed, list(phrases),
+                                      batch_size=self.settings.embed_batch_size)
+        return dict(zip(phrases, unit_vectors(rows), strict=True))
+
     async def delete(self, name: str, ident: str) -> Deleted:
         entry = self.entry(name)
         async with entry.writer:
@@ -386,14 +433,16 @@ class CacheService:
         calibration set with both classes, its ROC curve (at most 201 points)."""
         entry = self.entry(name)
         async with entry.writer:
-            scores = labels = None
+            scores = labels = detection = None
             if calibration:
-                vectors = await self._embed_texts(entry.cache.config,
-                                                  [x.text for x in calibration])
-                scores = np.array([r.score for r in await self._score_vectors(entry, vectors)])
+                scored = await self._score_labelled(entry, calibration)
+                scores = np.array([r.score for r in scored])
+                detection = np.array([np.nan if r.detection_score is None
+                                      else r.detection_score for r in scored])
                 labels = np.array([x.is_anomaly for x in calibration], dtype=bool)
             cal = await self._calibration(entry, method, alpha, tpr, scores, labels)
-            await self._commit(entry, entry.cache.plan_calibration(cal))
+            kept = await self._calibration_scores(entry, cal, scores, detection, labels)
+            await self._commit(entry, entry.cache.plan_calibration(cal, kept))
             version = entry.cache.version
         roc = None
         if scores is not None and labels is not None and labels.any() and (~labels).any():
@@ -426,9 +475,49 @@ class CacheService:
         except CalibrationError as exc:
             raise InvalidInput(str(exc), field=exc.field) from None
 
+    async def _score_labelled(self, entry: Entry, items: Sequence[Labelled]) -> list[Scored]:
+        """Score a labelled set, each with its detection phrases."""
+        config = entry.cache.config
+        if config.model is None:
+            raise Conflict(f"cache {config.name!r} has no embedding model",
+                           field="calibration")
+        await self._embedder(config.model)  # loaded off the compute thread
+        queries = [Query(x.text, tuple(dict.fromkeys(x.detections))) for x in items]
+        return await self._on_compute(self._embed_and_score, entry, entry.cache.config.k,
+                                      queries)
+
+    async def _calibration_scores(self, entry: Entry, cal: Calibration,
+                                  scores: np.ndarray | None, detection: np.ndarray | None,
+                                  labels: np.ndarray | None) -> CalibrationScores | None:
+        """The nominal scores behind ``cal``'s p-values: the leave-one-out scores of
+        both components (loo-quantile) or the calibration set's nominal ones (conformal);
+        None for tpr-target. Refused when the combined p-value could never flag."""
+        if cal.method == "loo-quantile":
+            kept = CalibrationScores.of(*await on_fresh_thread(self._loo_both, entry))
+        elif cal.method == "conformal" and scores is not None and labels is not None:
+            assert detection is not None
+            kept = CalibrationScores.of(scores[~labels], detection[~labels])
+        else:
+            return None
+        n = min(len(kept.observation), len(kept.detection))
+        if n and cal.alpha is not None and 2 / (n + 1) >= 1 - cal.alpha:
+            raise InvalidInput(
+                f"{n} nominal calibration scores with detections cannot flag anything at "
+                f"alpha {cal.alpha}: the smallest combined p-value is 2/(n+1) and needs to be "
+                f"below 1 - alpha (at least {math.ceil(2 / (1 - cal.alpha))} nominal "
+                "examples with detections, or a lower alpha)", field="alpha")
+        return kept
+
     def _loo(self, entry: Entry) -> np.ndarray:
         with entry.rw.read():
             return entry.cache.loo_scores()
+
+    def _loo_both(self, entry: Entry) -> tuple[np.ndarray, np.ndarray]:
+        with entry.rw.read():
+            observation = entry.cache.loo_scores()
+            detection = (entry.cache.loo_detection_scores() if entry.cache.has_detections
+                         else np.zeros(0))
+            return observation, detection
 
     async def _commit(self, entry: Entry, op: Op) -> None:
         """Commit ``op`` to the database, then apply it: a 2xx after this is durable."""
@@ -445,11 +534,15 @@ class CacheService:
     # -- scoring ------------------------------------------------------------------
 
     async def score_texts(self, name: str, texts: Sequence[str], k: int | None = None, *,
-                          urgent: bool = False) -> ScoreBatch:
-        """Score ``texts``. ``urgent`` (the bus's verdicts) goes before all other work on
+                          urgent: bool = False,
+                          detections: Sequence[Sequence[Detection]] = ()) -> ScoreBatch:
+        """Score ``texts``, each with its ``detections`` if given (one list per text).
+        ``urgent`` (the bus's verdicts) goes before all other work on
         the compute thread and is never refused; other work runs as chunks of
         ``score_chunk`` texts and is refused with :class:`Busy` past
         ``max_pending_texts``. Cancelling the call drops the chunks not yet started."""
+        queries = [Query.of(t, d) for t, d in
+                   zip(texts, detections or [()] * len(texts), strict=True)]
         entry = self.entry(name)
         cache = entry.cache
         k = k or cache.config.k
@@ -459,7 +552,7 @@ class CacheService:
             raise Conflict(f"cache {name!r} has no embedding model: score vectors",
                            field="texts")
         if urgent:
-            return self._batch(entry, await self._score_on(entry, k, list(texts), True), k)
+            return self._batch(entry, await self._score_on(entry, k, queries, True), k)
         limit = self.settings.max_pending_texts
         if self._rest_pending + len(texts) > limit:
             raise Busy(f"{self._rest_pending} texts are already waiting to be scored; with "
@@ -470,18 +563,18 @@ class CacheService:
             results: list[Scored] = []
             step = self.settings.score_chunk
             for start in range(0, len(texts), step):
-                results += await self._score_on(entry, k, list(texts[start:start + step]), False)
+                results += await self._score_on(entry, k, queries[start:start + step], False)
         finally:
             self._rest_pending -= len(texts)
         return self._batch(entry, results, k)
 
-    async def _score_on(self, entry: Entry, k: int, texts: list[str], urgent: bool
+    async def _score_on(self, entry: Entry, k: int, queries: list[Query], urgent: bool
                         ) -> list[Scored]:
         if self.settings.microbatch:
-            return await self._batcher(entry, k, urgent).submit(texts)
+            return await self._batcher(entry, k, urgent).submit(queries)
         return await asyncio.get_running_loop().run_in_executor(
             self._urgent if urgent else self._compute,
-            partial(self._embed_and_score, entry, k, texts))
+            partial(self._embed_and_score, entry, k, queries))
 
     async def score_vectors(self, name: str, rows: Sequence[Sequence[float]],
                             k: int | None = None) -> ScoreBatch:
@@ -495,24 +588,36 @@ class CacheService:
         c = entry.cache
         return ScoreBatch(results, c.threshold, c.stale, c.version, k, c.config.model)
 
-    def _batcher(self, entry: Entry, k: int, urgent: bool) -> MicroBatcher[str, Scored]:
+    def _batcher(self, entry: Entry, k: int, urgent: bool) -> MicroBatcher[Query, Scored]:
         """One batcher per (k, lane): the bus's observations are batched together and
         apart from REST chunks, which are batched up to one chunk's size."""
         if (k, urgent) not in entry.batchers:
             entry.batchers[k, urgent] = MicroBatcher(
-                lambda texts: self._embed_and_score(entry, k, texts),
+                lambda queries: self._embed_and_score(entry, k, queries),
                 max_items=self.settings.microbatch_max if urgent else self.settings.score_chunk,
                 window_s=self.settings.microbatch_window_ms / 1000,
                 on_batch=self._on_batch, executor=self._urgent if urgent else self._compute)
         return entry.batchers[k, urgent]
 
-    def _embed_and_score(self, entry: Entry, k: int, texts: list[str]) -> list[Scored]:
+    def _embed_and_score(self, entry: Entry, k: int, queries: list[Query]) -> list[Scored]:
+        """Embed the texts, and the detection phrases the cache has no vector for, in one
+        call; then score."""
         config = entry.cache.config
         assert config.model is not None
-        vectors = self.embedders.get(config.model).embed(
-            texts, batch_size=self.settings.embed_batch_size)
+        phrases = list(dict.fromkeys(p for q in queries for p in q.phrases))
         with entry.rw.read():
-            return entry.cache.score(vectors, k, self.settings.verdict_neighbors)
+            known = {p: entry.cache.detection_vectors[p] for p in phrases
+                     if p in entry.cache.detection_vectors}
+        unknown = [p for p in phrases if p not in known]
+        rows = self.embedders.get(config.model).embed(
+            [q.text for q in queries] + unknown, batch_size=self.settings.embed_batch_size)
+        vectors = rows[:len(queries)]
+        if unknown:
+            known |= dict(zip(unknown, unit_vectors(rows[len(queries):]), strict=True))
+        found = [Detections(q.phrases, np.stack([known[p] for p in q.phrases]))
+                 if q.phrases else None for q in queries]
+        with entry.rw.read():
+            return entry.cache.score(vectors, k, self.settings.verdict_neighbors, found)
 
     async def _score_vectors(self, entry: Entry, vectors: np.ndarray, k: int | None = None
                              ) -> list[Scored]:
@@ -521,14 +626,6 @@ class CacheService:
                 return entry.cache.score(vectors, k, self.settings.verdict_neighbors)
 
         return await self._on_compute(run)
-
-    async def _embed_texts(self, config: CacheConfig, texts: Sequence[str]) -> np.ndarray:
-        if config.model is None:
-            raise Conflict(f"cache {config.name!r} has no embedding model",
-                           field="calibration")
-        embedder = await self._embedder(config.model)
-        return await self._on_compute(embedder.embed, list(texts),
-                                       batch_size=self.settings.embed_batch_size)
 
     async def _on_compute(self, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
         """Run ``fn`` on the compute thread (see the module docstring)."""

@@ -15,11 +15,17 @@ million vectors is not rebuilt); an older one is loaded and caught up from the
 database; with none, or one that does not fit, the index is built from the
 stored vectors. A failed index save loses nothing.
 
-Schema (``PRAGMA user_version`` = 1)::
+Schema (``PRAGMA user_version`` = 2; a version-1 database is migrated on open)::
 
     caches(name PK, config JSON, version, next_label, calibration JSON|NULL, stale)
-    experiences(cache, label, id, text|NULL, metadata JSON, vector BLOB <f4, version)
-        PK (cache, label), UNIQUE (cache, id); ``version``: the one that added it
+    experiences(cache, label, id, text|NULL, metadata JSON, vector BLOB <f4, version,
+                detections JSON)
+        PK (cache, label), UNIQUE (cache, id); ``version``: the one that added it;
+        ``detections``: [{"label", "where"?, "confidence"?}] (version 2)
+    detection_vectors(cache, phrase, vector BLOB <f4)   PK (cache, phrase): every
+        detection phrase the cache's experiences brought, written with them (version 2)
+    calibration_scores(cache PK, observation BLOB <f8, detection BLOB <f8): the sorted
+        nominal scores behind the current calibration's p-values (version 2)
     changes(cache, version, op, detail JSON, at)   one row per version of each cache:
         op is create | add | delete | calibrate | configure | import
     imports(source PK, cache, version, at)   legacy data directories imported once
@@ -45,7 +51,20 @@ from typing import Any
 
 import numpy as np
 
-from .cache import Add, Cache, CacheConfig, Calibrate, Configure, Delete, Experience, Header, Op
+from shared.messages import Detection
+
+from .cache import (
+    Add,
+    Cache,
+    CacheConfig,
+    Calibrate,
+    CalibrationScores,
+    Configure,
+    Delete,
+    Experience,
+    Header,
+    Op,
+)
 from .calibration import Calibration
 from .index import VectorIndex
 
@@ -54,8 +73,18 @@ log = logging.getLogger(__name__)
 DB_NAME = "embedding.sqlite3"
 LOCK_NAME = "embedding.lock"
 INDEX_DIR = "indexes"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
+_V2_TABLES = """
+CREATE TABLE detection_vectors (
+    cache TEXT NOT NULL REFERENCES caches(name), phrase TEXT NOT NULL, vector BLOB NOT NULL,
+    PRIMARY KEY (cache, phrase)
+) STRICT;
+CREATE TABLE calibration_scores (
+    cache TEXT PRIMARY KEY REFERENCES caches(name), observation BLOB NOT NULL,
+    detection BLOB NOT NULL
+) STRICT;
+"""
 _SCHEMA = """
 CREATE TABLE caches (
     name TEXT PRIMARY KEY, config TEXT NOT NULL, version INTEGER NOT NULL,
@@ -64,6 +93,7 @@ CREATE TABLE caches (
 CREATE TABLE experiences (
     cache TEXT NOT NULL REFERENCES caches(name), label INTEGER NOT NULL, id TEXT NOT NULL,
     text TEXT, metadata TEXT NOT NULL, vector BLOB NOT NULL, version INTEGER NOT NULL,
+    detections TEXT NOT NULL DEFAULT '[]',
     PRIMARY KEY (cache, label), UNIQUE (cache, id)
 ) STRICT;
 CREATE INDEX experiences_by_version ON experiences (cache, version);
@@ -74,7 +104,11 @@ CREATE TABLE changes (
 CREATE TABLE imports (
     source TEXT PRIMARY KEY, cache TEXT NOT NULL, version INTEGER NOT NULL, at REAL NOT NULL
 ) STRICT;
-"""
+""" + _V2_TABLES
+# version 1 -> 2: experiences get their detections, caches their detection vectors and
+# calibration scores
+_MIGRATE_1 = ("ALTER TABLE experiences ADD COLUMN detections TEXT NOT NULL DEFAULT '[]';"
+              + _V2_TABLES)
 
 
 class StorageError(Exception):
@@ -133,6 +167,9 @@ class Store:
             schema = db.execute("PRAGMA user_version").fetchone()[0]
             if schema == 0:
                 db.executescript(f"BEGIN; {_SCHEMA} PRAGMA user_version={SCHEMA_VERSION}; COMMIT;")
+            elif schema == 1:
+                db.executescript(f"BEGIN; {_MIGRATE_1} PRAGMA user_version=2; COMMIT;")
+                log.info("%s: migrated from schema version 1 to 2", self.path)
             elif schema != SCHEMA_VERSION:
                 raise StorageCorrupt(self.path, f"schema version {schema}; this build reads "
                                                 f"{SCHEMA_VERSION}")
@@ -167,13 +204,22 @@ class Store:
         with self._mutex:
             header = self._header(name)
             experiences = {
-                label: Experience(ident, text, json.loads(meta))
-                for label, ident, text, meta in self._db.execute(
-                    "SELECT label, id, text, metadata FROM experiences WHERE cache = ? "
-                    "ORDER BY label", (name,))
+                label: Experience(ident, text, json.loads(meta),
+                                  tuple(Detection(**d) for d in json.loads(found)))
+                for label, ident, text, meta, found in self._db.execute(
+                    "SELECT label, id, text, metadata, detections FROM experiences "
+                    "WHERE cache = ? ORDER BY label", (name,))
             }
             index = self._index(header, set(experiences))
-        return Cache.restored(header, experiences, index)
+            phrases = {phrase: np.frombuffer(vector, dtype="<f4").astype(np.float32)
+                       for phrase, vector in self._db.execute(
+                           "SELECT phrase, vector FROM detection_vectors WHERE cache = ?",
+                           (name,))}
+            row = self._db.execute("SELECT observation, detection FROM calibration_scores "
+                                   "WHERE cache = ?", (name,)).fetchone()
+        scores = None if row is None else CalibrationScores(
+            *(np.frombuffer(blob, dtype="<f8").astype(np.float64) for blob in row))
+        return Cache.restored(header, experiences, index, phrases, scores)
 
     def _header(self, name: str) -> Header:
         row = self._db.execute("SELECT config, version, next_label, calibration, stale "
@@ -382,8 +428,9 @@ def _insert_experiences(db: sqlite3.Connection, name: str, labels: list[int],
                         experiences: list[Experience], vectors: np.ndarray, version: int) -> None:
     little = np.ascontiguousarray(vectors, dtype="<f4")
     db.executemany(
-        "INSERT INTO experiences VALUES (?, ?, ?, ?, ?, ?, ?)",
-        ((name, label, e.id, e.text, json.dumps(dict(e.metadata)), row.tobytes(), version)
+        "INSERT INTO experiences VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+        ((name, label, e.id, e.text, json.dumps(dict(e.metadata)), row.tobytes(), version,
+          json.dumps([d.model_dump(exclude_none=True) for d in e.detections]))
          for label, e, row in zip(labels, experiences, little, strict=True)))
 
 
@@ -391,6 +438,9 @@ def _write_op(db: sqlite3.Connection, name: str, op: Op) -> None:
     if isinstance(op, Add):
         _insert_experiences(db, name, list(op.labels), list(op.experiences), op.vectors,
                             op.version)
+        db.executemany("INSERT INTO detection_vectors VALUES (?, ?, ?)",
+                       ((name, phrase, np.ascontiguousarray(v, dtype="<f4").tobytes())
+                        for phrase, v in op.detection_vectors.items()))
         detail: dict[str, Any] = {"count": len(op.labels)}
         if op.labels:
             detail |= {"first_label": op.labels[0], "last_label": op.labels[-1]}
@@ -400,6 +450,11 @@ def _write_op(db: sqlite3.Connection, name: str, op: Op) -> None:
         _change(db, name, op.version, "delete", {"id": op.id, "label": op.label})
     elif isinstance(op, Calibrate):
         _change(db, name, op.version, "calibrate", op.calibration.to_dict())
+        db.execute("DELETE FROM calibration_scores WHERE cache = ?", (name,))
+        if op.scores is not None:
+            db.execute("INSERT INTO calibration_scores VALUES (?, ?, ?)", (
+                name, *(np.ascontiguousarray(x, dtype="<f8").tobytes()
+                        for x in (op.scores.observation, op.scores.detection))))
     elif isinstance(op, Configure):
         _change(db, name, op.version, "configure", {"k": op.k, "score": op.score})
 

@@ -27,19 +27,21 @@ log = logging.getLogger(__name__)
 
 def make_verdict(obs: Observation, robot: str, batch: ScoreBatch, cache: str,
                  latency_ms: float) -> AnomalyVerdict:
-    """h(o_t): anomaly iff s(e_t) > tau; no tau yet -> anomaly, with the reason."""
+    """h(o_t) as the cache judged it (``Cache.judge``); no tau yet -> anomaly, with the
+    reason."""
     scored = batch.results[0]
     reason = None
-    if batch.threshold is None:
+    if scored.is_anomaly is None:
         is_anomaly, reason = True, "cache not calibrated: fail-safe anomaly"
     else:
-        is_anomaly = scored.score > batch.threshold
+        is_anomaly = scored.is_anomaly
         if batch.stale:
             reason = "calibration is stale: experiences changed since it was computed"
     return AnomalyVerdict(
         robot=robot, seq=obs.seq, score=scored.score, threshold=batch.threshold,
         is_anomaly=is_anomaly, k=batch.k, neighbors=scored.neighbors, model=batch.model or "",
-        cache=cache, cache_version=batch.version, latency_ms=latency_ms, reason=reason)
+        cache=cache, cache_version=batch.version, latency_ms=latency_ms, reason=reason,
+        p_value=scored.p_value, detections=scored.matches)
 
 
 class DetectorWorker:
@@ -88,7 +90,8 @@ class DetectorWorker:
                         "not scored")
             return
         try:
-            batch = await self.service.score_texts(self.cache, [obs.text], urgent=True)
+            batch = await self.service.score_texts(self.cache, [obs.text], urgent=True,
+                                                   detections=[obs.detections])
         except DetectorError as exc:
             self._alarm(robot, f"cannot score observation {obs.seq}: {exc.message}")
             return

@@ -172,7 +172,7 @@ def rescore_recording(args: argparse.Namespace) -> int:
         observations,
         verdicts,
     )
-    from services.recording.rescore import compare, distinct_texts, summary, table
+    from services.recording.rescore import compare, distinct_scenes, summary, table
 
     if (args.nominal is None) == (args.cache is None):
         raise CliError("--recording needs either --nominal (a JSONL set to build a cache "
@@ -186,13 +186,13 @@ def rescore_recording(args: argparse.Namespace) -> int:
     if not recorded:
         raise CliError(f"{args.recording} has no observations"
                        + (f" of robot {args.robot}" if args.robot else ""))
-    texts = distinct_texts(recorded)
-    print(f"{len(recorded)} observations, {len(texts)} distinct scenes, {len(old)} recorded "
+    scenes = distinct_scenes(recorded)
+    print(f"{len(recorded)} observations, {len(scenes)} distinct scenes, {len(old)} recorded "
           "verdicts", file=sys.stderr)
     if args.cache is not None:
-        new, threshold, source = _scores_over_rest(args, texts)
+        new, threshold, source = _scores_over_rest(args, scenes)
     else:
-        new, threshold, source = _scores_offline(args, texts)
+        new, threshold, source = _scores_offline(args, scenes)
     rows = compare(recorded, old, new)
     result = {"recording": str(args.recording), "against": source} | summary(rows, threshold)
     if args.json:
@@ -206,8 +206,8 @@ def rescore_recording(args: argparse.Namespace) -> int:
     return 0
 
 
-def _scores_offline(args: argparse.Namespace, texts: list[str]
-                    ) -> tuple[dict[str, Any], float | None, str]:
+def _scores_offline(args: argparse.Namespace, scenes: list[Any]
+                    ) -> tuple[dict[Any, Any], float | None, str]:
     from services.bench.evaluate import EvalConfig, read_jsonl
     from services.embedding.embedders import EmbedderError, load_embedder
     from services.embedding.errors import DetectorError
@@ -220,14 +220,14 @@ def _scores_offline(args: argparse.Namespace, texts: list[str]
         calibration = read_jsonl(args.calibration) if args.calibration else []
         embedder = load_embedder(args.model or DEFAULT_MODEL)
         new, threshold, method = scores_offline(embedder, read_jsonl(args.nominal),
-                                                calibration, config, texts)
+                                                calibration, config, scenes)
     except (DetectorError, EmbedderError, ValueError) as exc:
         raise CliError(str(exc)) from None
     return new, threshold, f"{args.nominal} ({embedder.name}, {method})"
 
 
-def _scores_over_rest(args: argparse.Namespace, texts: list[str]
-                      ) -> tuple[dict[str, Any], float | None, str]:
+def _scores_over_rest(args: argparse.Namespace, scenes: list[Any]
+                      ) -> tuple[dict[Any, Any], float | None, str]:
     import asyncio
 
     import httpx
@@ -236,9 +236,9 @@ def _scores_over_rest(args: argparse.Namespace, texts: list[str]
     from services.recording.rescore import scores_from_cache
     from shared.client import ServiceError
 
-    async def run() -> tuple[dict[str, Any], float | None, int]:
+    async def run() -> tuple[dict[Any, Any], float | None, int]:
         async with EmbeddingClient(args.url, token=_admin_token(), timeout_s=120) as client:
-            return await scores_from_cache(client, args.cache, texts)
+            return await scores_from_cache(client, args.cache, scenes)
     try:
         new, threshold, version = asyncio.run(run())
     except (ServiceError, httpx.TransportError) as exc:

@@ -6,8 +6,8 @@ taken once per distinct scene (text and detections): a hundred copies of one sce
 would make every copy its neighbours' perfect match, and the leave-one-out
 calibration (eq. 2) would then learn a threshold of nothing. Each scene gets an id
 made from its content, so importing a recording twice (or two recordings of the
-same flight) adds nothing the second time. Its metadata say where it came from and
-carry its detections.
+same flight) adds nothing the second time. Its metadata say where it came from; its
+detections become the experience's (the cache's nominal detections).
 """
 
 from __future__ import annotations
@@ -45,8 +45,8 @@ class Scene:
         obs = self.first.observation
         return {"text": obs.text, "id": self.id, "metadata": {
             "source": self.first.source, "robot": obs.robot, "seq": obs.seq, "stamp": obs.stamp,
-            "task": obs.task, "seen": self.seen,
-            "detections": [d.model_dump(exclude_none=True) for d in obs.detections]}}
+            "task": obs.task, "seen": self.seen},
+            "detections": [d.model_dump(exclude_none=True) for d in obs.detections]}
 
 
 def scene_id(obs: Observation) -> str:

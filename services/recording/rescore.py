@@ -3,8 +3,9 @@ detector of today, beside the verdicts they got when they were recorded.
 
 :func:`compare` (pure) pairs each observation with its recorded verdict (by robot and
 seq) and its new score, from :func:`scores_offline` (an in-memory cache built from a
-nominal set) or :func:`scores_from_cache` (a running cache over REST). A scene seen
-many times is scored once.
+nominal set) or :func:`scores_from_cache` (a running cache over REST, each scene with
+its detections, judged as the live detector judges it). A scene (text and detections)
+seen many times is scored once.
 """
 
 from __future__ import annotations
@@ -17,11 +18,12 @@ from services.bench.evaluate import EvalConfig, fit, score_all
 from services.embedding.cache import Labelled
 from services.embedding.client import EmbeddingClient
 from services.embedding.embedders import Embedder
-from shared.messages import AnomalyVerdict
+from shared.messages import AnomalyVerdict, Detection, Observation
 
 from .recorded import RecordedObservation
 
 SCORE_CHUNK = 256  # texts per score request: the service's default limit
+Scene = tuple[str, tuple[Detection, ...]]  # an observation's text and detections
 
 
 @dataclass(frozen=True)
@@ -56,19 +58,23 @@ class Rescored:
                 "changed": self.changed}
 
 
-def distinct_texts(recorded: Sequence[RecordedObservation]) -> list[str]:
-    """Each text once, in the order first seen: what to score."""
-    return list(dict.fromkeys(r.observation.text for r in recorded))
+def scene(obs: Observation) -> Scene:
+    return obs.text, obs.detections
+
+
+def distinct_scenes(recorded: Sequence[RecordedObservation]) -> list[Scene]:
+    """Each scene once, in the order first seen: what to score."""
+    return list(dict.fromkeys(scene(r.observation) for r in recorded))
 
 
 def compare(recorded: Sequence[RecordedObservation],
             old: Mapping[tuple[str, int], AnomalyVerdict],
-            new: Mapping[str, NewScore]) -> list[Rescored]:
-    """One row per observation; ``new`` maps each distinct text to its new score."""
+            new: Mapping[Scene, NewScore]) -> list[Rescored]:
+    """One row per observation; ``new`` maps each distinct scene to its new score."""
     first = recorded[0].log_time_ns if recorded else 0
     return [Rescored(r.observation.robot, r.observation.seq, (r.log_time_ns - first) / 1e9,
                      r.observation.text, old.get((r.observation.robot, r.observation.seq)),
-                     new[r.observation.text]) for r in recorded]
+                     new[scene(r.observation)]) for r in recorded]
 
 
 def summary(rows: Sequence[Rescored], threshold: float | None) -> dict[str, Any]:
@@ -107,26 +113,27 @@ def _verdict(score: float, is_anomaly: bool | None) -> str:
 
 def scores_offline(embedder: Embedder, nominal: Sequence[Labelled],
                    calibration: Sequence[Labelled], config: EvalConfig,
-                   texts: Sequence[str]) -> tuple[dict[str, NewScore], float, str]:
-    """Each text's score against a cache of ``nominal`` built in memory and calibrated
-    by ``config``; with tau and the method's name."""
+                   scenes: Sequence[Scene]) -> tuple[dict[Scene, NewScore], float, str]:
+    """Each scene's text score against a cache of ``nominal`` built in memory and
+    calibrated by ``config``; with tau and the method's name."""
     cache, cal = fit(embedder, nominal, calibration, config)
-    scores = score_all(cache, embedder, texts, config.k)
-    new = {t: NewScore(float(s), bool(s > cal.threshold))
-           for t, s in zip(texts, scores, strict=True)}
+    scores = score_all(cache, embedder, [text for text, _ in scenes], config.k)
+    new = {s: NewScore(float(x), bool(x > cal.threshold))
+           for s, x in zip(scenes, scores, strict=True)}
     return new, cal.threshold, cal.method
 
 
-async def scores_from_cache(client: EmbeddingClient, cache: str, texts: Sequence[str]
-                            ) -> tuple[dict[str, NewScore], float | None, int]:
-    """Each text's score and verdict from a running cache; with its tau and version."""
+async def scores_from_cache(client: EmbeddingClient, cache: str, scenes: Sequence[Scene]
+                            ) -> tuple[dict[Scene, NewScore], float | None, int]:
+    """Each scene's score and verdict from a running cache; with its tau and version."""
     info = await client.cache(cache)
-    new: dict[str, NewScore] = {}
+    new: dict[Scene, NewScore] = {}
     threshold = info.threshold
-    for i in range(0, len(texts), SCORE_CHUNK):
-        chunk = texts[i:i + SCORE_CHUNK]
-        got = await client.score(cache, chunk)
+    for i in range(0, len(scenes), SCORE_CHUNK):
+        chunk = scenes[i:i + SCORE_CHUNK]
+        detections = [found for _, found in chunk] if any(f for _, f in chunk) else []
+        got = await client.score(cache, [text for text, _ in chunk], detections=detections)
         threshold = got.threshold
-        new |= {t: NewScore(r.score, r.is_anomaly)
-                for t, r in zip(chunk, got.results, strict=True)}
+        new |= {s: NewScore(r.score, r.is_anomaly)
+                for s, r in zip(chunk, got.results, strict=True)}
     return new, threshold, info.version

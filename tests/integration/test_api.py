@@ -322,3 +322,82 @@ def test_a_model_this_machine_lacks_is_422_naming_the_field(tmp_path: Path, mode
         assert r.status_code == 422, r.text
         assert r.json()["error"]["field"] == "model"
         assert client.get("/v1/caches", headers=AUTH).json()["caches"] == []
+
+
+# -- detections ----------------------------------------------------------------------
+
+THINGS = ["a pallet", "a scanner", "a storage shelf", "a worker", "a brown package"]
+
+
+def scene(i: int) -> dict:
+    held = [THINGS[j % len(THINGS)] for j in (i, i + 1, i + 2)]
+    return {"text": f"scene {i}: " + ", ".join(held), "id": f"s{i}",
+            "detections": [{"label": x, "where": "on the belt"} for x in held]}
+
+
+def test_experiences_with_detections_name_the_odd_one_in_a_verdict(tmp_path: Path) -> None:
+    with make_client(tmp_path) as client:
+        create(client, k=1)
+        r = client.post("/v1/caches/wm/experiences", headers=AUTH,
+                        json={"items": [scene(i) for i in range(40)]})
+        assert r.status_code == 200, r.text
+        info = client.get("/v1/caches/wm").json()
+        assert info["detections"] == len(THINGS)
+        exp = client.get("/v1/caches/wm/experiences/s0").json()
+        assert [{k: d[k] for k in ("label", "where")} for d in exp["detections"]] \
+            == scene(0)["detections"]
+        r = client.post("/v1/caches/wm/calibrate", headers=AUTH,
+                        json={"method": "loo-quantile", "alpha": 0.9})
+        assert r.status_code == 200, r.text
+        odd = [{"label": "a pallet", "where": "on the belt"},
+               {"label": "a burning battery", "where": "on the belt"}]
+        body = {"queries": [{"text": scene(3)["text"], "detections": scene(3)["detections"]},
+                            {"text": scene(3)["text"], "detections": odd}]}
+        first = client.post("/v1/caches/wm/score", json=body).json()
+    nominal, anomalous = first["results"]
+    assert nominal["is_anomaly"] is False and nominal["p_value"] == 1.0
+    assert nominal["detections"] == []
+    assert anomalous["is_anomaly"] is True and anomalous["p_value"] < 0.1
+    (named,) = anomalous["detections"]
+    assert named["detection"] == "a burning battery on the belt"
+    assert named["nearest"] in [f"{x} on the belt" for x in THINGS]
+    assert named["similarity"] < 1 and named["p_value"] is not None
+    with make_client(tmp_path) as client:  # the detections and the calibration are kept
+        assert client.post("/v1/caches/wm/score", json=body).json() == first
+
+
+@pytest.mark.parametrize(("body", "field"), [
+    ({"texts": ["a"], "queries": [{"text": "a"}]}, "body"),
+    ({"queries": [{"text": "a", "detections": [{"where": "on the belt"}]}]},
+     "queries[0].detections[0].label"),
+    ({"queries": [{"text": "a", "detections": [{"label": "x" * 201}]}]},
+     "queries[0].detections[0].label"),
+    ({"queries": [{"text": "a" * 5000}]}, "queries[0].text"),
+])
+def test_bad_detections_in_a_score_request_are_422_naming_the_field(
+        client: TestClient, body: dict, field: str) -> None:
+    create(client, k=1)
+    add_texts(client, "wm", NOMINAL[:3])
+    r = client.post("/v1/caches/wm/score", json=body)
+    assert r.status_code == 422, r.text
+    assert r.json()["error"]["field"].startswith(field)
+
+
+def test_detections_on_a_cache_without_a_model_are_refused(client: TestClient) -> None:
+    create(client, "raw", model=None, dim=2)
+    r = client.post("/v1/caches/raw/experiences", headers=AUTH,
+                    json={"items": [scene(0)]})
+    assert r.status_code == 409 and r.json()["error"]["field"] == "items"
+    assert client.get("/v1/caches/raw").json()["size"] == 0
+
+
+def test_too_few_scenes_with_detections_to_ever_flag_is_refused(client: TestClient) -> None:
+    create(client, k=1)
+    client.post("/v1/caches/wm/experiences", headers=AUTH,
+                json={"items": [scene(i) for i in range(12)]})
+    r = client.post("/v1/caches/wm/calibrate", headers=AUTH,
+                    json={"method": "loo-quantile", "alpha": 0.95})
+    assert r.status_code == 422, r.text
+    error = r.json()["error"]
+    assert error["field"] == "alpha" and "at least 40" in error["message"]
+    assert client.get("/v1/caches/wm").json()["calibration"] is None

@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.embedding.cache import Cache, CacheConfig
+from services.embedding.cache import Cache, CacheConfig, CalibrationScores, Detections
 from services.embedding.calibration import loo_quantile
 from services.embedding.errors import Conflict, InvalidInput, NotFound
 from services.embedding.index import VectorIndex
+from shared.messages import Detection
 
 
 def unit(rows: list[list[float]]) -> np.ndarray:
@@ -120,3 +121,98 @@ def test_self_search_agrees_with_faiss() -> None:
     f_sims, f_labels = index.search_exact(x, 4)
     np.testing.assert_allclose(sims, f_sims, atol=1e-5)
     assert (labels[:, 0] == np.arange(300) + 1000).all()
+
+
+# -- detections: the cache's nominal detections and the combined verdict ----------------
+
+AXES = {"red box": [1, 0, 0], "drill": [0, 1, 0], "tire": [0.9, 0.1, 0],
+        "keyboard": [0, 0, 1]}
+
+
+def found(*labels: str) -> Detections:
+    return Detections(tuple(labels), unit([AXES[x] for x in labels]))
+
+
+def add_with(cache: Cache, scenes: list[tuple[list[float], tuple[str, ...]]]) -> None:
+    n = len(scenes)
+    cache.apply(cache.plan_add(
+        np.asarray([v for v, _ in scenes], dtype=np.float32), ids=[None] * n,
+        texts=[f"t{i}" for i in range(n)], metadata=[{}] * n,
+        detections=[tuple(Detection(label=x) for x in labels) for _, labels in scenes],
+        detection_vectors={x: unit([AXES[x]])[0] for x in AXES}))
+
+
+def nominal_cache() -> Cache:
+    cache = make(k=1)
+    add_with(cache, [([1, 0.1 * i, 0], ("red box", "drill") if i % 2 else ("red box",))
+                     for i in range(50)])
+    return cache
+
+
+def test_a_cache_keeps_its_distinct_detections_and_how_many_experiences_hold_each() -> None:
+    cache = nominal_cache()
+    assert cache.detection_counts == {"red box": 50, "drill": 25}
+    assert cache.nominal_detections().labels == ("drill", "red box")
+    assert set(cache.detection_vectors) == {"red box", "drill"}  # only the phrases it holds
+    cache.apply(cache.plan_delete(cache.experiences[1].id))  # a scene with the drill
+    assert cache.detection_counts == {"red box": 49, "drill": 24}
+
+
+def test_a_plan_without_a_vector_for_a_new_detection_is_refused() -> None:
+    cache = make()
+    with pytest.raises(Conflict, match="no vector for detection 'a keyboard'"):
+        cache.plan_add(np.ones((1, 3), np.float32), ids=[None], texts=[None], metadata=[{}],
+                       detections=[(Detection(label="a keyboard"),)])
+    assert cache.size == 0
+
+
+def calibrate_both(cache: Cache, alpha: float = 0.9) -> None:
+    obs, dets = cache.loo_scores(), cache.loo_detection_scores()
+    cache.apply(cache.plan_calibration(loo_quantile(obs, alpha),
+                                       CalibrationScores.of(obs, dets)))
+
+
+def test_an_odd_detection_among_nominal_ones_is_named_with_its_nearest_and_p_value() -> None:
+    cache = nominal_cache()
+    calibrate_both(cache)
+    near = unit([[1, 0.5, 0]])  # the whole observation is as nominal as can be
+    (plain,) = cache.score(near)
+    assert plain.is_anomaly is False and plain.p_value is None and plain.matches == ()
+    (odd,) = cache.score(near, detections=[found("red box", "keyboard")])
+    assert odd.is_anomaly is True
+    assert odd.detection_score == pytest.approx(0.0, abs=1e-4)  # keyboard ⟂ everything
+    (match,) = odd.matches  # the red box is seen as it is: not named
+    assert match.detection == "keyboard" and match.similarity == pytest.approx(0, abs=1e-4)
+    assert match.nearest in ("drill", "red box")
+    # the smallest p-value, 1/(n+1) with 50 scenes with detections, doubled by Bonferroni
+    assert match.p_value == pytest.approx(1 / 51) and odd.p_value == pytest.approx(2 / 51)
+    (seen,) = cache.score(near, detections=[found("red box", "drill")])
+    assert seen.is_anomaly is False and seen.p_value == 1.0 and seen.matches == ()
+
+
+def test_a_near_detection_is_named_but_judged_by_the_calibration() -> None:
+    cache = nominal_cache()
+    calibrate_both(cache)
+    (tire,) = cache.score(unit([[1, 0.5, 0]]), detections=[found("red box", "tire")])
+    (match,) = tire.matches
+    assert match.nearest == "red box" and match.similarity == pytest.approx(0.9939, abs=1e-4)
+    # every nominal detection is held by many scenes: their LOO scores are all -1, so a
+    # detection not seen as it is gets the smallest p-value: flagged
+    assert tire.is_anomaly is True
+
+
+def test_without_detection_scores_in_the_calibration_the_verdict_is_the_threshold() -> None:
+    cache = nominal_cache()
+    cache.apply(cache.plan_calibration(loo_quantile(cache.loo_scores(), 0.9)))  # no scores
+    (r,) = cache.score(unit([[1, 0.5, 0]]), detections=[found("red box", "keyboard")])
+    assert r.is_anomaly is False and r.p_value is None  # score <= tau, as before
+    assert [m.detection for m in r.matches] == ["keyboard"] and r.matches[0].p_value is None
+
+
+def test_a_text_only_query_is_judged_exactly_as_before() -> None:
+    cache = nominal_cache()
+    calibrate_both(cache)
+    q = unit([[1, 0.5, 0], [0, 0, 1], [1, 3, 0]])
+    assert cache.calibration is not None
+    for r in cache.score(q):
+        assert r.is_anomaly == (r.score > cache.calibration.threshold) and r.p_value is None

@@ -22,9 +22,11 @@ from services.recording.rescore import (
     NewScore,
     Rescored,
     compare,
-    distinct_texts,
     summary,
     table,
+)
+from services.recording.rescore import (
+    distinct_scenes as distinct_observed,
 )
 from shared.messages import AnomalyVerdict, ControlState, Detection, Observation
 
@@ -103,7 +105,7 @@ def test_each_scene_once_with_its_count_and_a_content_id(flight: Path) -> None:
         seq=1, text="a red box", detections=(Detection(label="red box"),)))
     item = scenes[2].item()
     assert item["id"] == scenes[2].id and item["text"] == "a keyboard on the ground"
-    assert item["metadata"]["detections"] == [{"label": "a keyboard", "where": "on the ground"}]
+    assert item["detections"] == [{"label": "a keyboard", "where": "on the ground"}]
     assert item["metadata"]["seen"] == 1 and item["metadata"]["source"] == "flight.mcap"
 
 
@@ -120,10 +122,12 @@ def test_replay_keeps_the_recorded_timing_scaled() -> None:
 
 def test_rescoring_pairs_old_and_new_verdicts_and_marks_changes(flight: Path) -> None:
     recorded = list(observations(flight, robot="robot0"))
-    texts = distinct_texts(recorded)
-    assert texts == ["a red box", "a blue box", "a keyboard on the ground"]
-    new = {"a red box": NewScore(0.1, False), "a blue box": NewScore(0.2, False),
-           "a keyboard on the ground": NewScore(0.8, True)}
+    scenes = distinct_observed(recorded)  # text and detections
+    keyboard = (Detection(label="a keyboard", where="on the ground"),)
+    assert scenes == [("a red box", ()), ("a blue box", ()),
+                      ("a keyboard on the ground", keyboard)]
+    new = {scenes[0]: NewScore(0.1, False), scenes[1]: NewScore(0.2, False),
+           scenes[2]: NewScore(0.8, True)}
     rows = compare(recorded, verdicts(flight), new)
     assert len(rows) == 10 and rows[7].t_s == 7.0
     assert [r.seq for r in rows if r.changed] == [7]
@@ -140,7 +144,7 @@ def test_rescoring_pairs_old_and_new_verdicts_and_marks_changes(flight: Path) ->
 
 def test_an_observation_without_a_recorded_verdict_is_no_change(flight: Path) -> None:
     recorded = list(observations(flight, robot="robot1"))
-    rows = compare(recorded, verdicts(flight), {"elsewhere": NewScore(0.9, True)})
+    rows = compare(recorded, verdicts(flight), {("elsewhere", ()): NewScore(0.9, True)})
     assert rows[0].old is None and not rows[0].changed
     assert "—" in table(rows)
     two_lines = Rescored("robot0", 1, 0.0, "a red box\na drill", None, NewScore(0.1, False))

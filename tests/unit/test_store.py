@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import shutil
 import sqlite3
@@ -10,11 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.embedding.cache import Cache, CacheConfig, Op
+from services.embedding.cache import Cache, CacheConfig, CalibrationScores, Op
 from services.embedding.calibration import loo_quantile
 from services.embedding.legacy import legacy_caches, read_legacy
 from services.embedding.schemas import CacheInfo
 from services.embedding.store import DB_NAME, StorageCorrupt, StorageError, StorageFull, Store
+from shared.messages import Detection
 
 LEGACY = Path(__file__).parents[1] / "data" / "legacy-store"
 LOGGER = "services.embedding.store"
@@ -169,6 +171,69 @@ def test_a_database_from_a_newer_build_is_refused(tmp_path: Path) -> None:
         db.execute("PRAGMA user_version=99")
     with pytest.raises(StorageCorrupt, match="schema version 99"):
         Store(tmp_path)
+
+
+def test_detections_and_calibration_scores_round_trip(tmp_path: Path) -> None:
+    with Store(tmp_path) as store:
+        cache = Cache(CacheConfig("d", "m", 4, k=1))
+        store.create(cache.config)
+        seen = (Detection(label="a drill", where="on the ground", confidence=0.8),
+                Detection(label="a red box"))
+        phrases = {d.phrase: row for d, row in zip(seen, vectors(2, 4, 7), strict=True)}
+        op = cache.plan_add(vectors(5, 4, 3), ids=[f"x{i}" for i in range(5)],
+                            texts=[None] * 5, metadata=[{}] * 5,
+                            detections=[seen[: 1 + i % 2] for i in range(5)],
+                            detection_vectors=phrases)
+        commit(store, cache, op)
+        obs, dets = cache.loo_scores(), cache.loo_detection_scores()
+        commit(store, cache, cache.plan_calibration(loo_quantile(obs, 0.9),
+                                                    CalibrationScores.of(obs, dets)))
+    with Store(tmp_path) as store:
+        loaded = store.load("d")
+    assert loaded.experiences == cache.experiences  # detections and all
+    assert loaded.detection_counts == {"a drill on the ground": 5, "a red box": 2}
+    assert loaded.calibration_scores is not None and cache.calibration_scores is not None
+    for got, want in [(loaded.calibration_scores.observation, cache.calibration_scores.observation),
+                      (loaded.calibration_scores.detection, cache.calibration_scores.detection)]:
+        assert got.tolist() == want.tolist() and len(got) == 5
+    np.testing.assert_array_equal(loaded.nominal_detections().vectors,
+                                  cache.nominal_detections().vectors)
+
+
+V1_SCHEMA = """
+CREATE TABLE caches (name TEXT PRIMARY KEY, config TEXT NOT NULL, version INTEGER NOT NULL,
+    next_label INTEGER NOT NULL, calibration TEXT, stale INTEGER NOT NULL) STRICT;
+CREATE TABLE experiences (cache TEXT NOT NULL REFERENCES caches(name),
+    label INTEGER NOT NULL, id TEXT NOT NULL, text TEXT, metadata TEXT NOT NULL,
+    vector BLOB NOT NULL, version INTEGER NOT NULL, PRIMARY KEY (cache, label),
+    UNIQUE (cache, id)) STRICT;
+CREATE INDEX experiences_by_version ON experiences (cache, version);
+CREATE TABLE changes (cache TEXT NOT NULL REFERENCES caches(name), version INTEGER NOT NULL,
+    op TEXT NOT NULL, detail TEXT NOT NULL, at REAL NOT NULL,
+    PRIMARY KEY (cache, version)) STRICT;
+CREATE TABLE imports (source TEXT PRIMARY KEY, cache TEXT NOT NULL, version INTEGER NOT NULL,
+    at REAL NOT NULL) STRICT;
+"""
+
+
+def test_a_version_1_database_is_migrated_keeping_everything(tmp_path: Path) -> None:
+    config = {"name": "old", "model": None, "dim": 4, "k": 1, "score": "topk",
+              "index": "flat", "shrinkage": 0.1}
+    rows = vectors(3, 4, 5)
+    with sqlite3.connect(tmp_path / DB_NAME) as db:
+        db.executescript(V1_SCHEMA + "PRAGMA user_version=1;")
+        db.execute("INSERT INTO caches VALUES ('old', ?, 1, 3, NULL, 0)", (json.dumps(config),))
+        db.executemany("INSERT INTO experiences VALUES ('old', ?, ?, ?, '{}', ?, 1)",
+                       [(i, f"e{i}", f"text {i}", rows[i].astype("<f4").tobytes())
+                        for i in range(3)])
+    with Store(tmp_path) as store:
+        loaded = store.load("old")
+        assert loaded.size == 3 and loaded.version == 1
+        assert [e.text for e in loaded.experiences.values()] == ["text 0", "text 1", "text 2"]
+        assert all(e.detections == () for e in loaded.experiences.values())
+        commit_add(store, loaded, 1, seed=9)  # and it takes new writes
+    with sqlite3.connect(tmp_path / DB_NAME) as db:
+        assert db.execute("PRAGMA user_version").fetchone()[0] == 2
 
 
 # -- the format before SQLite --------------------------------------------------
