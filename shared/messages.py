@@ -153,12 +153,15 @@ class Option(BaseModel):
 
 
 class ReasonerRequest(Message):
-    """Control -> reasoner: decide among ``options`` within ``deadline_s`` (K)."""
+    """Control -> reasoner: decide among ``options`` within ``deadline_s`` (K).
+    ``unusual``: the detections the verdict that raised the anomaly named (the prompt
+    shows them with their nearest nominal detections)."""
 
     request_id: str = Field(min_length=1, max_length=128)
     observation: Observation
     options: tuple[Option, ...] = Field(min_length=1, max_length=64)
     deadline_s: Finite = Field(gt=0.0)
+    unusual: tuple[DetectionMatch, ...] = Field(default=(), max_length=MAX_DETECTIONS)
 
 
 DecisionSource = Literal["llm", "timeout", "parse_error", "backend_error"]

@@ -53,11 +53,16 @@ from services.embedding.schemas import CacheInfo
 from services.scenes import (
     QUADROTOR_SCENARIOS,
 )
-from services.scenes.hardware import build_scene_cache, observation_text
+from services.scenes.hardware import (
+    build_scene_cache,
+    camera_observation,
+    detections_of,
+    observation_text,
+)
 from services.stack.up import DETECTOR_CACHE
 from shared import topics
 from shared.bus import Bus, Received, Subscription
-from shared.messages import AnomalyVerdict, ControlState, Observation
+from shared.messages import AnomalyVerdict, ControlState
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
 from shared.tables import table
@@ -119,7 +124,9 @@ async def pick_scenes(detector: EmbeddingClient, cache_detections: int = 4
     nominal = observation_text(QUADROTOR_SCENARIOS["nominal"].detections[:cache_detections])
     anomalous = [observation_text(s.detections) for s in QUADROTOR_SCENARIOS.values()
                  if s.expected_anomaly]
-    scored = await detector.score(CACHE, [nominal, *anomalous])
+    texts = [nominal, *anomalous]  # scored with their detections, as the camera sends them
+    scored = await detector.score(CACHE, texts, detections=[
+        detections_of(text.splitlines()) for text in texts])
     flags = [r.is_anomaly for r in scored.results]
     if flags[0]:
         raise BenchError(f"the cache flags its own nominal scene {nominal!r}")
@@ -164,7 +171,7 @@ class Scene:
         if text is not None:
             self.text = text
         seq, self.seq = self.seq, self.seq + 1
-        obs = Observation(robot=ROBOT, seq=seq, task="landing on the red box", text=self.text)
+        obs = camera_observation(self.text, seq, ROBOT)
         sent = time.monotonic()
         self.bus.publish(topics.observation(ROBOT), obs)
         self.sent[seq] = sent
@@ -209,7 +216,7 @@ async def warm_up(scene: Scene, verdicts: Verdicts, n: int = 10) -> None:
     while 0 not in verdicts.arrived:
         if time.monotonic() > deadline:
             raise BenchError("no verdict from the embedding service over Zenoh")
-        probe = Observation(robot=ROBOT, seq=0, text=scene.text)
+        probe = camera_observation(scene.text, 0, ROBOT)
         scene.bus.publish(topics.observation(ROBOT), probe)
         await asyncio.sleep(0.2)
     for _ in range(n):

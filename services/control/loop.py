@@ -458,11 +458,14 @@ class ControlRuntime:
         left = max(self.scenario.consensus if consensus_left is None else consensus_left, 0)
         due = deadline + left * self.period_s
         deadline_s = max(due - self.clock() - self.settings.decision_margin_s, 1e-3)
+        verdict = None if inputs.verdict is None else inputs.verdict.message
+        unusual = verdict.detections if verdict is not None and verdict.is_anomaly \
+            and not silent else ()
         return ReasonerRequest(robot=robot, request_id=uuid.uuid4().hex,
                                observation=observation,
                                options=options_for(self.scenario.regions, offered,
                                                    continue_=not silent),
-                               deadline_s=deadline_s)
+                               deadline_s=deadline_s, unusual=unusual)
 
     def _output_events(self, output: ControlOutput, request: ReasonerRequest | None
                        ) -> list[Event]:

@@ -2,7 +2,8 @@
 
 It brings the stack up (:mod:`services.stack.up`, logs under ``<out>/logs``),
 builds the nominal cache of the hardware scene over REST (every combination of
-up to 4 nominal detections), calibrates tau for a 0.9 TPR (top-1 scores), then
+up to 4 nominal detections, each with its detections), calibrates it split-conformal
+(top-1 scores; observations with detections judged by the combined p-value), then
 flies each scenario of :data:`services.scenes.hardware.SCENARIOS`: reset the
 control loop at the start position, publish the scripted ``Observation``s at
 the loop rate, and record what comes back over Zenoh (states, requests,
@@ -32,7 +33,13 @@ from services.control.client import ControlClient
 from services.control.scenario import Scenario, load_scenario
 from services.embedding.client import EmbeddingClient
 from services.recording.record import Background, Totals
-from services.scenes.hardware import SCENARIOS, DemoScenario, build_scene_cache, observation_text
+from services.scenes.hardware import (
+    SCENARIOS,
+    DemoScenario,
+    build_scene_cache,
+    camera_observation,
+    observation_text,
+)
 from services.stack.acl import MONITOR, robot_user
 from services.stack.up import (
     DETECTOR_CACHE,
@@ -47,9 +54,7 @@ from shared.bus import Bus, Subscription
 from shared.messages import (
     AnomalyVerdict,
     ControlState,
-    Detection,
     Event,
-    Observation,
     ReasonerDecision,
     ReasonerRequest,
 )
@@ -241,11 +246,8 @@ class Camera:
         while True:
             self.seq += 1
             seen = self.detections()
-            self.bus.publish(topics.observation(self.robot), Observation(
-                robot=self.robot, seq=self.seq, task="landing on the red box",
-                text=observation_text(seen), detections=tuple(
-                    Detection(label=d.rsplit(" on ", 1)[0], where="on " + d.rsplit(" on ", 1)[1])
-                    for d in seen)))
+            self.bus.publish(topics.observation(self.robot),
+                             camera_observation(observation_text(seen), self.seq, self.robot))
             await asyncio.sleep(self.period_s)
 
 

@@ -253,8 +253,10 @@ def parse_prompt(prompt: str) -> ParsedPrompt:
                 observations.append(rest.lstrip("> ").strip())
         elif low.startswith("options:"):
             section = "opt"
+        elif low.startswith("unusual detections"):
+            section = "unusual"  # the detector's finding: the observation says it all
         elif line.startswith(">"):
-            if section != "opt":
+            if section not in ("opt", "unusual"):
                 observations.append(line.lstrip("> ").strip())
         elif section == "opt" and (m := _OPTION.match(line)):
             label, description = _split_label(m.group(2))

@@ -172,7 +172,8 @@ class Decider:
         start = self._clock() if received_at is None else received_at
         deadline = start + request.deadline_s - self._config.margin_s
         flagged = suspicious_scene(task=request.observation.task,
-                                   observation=request.observation.text)
+                                   observation=request.observation.text,
+                                   unusual=request.unusual)
         if flagged:
             return self._fallback(request, start, "parse_error",
                                   f"injection: {flagged}; LLM not asked")
@@ -210,7 +211,7 @@ class Decider:
     def _messages(self, request: ReasonerRequest) -> list[dict[str, str]]:
         return build_messages(self._template, task=request.observation.task or DEFAULT_TASK,
                               observation=request.observation.text, options=request.options,
-                              variant=self._config.variant)
+                              variant=self._config.variant, unusual=request.unusual)
 
     # ------------------------------------------------------------------ the race
 

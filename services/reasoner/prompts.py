@@ -15,6 +15,8 @@ fake LLM server and :mod:`services.reasoner.parsing` rely on them)::
     Observation:
     > <observation line 1>
     > <observation line 2>
+    Unusual detections (nearest nominal detection, cosine similarity):
+    > <detection> (nearest nominal: <detection>, 0.61)
     Options:
     0: continue nominal operation
     1: <label> — <description>
@@ -22,10 +24,13 @@ fake LLM server and :mod:`services.reasoner.parsing` rely on them)::
     <instruction>
     End your answer with one line exactly: FINAL ANSWER: <option number>
 
-The task and the observation are untrusted text: every line is quoted with ``"> "``
-(the task is one line, its line breaks folded to spaces) so neither can open its own
-``Options:`` or ``FINAL ANSWER:`` line, and :func:`suspicious_scene` flags either one
-when it tries to inject instructions.
+The ``Unusual detections`` block is there only when the anomaly detector named the
+observation's odd detections (``ReasonerRequest.unusual``).
+
+The task, the observation and the detections are untrusted text: every line is quoted
+with ``"> "`` (the task and each detection are one line, line breaks folded to spaces) so
+none can open its own ``Options:`` or ``FINAL ANSWER:`` line, and
+:func:`suspicious_scene` flags any of them when it tries to inject instructions.
 """
 
 from __future__ import annotations
@@ -40,7 +45,7 @@ from typing import Literal
 
 import yaml
 
-from shared.messages import Option
+from shared.messages import DetectionMatch, Option
 
 Variant = Literal["cot", "single"]
 
@@ -120,9 +125,10 @@ def build_prompt(
     observation: str,
     options: Sequence[Option],
     variant: Variant = "cot",
+    unusual: Sequence[DetectionMatch] = (),
 ) -> str:
     """The single-string prompt: description, scene, instruction (module docstring layout)."""
-    scene = render_scene(task=task, observation=observation, options=options)
+    scene = render_scene(task=task, observation=observation, options=options, unusual=unusual)
     return f"{template.description}\n\n{scene}\n\n{_instruction(template, variant)}"
 
 
@@ -133,20 +139,37 @@ def build_messages(
     observation: str,
     options: Sequence[Option],
     variant: Variant = "cot",
+    unusual: Sequence[DetectionMatch] = (),
 ) -> list[dict[str, str]]:
     """OpenAI chat messages: system = description + instructions, user = the scene."""
-    scene = render_scene(task=task, observation=observation, options=options)
+    scene = render_scene(task=task, observation=observation, options=options, unusual=unusual)
     system = f"{template.description}\n\n{_instruction(template, variant)}"
     return [{"role": "system", "content": system}, {"role": "user", "content": scene}]
 
 
-def render_scene(*, task: str, observation: str, options: Sequence[Option]) -> str:
-    """The ``Task:`` / ``Observation:`` / ``Options:`` block."""
+UNUSUAL = "Unusual detections (nearest nominal detection, cosine similarity):"
+
+
+def render_scene(*, task: str, observation: str, options: Sequence[Option],
+                 unusual: Sequence[DetectionMatch] = ()) -> str:
+    """The ``Task:`` / ``Observation:`` / [``Unusual detections:``] / ``Options:`` block."""
     return (
         f"Task:\n{QUOTE}{_single_line(task, 'task')}\n"
         f"Observation:\n{quote_observation(observation)}\n"
-        f"Options:\n{render_options(options)}"
+        + (f"{UNUSUAL}\n{render_unusual(unusual)}\n" if unusual else "")
+        + f"Options:\n{render_options(options)}"
     )
+
+
+def unusual_line(match: DetectionMatch) -> str:
+    """"a keyboard on the ground (nearest nominal: a drill on the ground, 0.61)"."""
+    return (f"{' '.join(match.detection.split())} (nearest nominal: "
+            f"{' '.join(match.nearest.split())}, {match.similarity:.2f})")
+
+
+def render_unusual(unusual: Sequence[DetectionMatch]) -> str:
+    """One quoted line per detection the anomaly detector named."""
+    return "\n".join(QUOTE + unusual_line(m) for m in unusual)
 
 
 def _instruction(template: Template, variant: Variant) -> str:
@@ -248,10 +271,13 @@ def suspicious_observation(text: str) -> str | None:
     return None
 
 
-def suspicious_scene(*, task: str, observation: str) -> str | None:
+def suspicious_scene(*, task: str, observation: str,
+                     unusual: Sequence[DetectionMatch] = ()) -> str | None:
     """Which of the scene's untrusted texts tries to inject instructions, and how
-    (``task flagged (...)``, ``observation flagged (...)``), else None."""
-    for name, text in (("observation", observation), ("task", task)):
+    (``task flagged (...)``, ``observation flagged (...)``, ``detections flagged
+    (...)``), else None."""
+    named = "\n".join(unusual_line(m) for m in unusual)
+    for name, text in (("observation", observation), ("task", task), ("detections", named)):
         flagged = suspicious_observation(text)
         if flagged:
             return f"{name} flagged ({flagged})"

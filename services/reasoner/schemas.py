@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from shared.messages import Float, Int, Observation, Option
+from shared.messages import MAX_DETECTIONS, DetectionMatch, Float, Int, Observation, Option
 
 
 class ReasonBody(BaseModel):
@@ -16,6 +16,7 @@ class ReasonBody(BaseModel):
     observation: Observation
     options: list[Option] = Field(min_length=1)
     deadline_s: Float = Field(gt=0.0)
+    unusual: list[DetectionMatch] = Field(default_factory=list, max_length=MAX_DETECTIONS)
 
     @field_validator("options")
     @classmethod

@@ -18,6 +18,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from shared.messages import Detection, Observation
+
 from . import quadrotor_calibration, quadrotor_nominal
 from .quadrotor import ON_BLUE_BOX, ON_RED_BOX, canonical, detection
 
@@ -76,34 +78,49 @@ def observation_text(detections: Sequence[str]) -> str:
     return "\n".join(canonical(detections))
 
 
-def nominal_texts(max_detections: int = 4) -> list[str]:
-    """D_e: every combination of 1..``max_detections`` nominal detections, as observation
-    texts (4, the hardware appendix's, gives 385)."""
-    return [observation_text(s.concepts) for s in quadrotor_nominal(max_detections)]
+def camera_observation(text: str, seq: int, robot: str, task: str = "landing on the red box"
+                       ) -> Observation:
+    """The camera's observation of a scene written by :func:`observation_text`: its text
+    and, one per line, its detections."""
+    return Observation(robot=robot, seq=seq, task=task, text=text,
+                       detections=detections_of(text.splitlines()))
 
 
-def calibration_set(seed: int = 0) -> list[dict[str, str]]:
-    """D_c: labelled frames for the TPR-0.9 threshold of the hardware appendix."""
-    return [{"text": observation_text(s.concepts), "label": s.label}
-            for s in quadrotor_calibration(seed=seed)]
+def detections_of(phrases: Sequence[str]) -> tuple[Detection, ...]:
+    """The camera's detections: "a drill on the ground" -> label "a drill", where "on the
+    ground"."""
+    return tuple(Detection(label=d.rsplit(" on ", 1)[0], where="on " + d.rsplit(" on ", 1)[1])
+                 if " on " in d else Detection(label=d) for d in phrases)
 
 
 async def build_scene_cache(client: EmbeddingClient, name: str, *, model: str | None = None,
                             say: Callable[[str], None] = lambda _: None,
-                            max_detections: int = 4) -> tuple[CacheInfo, Calibrated]:
-    """The hardware scene's nominal cache over REST, calibrated as the paper did on
-    hardware: TPR 0.9 on :func:`calibration_set`, top-1 scores. A cache kept from an
-    earlier run with exactly the scene's experiences is reused as it is."""
-    texts = nominal_texts(max_detections)
+                            max_detections: int = 4, alpha: float = 0.95
+                            ) -> tuple[CacheInfo, Calibrated]:
+    """The hardware scene's nominal cache over REST, each experience with its detections,
+    calibrated split-conformal at ``alpha`` on the nominal frames of the scene's
+    calibration set (``quadrotor_calibration``; its anomalies give the AUROC), top-1
+    scores. A verdict on an observation with detections is then the combined p-value of
+    the whole observation and its worst detection. A cache kept from an earlier run with
+    exactly the scene's experiences is reused as it is."""
+    scenes = [s.concepts for s in quadrotor_nominal(max_detections)]
     info = await client.create_cache(name, model=model, k=1)
-    if info.size != len(texts):
+    if info.size != len(scenes) or not info.detections:
         if info.size:
-            raise ValueError(f"cache {name!r} holds {info.size} experiences, not the "
-                             f"{len(texts)} of the scene: remove it (or the data dir) first")
-        say(f"building the nominal cache: {len(texts)} combinations of up to "
+            raise ValueError(f"cache {name!r} holds {info.size} experiences and "
+                             f"{info.detections} detections, not the {len(scenes)} scenes of "
+                             "the hardware scene: remove it (or the data dir) first")
+        say(f"building the nominal cache: {len(scenes)} combinations of up to "
             f"{max_detections} detections")
-        await client.add_texts(name, texts, background=True)
-    cal = await client.calibrate(name, "tpr-target", tpr=0.9, calibration=[
-        (row["text"], row["label"] == "anomaly") for row in calibration_set()])
-    say(f"calibrated: tau = {cal.threshold:.4f}, TPR {cal.tpr or 0:.2f}, FPR {cal.fpr or 0:.2f}")
+        await client.add_items(name, [
+            {"text": observation_text(seen),
+             "detections": [d.model_dump(exclude_none=True) for d in detections_of(seen)]}
+            for seen in scenes], background=True)
+    rows = quadrotor_calibration(seed=0)
+    cal = await client.calibrate(
+        name, "conformal", alpha=alpha,
+        calibration=[(observation_text(s.concepts), s.label == "anomaly") for s in rows],
+        detections=[detections_of(s.concepts) for s in rows])
+    say(f"calibrated: conformal at alpha {alpha} on {cal.n} nominal frames, tau = "
+        f"{cal.threshold:.4f}, AUROC {cal.auroc or 0:.3f} (whole observations)")
     return await client.cache(name), cal

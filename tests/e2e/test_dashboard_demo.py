@@ -102,6 +102,9 @@ def test_the_page_follows_a_real_demo_scenario(browser: Browser, stack: StackPla
     request = page.locator("#requests li").filter(has_text=seen).first
     expect(request).to_have_attribute("data-status", "answered", timeout=WAIT_MS)
     expect(request.locator(".countdown")).to_have_text("y=1 (llm)")
+    # the detector named the odd detection, beside its nearest nominal one
+    expect(request.locator(".unusual")).to_contain_text(
+        f"{seen} — nearest nominal: a quadrotor on the ground")
     decision = page.locator('#decisions li[data-source="llm"][data-choice="1"]').first
     expect(decision.locator(".choice")).to_have_text("y=1 alternative landing site")
     flown = len(flights[demo.name])

@@ -34,7 +34,7 @@ from services.bench.bus import (
     service_env,
 )
 from services.embedding.client import EmbeddingClient
-from services.scenes.hardware import build_scene_cache
+from services.scenes.hardware import build_scene_cache, camera_observation
 from shared import topics
 from shared.bus import Bus
 from shared.messages import (
@@ -42,7 +42,6 @@ from shared.messages import (
     ControlState,
     Event,
     Message,
-    Observation,
     ReasonerDecision,
     ReasonerRequest,
 )
@@ -111,8 +110,8 @@ class SceneFeed:
     def _run(self) -> None:
         while not self._stop.wait(0.1):
             self.seq += 1
-            self.bus.publish(topics.observation(ROBOT), Observation(
-                robot=ROBOT, seq=self.seq, task="landing on the red box", text=self.text))
+            self.bus.publish(topics.observation(ROBOT),
+                             camera_observation(self.text, self.seq, ROBOT))
 
     def close(self) -> None:
         self._stop.set()

@@ -22,7 +22,7 @@ from services.control.regions import Region
 from services.control.scenario import Scenario
 from services.control.settings import ControlSettings
 from shared.bus import Received
-from shared.messages import AnomalyVerdict, Observation, ReasonerDecision
+from shared.messages import AnomalyVerdict, DetectionMatch, Observation, ReasonerDecision
 
 # A small geometry that solves in milliseconds (see tests/unit/test_control_mpc.py).
 REGIONS = (
@@ -346,6 +346,19 @@ async def test_an_anomaly_asks_the_reasoner_and_the_decision_is_routed_by_reques
     again = await tick(rt, clock, verdict(clock, 6, True), mine)  # a duplicate changes nothing
     assert again.state.mode == "recovering"
     assert not [e for e in again.events if "decision" in e.message]
+
+
+async def test_the_request_carries_the_detections_the_verdict_named() -> None:
+    clock = FakeClock()
+    rt = await started(clock)
+    named = (DetectionMatch(detection="a quadrotor on the red box",
+                            nearest="a quadrotor on the ground", similarity=0.83, p_value=0.01),)
+    flagged = verdict(clock, 1, True)
+    flagged = Received(flagged.key, flagged.message.model_copy(update={"detections": named}),
+                       flagged.received_at)
+    scene = Observation(robot="drone1", seq=1, text="a quadrotor on the red box")
+    asked = await tick(rt, clock, flagged, observation=scene)
+    assert asked.request is not None and asked.request.unusual == named
 
 
 async def test_continue_goes_back_to_nominal_and_only_a_new_verdict_asks_again() -> None:

@@ -92,9 +92,12 @@
     const v = flight.verdict;
     const verdict = $("verdict");
     verdict.dataset.anomaly = v ? String(v.is_anomaly) : "";
+    const named = v && v.is_anomaly && v.detections && v.detections.length
+      ? ` · ${v.detections[0].detection}` : "";
     verdict.textContent = !v ? "no verdict yet"
       : `${v.is_anomaly ? "ANOMALY" : "nominal"} s=${v.score.toFixed(3)} τ=${
-          v.threshold === null ? "none" : v.threshold.toFixed(3)}`;
+          v.threshold === null ? "none" : v.threshold.toFixed(3)}${
+          v.p_value === null || v.p_value === undefined ? "" : ` p=${v.p_value.toFixed(3)}`}${named}`;
     const services = $("services");
     services.replaceChildren(...Object.entries(flight.services).sort().map(([name, alive]) => {
       const el = document.createElement("span");
@@ -120,11 +123,20 @@
       countdown.className = "countdown";
       const text = document.createElement("div");
       text.textContent = `“${r.observation.text}”`;
+      // what the detector named: each odd detection beside its nearest nominal one
+      const unusual = (r.unusual || []).map((m) => {
+        const line = document.createElement("div");
+        line.className = "unusual";
+        line.textContent = `${m.detection} — nearest nominal: ${m.nearest}, ${
+          m.similarity.toFixed(2)}${m.p_value === null || m.p_value === undefined
+          ? "" : ` (p ${m.p_value.toFixed(3)})`}`;
+        return line;
+      });
       const meta = document.createElement("div");
       meta.className = "meta";
       meta.textContent = `${clockOf(r.stamp)} · K=${r.deadline_s.toFixed(2)} s · ` +
         r.options.map((o) => `${o.index} ${o.label}`).join(" | ");
-      li.append(countdown, text, meta);
+      li.append(countdown, text, ...unusual, meta);
       return li;
     });
     $("requests").replaceChildren(...items);
