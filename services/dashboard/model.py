@@ -27,6 +27,7 @@ class Limits:
     trail: int = 3000  # states kept for the flown path
     scores: int = 600  # verdicts kept for the score timeline
     log: int = 50  # requests, decisions and events kept, each
+    proposals: int = 50  # the detector cache's proposals (the newest state of each)
 
 
 class Snapshot(BaseModel):
@@ -44,6 +45,9 @@ class Snapshot(BaseModel):
     requests: list[Json]  # ReasonerRequests, newest last
     decisions: list[Json]
     events: list[Json]
+    # the detector cache's proposals (scenes the LLM answered "continue" for), from the
+    # embedding service's proposal_* events: the newest data of each, oldest first
+    proposals: list[Json]
     services: dict[str, bool]  # liveliness by service
     counts: dict[str, int]  # updates received by kind
 
@@ -63,6 +67,8 @@ class FlightModel:
         self.requests: deque[Json] = deque(maxlen=limits.log)
         self.decisions: deque[Json] = deque(maxlen=limits.log)
         self.events: deque[Json] = deque(maxlen=limits.log)
+        self.proposals: dict[str, Json] = {}
+        self._max_proposals = limits.proposals
         self.services: dict[str, bool] = {}
         self.counts: Counter[str] = Counter()
         self._apply: dict[str, Callable[[Json], Json]] = {
@@ -84,7 +90,8 @@ class FlightModel:
             "plan": self.plan, "regions": self.regions, "goal": self.goal,
             "verdict": self.verdict, "scores": list(self.scores),
             "requests": list(self.requests), "decisions": list(self.decisions),
-            "events": list(self.events), "services": dict(sorted(self.services.items())),
+            "events": list(self.events), "proposals": list(self.proposals.values()),
+            "services": dict(sorted(self.services.items())),
             "counts": dict(self.counts),
         }
 
@@ -121,6 +128,13 @@ class FlightModel:
 
     def _event(self, m: Json) -> Json:
         self.events.append(m)
+        if m.get("source") == "embedding" and m.get("kind", "").startswith("proposal_") \
+                and isinstance(m.get("data", {}).get("id"), str):
+            ident = m["data"]["id"]
+            self.proposals.pop(ident, None)  # the newest last
+            self.proposals[ident] = {**m["data"], "stamp": m["stamp"]}
+            while len(self.proposals) > self._max_proposals:
+                del self.proposals[next(iter(self.proposals))]
         return {}
 
     def _health(self, m: Json) -> Json:

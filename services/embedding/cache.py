@@ -30,6 +30,7 @@ from .calibration import Calibration
 from .embedders import normalize
 from .errors import Conflict, InvalidInput, NotFound
 from .index import IndexKind, VectorIndex
+from .proposals import Policy
 from .scoring import MahalanobisModel, loo_topk_scores, topk_score
 
 ScoreKind = Literal["topk", "mahalanobis"]
@@ -46,6 +47,7 @@ class CacheConfig:
     score: ScoreKind = "topk"
     index: IndexKind = "flat"
     shrinkage: float = 0.1  # Mahalanobis covariance shrinkage lambda
+    proposals: Policy = "review"  # what a proposal from the slow reasoner becomes
 
 
 MAX_MATCHES = 3  # detections a verdict names
@@ -144,6 +146,7 @@ class Configure:
     k: int
     score: ScoreKind
     version: int
+    proposals: Policy = "review"
 
 
 Op = Add | Delete | Calibrate | Configure
@@ -170,8 +173,10 @@ class Header:
             return replace(self, version=op.version, stale=calibrated)
         if isinstance(op, Calibrate):
             return replace(self, version=op.version, calibration=op.calibration, stale=False)
-        config = replace(self.config, k=op.k, score=op.score)
-        return replace(self, version=op.version, config=config, stale=calibrated)
+        config = replace(self.config, k=op.k, score=op.score, proposals=op.proposals)
+        scoring = (op.k, op.score) != (self.config.k, self.config.score)
+        return replace(self, version=op.version, config=config,
+                       stale=self.stale or (calibrated and scoring))
 
 
 def unit_vectors(rows: np.ndarray) -> np.ndarray:
@@ -419,10 +424,12 @@ class Cache:
             raise InvalidInput("calibration gave a non-finite threshold", field="calibration")
         return Calibrate(calibration, self.version + 1, scores)
 
-    def plan_configure(self, *, k: int, score: ScoreKind) -> Configure | None:
-        if (k, score) == (self.config.k, self.config.score):
+    def plan_configure(self, *, k: int, score: ScoreKind, proposals: Policy | None = None
+                       ) -> Configure | None:
+        proposals = proposals or self.config.proposals
+        if (k, score, proposals) == (self.config.k, self.config.score, self.config.proposals):
             return None
-        return Configure(k, score, self.version + 1)
+        return Configure(k, score, self.version + 1, proposals)
 
     # -- the one mutation path -------------------------------------------------
 

@@ -18,6 +18,8 @@ from .schemas import (
     Deleted,
     Experience,
     Method,
+    ProposalInfo,
+    ProposalList,
     Scores,
 )
 
@@ -26,10 +28,12 @@ class EmbeddingClient(JobClient):
     async def create_cache(self, name: str, *, model: str | None = None, k: int | None = None,
                            score: Literal["topk", "mahalanobis"] = "topk",
                            index: Literal["flat", "hnsw"] = "flat",
-                           dim: int | None = None) -> CacheInfo:
+                           dim: int | None = None,
+                           proposals: Literal["review", "auto"] | None = None) -> CacheInfo:
         """``PUT /v1/caches/{name}``: create it, or reconcile the existing one."""
         body: dict[str, Any] = {"score": score, "index": index}
-        body |= {key: value for key, value in (("model", model), ("k", k), ("dim", dim))
+        body |= {key: value for key, value in (("model", model), ("k", k), ("dim", dim),
+                                               ("proposals", proposals))
                  if value is not None}
         return await self.request("PUT", f"/v1/caches/{name}", CacheInfo, json=body)
 
@@ -88,6 +92,17 @@ class EmbeddingClient(JobClient):
 
     async def experience(self, name: str, ident: str) -> Experience:
         return await self.request("GET", f"/v1/caches/{name}/experiences/{ident}", Experience)
+
+    async def proposals(self, name: str, state: str | None = None) -> ProposalList:
+        params = {} if state is None else {"state": state}
+        return await self.request("GET", f"/v1/caches/{name}/proposals", ProposalList,
+                                  params=params)
+
+    async def decide_proposal(self, name: str, ident: str, accept: bool) -> ProposalInfo:
+        """Accept (add the scene as nominal) or reject a pending proposal."""
+        verb = "accept" if accept else "reject"
+        return await self.request("POST", f"/v1/caches/{name}/proposals/{ident}/{verb}",
+                                  ProposalInfo)
 
     async def delete(self, name: str, ident: str) -> Deleted:
         return await self.request("DELETE", f"/v1/caches/{name}/experiences/{ident}", Deleted)

@@ -6,6 +6,7 @@ needs it when the service has one)."""
 from __future__ import annotations
 
 import asyncio
+import time
 from collections.abc import Awaitable, Sequence
 from typing import Annotated
 
@@ -18,6 +19,7 @@ from shared.jobs import Job, JobAccepted, JobInfo, TooManyJobs, UnknownJob
 from .cache import Labelled
 from .errors import DetectorError, InvalidInput, NotFound
 from .metrics import Metrics
+from .proposals import State
 from .schemas import (
     Added,
     AddExperiences,
@@ -28,6 +30,8 @@ from .schemas import (
     CreateCache,
     Deleted,
     Experience,
+    ProposalInfo,
+    ProposalList,
     Score,
     ScoreResult,
     Scores,
@@ -49,7 +53,8 @@ async def put_cache(name: str, body: CreateCache, service: ServiceDep,
                     settings: SettingsDep) -> JSONResponse:
     model = body.model if "model" in body.model_fields_set else settings.model
     desc, created = await service.create(name, model=model, dim=body.dim, k=body.k,
-                                         score=body.score, index=body.index)
+                                         score=body.score, index=body.index,
+                                         proposals=body.proposals)
     return JSONResponse(desc.model_dump(mode="json"), status_code=201 if created else 200)
 
 
@@ -130,6 +135,27 @@ async def score(name: str, body: Score, service: ServiceDep, settings: SettingsD
             batch = await unless_client_leaves(request,
                                                service.score_vectors(name, vectors, body.k))
     return _score_response(batch)
+
+
+@router.get("/v1/caches/{name}/proposals", responses=errors(404))
+async def list_proposals(name: str, service: ServiceDep,
+                         state: Annotated[State | None, Query()] = None) -> ProposalList:
+    """Scenes the slow reasoner answered "continue" for, oldest first."""
+    return ProposalList(cache=name, policy=service.entry(name).cache.config.proposals,
+                        proposals=[ProposalInfo.of(p) for p in service.proposals(name, state)])
+
+
+@router.post("/v1/caches/{name}/proposals/{ident}/accept",
+             responses=errors(401, 404, 409, 502, 503, 507))
+async def accept_proposal(name: str, ident: str, service: ServiceDep) -> ProposalInfo:
+    """Add the scene as a nominal experience (its id is the scene's)."""
+    return ProposalInfo.of(await service.accept(name, ident, now=time.time()))
+
+
+@router.post("/v1/caches/{name}/proposals/{ident}/reject",
+             responses=errors(401, 404, 409, 503, 507))
+async def reject_proposal(name: str, ident: str, service: ServiceDep) -> ProposalInfo:
+    return ProposalInfo.of(await service.reject(name, ident, now=time.time()))
 
 
 @router.get("/v1/jobs/{job_id}", responses=errors(404))

@@ -18,6 +18,7 @@ from shared.messages import MAX_DETECTIONS, Detection, DetectionMatch, Float, In
 from .cache import Cache, ScoreKind
 from .calibration import Method
 from .index import IndexKind
+from .proposals import Policy, Proposal, State
 
 # any finite number: vectors are scaled to unit length in float64 before they are
 # stored as float32, so neither 1e300 nor 1e-300 overflows or vanishes
@@ -77,6 +78,14 @@ class CreateCache(Body):
     k: Annotated[int, Field(ge=1, le=1000), NotBool] | None = None
     score: ScoreKind = "topk"
     index: IndexKind = "flat"
+    # what a scene the reasoner answered "continue" for becomes: a proposal to review, or
+    # an experience at once; left out: "review" for a new cache, unchanged for another
+    proposals: Policy | SkipJsonSchema[None] = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_nulls(cls, data: Any) -> Any:
+        return refuse_nulls(data, "proposals")
 
 
 Detections = Annotated[list[Detection], Field(max_length=MAX_DETECTIONS)]
@@ -208,6 +217,7 @@ class CacheInfo(Answer):
     calibration: CacheCalibration | None
     version: Int
     detections: Int = 0  # distinct detections of the experiences (the nominal ones)
+    proposals: Policy = "review"
 
     @classmethod
     def of(cls, cache: Cache) -> CacheInfo:
@@ -217,7 +227,8 @@ class CacheInfo(Answer):
         c = cache.config
         return cls(name=c.name, size=cache.size, dim=c.dim, model=c.model, k=c.k,
                    score=c.score, index=c.index, threshold=cache.threshold, calibration=cal,
-                   version=cache.version, detections=len(cache.detection_counts))
+                   version=cache.version, detections=len(cache.detection_counts),
+                   proposals=c.proposals)
 
 
 class CacheList(Answer):
@@ -267,6 +278,43 @@ class ScoreResult(Answer):
     detection_score: Float | None = None  # the worst detection's (with detections)
     p_value: Float | None = None  # combined; anomaly iff below 1 - alpha
     detections: list[DetectionMatch] = Field(default_factory=list)  # least nominal first
+
+
+class ProposalInfo(Answer):
+    """A scene the slow reasoner answered "continue" for, proposed as nominal."""
+
+    id: str  # the scene's id: the experience's once accepted
+    state: State
+    count: Int  # times proposed
+    text: str
+    detections: list[Detection]
+    task: str
+    robot: str
+    seq: Int  # the flagged observation's, the first time
+    request_id: str
+    model: str  # the LLM that answered "continue"
+    rationale: str
+    score: Float  # the detector's, the first time
+    p_value: Float | None
+    first_at: Float
+    last_at: Float
+    decided_at: Float | None
+
+    @classmethod
+    def of(cls, p: Proposal) -> ProposalInfo:
+        return cls(id=p.id, state=p.state, count=p.count, text=p.text,
+                   detections=list(p.detections), task=p.task, robot=p.robot, seq=p.seq,
+                   request_id=p.request_id, model=p.model, rationale=p.rationale,
+                   score=p.score, p_value=p.p_value, first_at=p.first_at, last_at=p.last_at,
+                   decided_at=p.decided_at)
+
+
+class ProposalList(Answer):
+    """``GET /v1/caches/{name}/proposals``."""
+
+    cache: str
+    policy: Policy
+    proposals: list[ProposalInfo]
 
 
 class Scores(Answer):

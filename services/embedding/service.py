@@ -32,7 +32,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from shared.jobs import Job, Jobs
-from shared.messages import Detection
+from shared.messages import Detection, Observation
 
 from .batching import NORMAL, URGENT, ComputeThread, MicroBatcher
 from .cache import (
@@ -62,6 +62,7 @@ from .embedders import Embedder, EmbedderPool, ModelNotFound
 from .errors import Busy, Conflict, InvalidInput, NotFound
 from .index import IndexKind
 from .legacy import legacy_caches, read_legacy
+from .proposals import Policy, Proposal, State, scene_id
 from .schemas import Added, CacheInfo, Calibrated, Deleted, Experience, Roc
 from .settings import EmbeddingSettings
 from .store import StorageError, Store
@@ -116,6 +117,7 @@ class Entry:
     writer: asyncio.Lock = field(default_factory=asyncio.Lock)
     rw: RWLock = field(default_factory=RWLock)
     batchers: dict[tuple[int, bool], MicroBatcher[Query, Scored]] = field(default_factory=dict)
+    proposals: dict[str, Proposal] = field(default_factory=dict)  # by id, oldest first
 
     def index_outdated(self) -> bool:
         """The saved index file is missing, older than the cache, or lacks a built graph."""
@@ -222,6 +224,9 @@ class CacheService:
         self._urgent = self._thread.lane(URGENT)
         self._rest_pending = 0  # REST texts being scored or waiting (max_pending_texts)
         self._store: Store | None = None
+        # called with each proposal made, counted, accepted or rejected (the worker
+        # publishes them as events)
+        self.proposal_listeners: list[Callable[[str, Proposal], None]] = []
 
     @property
     def store(self) -> Store:
@@ -240,7 +245,8 @@ class CacheService:
         await asyncio.to_thread(self._import_legacy)
         for name in self.store.names():
             cache = await asyncio.to_thread(self.store.load, name)
-            self._entries[name] = Entry(cache, saved=self.store.saved_index(name))
+            self._entries[name] = Entry(cache, saved=self.store.saved_index(name), proposals={
+                p.id: p for p in await asyncio.to_thread(self.store.proposals, name)})
             log.info("cache %s: %d experiences, version %d", name, cache.size, cache.version)
 
     def _import_legacy(self) -> None:
@@ -319,6 +325,7 @@ class CacheService:
         k: int | None = None,
         score: ScoreKind = "topk",
         index: IndexKind = "flat",
+        proposals: Policy | None = None,
     ) -> tuple[CacheInfo, bool]:
         """Create cache ``name`` or reconcile an existing one; returns (description, created)."""
         if not CACHE_NAME.fullmatch(name):
@@ -326,13 +333,15 @@ class CacheService:
         k = k or self.settings.default_k
         async with self._create_lock:
             if name in self._entries:
-                return await self._reconcile(name, model=model, k=k, score=score), False
+                return await self._reconcile(name, model=model, k=k, score=score,
+                                             proposals=proposals), False
             if model is not None:
                 embedder = await self._embedder(model)
                 model, dim = embedder.name, embedder.dim
             elif dim is None:
                 raise InvalidInput("a cache without a model needs 'dim'", field="dim")
-            config = CacheConfig(name, model, int(dim), k, score, index)
+            config = CacheConfig(name, model, int(dim), k, score, index,
+                                 proposals=proposals or "review")
             entry = await asyncio.to_thread(self._create_entry, config)
             self._entries[name] = entry
             return CacheInfo.of(entry.cache), True
@@ -341,8 +350,8 @@ class CacheService:
         self.store.create(config)
         return Entry(Cache(config))
 
-    async def _reconcile(self, name: str, *, model: str | None, k: int, score: ScoreKind
-                         ) -> CacheInfo:
+    async def _reconcile(self, name: str, *, model: str | None, k: int, score: ScoreKind,
+                         proposals: Policy | None = None) -> CacheInfo:
         entry = self._entries[name]
         pinned = entry.cache.config.model
         if model is not None and pinned is not None:
@@ -351,7 +360,7 @@ class CacheService:
                 raise Conflict(f"cache {name!r} is pinned to model {pinned!r}; create another "
                                f"cache for {resolved!r}", field="model")
         async with entry.writer:
-            op = entry.cache.plan_configure(k=k, score=score)
+            op = entry.cache.plan_configure(k=k, score=score, proposals=proposals)
             if op is not None:
                 await self._commit(entry, op)
         return self.describe(name)
@@ -402,6 +411,92 @@ class CacheService:
                 progress=progress, show_progress_bar=len(texts) >= 1000)
             vectors[[i for i, _ in texts]] = embedded
         return vectors
+
+    # -- proposals (see .proposals) ----------------------------------------------------
+
+    def proposals(self, name: str, state: State | None = None) -> list[Proposal]:
+        entry = self.entry(name)
+        return [p for p in entry.proposals.values() if state is None or p.state == state]
+
+    async def propose(self, name: str, obs: Observation, *, request_id: str, model: str,
+                      rationale: str, score: float, p_value: float | None,
+                      now: float) -> Proposal | None:
+        """The slow reasoner answered "continue" for ``obs``, which this detector flagged:
+        propose the scene to cache ``name`` (counted if it was proposed before; accepted at
+        once under the policy ``auto``). None when the cache holds the scene already, or
+        has ``max_pending_proposals`` pending and this one is new."""
+        entry = self.entry(name)
+        ident = scene_id(obs)
+        async with entry.writer:
+            if ident in entry.cache.labels_by_id:
+                return None
+            known = entry.proposals.get(ident)
+            if known is not None and known.state == "accepted":
+                known = None  # its experience was deleted since: propose it afresh
+            if known is None:
+                pending = sum(p.state == "pending" for p in entry.proposals.values())
+                if pending >= self.settings.max_pending_proposals:
+                    log.warning("cache %s: %d proposals pending "
+                                "(AESOP_EMBEDDING_MAX_PENDING_PROPOSALS): %s not proposed",
+                                name, pending, ident)
+                    return None
+            proposal = known.again(now) if known is not None else Proposal.first(
+                obs, request_id=request_id, model=model, rationale=rationale, score=score,
+                p_value=p_value, now=now)
+            await asyncio.to_thread(self.store.save_proposal, name, proposal)
+            entry.proposals[ident] = proposal
+        self._tell("proposed", proposal)
+        if proposal.state == "pending" and entry.cache.config.proposals == "auto":
+            return await self.accept(name, ident, now=now)
+        return proposal
+
+    async def accept(self, name: str, ident: str, *, now: float) -> Proposal:
+        """Add a pending proposal's scene as a nominal experience (id = the scene's): one
+        transaction with the proposal's new state; the calibration goes stale."""
+        entry = self.entry(name)
+        proposal = self._pending(entry, ident)
+        config = entry.cache.config
+        item = Item(text=proposal.text, id=ident, detections=proposal.detections, metadata={
+            "proposal": {"robot": proposal.robot, "seq": proposal.seq, "count": proposal.count,
+                         "request_id": proposal.request_id, "model": proposal.model}})
+        vectors = await self._vectors_for(config, [item], None)
+        with entry.rw.read():
+            unknown = [p for p in dict.fromkeys(d.phrase for d in item.detections)
+                       if p not in entry.cache.detection_vectors]
+        found = await self._embed_phrases(config, unknown)
+        async with entry.writer:
+            proposal = self._pending(entry, ident).decided("accepted", now)
+            op = entry.cache.plan_add(vectors, ids=[ident], texts=[item.text],
+                                      metadata=[item.metadata], detections=[item.detections],
+                                      detection_vectors=found)
+            await self._commit(entry, op, proposal)
+            entry.proposals[ident] = proposal
+        self._tell("accepted", proposal)
+        return proposal
+
+    async def reject(self, name: str, ident: str, *, now: float) -> Proposal:
+        entry = self.entry(name)
+        async with entry.writer:
+            proposal = self._pending(entry, ident).decided("rejected", now)
+            await asyncio.to_thread(self.store.save_proposal, name, proposal)
+            entry.proposals[ident] = proposal
+        self._tell("rejected", proposal)
+        return proposal
+
+    def _pending(self, entry: Entry, ident: str) -> Proposal:
+        proposal = entry.proposals.get(ident)
+        if proposal is None:
+            raise NotFound(f"no proposal {ident!r} on cache {entry.cache.name!r}", field="id")
+        if proposal.state != "pending":
+            raise Conflict(f"proposal {ident!r} is already {proposal.state}", field="id")
+        return proposal
+
+    def _tell(self, what: str, proposal: Proposal) -> None:
+        for listener in self.proposal_listeners:
+            try:
+                listener(what, proposal)
+            except Exception:
+                log.exception("a proposal listener failed")
 
     async def _embed_phrases(self, config: CacheConfig, phrases: Sequence[str]
                              ) -> dict[str, np.ndarray]:
@@ -519,10 +614,12 @@ class CacheService:
                          else np.zeros(0))
             return observation, detection
 
-    async def _commit(self, entry: Entry, op: Op) -> None:
-        """Commit ``op`` to the database, then apply it: a 2xx after this is durable."""
+    async def _commit(self, entry: Entry, op: Op, proposal: Proposal | None = None) -> None:
+        """Commit ``op`` (with the ``proposal`` it accepts) to the database, then apply
+        it: a 2xx after this is durable."""
         cache = entry.cache
-        await asyncio.to_thread(self.store.commit, cache.name, op, cache.header.after(op))
+        await asyncio.to_thread(self.store.commit, cache.name, op, cache.header.after(op),
+                                proposal)
         with entry.rw.write():
             cache.apply(op)
         if isinstance(op, Add | Delete):

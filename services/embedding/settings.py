@@ -52,6 +52,9 @@ class EmbeddingSettings(ServiceSettings):
     # it is answered 507 and nothing of it is stored, as on a full disk
     max_db_bytes: int = Field(default=0, ge=0)
     zenoh_worker: bool = True
+    # pending proposals (scenes the reasoner answered "continue" for) a cache keeps; past
+    # it a new scene is not proposed (logged), a known one is still counted
+    max_pending_proposals: int = Field(default=1_000, ge=0)
     # torch intra-op threads; 0 keeps torch's default (one per core). One thread keeps a
     # single observation's embedding at ~15 ms on a busy machine, where a pool of
     # spinning threads stalled verdicts for 1-2 s (measured with `aesop bench bus`)

@@ -26,6 +26,9 @@ Schema (``PRAGMA user_version`` = 2; a version-1 database is migrated on open)::
         detection phrase the cache's experiences brought, written with them (version 2)
     calibration_scores(cache PK, observation BLOB <f8, detection BLOB <f8): the sorted
         nominal scores behind the current calibration's p-values (version 2)
+    proposals(cache, id, state, count, first_at, last_at, decided_at|NULL, detail JSON)
+        PK (cache, id): scenes the slow reasoner answered "continue" for (version 2);
+        accepting one is written with its experience, in one transaction
     changes(cache, version, op, detail JSON, at)   one row per version of each cache:
         op is create | add | delete | calibrate | configure | import
     imports(source PK, cache, version, at)   legacy data directories imported once
@@ -67,6 +70,7 @@ from .cache import (
 )
 from .calibration import Calibration
 from .index import VectorIndex
+from .proposals import Proposal
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +87,11 @@ CREATE TABLE detection_vectors (
 CREATE TABLE calibration_scores (
     cache TEXT PRIMARY KEY REFERENCES caches(name), observation BLOB NOT NULL,
     detection BLOB NOT NULL
+) STRICT;
+CREATE TABLE proposals (
+    cache TEXT NOT NULL REFERENCES caches(name), id TEXT NOT NULL, state TEXT NOT NULL,
+    count INTEGER NOT NULL, first_at REAL NOT NULL, last_at REAL NOT NULL, decided_at REAL,
+    detail TEXT NOT NULL, PRIMARY KEY (cache, id)
 ) STRICT;
 """
 _SCHEMA = """
@@ -279,11 +288,28 @@ class Store:
             _change(db, config.name, 0, "create", asdict(config))
         return header
 
-    def commit(self, name: str, op: Op, header: Header) -> None:
-        """Make ``op`` durable, with ``header`` (the cache's header once it is applied)."""
+    def commit(self, name: str, op: Op, header: Header, proposal: Proposal | None = None
+               ) -> None:
+        """Make ``op`` durable, with ``header`` (the cache's header once it is applied)
+        and the ``proposal`` it accepts, if any."""
         with self._transaction(f"cache {name!r} version {op.version}") as db:
             _write_op(db, name, op)
             _update_header(db, name, header)
+            if proposal is not None:
+                _write_proposal(db, name, proposal)
+
+    def save_proposal(self, name: str, proposal: Proposal) -> None:
+        with self._transaction(f"proposal {proposal.id} of cache {name!r}") as db:
+            _write_proposal(db, name, proposal)
+
+    def proposals(self, name: str) -> list[Proposal]:
+        """Cache ``name``'s proposals, oldest first."""
+        with self._mutex:
+            rows = self._db.execute(
+                "SELECT id, state, count, first_at, last_at, decided_at, detail FROM proposals "
+                "WHERE cache = ? ORDER BY first_at", (name,)).fetchall()
+        return [Proposal.stored(ident, state, count, first, last, decided, json.loads(detail))
+                for ident, state, count, first, last, decided, detail in rows]
 
     def import_cache(self, source: str, cache: Cache) -> None:
         """Store ``cache`` (read from a legacy ``source``) whole, and remember the source."""
@@ -434,6 +460,12 @@ def _insert_experiences(db: sqlite3.Connection, name: str, labels: list[int],
          for label, e, row in zip(labels, experiences, little, strict=True)))
 
 
+def _write_proposal(db: sqlite3.Connection, name: str, proposal: Proposal) -> None:
+    db.execute("INSERT OR REPLACE INTO proposals VALUES (?, ?, ?, ?, ?, ?, ?, ?)", (
+        name, proposal.id, proposal.state, proposal.count, proposal.first_at,
+        proposal.last_at, proposal.decided_at, json.dumps(proposal.detail())))
+
+
 def _write_op(db: sqlite3.Connection, name: str, op: Op) -> None:
     if isinstance(op, Add):
         _insert_experiences(db, name, list(op.labels), list(op.experiences), op.vectors,
@@ -456,7 +488,8 @@ def _write_op(db: sqlite3.Connection, name: str, op: Op) -> None:
                 name, *(np.ascontiguousarray(x, dtype="<f8").tobytes()
                         for x in (op.scores.observation, op.scores.detection))))
     elif isinstance(op, Configure):
-        _change(db, name, op.version, "configure", {"k": op.k, "score": op.score})
+        _change(db, name, op.version, "configure", {"k": op.k, "score": op.score,
+                                                     "proposals": op.proposals})
 
 
 def _take_lock(path: Path) -> int:

@@ -4,25 +4,43 @@ Subscribes ``aesop/*/observation``; every observation is scored against the
 detector cache through the service's micro-batcher (concurrent observations
 share one embedding call) and answered with an ``AnomalyVerdict`` on
 ``aesop/{robot}/anomaly``. An uncalibrated cache answers "anomaly" (fail-safe).
+
+It also learns from the slow reasoner (:mod:`.proposals`): it remembers the
+observations it flagged and the reasoner requests it sees, and when an LLM's decision
+(never a fallback) answers "continue" to a request that offered it, for an observation
+this worker flagged, the observation is proposed to the detector cache. Each proposal
+made, counted, accepted or rejected is published as an ``Event`` (kind
+``proposal_<what>``) on ``aesop/{robot}/event``.
 """
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any
 
 from shared import topics
 from shared.bus import Bus, Received
-from shared.messages import AnomalyVerdict, Event, Observation
+from shared.messages import (
+    AnomalyVerdict,
+    Event,
+    Observation,
+    ReasonerDecision,
+    ReasonerRequest,
+)
 from shared.pump import MessagePump
 
 from .errors import DetectorError
+from .proposals import Proposal
 from .service import CacheService, ScoreBatch
 from .settings import EmbeddingSettings
 
 log = logging.getLogger(__name__)
+
+REMEMBERED = 1024  # flagged observations and reasoner requests kept to match decisions
 
 
 def make_verdict(obs: Observation, robot: str, batch: ScoreBatch, cache: str,
@@ -58,6 +76,17 @@ class DetectorWorker:
                                  self._handle, max_in_flight=max_in_flight, maxsize=1024,
                                  on_undecodable=self._undecodable)
         self._last_alarm = 0.0
+        # (robot, seq) -> the flagged observation and its verdict; request id -> request
+        self._flagged: OrderedDict[tuple[str, int], tuple[Observation, AnomalyVerdict]] = \
+            OrderedDict()
+        self._requests: OrderedDict[str, ReasonerRequest] = OrderedDict()
+        self._learning: list[MessagePump[Any]] = [
+            MessagePump(bus, topics.reasoner_request(topics.ANY_ROBOT), ReasonerRequest,
+                        self._remember_request, max_in_flight=8, maxsize=256),
+            MessagePump(bus, topics.reasoner_decision(topics.ANY_ROBOT), ReasonerDecision,
+                        self._learn, max_in_flight=8, maxsize=256),
+        ]
+        service.proposal_listeners.append(self._proposal_event)
 
     @classmethod
     def factory(cls, settings: EmbeddingSettings) -> Callable[[CacheService, Any], DetectorWorker]:
@@ -71,10 +100,13 @@ class DetectorWorker:
         return make
 
     async def run(self) -> None:
-        await self._pump.run()
+        await asyncio.gather(self._pump.run(), *(pump.run() for pump in self._learning))
 
     async def stop(self) -> None:
-        await self._pump.stop()
+        for pump in (self._pump, *self._learning):
+            await pump.stop()
+        if self._proposal_event in self.service.proposal_listeners:
+            self.service.proposal_listeners.remove(self._proposal_event)
         if self.owns_bus:
             self.bus.close()
 
@@ -101,8 +133,46 @@ class DetectorWorker:
         verdict = make_verdict(obs, robot, batch, self.cache,
                                (time.perf_counter() - start) * 1000)
         self.bus.publish(topics.anomaly(robot), verdict)
+        if verdict.is_anomaly:
+            remember(self._flagged, (robot, obs.seq), (obs, verdict))
         if self.metrics is not None:
             self.metrics.verdicts.labels(str(verdict.is_anomaly).lower()).inc()
+
+    async def _remember_request(self, received: Received[ReasonerRequest]) -> None:
+        remember(self._requests, received.message.request_id, received.message)
+
+    async def _learn(self, received: Received[ReasonerDecision]) -> None:
+        """Propose the flagged observation an LLM answered "continue" for."""
+        decision = received.message
+        if decision.source != "llm" or decision.choice != 0:
+            return
+        request = self._requests.pop(decision.request_id, None)
+        if request is None or not any(o.index == 0 for o in request.options):
+            return
+        robot = topics.robot_of(received.key)
+        flagged = self._flagged.get((robot, request.observation.seq))
+        if flagged is None or flagged[0].text != request.observation.text:
+            return  # not an observation this detector flagged (e.g. silence)
+        obs, verdict = flagged
+        try:
+            await self.service.propose(
+                self.cache, obs.model_copy(update={"robot": robot}),
+                request_id=decision.request_id, model=decision.model,
+                rationale=decision.rationale, score=verdict.score, p_value=verdict.p_value,
+                now=time.time())
+        except DetectorError as exc:
+            log.warning("observation %s of %s not proposed: %s", obs.seq, robot, exc.message)
+
+    def _proposal_event(self, what: str, proposal: Proposal) -> None:
+        """``proposal_proposed|accepted|rejected`` on the proposing robot's event key."""
+        named = proposal.text if len(proposal.text) <= 200 else proposal.text[:199] + "…"
+        self.bus.publish(topics.event(proposal.robot), Event(
+            robot=proposal.robot, source="embedding", kind=f"proposal_{what}",
+            message=f"{self.cache}: a scene the reasoner let pass was {what} as nominal "
+                    f"({proposal.count}×): {' / '.join(named.splitlines())}",
+            data={"cache": self.cache, "id": proposal.id, "state": proposal.state,
+                  "count": proposal.count, "text": proposal.text[:1000],
+                  "model": proposal.model}))
 
     def _undecodable(self) -> None:  # on a Zenoh thread; the bus logs it, rate-limited
         if self.metrics is not None:
@@ -118,3 +188,11 @@ class DetectorWorker:
         self.bus.publish(topics.event(robot), Event(
             robot=robot, source="embedding", kind="detector_unavailable", severity="alarm",
             message=message))
+
+
+def remember(kept: OrderedDict[Any, Any], key: Any, value: Any) -> None:
+    """Keep ``value`` under ``key``, forgetting the oldest past :data:`REMEMBERED`."""
+    kept[key] = value
+    kept.move_to_end(key)
+    while len(kept) > REMEMBERED:
+        kept.popitem(last=False)

@@ -12,16 +12,14 @@ detections become the experience's (the cache's nominal detections).
 
 from __future__ import annotations
 
-import hashlib
-import json
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from services.embedding.client import EmbeddingClient
+from services.embedding.proposals import scene_id
 from shared.client import Progress, ServiceError
-from shared.messages import Observation
 
 from .recorded import RecordedObservation, observations
 
@@ -47,13 +45,6 @@ class Scene:
             "source": self.first.source, "robot": obs.robot, "seq": obs.seq, "stamp": obs.stamp,
             "task": obs.task, "seen": self.seen},
             "detections": [d.model_dump(exclude_none=True) for d in obs.detections]}
-
-
-def scene_id(obs: Observation) -> str:
-    """The same text with the same detections has the same id, wherever it was recorded."""
-    content = json.dumps([obs.text, [d.model_dump() for d in obs.detections]],
-                         sort_keys=True)
-    return "rec-" + hashlib.sha256(content.encode()).hexdigest()[:24]
 
 
 def distinct_scenes(recorded: Iterable[RecordedObservation]) -> list[Scene]:

@@ -102,14 +102,15 @@ async def build_scene_cache(client: EmbeddingClient, name: str, *, model: str | 
     calibration set (``quadrotor_calibration``; its anomalies give the AUROC), top-1
     scores. A verdict on an observation with detections is then the combined p-value of
     the whole observation and its worst detection. A cache kept from an earlier run with
-    exactly the scene's experiences is reused as it is."""
+    the scene's experiences is reused as it is (with the scenes it learned since: proposals
+    accepted from the slow reasoner's "continue")."""
     scenes = [s.concepts for s in quadrotor_nominal(max_detections)]
     info = await client.create_cache(name, model=model, k=1)
-    if info.size != len(scenes) or not info.detections:
-        if info.size:
-            raise ValueError(f"cache {name!r} holds {info.size} experiences and "
-                             f"{info.detections} detections, not the {len(scenes)} scenes of "
-                             "the hardware scene: remove it (or the data dir) first")
+    if info.size and (info.size < len(scenes) or not info.detections):
+        raise ValueError(f"cache {name!r} holds {info.size} experiences and "
+                         f"{info.detections} detections, not the {len(scenes)} scenes of the "
+                         "hardware scene: remove it (or the data dir) first")
+    if not info.size:
         say(f"building the nominal cache: {len(scenes)} combinations of up to "
             f"{max_detections} detections")
         await client.add_items(name, [

@@ -7,9 +7,11 @@ dashboard, as processes); the cache is built and calibrated and scenario 2a (ano
 quadrotor on the red box) is flown by the demo's own code
 (:func:`services.demo.flights.fly_scenarios`) while the page watches. The page must stay
 connected, draw the flown trajectory and show the reasoner's decision: the LLM's choice
-of the alternative landing site.
+of the alternative landing site, beside the detection the detector named. Then scenario 3
+(a keyboard on the ground) is flown: the LLM answers "continue" and the keyboard's scene
+shows as a proposal to the cache, pending review.
 
-The screenshot goes to the test's tmp directory and, when ``AESOP_SCREENSHOT_DIR`` is
+The screenshot (after both) goes to the test's tmp directory and, when ``AESOP_SCREENSHOT_DIR`` is
 set, there too (``dashboard-demo.png``).
 """
 
@@ -21,9 +23,11 @@ import time
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
-from playwright.sync_api import Browser, expect
+from playwright.sync_api import Browser, Page, expect
 
 from services.control.scenario import load_scenario
 from services.demo.flights import demo_scenario, fly_scenarios
@@ -38,9 +42,10 @@ from services.stack.up import (
 from shared.process import file_sink
 from tests.e2e.browser import canvas_count, screenshot
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(540)]
 
 SCENARIO = "2a"  # another quadrotor on the red box: land on the blue box instead
+KEYBOARD = "3"  # an unseen keyboard on the ground: continue
 WAIT_MS = 30_000
 FLIGHT_TIMEOUT_S = 300  # the cache (385 texts, a CPU embedder), calibration, a 12 s flight
 
@@ -66,6 +71,18 @@ def stack(tmp_path: Path) -> Iterator[StackPlan]:
         running.stop()
 
 
+def fly(page: Page, stack: StackPlan, scenario: str
+        ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The demo's own code flies the scenario, in a thread: meanwhile Playwright keeps
+    taking the page's events (and a failure of the flight ends the wait at once)."""
+    with ThreadPoolExecutor(1) as pool:
+        flying = pool.submit(fly_scenarios, stack, [scenario])
+        deadline = time.monotonic() + FLIGHT_TIMEOUT_S
+        while not flying.done() and time.monotonic() < deadline:
+            page.wait_for_timeout(500)
+        return flying.result(timeout=1)
+
+
 def test_the_page_follows_a_real_demo_scenario(browser: Browser, stack: StackPlan,
                                                tmp_path: Path) -> None:
     demo = demo_scenario(SCENARIO)
@@ -83,14 +100,7 @@ def test_the_page_follows_a_real_demo_scenario(browser: Browser, stack: StackPla
         "data-alive", "true", timeout=WAIT_MS)
     expect(page.locator("#top")).to_have_attribute("data-regions", "2", timeout=WAIT_MS)
 
-    # the demo's own code flies the scenario, in a thread: meanwhile Playwright keeps
-    # taking the page's events (and a failure of the flight ends the wait at once)
-    with ThreadPoolExecutor(1) as pool:
-        flying = pool.submit(fly_scenarios, stack, [SCENARIO])
-        deadline = time.monotonic() + FLIGHT_TIMEOUT_S
-        while not flying.done() and time.monotonic() < deadline:
-            page.wait_for_timeout(500)
-        result, flights = flying.result(timeout=1)
+    result, flights = fly(page, stack, SCENARIO)
 
     [row] = result["scenarios"]
     assert row["outcome"] == "ok", row  # landed on the blue box, no constraint violated
@@ -113,6 +123,15 @@ def test_the_page_follows_a_real_demo_scenario(browser: Browser, stack: StackPla
         f"document.querySelector('#top').dataset.points >= {flown - 2}", timeout=WAIT_MS)
     assert canvas_count(page, "side", "points") >= flown - 2
     assert canvas_count(page, "score", "anomalies") >= 1
+    # the keyboard: the LLM lets it pass, and the scene is proposed to the cache
+    keyboard, _ = fly(page, stack, KEYBOARD)
+    [row] = keyboard["scenarios"]
+    assert row["outcome"] == "ok" and row["decision"] == "continue", row
+    proposal = page.locator("#proposals li").first
+    expect(proposal).to_have_attribute("data-state", "pending", timeout=WAIT_MS)
+    expect(proposal).to_contain_text("a keyboard on the ground")
+    expect(page.locator("#requests li").first.locator(".unusual")).to_contain_text(
+        "a keyboard on the ground — nearest nominal:")
     shot = screenshot(page, tmp_path, "dashboard-demo.png")
     assert shot.stat().st_size > 10_000
     assert errors == []

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
+from functools import partial
 from pathlib import Path
 
 import pytest
@@ -13,6 +14,7 @@ from services.embedding.api import create_app
 from services.embedding.embedders import EmbedderPool, ModelNotFound
 from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingSettings
+from shared.messages import Detection, Observation
 from tests.fakes.hash_embedder import HashEmbedder
 
 TOKEN = "test-token-0123456789"
@@ -114,7 +116,7 @@ def test_experience_get_and_delete(client: TestClient) -> None:
         "items": [{"text": "a pallet", "id": "pallet-1", "metadata": {"run": 7}}]})
     assert r.json()["ids"] == ["pallet-1"]
     assert client.get("/v1/caches/wm/experiences/pallet-1").json() == {
-        "id": "pallet-1", "text": "a pallet", "metadata": {"run": 7}}
+        "id": "pallet-1", "text": "a pallet", "metadata": {"run": 7}, "detections": []}
     r = client.delete(f"/v1/caches/wm/experiences/{ids[0]}", headers=AUTH)
     assert r.status_code == 200 and r.json()["size"] == 3
     assert client.get(f"/v1/caches/wm/experiences/{ids[0]}").status_code == 404
@@ -401,3 +403,89 @@ def test_too_few_scenes_with_detections_to_ever_flag_is_refused(client: TestClie
     error = r.json()["error"]
     assert error["field"] == "alpha" and "at least 40" in error["message"]
     assert client.get("/v1/caches/wm").json()["calibration"] is None
+
+
+# -- proposals -------------------------------------------------------------------------
+
+
+def propose(client: TestClient, label: str, seq: int = 1) -> str:
+    """What the Zenoh worker does when the reasoner answers "continue" for a flagged
+    scene (tests/integration/test_worker.py drives it over Zenoh)."""
+    service = client.app.state.service  # type: ignore[attr-defined]
+    obs = Observation(robot="drone7", seq=seq, text=f"a pallet\n{label}", detections=(
+        Detection(label="a pallet", where="on the belt"),
+        Detection(label=label, where="on the belt")))
+    made = client.portal.call(partial(  # type: ignore[union-attr]
+        service.propose, "wm", obs, request_id=f"r{seq}", model="llm", rationale="harmless",
+        score=-0.5, p_value=0.01, now=100.0 + seq))
+    assert made is not None
+    return str(made.id)
+
+
+def test_proposals_are_listed_and_accepted_or_rejected_with_the_token(
+        tmp_path: Path) -> None:
+    with make_client(tmp_path) as client:
+        create(client, k=1)
+        client.post("/v1/caches/wm/experiences", headers=AUTH,
+                    json={"items": [scene(i) for i in range(40)]})
+        client.post("/v1/caches/wm/calibrate", headers=AUTH, json={"method": "loo-quantile"})
+        assert client.get("/v1/caches/wm/proposals").json() == {
+            "cache": "wm", "policy": "review", "proposals": []}
+        keep, drop = propose(client, "a mop"), propose(client, "a cat", seq=2)
+        listed = client.get("/v1/caches/wm/proposals").json()["proposals"]
+        assert [(p["id"], p["state"], p["count"]) for p in listed] == [
+            (keep, "pending", 1), (drop, "pending", 1)]
+        assert listed[0]["text"] == "a pallet\na mop" and listed[0]["rationale"] == "harmless"
+        before = client.get("/v1/caches/wm").json()
+
+        anonymous = {"Authorization": ""}
+        assert client.post(f"/v1/caches/wm/proposals/{keep}/accept",
+                           headers=anonymous).status_code == 401
+        r = client.post(f"/v1/caches/wm/proposals/{keep}/accept", headers=AUTH)
+        assert r.status_code == 200, r.text
+        assert r.json()["state"] == "accepted" and r.json()["decided_at"] is not None
+        after = client.get("/v1/caches/wm").json()
+        assert after["size"] == before["size"] + 1 and after["version"] == before["version"] + 1
+        assert after["calibration"]["stale"] is True
+        exp = client.get(f"/v1/caches/wm/experiences/{keep}").json()
+        assert exp["text"] == "a pallet\na mop" and exp["metadata"]["proposal"]["robot"] == "drone7"
+        r = client.post(f"/v1/caches/wm/proposals/{keep}/reject", headers=AUTH)
+        assert r.status_code == 409 and r.json()["error"]["field"] == "id"
+
+        r = client.post(f"/v1/caches/wm/proposals/{drop}/reject", headers=AUTH)
+        assert r.status_code == 200 and r.json()["state"] == "rejected"
+        assert client.get("/v1/caches/wm").json()["size"] == after["size"]
+        assert propose(client, "a cat", seq=3) == drop  # proposed again: counted, rejected
+        pending = client.get("/v1/caches/wm/proposals?state=pending").json()["proposals"]
+        assert pending == []
+        rejected = client.get("/v1/caches/wm/proposals?state=rejected").json()["proposals"]
+        assert [(p["id"], p["count"]) for p in rejected] == [(drop, 2)]
+        r = client.post("/v1/caches/wm/proposals/rec-nothing/accept", headers=AUTH)
+        assert r.status_code == 404 and r.json()["error"]["field"] == "id"
+        r = client.get("/v1/caches/wm/proposals?state=maybe")
+        assert r.status_code == 422 and r.json()["error"]["field"] == "state"
+    with make_client(tmp_path) as client:  # kept across a restart
+        got = client.get("/v1/caches/wm/proposals").json()["proposals"]
+        assert [(p["id"], p["state"]) for p in got] == [(keep, "accepted"), (drop, "rejected")]
+
+
+def test_the_proposal_policy_is_set_with_put_and_kept(tmp_path: Path) -> None:
+    with make_client(tmp_path) as client:
+        assert create(client)["proposals"] == "review"
+        calibrated = client.post("/v1/caches/wm/experiences", headers=AUTH,
+                                 json={"items": [scene(i) for i in range(40)]})
+        assert calibrated.status_code == 200
+        client.post("/v1/caches/wm/calibrate", headers=AUTH, json={"method": "loo-quantile"})
+        assert create(client, proposals="auto")["proposals"] == "auto"
+        info = client.get("/v1/caches/wm").json()
+        assert info["calibration"]["stale"] is False  # the policy is not the score
+        r = client.put("/v1/caches/wm", json={"proposals": None}, headers=AUTH)
+        assert r.status_code == 422 and r.json()["error"]["field"] == "body"
+        r = client.put("/v1/caches/wm", json={"proposals": "sometimes"}, headers=AUTH)
+        assert r.status_code == 422 and r.json()["error"]["field"] == "proposals"
+        made = propose(client, "a mop")
+        assert client.get("/v1/caches/wm/proposals").json()["proposals"][0]["state"] == \
+            "accepted"
+        assert client.get(f"/v1/caches/wm/experiences/{made}").status_code == 200
+    with make_client(tmp_path) as client:
+        assert client.get("/v1/caches/wm").json()["proposals"] == "auto"

@@ -10,13 +10,22 @@ import pytest
 from prometheus_client import CollectorRegistry
 
 from services.embedding.embedders import EmbedderPool
+from services.embedding.errors import Conflict
 from services.embedding.metrics import Metrics
 from services.embedding.service import CacheService, Item
 from services.embedding.settings import EmbeddingSettings
 from services.embedding.worker import DetectorWorker
 from shared import topics
 from shared.bus import Bus
-from shared.messages import AnomalyVerdict, Detection, Event, Observation
+from shared.messages import (
+    AnomalyVerdict,
+    Detection,
+    Event,
+    Observation,
+    Option,
+    ReasonerDecision,
+    ReasonerRequest,
+)
 from tests.fakes.hash_embedder import HashEmbedder
 from tests.zenoh_peers import DEADLINE_S, routed
 
@@ -168,3 +177,137 @@ async def test_a_verdict_names_the_odd_detection_and_carries_the_p_value(
     await worker.stop()
     await asyncio.wait_for(task, DEADLINE_S)
     await svc.close()
+
+
+# -- learning from the slow reasoner ----------------------------------------------------
+
+THINGS = ["a red box", "a drill", "a bicycle tire", "a soccer ball"]
+
+
+def seen(i: int) -> tuple[Detection, ...]:
+    return tuple(Detection(label=THINGS[(i + j) % 4], where="on the ground")
+                 for j in range(1 + i % 3))
+
+
+def scene_text(found: tuple[Detection, ...]) -> str:
+    return "\n".join(d.phrase for d in found)
+
+
+@pytest.fixture
+async def learning(tmp_path: Path) -> AsyncIterator[CacheService]:
+    settings = EmbeddingSettings(data_dir=tmp_path, fsync=False, zenoh_worker=False)
+    svc = CacheService(settings, embedders=EmbedderPool(loader=lambda _: HashEmbedder()))
+    await svc.start()
+    await svc.create("scene", model="hash", k=1)
+    await svc.add("scene", [Item(text=scene_text(seen(i)), detections=seen(i))
+                            for i in range(45)])
+    await svc.calibrate("scene", "loo-quantile", alpha=0.95)
+    yield svc
+    await svc.close()
+
+
+def flagged_scene(label: str) -> tuple[str, tuple[Detection, ...]]:
+    found = seen(1)[:1] + (Detection(label=label, where="on the ground"),)
+    return scene_text(found), found
+
+
+async def proposal_event(events: object) -> Event:
+    """The next proposal event (``routed`` publishes probes on the same key)."""
+    while True:
+        got = await asyncio.wait_for(anext(events), DEADLINE_S)  # type: ignore[call-overload]
+        if got.message.kind.startswith("proposal_"):
+            return got.message
+
+
+async def ask(connector: Bus, sub: object, seq: int, text: str,
+              found: tuple[Detection, ...], *, source: str = "llm", choice: int = 0,
+              offer_continue: bool = True) -> AnomalyVerdict:
+    """The camera's observation, its verdict, then the control loop's request and the
+    reasoner's answer, as the stack sends them."""
+    obs = Observation(robot="drone7", seq=seq, text=text, detections=found)
+    connector.publish(topics.observation("drone7"), obs)
+    (verdict,) = await verdicts(sub, 1)
+    options = ((Option(index=0, label="continue"),) if offer_continue else ()) + (
+        Option(index=1, label="land elsewhere"),)
+    request = ReasonerRequest(robot="drone7", request_id=f"req-{seq}", observation=obs,
+                              options=options, deadline_s=2.0)
+    connector.publish(topics.reasoner_request("drone7"), request)
+    await asyncio.sleep(0.2)  # the request is seen before its answer, as in the stack
+    connector.publish(topics.reasoner_decision("drone7"), ReasonerDecision(
+        robot="drone7", request_id=request.request_id, choice=choice, source=source,
+        rationale="a keyboard on the ground is harmless", latency_ms=900.0, model="llm-x"))
+    await asyncio.sleep(0.3)
+    return verdict
+
+
+async def test_a_continue_for_a_flagged_scene_is_proposed_once_with_a_count(
+        learning: CacheService, listener: Bus, connector: Bus) -> None:
+    svc = learning
+    worker = DetectorWorker(svc, listener, cache="scene")
+    task = asyncio.create_task(worker.run())
+    sub = connector.subscribe(topics.anomaly(topics.ANY_ROBOT), AnomalyVerdict)
+    events = connector.subscribe(topics.event(topics.ANY_ROBOT), Event)
+    await routed(connector, listener)
+    await routed(listener, connector)
+
+    keyboard = flagged_scene("a keyboard")
+    assert (await ask(connector, sub, 1, *keyboard)).is_anomaly
+    (proposal,) = svc.proposals("scene")
+    assert proposal.state == "pending" and proposal.count == 1 and proposal.text == keyboard[0]
+    assert proposal.detections == keyboard[1] and proposal.model == "llm-x"
+    assert proposal.robot == "drone7" and proposal.seq == 1 and proposal.request_id == "req-1"
+    await ask(connector, sub, 2, *keyboard)  # the same scene again: one proposal, counted
+    assert [(p.id, p.count) for p in svc.proposals("scene")] == [(proposal.id, 2)]
+    event = await proposal_event(events)
+    assert event.kind == "proposal_proposed" and event.data["id"] == proposal.id
+
+    # never from a fallback, a recovery, a request without "continue", or a scene this
+    # detector did not flag
+    backpack = flagged_scene("a backpack")
+    await ask(connector, sub, 3, *backpack, source="timeout")
+    await ask(connector, sub, 4, *backpack, choice=1)
+    await ask(connector, sub, 5, *backpack, offer_continue=False)
+    nominal = (scene_text(seen(1)), seen(1))
+    assert not (await ask(connector, sub, 6, *nominal)).is_anomaly
+    assert [p.id for p in svc.proposals("scene")] == [proposal.id]
+
+    # accepted: the scene is nominal now, the calibration stale
+    version = svc.entry("scene").cache.version
+    accepted = await svc.accept("scene", proposal.id, now=123.0)
+    assert accepted.state == "accepted" and accepted.decided_at == 123.0
+    cache = svc.entry("scene").cache
+    assert cache.version == version + 1 and cache.stale and proposal.id in cache.labels_by_id
+    assert "a keyboard on the ground" in cache.detection_counts
+    again = await ask(connector, sub, 7, *keyboard)
+    assert not again.is_anomaly and again.reason is not None and "stale" in again.reason
+    kinds = [(await proposal_event(events)).kind for _ in range(2)]
+    assert kinds == ["proposal_proposed", "proposal_accepted"]  # the count of 2, then this
+    with pytest.raises(Conflict, match="already accepted"):
+        await svc.accept("scene", proposal.id, now=124.0)
+    await worker.stop()
+    await asyncio.wait_for(task, DEADLINE_S)
+
+
+async def test_under_the_auto_policy_a_proposal_is_accepted_at_once_and_kept(
+        learning: CacheService, listener: Bus, connector: Bus, tmp_path: Path) -> None:
+    svc = learning
+    await svc.create("scene", model="hash", k=1, proposals="auto")
+    worker = DetectorWorker(svc, listener, cache="scene")
+    task = asyncio.create_task(worker.run())
+    sub = connector.subscribe(topics.anomaly(topics.ANY_ROBOT), AnomalyVerdict)
+    await routed(connector, listener)
+    await routed(listener, connector)
+    keyboard = flagged_scene("a keyboard")
+    assert (await ask(connector, sub, 1, *keyboard)).is_anomaly
+    (proposal,) = svc.proposals("scene")
+    assert proposal.state == "accepted"
+    assert not (await ask(connector, sub, 2, *keyboard)).is_anomaly
+    await worker.stop()
+    await asyncio.wait_for(task, DEADLINE_S)
+    await svc.close()
+    restarted = CacheService(svc.settings,
+                             embedders=EmbedderPool(loader=lambda _: HashEmbedder()))
+    await restarted.start()
+    assert [(p.id, p.state) for p in restarted.proposals("scene")] == [(proposal.id, "accepted")]
+    assert restarted.entry("scene").cache.config.proposals == "auto"
+    await restarted.close()

@@ -123,6 +123,25 @@ def test_requests_decisions_and_events_keep_the_latest() -> None:
     assert snap["counts"] == {"request": 5, "event": 5}
 
 
+def proposal(ident: str, what: str, count: int = 1, source: str = "embedding") -> Update:
+    return update("event", Event(robot=ROBOT, source=source, kind=f"proposal_{what}", data={
+        "cache": "scene", "id": ident, "state": "pending" if what == "proposed" else what,
+        "count": count, "text": f"scene {ident}", "model": "llm"}))
+
+
+def test_proposals_keep_the_newest_state_of_each_and_are_bounded() -> None:
+    model = FlightModel(ROBOT, Limits(proposals=2))
+    model.apply(proposal("a", "proposed"))
+    model.apply(proposal("b", "proposed"))
+    model.apply(proposal("a", "proposed", count=2))
+    model.apply(proposal("a", "accepted", count=2))
+    model.apply(proposal("x", "accepted", source="robot"))  # not the detector's: ignored
+    assert [(p["id"], p["state"], p["count"]) for p in model.snapshot()["proposals"]] == [
+        ("b", "pending", 1), ("a", "accepted", 2)]
+    model.apply(proposal("c", "proposed"))
+    assert [p["id"] for p in model.snapshot()["proposals"]] == ["a", "c"]
+
+
 def test_plan_and_services() -> None:
     model = FlightModel(ROBOT)
     plan = PlanSnapshot(robot=ROBOT, t=1.0, nominal=((0.0, 0.0, 1.0), (0.1, 0.0, 1.0)),

@@ -128,12 +128,12 @@ def test_an_hnsw_graph_is_saved_and_not_rebuilt_on_load(tmp_path: Path) -> None:
 
 def test_a_write_past_the_size_limit_is_refused_whole_and_the_store_goes_on(
         tmp_path: Path) -> None:
-    with Store(tmp_path, max_bytes=64 * 1024) as store:
+    with Store(tmp_path, max_bytes=128 * 1024) as store:  # 32 pages, 17 of them the schema
         cache = Cache(CacheConfig("c", None, 64))
         store.create(cache.config)
         commit_add(store, cache, 10, seed=1)
-        op = cache.plan_add(vectors(400, 64, 2), ids=[None] * 400, texts=[None] * 400,
-                            metadata=[{}] * 400)
+        op = cache.plan_add(vectors(600, 64, 2), ids=[None] * 600, texts=[None] * 600,
+                            metadata=[{}] * 600)
         with pytest.raises(StorageFull, match="was not written"):
             store.commit("c", op, cache.header.after(op))
         commit_add(store, cache, 2, seed=3)  # a small write still fits

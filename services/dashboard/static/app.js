@@ -14,7 +14,8 @@
 
   function emptyFlight() {
     return { robot: "", state: null, trail: [], plan: null, regions: [], goal: null,
-             verdict: null, scores: [], requests: [], decisions: [], events: [], services: {} };
+             verdict: null, scores: [], requests: [], decisions: [], events: [], proposals: [],
+             services: {} };
   }
 
   // ---- the stream -------------------------------------------------------------------------
@@ -72,7 +73,13 @@
         break;
       case "request": push(flight.requests, m, LIMITS.log); break;
       case "decision": push(flight.decisions, { ...m, label: item.label }, LIMITS.log); break;
-      case "event": push(flight.events, m, LIMITS.log); break;
+      case "event":
+        push(flight.events, m, LIMITS.log);
+        if (m.source === "embedding" && m.kind.startsWith("proposal_") && m.data && m.data.id) {
+          flight.proposals = flight.proposals.filter((p) => p.id !== m.data.id);
+          push(flight.proposals, { ...m.data, stamp: m.stamp }, LIMITS.log);
+        }
+        break;
       case "health": flight.services[m.service] = m.alive; break;
       case "regions": flight.regions = m.regions; flight.goal = m.goal || flight.goal; break;
     }
@@ -182,6 +189,26 @@
       return li;
     });
     $("decisions").replaceChildren(...items);
+  }
+
+  function renderProposals() {
+    // scenes the LLM answered "continue" for, proposed to the detector's cache
+    const items = flight.proposals.slice().reverse().map((p) => {
+      const li = document.createElement("li");
+      li.dataset.state = p.state;
+      li.dataset.id = p.id;
+      const state = document.createElement("span");
+      state.className = "state";
+      state.textContent = p.state;
+      const text = document.createElement("div");
+      text.textContent = `“${p.text.split("\n").join(" / ")}”`;
+      const meta = document.createElement("div");
+      meta.className = "meta";
+      meta.textContent = `${clockOf(p.stamp)} · ${p.cache} · proposed ${p.count}× · ${p.model}`;
+      li.append(state, text, meta);
+      return li;
+    });
+    $("proposals").replaceChildren(...items);
   }
 
   function renderEvents() {
@@ -415,7 +442,7 @@
 
   // ---- the render loop --------------------------------------------------------------------
 
-  let shown = { requests: null, decisions: null, events: null };
+  let shown = { requests: null, decisions: null, events: null, proposals: null };
 
   function render() {
     if (dirty) {
@@ -426,10 +453,11 @@
       drawScores($("score"));
       // lists are rebuilt only when they changed (they hold the countdowns)
       const keys = { requests: listKey(flight.requests), decisions: listKey(flight.decisions),
-                     events: listKey(flight.events) };
+                     events: listKey(flight.events), proposals: listKey(flight.proposals) };
       if (keys.decisions !== shown.decisions) renderDecisions();
       if (keys.requests !== shown.requests || keys.decisions !== shown.decisions) renderRequests();
       if (keys.events !== shown.events) renderEvents();
+      if (keys.proposals !== shown.proposals) renderProposals();
       shown = keys;
     }
     requestAnimationFrame(render);
