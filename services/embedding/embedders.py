@@ -553,9 +553,20 @@ def load_embedder(
     openai_api_key: str | None = None,
     device: str = "cpu",
     hf_cache_dir: str | Path | None = None,
+    export_dir: Path | None = None,
+    threads: int = 1,
 ) -> Embedder:
-    """``"openai:<name>"`` -> ``OpenAIEmbedder``; anything else -> a local
-    ``SentenceTransformerEmbedder`` (``ModelNotFound`` if it is not on disk)."""
+    """``"openai:<name>"`` -> ``OpenAIEmbedder``; ``"onnx:<model>"`` or
+    ``"onnx-int8:<model>"`` -> ``OnnxEmbedder`` (exported once into ``export_dir``);
+    anything else -> a local ``SentenceTransformerEmbedder`` (``ModelNotFound`` if it is
+    not on disk)."""
+    from . import onnx_backend
+
+    onnx = onnx_backend.split(model)
+    if onnx is not None:
+        return onnx_backend.OnnxEmbedder(
+            onnx[0], int8=onnx[1], export_dir=export_dir or onnx_backend.default_export_dir(),
+            threads=threads, hf_cache_dir=hf_cache_dir)
     if model.startswith(OPENAI_PREFIX):
         name = model.removeprefix(OPENAI_PREFIX)
         if not name:
@@ -573,6 +584,9 @@ def pool_key(model: str) -> str:
     """
     if model.startswith(OPENAI_PREFIX):
         return model
+    for prefix in ("onnx:", "onnx-int8:"):  # onnx_backend.PREFIXES
+        if model.startswith(prefix):
+            return prefix + pool_key(model.removeprefix(prefix))
     if model.lower() in _BUNDLED_ALIASES:
         return DEFAULT_MODEL
     path = Path(model).expanduser()
@@ -608,11 +622,15 @@ class EmbedderPool(Closing):
         loader: Callable[[str], Embedder] | None = None,
         model_dir: Path | None = None,
         max_loaded: int = 4,
+        export_dir: Path | None = None,
+        threads: int = 1,
     ) -> None:
+        """``export_dir``: where ONNX exports are kept; ``threads``: per ONNX inference."""
         self._loader = loader or (
             lambda model: load_embedder(
                 model, openai_base_url=openai_base_url, openai_api_key=openai_api_key,
-                device=device, hf_cache_dir=hf_cache_dir,
+                device=device, hf_cache_dir=hf_cache_dir, export_dir=export_dir,
+                threads=threads,
             )
         )
         self._lock = threading.Lock()
@@ -639,7 +657,7 @@ class EmbedderPool(Closing):
     def _check_directory(self, model: str) -> None:
         if self._model_dir is None or model.startswith(OPENAI_PREFIX):
             return
-        path = Path(model).expanduser()
+        path = Path(model.removeprefix("onnx:").removeprefix("onnx-int8:")).expanduser()
         if (_is_dir(path) or path.is_absolute()) and \
                 not path.resolve().is_relative_to(self._model_dir):
             raise ModelNotFound(f"{model!r}: a model given as a directory must be inside "

@@ -214,7 +214,8 @@ class CacheService:
             openai_api_key=(settings.openai_api_key.get_secret_value()
                             if settings.openai_api_key else None),
             model_dir=settings.model_dir or settings.data_dir / "models",
-            max_loaded=settings.max_models)
+            max_loaded=settings.max_models, export_dir=Path(settings.data_dir) / "onnx",
+            threads=max(settings.torch_threads, 1))
         self.jobs = Jobs(max_running=settings.max_jobs, setting="AESOP_EMBEDDING_MAX_JOBS")
         self._entries: dict[str, Entry] = {}
         self._create_lock = asyncio.Lock()
@@ -535,8 +536,11 @@ class CacheService:
                 detection = np.array([np.nan if r.detection_score is None
                                       else r.detection_score for r in scored])
                 labels = np.array([x.is_anomaly for x in calibration], dtype=bool)
-            cal = await self._calibration(entry, method, alpha, tpr, scores, labels)
-            kept = await self._calibration_scores(entry, cal, scores, detection, labels)
+            loo = (await on_fresh_thread(self._loo_both, entry)
+                   if method == "loo-quantile" else None)
+            cal = await self._calibration(entry, method, alpha, tpr, scores, labels,
+                                          None if loo is None else loo[0])
+            kept = self._calibration_scores(cal, loo, scores, detection, labels)
             await self._commit(entry, entry.cache.plan_calibration(cal, kept))
             version = entry.cache.version
         roc = None
@@ -546,10 +550,11 @@ class CacheService:
 
     async def _calibration(self, entry: Entry, method: Method, alpha: float | None,
                            tpr: float | None, scores: np.ndarray | None,
-                           labels: np.ndarray | None) -> Calibration:
+                           labels: np.ndarray | None, loo: np.ndarray | None) -> Calibration:
+        """``loo``: the members' leave-one-out scores (loo-quantile)."""
         try:
             if method == "loo-quantile":
-                loo = await on_fresh_thread(self._loo, entry)
+                assert loo is not None
                 cal = loo_quantile(loo, 0.95 if alpha is None else alpha)
                 if scores is not None and labels is not None and labels.any() \
                         and (~labels).any():
@@ -581,14 +586,16 @@ class CacheService:
         return await self._on_compute(self._embed_and_score, entry, entry.cache.config.k,
                                       queries)
 
-    async def _calibration_scores(self, entry: Entry, cal: Calibration,
-                                  scores: np.ndarray | None, detection: np.ndarray | None,
-                                  labels: np.ndarray | None) -> CalibrationScores | None:
+    @staticmethod
+    def _calibration_scores(cal: Calibration, loo: tuple[np.ndarray, np.ndarray] | None,
+                            scores: np.ndarray | None, detection: np.ndarray | None,
+                            labels: np.ndarray | None) -> CalibrationScores | None:
         """The nominal scores behind ``cal``'s p-values: the leave-one-out scores of
         both components (loo-quantile) or the calibration set's nominal ones (conformal);
         None for tpr-target. Refused when the combined p-value could never flag."""
         if cal.method == "loo-quantile":
-            kept = CalibrationScores.of(*await on_fresh_thread(self._loo_both, entry))
+            assert loo is not None
+            kept = CalibrationScores.of(*loo)
         elif cal.method == "conformal" and scores is not None and labels is not None:
             assert detection is not None
             kept = CalibrationScores.of(scores[~labels], detection[~labels])
@@ -603,11 +610,9 @@ class CacheService:
                 "examples with detections, or a lower alpha)", field="alpha")
         return kept
 
-    def _loo(self, entry: Entry) -> np.ndarray:
-        with entry.rw.read():
-            return entry.cache.loo_scores()
-
     def _loo_both(self, entry: Entry) -> tuple[np.ndarray, np.ndarray]:
+        """Each member's leave-one-out scores: the whole observation's, and its worst
+        detection's (NaN without detections; none for a cache without any)."""
         with entry.rw.read():
             observation = entry.cache.loo_scores()
             detection = (entry.cache.loo_detection_scores() if entry.cache.has_detections

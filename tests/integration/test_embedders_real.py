@@ -118,3 +118,51 @@ def test_a_directory_and_an_hf_cache_entry_load_without_network(
     np.testing.assert_allclose(by_path.embed(SCENES[:2]), reference, atol=1e-5)
     np.testing.assert_allclose(cached.embed(SCENES[:2]), reference, atol=1e-5)
     assert no_network == []
+
+
+# -- the ONNX backends -----------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def exports(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("onnx")
+
+
+def test_the_onnx_export_gives_the_torch_vectors_and_is_made_once(
+        embedder: SentenceTransformerEmbedder, exports: Path) -> None:
+    onnx = load_embedder("onnx:all-MiniLM-L6-v2", export_dir=exports)
+    assert onnx.name == "onnx:" + DEFAULT_MODEL and onnx.dim == 384
+    got, want = onnx.embed(SCENES), embedder.embed(SCENES)
+    assert got.dtype == np.float32 and np.allclose(np.linalg.norm(got, axis=1), 1, atol=1e-5)
+    assert (got * want).sum(axis=1).min() > 0.9999  # the same model, another runtime
+    [folder] = exports.iterdir()
+    made = (folder / "model.onnx").stat().st_mtime_ns
+    again = load_embedder("onnx:sentence-transformers/all-MiniLM-L6-v2", export_dir=exports)
+    assert (folder / "model.onnx").stat().st_mtime_ns == made  # read, not exported again
+    assert np.array_equal(again.embed(SCENES), got)
+
+
+def test_the_int8_model_keeps_the_neighbourhoods(embedder: SentenceTransformerEmbedder,
+                                                 exports: Path) -> None:
+    int8 = load_embedder("onnx-int8:all-MiniLM-L6-v2", export_dir=exports)
+    assert int8.name == "onnx-int8:" + DEFAULT_MODEL
+    got, want = int8.embed(SCENES), embedder.embed(SCENES)
+    assert (got * want).sum(axis=1).min() > 0.9  # quantized weights: close, not equal
+    # the paraphrases stay each other's nearest, and the pairwise similarities keep their
+    # order (an unrelated scene's nearest unrelated one may change)
+    sims = got @ got.T
+    np.fill_diagonal(sims, -2)
+    assert sims[0].argmax() == 1 and sims[1].argmax() == 0
+    upper = np.triu_indices(len(SCENES), 1)
+    ranks = [np.argsort(np.argsort(m[upper])) for m in (got @ got.T, want @ want.T)]
+    assert np.corrcoef(*ranks)[0, 1] > 0.9
+
+
+def test_onnx_spellings_share_one_pool_slot(exports: Path) -> None:
+    pool = EmbedderPool(export_dir=exports)
+    try:
+        a = pool.get("onnx-int8:all-MiniLM-L6-v2")
+        assert pool.get("onnx-int8:sentence-transformers/all-MiniLM-L6-v2") is a
+        assert pool.get("onnx:all-MiniLM-L6-v2") is not a
+    finally:
+        pool.close()

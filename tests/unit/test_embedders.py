@@ -185,6 +185,8 @@ def test_pool_keys_join_spellings_of_one_model(tmp_path: Path) -> None:
     assert pool_key("all-mpnet-base-v2") == "sentence-transformers/all-mpnet-base-v2"
     assert pool_key(str(tmp_path / ".." / tmp_path.name)) == str(tmp_path.resolve())
     assert pool_key("openai:text-embedding-3-small") == "openai:text-embedding-3-small"
+    assert pool_key("onnx-int8:all-MiniLM-L6-v2") == "onnx-int8:" + DEFAULT_MODEL
+    assert pool_key("onnx:all-MiniLM-L6-v2") == "onnx:" + DEFAULT_MODEL
 
 
 # --- the pool, with a fake loader ------------------------------------------------
