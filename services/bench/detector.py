@@ -1,14 +1,18 @@
-"""``aesop bench detector``: quality, latency, search, calibration, build, memory, REST,
-restart.
+"""``aesop bench detector``: quality, score kinds, latency, search, calibration, build,
+memory, REST, restart.
 
-Eight parts, each one function returning a JSON-able dict (``--only PART``):
+Nine parts, each one function returning a JSON-able dict (``--only PART``):
 
 * ``quality``  accuracy / AUROC vs cache size and vs concept coverage on the
   synthetic domains (paper §V-A, ``fig:synthetic-results``), top-5 scoring,
   tau = 95th LOO quantile (eq. 2); plus the threshold-quantile table of the
   appendix (``supp:threshold-analysis``) on VTOL.
+* ``kinds``    per domain (three synthetic, quadrotor), brief form with detections: AUROC,
+  balanced accuracy and FPR of the top-k, detection and combined scores, and the
+  split-conformal FPR of the combined score against alpha.
 * ``latency``  one observation end to end through ``CacheService.score_texts``
-  against a 20k cache, with the embed-only and search-only parts.
+  against a 20k cache, with the embed-only and search-only parts, per embedding
+  backend (torch, ONNX float32, ONNX int8).
 * ``search``   exact (flat) vs HNSW search: single-query latency, build time, recall@5.
 * ``loo``      leave-one-out calibration at 20k vs FAISS's batched search.
 * ``build``    texts/s through ``CacheService.add`` (embedding dominates).
@@ -51,18 +55,19 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from services.embedding.embedders import Embedder
 from services.embedding.settings import DEFAULT_MODEL
 from shared.process import ServiceProcess, free_port
 from shared.tables import table
 
 if TYPE_CHECKING:
-    from services.embedding.embedders import Embedder
+    from services.bench.evaluate import EvalScore
     from services.embedding.service import CacheService
     from services.scenes import Dataset
 
 log = logging.getLogger(__name__)
 
-PARTS = ("quality", "latency", "search", "loo", "build", "memory", "rest", "restart")
+PARTS = ("quality", "kinds", "latency", "search", "loo", "build", "memory", "rest", "restart")
 DIM = 384  # all-MiniLM-L6-v2
 K = 5  # top-5 scoring, as in the paper
 ALPHA = 0.95  # tau = 95th LOO quantile (eq. 2)
@@ -138,6 +143,7 @@ def run_detector_bench(
     result: dict[str, Any] = {"meta": _meta(quick, seed, parts)}
     runners: dict[str, Callable[[], dict[str, Any]]] = {
         "quality": lambda: bench_quality(bench, plot),
+        "kinds": lambda: bench_kinds(bench),
         "latency": lambda: bench_latency(bench),
         "search": lambda: bench_search(sizes, seed),
         "loo": lambda: bench_loo(sizes, seed),
@@ -482,6 +488,78 @@ def plot_quality(domains: Mapping[str, Mapping[str, Any]], path: Path) -> None:
     fig.savefig(path, dpi=120)
     plt.close(fig)
     log.info("wrote %s", path)
+
+
+# -- score kinds and the conformal FPR (issue 12) ----------------------------------------
+
+KINDS: tuple[EvalScore, ...] = ("topk", "detections", "combined")
+KIND_DOMAINS = ("warehouse", "vehicle", "vtol", "quadrotor")
+CONFORMAL_ALPHAS = (0.8, 0.9, 0.95, 0.99)
+
+
+def bench_kinds(bench: _Bench) -> dict[str, Any]:
+    """Per domain, the brief form (what a robot publishes) with its detections, split as
+    ``aesop detector domains`` splits it (80% of nominal the cache, the rest and every
+    anomaly the test): AUROC, balanced accuracy and FPR of each score kind, loo-quantile
+    at alpha 0.95, k 5; then ``combined`` calibrated split-conformal (the cache's nominal
+    set halved: cache and calibration) at each alpha: its FPR on the held-out nominal
+    test samples against the ``1 - alpha`` it promises."""
+    from services.bench.evaluate import EvalConfig, evaluate
+    from services.embedding.errors import InvalidInput
+
+    memo = _Memo(bench.embedder)
+    domains = {}
+    for name in KIND_DOMAINS:
+        nominal, test = (_labelled(x) for x in bench.dataset(name).split_for_eval(bench.seed))
+        kinds = {kind: evaluate(memo, nominal, test, config=EvalConfig(
+            k=K, alpha=ALPHA, method="loo-quantile", score=kind)) for kind in KINDS}
+        half = len(nominal) // 2
+        conformal = []
+        for alpha in CONFORMAL_ALPHAS:
+            try:
+                got = evaluate(memo, nominal[:half], test, nominal[half:], EvalConfig(
+                    k=K, alpha=alpha, method="conformal", score="combined"))
+            except InvalidInput as exc:  # too few calibration samples to ever flag
+                conformal.append({"alpha": alpha, "fpr": None, "promised": 1 - alpha,
+                                  "note": exc.message})
+                continue
+            conformal.append({"alpha": alpha, "fpr": got["fpr"], "promised": 1 - alpha,
+                              "tpr": got["tpr"], "n_calibration": got["n_calibration"]})
+        domains[name] = {"n_nominal": len(nominal), "n_test": len(test),
+                         "kinds": {k: {m: v[m] for m in ("auroc", "balanced_accuracy", "fpr")}
+                                   for k, v in kinds.items()},
+                         "conformal": conformal}
+    return {"model": memo.name, "k": K, "alpha": ALPHA, "domains": domains}
+
+
+def _labelled(samples: Sequence[Any]) -> list[Any]:
+    from services.embedding.cache import Labelled
+
+    return [Labelled(s.brief, s.label == "anomaly", tuple(s.concepts)) for s in samples]
+
+
+class _Memo(Embedder):
+    """An embedder that embeds each text once (the kinds part evaluates one domain's
+    texts seven times)."""
+
+    def __init__(self, inner: Embedder) -> None:
+        self.inner = inner
+        self.seen: dict[str, np.ndarray] = {}
+
+    @property
+    def name(self) -> str:
+        return self.inner.name
+
+    @property
+    def dim(self) -> int:
+        return self.inner.dim
+
+    def embed(self, texts: Sequence[str], **_: Any) -> np.ndarray:
+        new = [t for t in dict.fromkeys(texts) if t not in self.seen]
+        if new:
+            self.seen.update(zip(new, self.inner.embed(new, batch_size=64), strict=True))
+        return np.stack([self.seen[t] for t in texts]) if texts else \
+            np.zeros((0, self.dim), dtype=np.float32)
 
 
 # -- 2. latency ------------------------------------------------------------------------
@@ -989,7 +1067,8 @@ def render(part: str, r: Mapping[str, Any]) -> str:
     """The human-readable tables of one part's result."""
     if "error" in r:
         return table(f"[{part}] FAILED", [{"error": r["error"]}])
-    return {"quality": _render_quality, "latency": _render_latency, "search": _render_search,
+    return {"quality": _render_quality, "kinds": _render_kinds,
+            "latency": _render_latency, "search": _render_search,
             "loo": _render_loo, "build": _render_build, "memory": _render_memory,
             "rest": _render_rest, "restart": _render_restart}[part](r)
 
@@ -1028,6 +1107,25 @@ def _pm(point: Mapping[str, Any], key: str) -> str:
     if point.get(key) is None:
         return "-"
     return f"{point[key]:.3f}" + (f" ({point[key + '_std']:.3f})" if key + "_std" in point else "")
+
+
+def _render_kinds(r: Mapping[str, Any]) -> str:
+    rows = [{"domain": name, **{f"AUROC {k}": d["kinds"][k]["auroc"] for k in KINDS},
+             **{f"bal.acc {k}": d["kinds"][k]["balanced_accuracy"] for k in KINDS},
+             "FPR combined": d["kinds"]["combined"]["fpr"]}
+            for name, d in r["domains"].items()]
+    out = table(f"[kinds] score kinds, brief form with detections, {r['model']}, k {r['k']}, "
+                f"loo-quantile alpha {r['alpha']} (target AUROC >= 0.95)", rows)
+    def fpr(c: Mapping[str, Any]) -> str:
+        if c["fpr"] is None:
+            return "n too small"
+        return f"{c['fpr']:.3f} {'ok' if c['fpr'] <= c['promised'] + 0.01 else 'OVER'}"
+
+    rows = [{"domain": name, **{f"FPR @ {c['alpha']:g} (<= {c['promised']:.2f})": fpr(c)
+                                for c in d["conformal"]}}
+            for name, d in r["domains"].items()]
+    return out + "\n" + table("[kinds] combined, split conformal: held-out nominal FPR vs "
+                               "1 - alpha (target: at most 1 - alpha + 1%)", rows)
 
 
 def _render_latency(r: Mapping[str, Any]) -> str:

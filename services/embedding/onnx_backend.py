@@ -7,7 +7,9 @@ for, with ``torch.onnx.export`` (its TorchScript exporter: the newer one needs o
 which this project does not install; the tests check the export against torch on inputs of
 other lengths), and the file is kept under ``export_dir`` (the service
 passes ``<data_dir>/onnx``): later loads read it. The int8 file is made from the
-float32 one with ONNX Runtime's dynamic quantization. Tokenisation is the model's own
+float32 one with ONNX Runtime's dynamic quantization; it embeds one text per call, since
+dynamic quantization scales a call's activations by their range and a text's vector
+would otherwise depend on the texts batched with it. Tokenisation is the model's own
 (its Hugging Face tokenizer, same truncation), pooling its own: mean over the tokens
 (the only pooling supported; the model's ``1_Pooling/config.json`` says so), then L2
 normalisation, as sentence-transformers does.
@@ -83,6 +85,11 @@ class OnnxEmbedder(Embedder):
         return self._dim
 
     def _encode(self, batch: list[str]) -> np.ndarray:
+        if self._int8 and len(batch) > 1:
+            # dynamic quantization scales each call's activations by their range, the
+            # other texts (and their padding) included: a text's int8 vector would depend
+            # on its batch, and a nominal detection seen again would not match itself
+            return np.concatenate([self._encode([text]) for text in batch])
         try:
             tokens = self._tokenizer(batch, padding=True, truncation=True,
                                      max_length=self._max_length, return_tensors="np")

@@ -17,7 +17,6 @@ set, there too (``dashboard-demo.png``).
 
 from __future__ import annotations
 
-import os
 import secrets
 import time
 from collections.abc import Iterator
@@ -29,17 +28,9 @@ import numpy as np
 import pytest
 from playwright.sync_api import Browser, Page, expect
 
-from services.control.scenario import load_scenario
 from services.demo.flights import demo_scenario, fly_scenarios
-from services.stack.up import (
-    Ports,
-    Stack,
-    StackOptions,
-    StackPlan,
-    hardware_scenario,
-    plan_stack,
-)
-from shared.process import file_sink
+from services.stack.up import StackPlan
+from tests.demo_stack import demo_stack
 from tests.e2e.browser import canvas_count, screenshot
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(540)]
@@ -52,23 +43,11 @@ FLIGHT_TIMEOUT_S = 300  # the cache (385 texts, a CPU embedder), calibration, a 
 
 TOKEN = secrets.token_urlsafe(24)  # the stack's admin token
 
+
 @pytest.fixture
 def stack(tmp_path: Path) -> Iterator[StackPlan]:
-    """The demo's stack on free ports (as `aesop demo --random-ports` plans it), logs in
-    ``tmp_path/logs``; stopped whatever happens."""
-    path = hardware_scenario()
-    scene = load_scenario(path)
-    rate = None if os.environ.get("AESOP_CONTROL_RATE_HZ") else 1.0 / scene.dt
-    options = StackOptions(data_dir=tmp_path / "data", ports=Ports.free(), scenario=path,
-                           rate_hz=rate)
-    environ = {k: v for k, v in os.environ.items() if k != "AESOP_ADMIN_TOKEN"}
-    plan = plan_stack(options, environ, TOKEN)
-    running = Stack(plan, file_sink(tmp_path / "logs"))
-    try:
-        running.start()
+    with demo_stack(tmp_path, TOKEN) as plan:
         yield plan
-    finally:
-        running.stop()
 
 
 def fly(page: Page, stack: StackPlan, scenario: str

@@ -1,14 +1,15 @@
 """``aesop bench detector`` as a user runs it: one JSON object on stdout, sane values.
 
-Only the cheap parts that need no model (``loo`` and ``search``) run here, in
-quick mode. Nothing is asserted about how fast anything is: timings belong in
-the benchmark's output, not in tests.
+Only the cheap parts (``loo``, ``search``, ``restart``, and ``latency`` with its 50
+observations per backend) run here, in quick mode. Nothing is asserted about how fast
+anything is: timings belong in the benchmark's output, not in tests.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -16,15 +17,18 @@ from typing import Any
 
 import pytest
 
-from services.bench.detector import QUICK, _jsonable
+from services.bench.detector import BACKENDS, QUICK, _jsonable
+from services.embedding.embedders import pool_key
 from shared.tables import table
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def aesop(*args: str, timeout: float) -> subprocess.CompletedProcess[str]:
+def aesop(*args: str, timeout: float, env: dict[str, str] | None = None
+          ) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "services.cli", *args], cwd=ROOT,
-                          capture_output=True, text=True, timeout=timeout, check=False)
+                          capture_output=True, text=True, timeout=timeout, check=False,
+                          env=None if env is None else {**os.environ, **env})
 
 
 def positive(value: Any) -> bool:
@@ -88,6 +92,23 @@ def test_quick_restart_loads_the_saved_hnsw_graph() -> None:
     for key in ("commit_s", "graph_build_s", "index_save_s", "restart_with_index_s",
                 "restart_without_index_s", "database_mb", "ratio"):
         assert positive(restart[key]), key
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_quick_latency_times_each_backend(tmp_path: Path) -> None:
+    env = {"XDG_CACHE_HOME": str(tmp_path)}  # the ONNX exports go here, made by the probes
+    proc = aesop("bench", "detector", "--quick", "--json", "--only", "latency", timeout=600,
+                 env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    latency = json.loads(proc.stdout)["latency"]
+    assert list(latency["backends"]) == list(BACKENDS)
+    for model, run in latency["backends"].items():
+        assert run["model"] == pool_key(model) and run["n"] == QUICK.latency_n
+        check_stats(run["end_to_end"], QUICK.latency_n)
+        check_stats(run["embed_only"], QUICK.latency_n)
+    assert latency["end_to_end"] == latency["backends"][BACKENDS[0]]["end_to_end"]
+    assert (tmp_path / "aesop" / "onnx").is_dir()
 
 
 def test_unknown_part_is_a_user_error() -> None:

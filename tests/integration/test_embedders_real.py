@@ -166,3 +166,10 @@ def test_onnx_spellings_share_one_pool_slot(exports: Path) -> None:
         assert pool.get("onnx:all-MiniLM-L6-v2") is not a
     finally:
         pool.close()
+
+
+def test_an_int8_vector_does_not_depend_on_its_batch(exports: Path) -> None:
+    int8 = load_embedder("onnx-int8:all-MiniLM-L6-v2", export_dir=exports)
+    alone = int8.embed(SCENES[:1])
+    batched = int8.embed(SCENES, batch_size=len(SCENES))
+    assert np.array_equal(batched[:1], alone)  # a nominal detection must match itself

@@ -7,26 +7,16 @@ experience; the second flight flies past it without a flag."""
 from __future__ import annotations
 
 import asyncio
-import os
 import secrets
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from services.control.scenario import load_scenario
 from services.demo.flights import fly_scenarios
 from services.embedding.client import EmbeddingClient
-from services.stack.up import (
-    DETECTOR_CACHE,
-    Ports,
-    Stack,
-    StackOptions,
-    StackPlan,
-    hardware_scenario,
-    plan_stack,
-)
-from shared.process import file_sink
+from services.stack.up import DETECTOR_CACHE, StackPlan
+from tests.demo_stack import demo_stack
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
@@ -36,19 +26,8 @@ KEYBOARD = "3-keyboard-on-ground"
 
 @pytest.fixture
 def stack(tmp_path: Path) -> Iterator[StackPlan]:
-    path = hardware_scenario()
-    scene = load_scenario(path)
-    rate = None if os.environ.get("AESOP_CONTROL_RATE_HZ") else 1.0 / scene.dt
-    options = StackOptions(data_dir=tmp_path / "data", ports=Ports.free(), scenario=path,
-                           rate_hz=rate)
-    environ = {k: v for k, v in os.environ.items() if k != "AESOP_ADMIN_TOKEN"}
-    plan = plan_stack(options, environ, TOKEN)
-    running = Stack(plan, file_sink(tmp_path / "logs"))
-    try:
-        running.start()
+    with demo_stack(tmp_path, TOKEN) as plan:
         yield plan
-    finally:
-        running.stop()
 
 
 async def learn_automatically(url: str) -> None:

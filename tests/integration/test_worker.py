@@ -140,46 +140,7 @@ async def test_an_observation_past_the_text_limit_is_not_scored(
     await asyncio.wait_for(task, DEADLINE_S)
 
 
-async def test_a_verdict_names_the_odd_detection_and_carries_the_p_value(
-        tmp_path: Path, listener: Bus, connector: Bus) -> None:
-    settings = EmbeddingSettings(data_dir=tmp_path, fsync=False, zenoh_worker=False)
-    svc = CacheService(settings, embedders=EmbedderPool(loader=lambda _: HashEmbedder()))
-    await svc.start()
-    things = ["a red box", "a drill", "a bicycle tire", "a soccer ball"]
-
-    def seen(i: int) -> tuple[Detection, ...]:
-        return tuple(Detection(label=things[(i + j) % 4], where="on the ground")
-                     for j in range(1 + i % 3))
-
-    def text(found: tuple[Detection, ...]) -> str:
-        return "\n".join(d.phrase for d in found)
-
-    await svc.create("scene", model="hash", k=1)
-    await svc.add("scene", [Item(text=text(seen(i)) + f" (frame {i})", detections=seen(i))
-                            for i in range(45)])
-    await svc.calibrate("scene", "loo-quantile", alpha=0.95)
-    worker = DetectorWorker(svc, listener, cache="scene")
-    task = asyncio.create_task(worker.run())
-    sub = connector.subscribe(topics.anomaly(topics.ANY_ROBOT), AnomalyVerdict)
-    await routed(connector, listener)
-    await routed(listener, connector)
-    odd = seen(1)[:1] + (Detection(label="a keyboard", where="on the ground"),)
-    for seq, found in enumerate([seen(1), odd]):
-        connector.publish(topics.observation("drone7"), Observation(
-            robot="drone7", seq=seq, text=text(seen(1)) + " (frame 1)", detections=found))
-    nominal, anomalous = sorted(await verdicts(sub, 2), key=lambda v: v.seq)
-    assert nominal.is_anomaly is False and nominal.p_value == 1.0 and nominal.detections == ()
-    assert anomalous.is_anomaly is True and anomalous.p_value is not None
-    assert anomalous.p_value < 0.05
-    (named,) = anomalous.detections
-    assert named.detection == "a keyboard on the ground"
-    assert named.nearest in {f"{t} on the ground" for t in things} and named.similarity < 1
-    await worker.stop()
-    await asyncio.wait_for(task, DEADLINE_S)
-    await svc.close()
-
-
-# -- learning from the slow reasoner ----------------------------------------------------
+# -- detections, and learning from the slow reasoner ---------------------------------
 
 THINGS = ["a red box", "a drill", "a bicycle tire", "a soccer ball"]
 
@@ -194,7 +155,7 @@ def scene_text(found: tuple[Detection, ...]) -> str:
 
 
 @pytest.fixture
-async def learning(tmp_path: Path) -> AsyncIterator[CacheService]:
+async def scene_cache(tmp_path: Path) -> AsyncIterator[CacheService]:
     settings = EmbeddingSettings(data_dir=tmp_path, fsync=False, zenoh_worker=False)
     svc = CacheService(settings, embedders=EmbedderPool(loader=lambda _: HashEmbedder()))
     await svc.start()
@@ -204,6 +165,28 @@ async def learning(tmp_path: Path) -> AsyncIterator[CacheService]:
     await svc.calibrate("scene", "loo-quantile", alpha=0.95)
     yield svc
     await svc.close()
+
+
+async def test_a_verdict_names_the_odd_detection_and_carries_the_p_value(
+        scene_cache: CacheService, listener: Bus, connector: Bus) -> None:
+    worker = DetectorWorker(scene_cache, listener, cache="scene")
+    task = asyncio.create_task(worker.run())
+    sub = connector.subscribe(topics.anomaly(topics.ANY_ROBOT), AnomalyVerdict)
+    await routed(connector, listener)
+    await routed(listener, connector)
+    odd = seen(1)[:1] + (Detection(label="a keyboard", where="on the ground"),)
+    for seq, found in enumerate([seen(1), odd]):
+        connector.publish(topics.observation("drone7"), Observation(
+            robot="drone7", seq=seq, text=scene_text(seen(1)), detections=found))
+    nominal, anomalous = sorted(await verdicts(sub, 2), key=lambda v: v.seq)
+    assert nominal.is_anomaly is False and nominal.p_value == 1.0 and nominal.detections == ()
+    assert anomalous.is_anomaly is True and anomalous.p_value is not None
+    assert anomalous.p_value < 0.05
+    (named,) = anomalous.detections
+    assert named.detection == "a keyboard on the ground"
+    assert named.nearest in {f"{t} on the ground" for t in THINGS} and named.similarity < 1
+    await worker.stop()
+    await asyncio.wait_for(task, DEADLINE_S)
 
 
 def flagged_scene(label: str) -> tuple[str, tuple[Detection, ...]]:
@@ -241,8 +224,8 @@ async def ask(connector: Bus, sub: object, seq: int, text: str,
 
 
 async def test_a_continue_for_a_flagged_scene_is_proposed_once_with_a_count(
-        learning: CacheService, listener: Bus, connector: Bus) -> None:
-    svc = learning
+        scene_cache: CacheService, listener: Bus, connector: Bus) -> None:
+    svc = scene_cache
     worker = DetectorWorker(svc, listener, cache="scene")
     task = asyncio.create_task(worker.run())
     sub = connector.subscribe(topics.anomaly(topics.ANY_ROBOT), AnomalyVerdict)
@@ -289,8 +272,8 @@ async def test_a_continue_for_a_flagged_scene_is_proposed_once_with_a_count(
 
 
 async def test_under_the_auto_policy_a_proposal_is_accepted_at_once_and_kept(
-        learning: CacheService, listener: Bus, connector: Bus, tmp_path: Path) -> None:
-    svc = learning
+        scene_cache: CacheService, listener: Bus, connector: Bus) -> None:
+    svc = scene_cache
     await svc.create("scene", model="hash", k=1, proposals="auto")
     worker = DetectorWorker(svc, listener, cache="scene")
     task = asyncio.create_task(worker.run())
