@@ -218,7 +218,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="anomalies timed for the control reaction (default 20)")
     bb.add_argument("--cache-detections", type=int, default=4, choices=[1, 2, 3, 4],
                     help="cache every combination of up to N scene detections (default 4)")
-    bb.add_argument("--model", default=None, help="embedding model (default: all-MiniLM-L6-v2)")
+    bb.add_argument("--model", default=None,
+                    help="embedding model (default: onnx:all-MiniLM-L6-v2, the service's)")
     bb.add_argument("--json", action="store_true")
     bb.set_defaults(func=cmd_bench_bus)
 
@@ -315,7 +316,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="free ports instead of 7447 (Zenoh) and 8001-8003, 8010, 8080")
     demo.add_argument("--keep-up", action="store_true",
                       help="leave the stack running after the scenarios (Ctrl-C stops it)")
-    demo.add_argument("--model", default=None, help="embedding model (default: all-MiniLM-L6-v2)")
+    demo.add_argument("--model", default=None,
+                      help="embedding model (default: onnx:all-MiniLM-L6-v2, the service's)")
     demo.set_defaults(func=cmd_demo)
     return parser
 

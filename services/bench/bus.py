@@ -50,6 +50,7 @@ import numpy as np
 from services.control.client import ControlClient
 from services.embedding.client import EmbeddingClient
 from services.embedding.schemas import CacheInfo
+from services.embedding.settings import SERVICE_MODEL
 from services.scenes import (
     QUADROTOR_SCENARIOS,
 )
@@ -69,7 +70,6 @@ from shared.tables import table
 
 CACHE = DETECTOR_CACHE
 ROBOT = "robot0"
-DEFAULT_MODEL = "sentence-transformers/all-MiniLM-L6-v2"
 CONTROL_RATE_HZ = 10.0
 START = (10.0, 2.0, 2.0)  # m: the paper scenario's start-box centre
 MAX_ATTEMPTS = 5
@@ -365,7 +365,7 @@ def run_bus_bench(observations: int = 500, rate_hz: float = 20.0, anomalies: int
         raise ValueError("observations and anomalies must be >= 1 and rate_hz > 0")
     if not 1 <= cache_detections <= 4:
         raise ValueError("cache_detections must be in 1..4")
-    result = asyncio.run(_bench(observations, rate_hz, anomalies, model or DEFAULT_MODEL,
+    result = asyncio.run(_bench(observations, rate_hz, anomalies, model or SERVICE_MODEL,
                                 cache_detections))
     if table_out:
         print_table(result)

@@ -22,6 +22,7 @@ import logging
 import math
 import re
 import threading
+from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
@@ -148,6 +149,32 @@ class Query:
         return cls(text, tuple(dict.fromkeys(d.phrase for d in detections)))
 
 
+class PhraseMemo:
+    """The vectors of detection phrases no cache holds, the most recent ``size`` of them
+    by (model, phrase): a camera reports an odd object ten times a second, and embedding
+    it beside every observation's text made the bus's verdicts ~6 ms slower (p50)."""
+
+    def __init__(self, size: int = 4096) -> None:
+        self.size = size
+        self._kept: OrderedDict[tuple[str, str], np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def recall(self, model: str, phrases: Sequence[str]) -> dict[str, np.ndarray]:
+        with self._lock:
+            found = {p: self._kept[model, p] for p in phrases if (model, p) in self._kept}
+            for p in found:
+                self._kept.move_to_end((model, p))
+        return found
+
+    def keep(self, model: str, vectors: Mapping[str, np.ndarray]) -> None:
+        with self._lock:
+            for phrase, vector in vectors.items():
+                self._kept[model, phrase] = vector
+                self._kept.move_to_end((model, phrase))
+            while len(self._kept) > self.size:
+                self._kept.popitem(last=False)
+
+
 @dataclass(frozen=True)
 class ScoreBatch:
     results: list[Scored]
@@ -224,6 +251,7 @@ class CacheService:
         self._compute = self._thread.lane(NORMAL)
         self._urgent = self._thread.lane(URGENT)
         self._rest_pending = 0  # REST texts being scored or waiting (max_pending_texts)
+        self._phrases = PhraseMemo()
         self._store: Store | None = None
         # called with each proposal made, counted, accepted or rejected (the worker
         # publishes them as events)
@@ -710,12 +738,15 @@ class CacheService:
         with entry.rw.read():
             known = {p: entry.cache.detection_vectors[p] for p in phrases
                      if p in entry.cache.detection_vectors}
+        known |= self._phrases.recall(config.model, [p for p in phrases if p not in known])
         unknown = [p for p in phrases if p not in known]
         rows = self.embedders.get(config.model).embed(
             [q.text for q in queries] + unknown, batch_size=self.settings.embed_batch_size)
         vectors = rows[:len(queries)]
         if unknown:
-            known |= dict(zip(unknown, unit_vectors(rows[len(queries):]), strict=True))
+            new = dict(zip(unknown, unit_vectors(rows[len(queries):]), strict=True))
+            self._phrases.keep(config.model, new)
+            known |= new
         found = [Detections(q.phrases, np.stack([known[p] for p in q.phrases]))
                  if q.phrases else None for q in queries]
         with entry.rw.read():

@@ -26,7 +26,7 @@ def test_bench_bus_reports_consistent_latencies() -> None:
     result = json.loads(r.stdout)  # exactly one JSON object: anything else fails to parse
     assert result["observations"] == OBSERVATIONS and result["anomalies"] == ANOMALIES
     assert result["rate_hz"] == RATE_HZ and result["control_rate_hz"] > 0
-    assert result["model"] == "sentence-transformers/all-MiniLM-L6-v2"
+    assert result["model"] == "onnx:sentence-transformers/all-MiniLM-L6-v2"  # the default
     assert result["cache_size"] == 55  # 10 single detections and 45 pairs
     counts = {"verdict_ms": OBSERVATIONS, "reaction_ms": ANOMALIES,
               "reaction_after_verdict_ms": ANOMALIES}

@@ -189,6 +189,24 @@ async def test_a_verdict_names_the_odd_detection_and_carries_the_p_value(
     await asyncio.wait_for(task, DEADLINE_S)
 
 
+async def test_an_odd_detection_is_embedded_once_however_often_it_is_seen(
+        tmp_path: Path) -> None:
+    embedder = HashEmbedder()
+    settings = EmbeddingSettings(data_dir=tmp_path, fsync=False, zenoh_worker=False)
+    svc = CacheService(settings, embedders=EmbedderPool(loader=lambda _: embedder))
+    await svc.start()
+    await svc.create("scene", model="hash", k=1)
+    await svc.add("scene", [Item(text=scene_text(seen(i)), detections=seen(i))
+                            for i in range(3)])
+    text, odd = flagged_scene("a keyboard")
+    embedder.calls.clear()
+    for _ in range(3):
+        await svc.score_texts("scene", [text], urgent=True, detections=[odd])
+    # the text and the keyboard, then the text alone (the red box is the cache's own)
+    assert embedder.calls == [2, 1, 1]
+    await svc.close()
+
+
 def flagged_scene(label: str) -> tuple[str, tuple[Detection, ...]]:
     found = seen(1)[:1] + (Detection(label=label, where="on the ground"),)
     return scene_text(found), found
