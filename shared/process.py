@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -33,9 +34,35 @@ import httpx
 Sink = Callable[[str, str], None]  # (child name, one line of its output)
 
 
+EPHEMERAL_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+
+
+def ephemeral_range() -> tuple[int, int]:
+    """The ports the kernel hands outgoing connections (Linux's default where unknown)."""
+    try:
+        low, high = (int(x) for x in EPHEMERAL_RANGE.read_text().split())
+    except (OSError, ValueError):
+        return 32768, 60999
+    return low, high
+
+
 def free_port() -> int:
-    """A TCP port free on loopback right now (for a child service or a Zenoh endpoint)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+    """A TCP port free on loopback right now (for a child service or a Zenoh endpoint),
+    outside the kernel's ephemeral range: outgoing connections take their local ports
+    from that range, and one took a port picked there before the child could bind it
+    (a test stack's service failed with EADDRINUSE)."""
+    low, high = ephemeral_range()
+    below, above = range(10_000, low), range(high + 1, 65_536)
+    pool = below if len(below) >= len(above) else above
+    for _ in range(200):
+        port = random.choice(pool)
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+            try:
+                sock.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:  # a crowded machine
         sock.bind(("127.0.0.1", 0))
         return int(sock.getsockname()[1])
 

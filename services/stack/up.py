@@ -73,7 +73,13 @@ class Ports:
 
     @classmethod
     def free(cls) -> Ports:
-        return cls(*(free_port() for _ in range(6)))
+        """Six distinct free ports."""
+        ports: list[int] = []
+        while len(ports) < 6:
+            port = free_port()
+            if port not in ports:
+                ports.append(port)
+        return cls(*ports)
 
     def busy(self) -> list[str]:
         """``name:port`` of every port something on loopback already listens on."""

@@ -7,6 +7,7 @@ import math
 import pytest
 from pydantic import ValidationError
 
+from services.stack.up import Ports
 from shared import topics
 from shared.messages import (
     AnomalyVerdict,
@@ -19,6 +20,7 @@ from shared.messages import (
     ReasonerDecision,
     ReasonerRequest,
 )
+from shared.process import ephemeral_range, free_port
 from shared.settings import ServiceSettings
 
 OBS = Observation(robot="r1", seq=3, task="land", text="a red box on the ground")
@@ -109,3 +111,13 @@ def test_a_request_deadline_is_finite(deadline: bytes) -> None:
     assert payload != request.encode()
     with pytest.raises(ValidationError):
         ReasonerRequest.decode(payload)
+
+
+def test_a_free_port_is_outside_the_range_outgoing_connections_take_theirs_from() -> None:
+    """A CI run lost a test stack's service to EADDRINUSE: the port picked for it was in
+    the kernel's ephemeral range, and an outgoing connection took it before the service
+    bound it."""
+    low, high = ephemeral_range()
+    ports = [free_port() for _ in range(50)]
+    assert not [p for p in ports if low <= p <= high]
+    assert len(set(vars(Ports.free()).values())) == 6  # a stack's ports are distinct
