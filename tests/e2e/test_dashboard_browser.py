@@ -2,7 +2,7 @@
 scripted demo flight is published over real Zenoh to a real `aesop serve dashboard`.
 
 Screenshots go to the test's tmp directory and, when ``AESOP_SCREENSHOT_DIR`` is set,
-there too (``dashboard.png`` is the one the README shows).
+there too (the README shows ``dashboard-demo.png`` of ``test_dashboard_demo.py``).
 """
 
 from __future__ import annotations
