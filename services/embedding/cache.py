@@ -291,9 +291,9 @@ class Cache:
         otherwise ``score > tau`` still, the detections only named."""
         threshold = self.threshold
         plain = Scored(score, neighbors, None if threshold is None else score > threshold)
-        nominal = self.nominal_detections()
-        if found is None or not found.phrases or not len(nominal.labels):
+        if found is None or not found.phrases or not self.detection_counts:
             return plain
+        nominal = self.nominal_detections()
         index, sims = det.nearest(nominal, found.vectors)
         worst = float(-sims.min())
         cal, scores = self.calibration, self.calibration_scores
@@ -304,9 +304,9 @@ class Cache:
         is_anomaly = plain.is_anomaly
         if calibrated:
             assert cal is not None and cal.alpha is not None and scores is not None
-            p_each = det.p_values(scores.detection, -sims).tolist()
-            p_obs = det.p_values(scores.observation, np.array([score]))
-            p_det = det.p_values(scores.detection, np.array([worst]))
+            p_each = det.p_values_sorted(scores.detection, -sims).tolist()
+            p_obs = det.p_values_sorted(scores.observation, np.array([score]))
+            p_det = det.p_values_sorted(scores.detection, np.array([worst]))
             p_value = float(det.combined_p(p_obs, p_det)[0])
             is_anomaly = p_value < 1.0 - cal.alpha
         order = [int(i) for i in np.argsort(sims, kind="stable") if sims[i] < 1.0]

@@ -105,9 +105,14 @@ def loo_scores(nominal: NominalDetections, observations: Sequence[Sequence[int]]
 def p_values(calibration: np.ndarray, scores: np.ndarray) -> np.ndarray:
     """Conformal p-values of ``scores`` against nominal ``calibration`` scores (NaN ones
     ignored): ``(1 + #{cal >= s}) / (n + 1)``; NaN stays NaN."""
-    cal = np.sort(calibration[~np.isnan(calibration)])
-    above = len(cal) - np.searchsorted(cal, scores, side="left")
-    p = (1.0 + above) / (len(cal) + 1.0)
+    return p_values_sorted(np.sort(calibration[~np.isnan(calibration)]), scores)
+
+
+def p_values_sorted(calibration: np.ndarray, scores: np.ndarray) -> np.ndarray:
+    """:func:`p_values` against calibration scores already sorted and without NaN (a
+    cache's, kept so: sorting a million of them took 17 ms per verdict)."""
+    above = len(calibration) - np.searchsorted(calibration, scores, side="left")
+    p = (1.0 + above) / (len(calibration) + 1.0)
     return np.where(np.isnan(scores), np.nan, p)
 
 

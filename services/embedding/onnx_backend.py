@@ -31,16 +31,7 @@ import numpy as np
 
 from .embedders import Embedder, EmbedderError, ModelSource, resolve_model
 
-PREFIXES = {"onnx:": False, "onnx-int8:": True}  # prefix -> int8
 INPUTS = ("input_ids", "attention_mask", "token_type_ids")
-
-
-def split(model: str) -> tuple[str, bool] | None:
-    """``onnx-int8:<model>`` -> (``<model>``, True); None without an ONNX prefix."""
-    for prefix, int8 in PREFIXES.items():
-        if model.startswith(prefix):
-            return model.removeprefix(prefix), int8
-    return None
 
 
 def default_export_dir() -> Path:

@@ -400,13 +400,7 @@ class CacheService:
         entry = self.entry(name)
         config = entry.cache.config
         vectors = await self._vectors_for(config, items, job)
-        phrases = list(dict.fromkeys(d.phrase for it in items for d in it.detections))
-        if phrases and config.model is None:
-            raise Conflict(f"cache {name!r} has no embedding model to embed detections with",
-                           field="items")
-        with entry.rw.read():
-            unknown = [p for p in phrases if p not in entry.cache.detection_vectors]
-        found = await self._embed_phrases(config, unknown)
+        found = await self._new_phrases(entry, [d for it in items for d in it.detections])
         async with entry.writer:
             op = entry.cache.plan_add(
                 vectors, ids=[it.id for it in items], texts=[it.text for it in items],
@@ -489,10 +483,7 @@ class CacheService:
             "proposal": {"robot": proposal.robot, "seq": proposal.seq, "count": proposal.count,
                          "request_id": proposal.request_id, "model": proposal.model}})
         vectors = await self._vectors_for(config, [item], None)
-        with entry.rw.read():
-            unknown = [p for p in dict.fromkeys(d.phrase for d in item.detections)
-                       if p not in entry.cache.detection_vectors]
-        found = await self._embed_phrases(config, unknown)
+        found = await self._new_phrases(entry, item.detections)
         async with entry.writer:
             proposal = self._pending(entry, ident).decided("accepted", now)
             op = entry.cache.plan_add(vectors, ids=[ident], texts=[item.text],
@@ -527,12 +518,19 @@ class CacheService:
             except Exception:
                 log.exception("a proposal listener failed")
 
-    async def _embed_phrases(self, config: CacheConfig, phrases: Sequence[str]
-                             ) -> dict[str, np.ndarray]:
-        """Unit vectors of detection ``phrases`` by the cache's model."""
+    async def _new_phrases(self, entry: Entry, detections: Sequence[Detection]
+                           ) -> dict[str, np.ndarray]:
+        """Unit vectors, by the cache's model, of the detections' phrases the cache has
+        no vector for yet (``Cache.plan_add`` takes them)."""
+        config = entry.cache.config
+        phrases = list(dict.fromkeys(d.phrase for d in detections))
+        with entry.rw.read():
+            phrases = [p for p in phrases if p not in entry.cache.detection_vectors]
         if not phrases:
             return {}
-        assert config.model is not None
+        if config.model is None:
+            raise Conflict(f"cache {config.name!r} has no embedding model to embed "
+                           "detections with", field="items")
         embedder = await self._embedder(config.model)
         rows = await self._on_compute(embedder.embed, list(phrases),
                                       batch_size=self.settings.embed_batch_size)

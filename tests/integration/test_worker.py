@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -16,7 +17,7 @@ from services.embedding.service import CacheService, Item
 from services.embedding.settings import EmbeddingSettings
 from services.embedding.worker import DetectorWorker
 from shared import topics
-from shared.bus import Bus
+from shared.bus import Bus, Subscription
 from shared.messages import (
     AnomalyVerdict,
     Detection,
@@ -167,26 +168,37 @@ async def scene_cache(tmp_path: Path) -> AsyncIterator[CacheService]:
     await svc.close()
 
 
-async def test_a_verdict_names_the_odd_detection_and_carries_the_p_value(
-        scene_cache: CacheService, listener: Bus, connector: Bus) -> None:
-    worker = DetectorWorker(scene_cache, listener, cache="scene")
+@contextlib.asynccontextmanager
+async def serving(svc: CacheService, listener: Bus, connector: Bus
+                  ) -> AsyncIterator[Subscription[AnomalyVerdict]]:
+    """The detector's worker on ``listener`` scoring against "scene", its verdicts
+    subscribed on ``connector`` (subscribe anything else before), both ways routed."""
+    worker = DetectorWorker(svc, listener, cache="scene")
     task = asyncio.create_task(worker.run())
     sub = connector.subscribe(topics.anomaly(topics.ANY_ROBOT), AnomalyVerdict)
     await routed(connector, listener)
     await routed(listener, connector)
+    try:
+        yield sub
+    finally:
+        await worker.stop()
+        await asyncio.wait_for(task, DEADLINE_S)
+
+
+async def test_a_verdict_names_the_odd_detection_and_carries_the_p_value(
+        scene_cache: CacheService, listener: Bus, connector: Bus) -> None:
     odd = seen(1)[:1] + (Detection(label="a keyboard", where="on the ground"),)
-    for seq, found in enumerate([seen(1), odd]):
-        connector.publish(topics.observation("drone7"), Observation(
-            robot="drone7", seq=seq, text=scene_text(seen(1)), detections=found))
-    nominal, anomalous = sorted(await verdicts(sub, 2), key=lambda v: v.seq)
+    async with serving(scene_cache, listener, connector) as sub:
+        for seq, found in enumerate([seen(1), odd]):
+            connector.publish(topics.observation("drone7"), Observation(
+                robot="drone7", seq=seq, text=scene_text(seen(1)), detections=found))
+        nominal, anomalous = sorted(await verdicts(sub, 2), key=lambda v: v.seq)
     assert nominal.is_anomaly is False and nominal.p_value == 1.0 and nominal.detections == ()
     assert anomalous.is_anomaly is True and anomalous.p_value is not None
     assert anomalous.p_value < 0.05
     (named,) = anomalous.detections
     assert named.detection == "a keyboard on the ground"
     assert named.nearest in {f"{t} on the ground" for t in THINGS} and named.similarity < 1
-    await worker.stop()
-    await asyncio.wait_for(task, DEADLINE_S)
 
 
 async def test_an_odd_detection_is_embedded_once_however_often_it_is_seen(
@@ -244,67 +256,54 @@ async def ask(connector: Bus, sub: object, seq: int, text: str,
 async def test_a_continue_for_a_flagged_scene_is_proposed_once_with_a_count(
         scene_cache: CacheService, listener: Bus, connector: Bus) -> None:
     svc = scene_cache
-    worker = DetectorWorker(svc, listener, cache="scene")
-    task = asyncio.create_task(worker.run())
-    sub = connector.subscribe(topics.anomaly(topics.ANY_ROBOT), AnomalyVerdict)
     events = connector.subscribe(topics.event(topics.ANY_ROBOT), Event)
-    await routed(connector, listener)
-    await routed(listener, connector)
-
     keyboard = flagged_scene("a keyboard")
-    assert (await ask(connector, sub, 1, *keyboard)).is_anomaly
-    (proposal,) = svc.proposals("scene")
-    assert proposal.state == "pending" and proposal.count == 1 and proposal.text == keyboard[0]
-    assert proposal.detections == keyboard[1] and proposal.model == "llm-x"
-    assert proposal.robot == "drone7" and proposal.seq == 1 and proposal.request_id == "req-1"
-    await ask(connector, sub, 2, *keyboard)  # the same scene again: one proposal, counted
-    assert [(p.id, p.count) for p in svc.proposals("scene")] == [(proposal.id, 2)]
-    event = await proposal_event(events)
-    assert event.kind == "proposal_proposed" and event.data["id"] == proposal.id
+    async with serving(svc, listener, connector) as sub:
+        assert (await ask(connector, sub, 1, *keyboard)).is_anomaly
+        (proposal,) = svc.proposals("scene")
+        assert proposal.state == "pending" and proposal.count == 1 and proposal.text == keyboard[0]
+        assert proposal.detections == keyboard[1] and proposal.model == "llm-x"
+        assert proposal.robot == "drone7" and proposal.seq == 1 and proposal.request_id == "req-1"
+        await ask(connector, sub, 2, *keyboard)  # the same scene again: one proposal, counted
+        assert [(p.id, p.count) for p in svc.proposals("scene")] == [(proposal.id, 2)]
+        event = await proposal_event(events)
+        assert event.kind == "proposal_proposed" and event.data["id"] == proposal.id
 
-    # never from a fallback, a recovery, a request without "continue", or a scene this
-    # detector did not flag
-    backpack = flagged_scene("a backpack")
-    await ask(connector, sub, 3, *backpack, source="timeout")
-    await ask(connector, sub, 4, *backpack, choice=1)
-    await ask(connector, sub, 5, *backpack, offer_continue=False)
-    nominal = (scene_text(seen(1)), seen(1))
-    assert not (await ask(connector, sub, 6, *nominal)).is_anomaly
-    assert [p.id for p in svc.proposals("scene")] == [proposal.id]
+        # never from a fallback, a recovery, a request without "continue", or a scene this
+        # detector did not flag
+        backpack = flagged_scene("a backpack")
+        await ask(connector, sub, 3, *backpack, source="timeout")
+        await ask(connector, sub, 4, *backpack, choice=1)
+        await ask(connector, sub, 5, *backpack, offer_continue=False)
+        nominal = (scene_text(seen(1)), seen(1))
+        assert not (await ask(connector, sub, 6, *nominal)).is_anomaly
+        assert [p.id for p in svc.proposals("scene")] == [proposal.id]
 
-    # accepted: the scene is nominal now, the calibration stale
-    version = svc.entry("scene").cache.version
-    accepted = await svc.accept("scene", proposal.id, now=123.0)
-    assert accepted.state == "accepted" and accepted.decided_at == 123.0
-    cache = svc.entry("scene").cache
-    assert cache.version == version + 1 and cache.stale and proposal.id in cache.labels_by_id
-    assert "a keyboard on the ground" in cache.detection_counts
-    again = await ask(connector, sub, 7, *keyboard)
-    assert not again.is_anomaly and again.reason is not None and "stale" in again.reason
-    kinds = [(await proposal_event(events)).kind for _ in range(2)]
-    assert kinds == ["proposal_proposed", "proposal_accepted"]  # the count of 2, then this
-    with pytest.raises(Conflict, match="already accepted"):
-        await svc.accept("scene", proposal.id, now=124.0)
-    await worker.stop()
-    await asyncio.wait_for(task, DEADLINE_S)
+        # accepted: the scene is nominal now, the calibration stale
+        version = svc.entry("scene").cache.version
+        accepted = await svc.accept("scene", proposal.id, now=123.0)
+        assert accepted.state == "accepted" and accepted.decided_at == 123.0
+        cache = svc.entry("scene").cache
+        assert cache.version == version + 1 and cache.stale and proposal.id in cache.labels_by_id
+        assert "a keyboard on the ground" in cache.detection_counts
+        again = await ask(connector, sub, 7, *keyboard)
+        assert not again.is_anomaly and again.reason is not None and "stale" in again.reason
+        kinds = [(await proposal_event(events)).kind for _ in range(2)]
+        assert kinds == ["proposal_proposed", "proposal_accepted"]  # the count of 2, then this
+        with pytest.raises(Conflict, match="already accepted"):
+            await svc.accept("scene", proposal.id, now=124.0)
 
 
 async def test_under_the_auto_policy_a_proposal_is_accepted_at_once_and_kept(
         scene_cache: CacheService, listener: Bus, connector: Bus) -> None:
     svc = scene_cache
     await svc.create("scene", model="hash", k=1, proposals="auto")
-    worker = DetectorWorker(svc, listener, cache="scene")
-    task = asyncio.create_task(worker.run())
-    sub = connector.subscribe(topics.anomaly(topics.ANY_ROBOT), AnomalyVerdict)
-    await routed(connector, listener)
-    await routed(listener, connector)
     keyboard = flagged_scene("a keyboard")
-    assert (await ask(connector, sub, 1, *keyboard)).is_anomaly
-    (proposal,) = svc.proposals("scene")
-    assert proposal.state == "accepted"
-    assert not (await ask(connector, sub, 2, *keyboard)).is_anomaly
-    await worker.stop()
-    await asyncio.wait_for(task, DEADLINE_S)
+    async with serving(svc, listener, connector) as sub:
+        assert (await ask(connector, sub, 1, *keyboard)).is_anomaly
+        (proposal,) = svc.proposals("scene")
+        assert proposal.state == "accepted"
+        assert not (await ask(connector, sub, 2, *keyboard)).is_anomaly
     await svc.close()
     restarted = CacheService(svc.settings,
                              embedders=EmbedderPool(loader=lambda _: HashEmbedder()))
