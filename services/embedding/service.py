@@ -242,7 +242,7 @@ class CacheService:
                             if settings.openai_api_key else None),
             model_dir=settings.model_dir or settings.data_dir / "models",
             max_loaded=settings.max_models, export_dir=Path(settings.data_dir) / "onnx",
-            threads=max(settings.torch_threads, 1))
+            threads=settings.onnx_threads)
         self.jobs = Jobs(max_running=settings.max_jobs, setting="AESOP_EMBEDDING_MAX_JOBS")
         self._entries: dict[str, Entry] = {}
         self._create_lock = asyncio.Lock()

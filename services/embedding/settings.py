@@ -63,4 +63,8 @@ class EmbeddingSettings(ServiceSettings):
     # single observation's embedding at ~15 ms on a busy machine, where a pool of
     # spinning threads stalled verdicts for 1-2 s (measured with `aesop bench bus`)
     torch_threads: int = Field(default=1, ge=0, le=256)
+    # ONNX Runtime threads per inference (onnx: and onnx-int8: models). Its pool is told
+    # not to spin, so a second thread costs nothing while idle; measured with
+    # `aesop bench detector --only latency` and `aesop bench bus` (README, Benchmarks)
+    onnx_threads: int = Field(default=1, ge=1, le=256)
     fsync: bool = True
