@@ -139,6 +139,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--score", choices=["topk", "mahalanobis", "detections", "combined"],
                     default="topk", help="detections, combined: each line's 'detections' "
                     "against the nominal set's (combined: with topk, as conformal p-values)")
+    ev.add_argument("--pairs", action="store_true",
+                    help="with --score combined: pairs of detections no nominal line holds "
+                         "together as a third component")
     ev.add_argument("--model", default=None, help="embedding model (default: all-MiniLM-L6-v2)")
     ev.add_argument("--json", action="store_true")
     ev.set_defaults(func=cmd_detector_eval)
@@ -499,7 +502,7 @@ def cmd_detector_eval(args: argparse.Namespace) -> int:
         raise CliError("--nominal is required (the JSONL of nominal experiences)")
     try:
         config = EvalConfig(k=args.k, alpha=args.alpha, method=args.method, score=args.score,
-                            tpr=args.tpr)
+                            tpr=args.tpr, pairs=args.pairs)
         nominal = read_jsonl(args.nominal)
         test = read_jsonl(args.test)
         calibration = read_jsonl(args.calibration) if args.calibration else []

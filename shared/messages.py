@@ -110,6 +110,21 @@ class DetectionMatch(BaseModel):
     p_value: Float | None = None
 
 
+class PairMatch(BaseModel):
+    """Two of an observation's detections, each nominal perhaps, that no nominal
+    experience holds together, beside the nearest pair that one does: "a person on the
+    floor" and "a forklift moving", nearest "a person on the floor" and "a shelf", 0.41
+    (the smaller of the two members' similarities). ``p_value``: the pair's conformal
+    p-value (None when the cache's pairs are not calibrated)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    detections: tuple[str, str]
+    nearest: tuple[str, str]
+    similarity: Float
+    p_value: Float | None = None
+
+
 class AnomalyVerdict(Message):
     """Fast reasoner output for observation ``seq``: s(e_t) compared with tau.
 
@@ -117,7 +132,9 @@ class AnomalyVerdict(Message):
     then an anomaly (fail-safe) and ``reason`` says so. For an observation with
     detections, scored against a cache whose experiences have them, ``p_value`` is the
     combined conformal p-value (anomaly iff it is below 1 - alpha) and ``detections``
-    the observation's least nominal detections, worst first.
+    the observation's least nominal detections, worst first; ``pair``, when the cache
+    calibrated pairs, its least nominal pair of detections (if no nominal experience
+    holds that pair as it is).
     """
 
     seq: Int = Field(ge=0)
@@ -133,6 +150,7 @@ class AnomalyVerdict(Message):
     reason: str | None = None
     p_value: Float | None = None
     detections: tuple[DetectionMatch, ...] = ()
+    pair: PairMatch | None = None
 
     @field_validator("score")
     @classmethod
@@ -155,13 +173,15 @@ class Option(BaseModel):
 class ReasonerRequest(Message):
     """Control -> reasoner: decide among ``options`` within ``deadline_s`` (K).
     ``unusual``: the detections the verdict that raised the anomaly named (the prompt
-    shows them with their nearest nominal detections)."""
+    shows them with their nearest nominal detections), ``unusual_pair`` the pair it
+    named."""
 
     request_id: str = Field(min_length=1, max_length=128)
     observation: Observation
     options: tuple[Option, ...] = Field(min_length=1, max_length=64)
     deadline_s: Finite = Field(gt=0.0)
     unusual: tuple[DetectionMatch, ...] = Field(default=(), max_length=MAX_DETECTIONS)
+    unusual_pair: PairMatch | None = None
 
 
 DecisionSource = Literal["llm", "timeout", "parse_error", "backend_error"]

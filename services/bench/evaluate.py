@@ -7,22 +7,31 @@ the confusion-matrix rates at tau. Nothing is written to disk.
 ``--score detections`` and ``combined`` use each line's ``detections``
 (:mod:`services.embedding.detections`): the worst detection against the nominal
 set's distinct detections, alone or combined with the whole-observation top-k score
-through conformal p-values (Bonferroni). Their scores are ``1 - p`` and tau is
-``alpha``: an observation is flagged when ``p < 1 - alpha``.
+(and, with ``--pairs``, the worst pair of detections) through conformal p-values
+(Bonferroni), judged by the service's own cache (``Cache.judge``). Their scores are
+``1 - p`` and tau is ``alpha``: an observation is flagged when ``p < 1 - alpha``.
 """
 
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
-from services.embedding.cache import Cache, CacheConfig, Labelled, ScoreKind, unit_vectors
+from services.embedding.cache import (
+    Cache,
+    CacheConfig,
+    CalibrationScores,
+    Detections,
+    Labelled,
+    Scored,
+    ScoreKind,
+    unit_vectors,
+)
 from services.embedding.calibration import (
     Calibration,
     auroc,
@@ -31,16 +40,10 @@ from services.embedding.calibration import (
     loo_quantile,
     tpr_target,
 )
-from services.embedding.detections import (
-    NominalDetections,
-    combined_p,
-    distinct,
-    loo_scores,
-    p_values,
-    worst,
-)
+from services.embedding.detections import distinct, floats, p_values_sorted
 from services.embedding.embedders import Embedder
 from services.embedding.errors import InvalidInput
+from shared.messages import Detection
 
 Method = Literal["loo-quantile", "conformal", "tpr-target"]
 EvalScore = Literal["topk", "mahalanobis", "detections", "combined"]
@@ -53,6 +56,7 @@ class EvalConfig:
     method: Method = "loo-quantile"
     score: EvalScore = "topk"
     tpr: float = 0.9  # the target of "tpr-target" (the hardware appendix uses 0.9)
+    pairs: bool = False  # "combined" with pairs of detections as a third component
 
 
 def read_jsonl(path: Path) -> list[Labelled]:
@@ -92,7 +96,8 @@ def _detections(value: Any, path: Path, lineno: int) -> tuple[str, ...]:
             out.append(item)
         elif isinstance(item, dict) and isinstance(item.get("label"), str):
             where = item.get("where")
-            out.append(f"{item['label']} {where}" if isinstance(where, str) else item["label"])
+            out.append(Detection.model_construct(
+                label=item["label"], where=where if isinstance(where, str) else None).phrase)
         else:
             raise wrong
     return tuple(d for d in out if d.strip())
@@ -179,58 +184,91 @@ def evaluate_structured(embedder: Embedder, nominal: Sequence[Labelled],
                         config: EvalConfig) -> dict[str, Any]:
     """``--score detections|combined``: see the module docstring. The calibration scores
     are the nominal set's leave-one-out scores (``loo-quantile``) or the calibration
-    set's nominal ones (``conformal``)."""
+    set's nominal ones (``conformal``), kept and judged by the cache as the service
+    does."""
+    cache, kept = fit_structured(embedder, nominal, calibration, config)
+    scored = score_structured(cache, embedder, test)
+    p_whole = p_values_sorted(kept.observation, np.array([r.score for r in scored]))
+    if config.score == "combined":
+        p = np.array([p_whole[i] if r.p_value is None else r.p_value
+                      for i, r in enumerate(scored)])
+    else:  # the worst detection's own p-value; the whole observation's without detections
+        p_det = p_values_sorted(kept.detection, floats(r.detection_score for r in scored))
+        p = np.where(np.isnan(p_det), p_whole, p_det)
+    labels_test = np.array([x.is_anomaly for x in test])
+    cal = Calibration(config.method, config.alpha, config.alpha, len(kept.observation),
+                      pairs=config.pairs)
+    return report(cal, 1.0 - p, labels_test, config, embedder.name, len(nominal),
+                  len(calibration)) | {"score": config.score, "pairs": config.pairs,
+                                       "nominal_detections": len(cache.detection_counts)}
+
+
+def fit_structured(embedder: Embedder, nominal: Sequence[Labelled],
+                   calibration: Sequence[Labelled], config: EvalConfig
+                   ) -> tuple[Cache, CalibrationScores]:
+    """An in-memory cache of ``nominal`` with their detections, calibrated by
+    ``config.method`` with the components' nominal scores kept, as the service keeps
+    them (``score: detections`` keeps no pair scores)."""
     if config.method == "tpr-target":
         raise InvalidInput(f"--score {config.score} takes --method loo-quantile or conformal",
                            field="method")
+    if config.pairs and config.score != "combined":
+        raise InvalidInput("--pairs is a component of --score combined", field="pairs")
     if any(x.is_anomaly for x in nominal):
         raise InvalidInput("the nominal set contains anomalies", field="nominal")
-    cache = build_cache(embedder.embed([x.text for x in nominal]), config, embedder.name)
-    labels, counts = distinct([x.detections for x in nominal])
-    if not labels:
+    cache = structured_cache(embedder, nominal, config)
+    if not cache.has_detections:
         raise InvalidInput(f"--score {config.score} needs 'detections' in the nominal set",
                            field="nominal")
-    found = NominalDetections(tuple(labels), unit_vectors(embedder.embed(labels)), counts)
+    pairs = config.pairs
+    if pairs and not cache.pair_counts:
+        raise InvalidInput("--pairs needs nominal lines with two or more detections",
+                           field="pairs")
     if config.method == "loo-quantile":
-        where = {label: i for i, label in enumerate(labels)}
-        whole_cal = cache.loo_scores(config.k)
-        det_cal = loo_scores(found, [[where[d] for d in dict.fromkeys(x.detections)]
-                                     for x in nominal], found.vectors)
+        kept = CalibrationScores.of(cache.loo_scores(config.k), cache.loo_detection_scores(),
+                                    cache.loo_pair_scores() if pairs else None)
     else:
         held = [x for x in calibration if not x.is_anomaly]
         if not held:
             raise InvalidInput("--method conformal needs nominal lines in --calibration",
                                field="calibration")
-        whole_cal = score_all(cache, embedder, [x.text for x in held], config.k)
-        det_cal = detection_scores(found, embedder, held)
-    tests = 2 if config.score == "combined" else 1
-    n = int(min(np.sum(~np.isnan(whole_cal)), np.sum(~np.isnan(det_cal))))
-    if tests / (n + 1) >= 1 - config.alpha:  # the smallest p-value, corrected
-        raise InvalidInput(
-            f"{n} calibration scores cannot flag anything at alpha {config.alpha}: the "
-            f"smallest p-value is 1/(n+1), {tests}/(n+1) after the correction, and needs to "
-            f"be below 1 - alpha (at least {math.ceil(tests / (1 - config.alpha))} nominal "
-            "examples with detections, or a lower --alpha)", field="alpha")
-    p_whole = p_values(whole_cal, score_all(cache, embedder, [x.text for x in test], config.k))
-    p_det = p_values(det_cal, detection_scores(found, embedder, test))
-    p = combined_p(p_whole, p_det) if config.score == "combined" else \
-        np.where(np.isnan(p_det), p_whole, p_det)
-    cal = Calibration(config.method, config.alpha, config.alpha, len(whole_cal))
-    labels_test = np.array([x.is_anomaly for x in test])
-    return report(cal, 1.0 - p, labels_test, config, embedder.name, len(nominal),
-                  len(calibration)) | {"score": config.score,
-                                       "nominal_detections": len(labels)}
+        scored = score_structured(cache, embedder, held, pairs=pairs)
+        kept = CalibrationScores.of(
+            np.array([r.score for r in scored]), floats(r.detection_score for r in scored),
+            floats(r.pair_score for r in scored) if pairs else None)
+    kept.check_power(config.alpha, tests=1 if config.score == "detections" else None)
+    tau = (loo_quantile if config.method == "loo-quantile" else conformal)(
+        kept.observation, config.alpha)  # for observations without detections
+    cache.apply(cache.plan_calibration(replace(tau, pairs=pairs), kept))
+    return cache, kept
 
 
-def detection_scores(found: NominalDetections, embedder: Embedder,
-                     items: Sequence[Labelled]) -> np.ndarray:
-    """Each item's worst-detection score (NaN for one without detections)."""
-    texts = list(dict.fromkeys(d for x in items for d in x.detections))
-    vectors = unit_vectors(embedder.embed(texts)) if texts else np.zeros((0, 1))
-    row = {t: i for i, t in enumerate(texts)}
-    out = np.full(len(items), np.nan)
-    for i, x in enumerate(items):
-        got = worst(found, vectors[[row[d] for d in x.detections]]) if x.detections else None
-        if got is not None:
-            out[i] = got.score
-    return out
+def structured_cache(embedder: Embedder, nominal: Sequence[Labelled],
+                     config: EvalConfig) -> Cache:
+    """An in-memory cache of ``nominal`` with their detections (phrases)."""
+    vectors = embedder.embed([x.text for x in nominal])
+    cache = Cache(CacheConfig("eval", embedder.name, vectors.shape[1], config.k, "topk"))
+    phrases, _ = distinct([x.detections for x in nominal])
+    found = dict(zip(phrases, unit_vectors(embedder.embed(phrases)), strict=True)) \
+        if phrases else {}
+    n = len(nominal)
+    # a phrase is one label here (a JSONL line's "label where", joined as Detection.phrase)
+    held = [tuple(Detection.model_construct(label=d, where=None) for d in x.detections)
+            for x in nominal]
+    cache.apply(cache.plan_add(vectors, ids=[str(i) for i in range(n)], texts=[None] * n,
+                               metadata=[{}] * n, detections=held, detection_vectors=found))
+    return cache
+
+
+def score_structured(cache: Cache, embedder: Embedder, items: Sequence[Labelled], *,
+                     pairs: bool = False) -> list[Scored]:
+    """Each item scored and judged by ``cache`` with its detections."""
+    vectors = embedder.embed([x.text for x in items])
+    phrases = list(dict.fromkeys(d for x in items for d in x.detections))
+    rows = dict(zip(phrases, unit_vectors(embedder.embed(phrases)), strict=True)) \
+        if phrases else {}
+    found = [Detections(tuple(dict.fromkeys(x.detections)),
+                        np.stack([rows[d] for d in dict.fromkeys(x.detections)]))
+             if x.detections else None for x in items]
+    return cache.score(vectors, cache.config.k, 0, found, pairs=pairs)
+

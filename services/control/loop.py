@@ -459,13 +459,14 @@ class ControlRuntime:
         due = deadline + left * self.period_s
         deadline_s = max(due - self.clock() - self.settings.decision_margin_s, 1e-3)
         verdict = None if inputs.verdict is None else inputs.verdict.message
-        unusual = verdict.detections if verdict is not None and verdict.is_anomaly \
-            and not silent else ()
+        named = verdict is not None and verdict.is_anomaly and not silent
+        unusual = verdict.detections if named and verdict is not None else ()
+        pair = verdict.pair if named and verdict is not None else None
         return ReasonerRequest(robot=robot, request_id=uuid.uuid4().hex,
                                observation=observation,
                                options=options_for(self.scenario.regions, offered,
                                                    continue_=not silent),
-                               deadline_s=deadline_s, unusual=unusual)
+                               deadline_s=deadline_s, unusual=unusual, unusual_pair=pair)
 
     def _output_events(self, output: ControlOutput, request: ReasonerRequest | None
                        ) -> list[Event]:

@@ -10,7 +10,9 @@ index a cache keeps the vector of every distinct detection phrase it has seen an
 many experiences hold it; those held by at least one are its *nominal detections*,
 against which an observation's detections are scored (:mod:`.detections`). A cache
 calibrated by ``loo-quantile`` or ``conformal`` keeps the nominal calibration scores of
-both components, and judges an observation with detections by their combined p-value.
+both components (three, when the calibration asked for pairs: it also counts how many
+experiences hold each pair of phrases), and judges an observation with detections by
+their combined p-value.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from shared.messages import Detection, DetectionMatch, Neighbor
+from shared.messages import Detection, DetectionMatch, Neighbor, PairMatch
 
 from . import detections as det
 from .calibration import Calibration
@@ -86,26 +88,56 @@ class Detections:
 @dataclass(frozen=True, eq=False)
 class CalibrationScores:
     """The nominal calibration scores behind a calibration's p-values, sorted: the
-    observation scores, and the detection scores (empty: the cache had no detections)."""
+    observation scores, the detection scores (empty: the cache had no detections), and
+    the pair scores (None: the calibration did not ask for pairs)."""
 
     observation: np.ndarray
     detection: np.ndarray
+    pair: np.ndarray | None = None
 
     @classmethod
-    def of(cls, observation: np.ndarray, detection: np.ndarray) -> CalibrationScores:
-        """From raw scores; NaN (an observation without detections) left out."""
+    def of(cls, observation: np.ndarray, detection: np.ndarray,
+           pair: np.ndarray | None = None) -> CalibrationScores:
+        """From raw scores; NaN (an observation without detections, or a pair) left out."""
         def clean(x: np.ndarray) -> np.ndarray:
             x = np.asarray(x, dtype=np.float64)
             return np.sort(x[~np.isnan(x)])
-        return cls(clean(observation), clean(detection))
+        return cls(clean(observation), clean(detection), None if pair is None else clean(pair))
+
+    @property
+    def tests(self) -> int:
+        """How many p-values a verdict with detections combines (Bonferroni's factor)."""
+        return 2 if self.pair is None else 3
+
+    def least(self) -> int:
+        """The fewest scores behind one of the components a verdict combines."""
+        return min(len(self.observation), len(self.detection),
+                   len(self.detection) if self.pair is None else len(self.pair))
+
+    def check_power(self, alpha: float, tests: int | None = None) -> None:
+        """InvalidInput unless the combined p-value can go below ``1 - alpha``: its least
+        is ``tests/(n+1)`` (Bonferroni over ``tests`` components, default
+        :attr:`tests`; n the fewest scores of one). Nothing to check without
+        detection scores (text-only verdicts keep ``score > tau``)."""
+        if self.pair is not None and len(self.pair) == 0:
+            raise InvalidInput("no nominal calibration example has two or more detections: "
+                               "there is no pair score to calibrate", field="pairs")
+        n, tests = self.least(), tests or self.tests
+        if n and tests / (n + 1) >= 1 - alpha:
+            raise InvalidInput(
+                f"{n} nominal calibration scores with detections cannot flag anything at "
+                f"alpha {alpha}: the smallest combined p-value is {tests}/(n+1) and needs "
+                f"to be below 1 - alpha (at least {math.ceil(tests / (1 - alpha))} nominal "
+                "examples with detections, or a lower alpha)", field="alpha")
 
 
 @dataclass(frozen=True)
 class Scored:
     """s(e_t; D_e) for one query, with its nearest nominal experiences; for a query with
     detections, its worst detection's score, its least nominal detections and, when the
-    cache's calibration has detection scores, the combined p-value. ``is_anomaly``:
-    None while the cache has no tau."""
+    cache's calibration has detection scores, the combined p-value; with pair scores too,
+    its worst pair's score and the pair, when it is not a nominal pair as it is.
+    ``is_anomaly``: None while the cache has no tau."""
 
     score: float
     neighbors: tuple[Neighbor, ...]
@@ -113,6 +145,8 @@ class Scored:
     detection_score: float | None = None
     p_value: float | None = None
     matches: tuple[DetectionMatch, ...] = ()
+    pair_score: float | None = None
+    pair: PairMatch | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -203,9 +237,12 @@ class Cache:
         self.labels_by_id: dict[str, int] = {}
         self.detection_vectors: dict[str, np.ndarray] = {}  # every phrase seen: unit float32
         self.detection_counts: dict[str, int] = {}  # phrase: experiences holding it (> 0)
+        # (phrase, phrase), in order: experiences holding both (> 0)
+        self.pair_counts: dict[tuple[str, str], int] = {}
         self.calibration_scores: CalibrationScores | None = None
         self._mahalanobis: tuple[int, MahalanobisModel] | None = None
         self._nominal: tuple[int, det.NominalDetections] | None = None
+        self._pairs: tuple[int, det.NominalPairs] | None = None
 
     @classmethod
     def restored(cls, header: Header, experiences: Mapping[int, Experience],
@@ -265,10 +302,13 @@ class Cache:
         return bool(self.detection_counts)
 
     def score(self, vectors: np.ndarray, k: int | None = None, neighbors: int = 3,
-              detections: Sequence[Detections | None] = ()) -> list[Scored]:
+              detections: Sequence[Detections | None] = (), *, pairs: bool = False
+              ) -> list[Scored]:
         """Score unit query vectors (nq, dim): top-k mean cosine similarity negated, or
         the Mahalanobis distance, per the cache's score function; and judge each (see
-        :meth:`judge`), with its ``detections`` if given (one per query, or none)."""
+        :meth:`judge`), with its ``detections`` if given (one per query, or none).
+        ``pairs``: give each one's pair score even if the calibration has none (to
+        calibrate with pairs)."""
         k = self.check_k(k or self.config.k)
         sims, labels = self.index.search(vectors, max(k, neighbors))
         if self.config.score == "mahalanobis":
@@ -278,43 +318,63 @@ class Cache:
         per_query = list(detections) or [None] * len(scores)
         return [
             self.judge(float(s), self._neighbors(row_sims[:neighbors], row_labels[:neighbors]),
-                       found)
+                       found, pairs=pairs)
             for s, row_sims, row_labels, found in zip(scores, sims, labels, per_query,
                                                       strict=True)
         ]
 
     def judge(self, score: float, neighbors: tuple[Neighbor, ...],
-              found: Detections | None) -> Scored:
+              found: Detections | None, *, pairs: bool = False) -> Scored:
         """h(o_t). Without detections (or a cache without any): ``score > tau``, as
         always. With them, and a calibration that kept detection scores: the Bonferroni
-        combination of the two conformal p-values, anomaly iff ``p < 1 - alpha``;
-        otherwise ``score > tau`` still, the detections only named."""
+        combination of the conformal p-values (two, or three with pairs), anomaly iff
+        ``p < 1 - alpha``; otherwise ``score > tau`` still, the detections only named."""
         threshold = self.threshold
         plain = Scored(score, neighbors, None if threshold is None else score > threshold)
         if found is None or not found.phrases or not self.detection_counts:
             return plain
         nominal = self.nominal_detections()
-        index, sims = det.nearest(nominal, found.vectors)
+        all_sims = det.similarities(nominal, found.vectors)
+        index = np.argmax(all_sims, axis=1)
+        sims = all_sims[np.arange(len(index)), index]
         worst = float(-sims.min())
         cal, scores = self.calibration, self.calibration_scores
         calibrated = (cal is not None and cal.alpha is not None and scores is not None
-                      and len(scores.detection) > 0 and len(scores.observation) > 0)
+                      and scores.least() > 0)
         p_each: list[float | None] = [None] * len(sims)
-        p_value = None
+        p_value = p_pair = None
         is_anomaly = plain.is_anomaly
+        if scores is not None and scores.pair is not None:
+            pairs = True
+        pair = det.worst_pair(self.nominal_pairs(), all_sims) if pairs else None
         if calibrated:
             assert cal is not None and cal.alpha is not None and scores is not None
             p_each = det.p_values_sorted(scores.detection, -sims).tolist()
             p_obs = det.p_values_sorted(scores.observation, np.array([score]))
             p_det = det.p_values_sorted(scores.detection, np.array([worst]))
-            p_value = float(det.combined_p(p_obs, p_det)[0])
+            p_pairs = None
+            if scores.pair is not None:
+                p_pairs = det.p_values_sorted(scores.pair, np.array(
+                    [np.nan if pair is None else pair.score]))
+                p_pair = None if pair is None else float(p_pairs[0])
+            p_value = float(det.combined_p(p_obs, p_det, p_pairs)[0])
             is_anomaly = p_value < 1.0 - cal.alpha
         order = [int(i) for i in np.argsort(sims, kind="stable") if sims[i] < 1.0]
         matches = tuple(
             DetectionMatch(detection=found.phrases[i], nearest=nominal.labels[int(index[i])],
                            similarity=float(sims[i]), p_value=p_each[i])
             for i in order[:MAX_MATCHES])
-        return Scored(score, neighbors, is_anomaly, worst, p_value, matches)
+        named = None
+        if pair is not None and pair.nearest >= 0 and pair.similarity < 1.0:
+            nominal_pairs = self.nominal_pairs()
+            a, b = pair.detections
+            c = nominal.labels[int(nominal_pairs.first[pair.nearest])]
+            d = nominal.labels[int(nominal_pairs.second[pair.nearest])]
+            named = PairMatch(detections=(found.phrases[a], found.phrases[b]), nearest=(c, d),
+                              similarity=pair.similarity, p_value=p_pair)
+        return Scored(score, neighbors, is_anomaly, worst, p_value, matches,
+                      None if pair is None else pair.score, named)
+
 
     def nominal_detections(self) -> det.NominalDetections:
         """The distinct detections of the experiences (in phrase order), built once per
@@ -326,6 +386,26 @@ class Cache:
             counts = np.array([self.detection_counts[p] for p in phrases], dtype=np.int64)
             self._nominal = (self.version, det.NominalDetections(phrases, vectors, counts))
         return self._nominal[1]
+
+    def nominal_pairs(self) -> det.NominalPairs:
+        """The distinct pairs of detections the experiences hold together, as indices into
+        :meth:`nominal_detections`, built once per version."""
+        if self._pairs is None or self._pairs[0] != self.version:
+            where = {p: i for i, p in enumerate(self.nominal_detections().labels)}
+            keys = list(self.pair_counts)
+            self._pairs = (self.version, det.NominalPairs(
+                np.array([where[a] for a, _ in keys], dtype=np.int64),
+                np.array([where[b] for _, b in keys], dtype=np.int64),
+                np.array([self.pair_counts[k] for k in keys], dtype=np.int64)))
+        return self._pairs[1]
+
+    def loo_pair_scores(self) -> np.ndarray:
+        """Each experience's pair score with the pairs only it holds left out (NaN for one
+        with fewer than two detections): the pair component's scores behind eq. (2)."""
+        nominal = self.nominal_detections()
+        where = {p: i for i, p in enumerate(nominal.labels)}
+        held = [[where[p] for p in exp.phrases] for exp in self.experiences.values()]
+        return det.loo_pair_scores(nominal, self.nominal_pairs(), held)
 
     def loo_detection_scores(self) -> np.ndarray:
         """Each experience's detection score with what only it holds left out (NaN for
@@ -451,9 +531,17 @@ class Cache:
         self.header = header
 
     def _count(self, exp: Experience, step: int) -> None:
-        for phrase in exp.phrases:
-            left = self.detection_counts.get(phrase, 0) + step
-            if left > 0:
-                self.detection_counts[phrase] = left
-            else:
-                self.detection_counts.pop(phrase, None)
+        phrases = sorted(exp.phrases)
+        for phrase in phrases:
+            _step(self.detection_counts, phrase, step)
+        for i, first in enumerate(phrases):
+            for second in phrases[i + 1:]:
+                _step(self.pair_counts, (first, second), step)
+
+
+def _step(counts: dict[Any, int], key: Any, step: int) -> None:
+    left = counts.get(key, 0) + step
+    if left > 0:
+        counts[key] = left
+    else:
+        counts.pop(key, None)

@@ -78,6 +78,8 @@ class Calibration:
             nominal scores above tau (for the nominal-only methods: all of them).
         auroc: AUROC of the scores on the calibration set (labelled sets only).
         target_tpr: the requested TPR ("tpr-target" only).
+        pairs: the calibration kept pair scores too: a verdict with detections combines
+            three p-values (:mod:`services.embedding.detections`).
     """
 
     method: Method
@@ -88,6 +90,7 @@ class Calibration:
     fpr: float | None = None
     auroc: float | None = None
     target_tpr: float | None = None
+    pairs: bool = False
 
     def __post_init__(self) -> None:
         if self.method not in get_args(Method):

@@ -109,7 +109,7 @@ async def calibrate(name: str, body: Calibrate, service: ServiceDep,
         _check_count(len(labelled), "calibration", settings)
     _check_texts([x.text for x in labelled], "calibration", settings, key="text")
     return await service.calibrate(name, body.method, alpha=body.alpha, tpr=body.tpr,
-                                   calibration=labelled)
+                                   calibration=labelled, pairs=body.pairs)
 
 
 @router.post("/v1/caches/{name}/score", responses=errors(404, 409, 429, 502))
@@ -214,7 +214,8 @@ def _score_response(batch: ScoreBatch) -> Scores:
     return Scores(
         results=[ScoreResult(score=r.score, is_anomaly=r.is_anomaly, neighbors=list(r.neighbors),
                              detection_score=r.detection_score, p_value=r.p_value,
-                             detections=list(r.matches))
+                             detections=list(r.matches), pair_score=r.pair_score,
+                             pair=r.pair)
                  for r in batch.results],
         threshold=batch.threshold, stale=batch.stale, k=batch.k, model=batch.model,
         version=batch.version)

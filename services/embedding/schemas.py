@@ -10,10 +10,27 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Annotated, Any, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 from pydantic.json_schema import SkipJsonSchema
 
-from shared.messages import MAX_DETECTIONS, Detection, DetectionMatch, Float, Int, Neighbor, NotBool
+from shared.messages import (
+    MAX_DETECTIONS,
+    Detection,
+    DetectionMatch,
+    Float,
+    Int,
+    Neighbor,
+    NotBool,
+    PairMatch,
+)
 
 from .cache import Cache, ScoreKind
 from .calibration import Method
@@ -143,6 +160,9 @@ class Calibrate(Body):
     alpha: Annotated[float, Field(gt=0.0, lt=1.0), NotBool] | None = None
     tpr: Annotated[float, Field(gt=0.0, le=1.0), NotBool] | None = None
     calibration: list[LabelledIn] | None = Field(default=None, validate_default=True)
+    # score pairs of detections too (loo-quantile, conformal): two nominal objects that no
+    # nominal experience shows together; a third p-value in the Bonferroni combination
+    pairs: StrictBool = False
 
     @field_validator("calibration")
     @classmethod
@@ -197,6 +217,7 @@ class CalibrationInfo(Answer):
     fpr: Float | None = None
     auroc: Float | None = None
     target_tpr: Float | None = None
+    pairs: bool = False  # verdicts with detections combine three p-values (pairs too)
 
 
 class CacheCalibration(CalibrationInfo):
@@ -278,6 +299,8 @@ class ScoreResult(Answer):
     detection_score: Float | None = None  # the worst detection's (with detections)
     p_value: Float | None = None  # combined; anomaly iff below 1 - alpha
     detections: list[DetectionMatch] = Field(default_factory=list)  # least nominal first
+    pair_score: Float | None = None  # the worst pair's (pairs calibrated, 2+ detections)
+    pair: PairMatch | None = None  # that pair, unless a nominal experience holds it as is
 
 
 class ProposalInfo(Answer):

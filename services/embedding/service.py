@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 import re
 import threading
 from collections import OrderedDict
@@ -28,7 +27,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 
@@ -59,6 +58,7 @@ from .calibration import (
     roc_curve,
     tpr_target,
 )
+from .detections import floats
 from .embedders import Embedder, EmbedderPool, ModelNotFound
 from .errors import Busy, Conflict, InvalidInput, NotFound
 from .index import IndexKind
@@ -173,6 +173,15 @@ class PhraseMemo:
                 self._kept.move_to_end((model, phrase))
             while len(self._kept) > self.size:
                 self._kept.popitem(last=False)
+
+
+class Components(NamedTuple):
+    """Nominal scores of each component, one per calibration example or member, NaN
+    where it has none (raw: ``CalibrationScores.of`` sorts them and drops the NaN)."""
+
+    observation: np.ndarray
+    detection: np.ndarray
+    pair: np.ndarray | None  # None: pairs not asked for
 
 
 @dataclass(frozen=True)
@@ -550,23 +559,33 @@ class CacheService:
         alpha: float | None = None,
         tpr: float | None = None,
         calibration: Sequence[Labelled] = (),
+        pairs: bool = False,
     ) -> Calibrated:
         """Compute tau and store it with the cache. The answer adds, for a labelled
-        calibration set with both classes, its ROC curve (at most 201 points)."""
+        calibration set with both classes, its ROC curve (at most 201 points).
+        ``pairs``: keep pair scores too (:mod:`.detections`)."""
         entry = self.entry(name)
+        if pairs and method == "tpr-target":
+            raise InvalidInput("pairs are calibrated by loo-quantile or conformal, not "
+                               "tpr-target", field="pairs")
         async with entry.writer:
-            scores = labels = detection = None
+            if pairs and not entry.cache.pair_counts:
+                raise Conflict(f"cache {name!r} has no experience with two or more "
+                               "detections: it has no pair to score against", field="pairs")
+            scores = labels = components = None
             if calibration:
-                scored = await self._score_labelled(entry, calibration)
+                scored = await self._score_labelled(entry, calibration, pairs=pairs)
                 scores = np.array([r.score for r in scored])
-                detection = np.array([np.nan if r.detection_score is None
-                                      else r.detection_score for r in scored])
                 labels = np.array([x.is_anomaly for x in calibration], dtype=bool)
-            loo = (await on_fresh_thread(self._loo_both, entry)
+                components = Components(scores, floats(r.detection_score for r in scored),
+                                        floats(r.pair_score for r in scored) if pairs
+                                        else None)
+            loo = (await on_fresh_thread(self._loo_all, entry, pairs)
                    if method == "loo-quantile" else None)
             cal = await self._calibration(entry, method, alpha, tpr, scores, labels,
-                                          None if loo is None else loo[0])
-            kept = self._calibration_scores(cal, loo, scores, detection, labels)
+                                          None if loo is None else loo.observation)
+            cal = replace(cal, pairs=pairs)
+            kept = self._calibration_scores(cal, loo, components, labels)
             await self._commit(entry, entry.cache.plan_calibration(cal, kept))
             version = entry.cache.version
         roc = None
@@ -601,8 +620,9 @@ class CacheService:
         except CalibrationError as exc:
             raise InvalidInput(str(exc), field=exc.field) from None
 
-    async def _score_labelled(self, entry: Entry, items: Sequence[Labelled]) -> list[Scored]:
-        """Score a labelled set, each with its detection phrases."""
+    async def _score_labelled(self, entry: Entry, items: Sequence[Labelled], *,
+                              pairs: bool = False) -> list[Scored]:
+        """Score a labelled set, each with its detection phrases (and pair scores)."""
         config = entry.cache.config
         if config.model is None:
             raise Conflict(f"cache {config.name!r} has no embedding model",
@@ -610,40 +630,39 @@ class CacheService:
         await self._embedder(config.model)  # loaded off the compute thread
         queries = [Query(x.text, tuple(dict.fromkeys(x.detections))) for x in items]
         return await self._on_compute(self._embed_and_score, entry, entry.cache.config.k,
-                                      queries)
+                                      queries, pairs)
 
     @staticmethod
-    def _calibration_scores(cal: Calibration, loo: tuple[np.ndarray, np.ndarray] | None,
-                            scores: np.ndarray | None, detection: np.ndarray | None,
+    def _calibration_scores(cal: Calibration, loo: Components | None,
+                            components: Components | None,
                             labels: np.ndarray | None) -> CalibrationScores | None:
         """The nominal scores behind ``cal``'s p-values: the leave-one-out scores of
-        both components (loo-quantile) or the calibration set's nominal ones (conformal);
+        the components (loo-quantile) or the calibration set's nominal ones (conformal);
         None for tpr-target. Refused when the combined p-value could never flag."""
         if cal.method == "loo-quantile":
             assert loo is not None
             kept = CalibrationScores.of(*loo)
-        elif cal.method == "conformal" and scores is not None and labels is not None:
-            assert detection is not None
-            kept = CalibrationScores.of(scores[~labels], detection[~labels])
+        elif cal.method == "conformal" and components is not None and labels is not None:
+            nominal = ~labels
+            kept = CalibrationScores.of(
+                components.observation[nominal], components.detection[nominal],
+                None if components.pair is None else components.pair[nominal])
         else:
             return None
-        n = min(len(kept.observation), len(kept.detection))
-        if n and cal.alpha is not None and 2 / (n + 1) >= 1 - cal.alpha:
-            raise InvalidInput(
-                f"{n} nominal calibration scores with detections cannot flag anything at "
-                f"alpha {cal.alpha}: the smallest combined p-value is 2/(n+1) and needs to be "
-                f"below 1 - alpha (at least {math.ceil(2 / (1 - cal.alpha))} nominal "
-                "examples with detections, or a lower alpha)", field="alpha")
+        if cal.alpha is not None:
+            kept.check_power(cal.alpha)
         return kept
 
-    def _loo_both(self, entry: Entry) -> tuple[np.ndarray, np.ndarray]:
-        """Each member's leave-one-out scores: the whole observation's, and its worst
-        detection's (NaN without detections; none for a cache without any)."""
+    def _loo_all(self, entry: Entry, pairs: bool) -> Components:
+        """Each member's leave-one-out scores: the whole observation's, its worst
+        detection's (NaN without detections; none for a cache without any) and, if asked,
+        its worst pair's (NaN with fewer than two detections)."""
         with entry.rw.read():
-            observation = entry.cache.loo_scores()
-            detection = (entry.cache.loo_detection_scores() if entry.cache.has_detections
-                         else np.zeros(0))
-            return observation, detection
+            cache = entry.cache
+            return Components(
+                cache.loo_scores(),
+                cache.loo_detection_scores() if cache.has_detections else np.zeros(0),
+                cache.loo_pair_scores() if pairs else None)
 
     async def _commit(self, entry: Entry, op: Op, proposal: Proposal | None = None) -> None:
         """Commit ``op`` (with the ``proposal`` it accepts) to the database, then apply
@@ -727,7 +746,8 @@ class CacheService:
                 on_batch=self._on_batch, executor=self._urgent if urgent else self._compute)
         return entry.batchers[k, urgent]
 
-    def _embed_and_score(self, entry: Entry, k: int, queries: list[Query]) -> list[Scored]:
+    def _embed_and_score(self, entry: Entry, k: int, queries: list[Query],
+                         pairs: bool = False) -> list[Scored]:
         """Embed the texts, and the detection phrases the cache has no vector for, in one
         call; then score."""
         config = entry.cache.config
@@ -748,7 +768,8 @@ class CacheService:
         found = [Detections(q.phrases, np.stack([known[p] for p in q.phrases]))
                  if q.phrases else None for q in queries]
         with entry.rw.read():
-            return entry.cache.score(vectors, k, self.settings.verdict_neighbors, found)
+            return entry.cache.score(vectors, k, self.settings.verdict_neighbors, found,
+                                     pairs=pairs)
 
     async def _score_vectors(self, entry: Entry, vectors: np.ndarray, k: int | None = None
                              ) -> list[Scored]:

@@ -15,7 +15,7 @@ million vectors is not rebuilt); an older one is loaded and caught up from the
 database; with none, or one that does not fit, the index is built from the
 stored vectors. A failed index save loses nothing.
 
-Schema (``PRAGMA user_version`` = 2; a version-1 database is migrated on open)::
+Schema (``PRAGMA user_version`` = 3; an older database is migrated on open)::
 
     caches(name PK, config JSON, version, next_label, calibration JSON|NULL, stale)
     experiences(cache, label, id, text|NULL, metadata JSON, vector BLOB <f4, version,
@@ -24,8 +24,9 @@ Schema (``PRAGMA user_version`` = 2; a version-1 database is migrated on open)::
         ``detections``: [{"label", "where"?, "confidence"?}] (version 2)
     detection_vectors(cache, phrase, vector BLOB <f4)   PK (cache, phrase): every
         detection phrase the cache's experiences brought, written with them (version 2)
-    calibration_scores(cache PK, observation BLOB <f8, detection BLOB <f8): the sorted
-        nominal scores behind the current calibration's p-values (version 2)
+    calibration_scores(cache PK, observation BLOB <f8, detection BLOB <f8, pair BLOB <f8
+        |NULL): the sorted nominal scores behind the current calibration's p-values
+        (version 2; ``pair`` version 3, NULL when the calibration did not ask for pairs)
     proposals(cache, id, state, count, first_at, last_at, decided_at|NULL, detail JSON)
         PK (cache, id): scenes the slow reasoner answered "continue" for (version 2);
         accepting one is written with its experience, in one transaction
@@ -77,7 +78,7 @@ log = logging.getLogger(__name__)
 DB_NAME = "embedding.sqlite3"
 LOCK_NAME = "embedding.lock"
 INDEX_DIR = "indexes"
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 _V2_TABLES = """
 CREATE TABLE detection_vectors (
@@ -114,10 +115,14 @@ CREATE TABLE imports (
     source TEXT PRIMARY KEY, cache TEXT NOT NULL, version INTEGER NOT NULL, at REAL NOT NULL
 ) STRICT;
 """ + _V2_TABLES
-# version 1 -> 2: experiences get their detections, caches their detection vectors and
-# calibration scores
-_MIGRATE_1 = ("ALTER TABLE experiences ADD COLUMN detections TEXT NOT NULL DEFAULT '[]';"
-              + _V2_TABLES)
+# version 2 -> 3: calibrations may keep pair scores
+_V3_COLUMNS = "ALTER TABLE calibration_scores ADD COLUMN pair BLOB;"
+_SCHEMA += _V3_COLUMNS
+# from version n to n + 1: 1 -> 2: experiences get their detections, caches their
+# detection vectors and calibration scores
+_MIGRATIONS = {1: "ALTER TABLE experiences ADD COLUMN detections TEXT NOT NULL DEFAULT '[]';"
+                  + _V2_TABLES,
+               2: _V3_COLUMNS}
 
 
 class StorageError(Exception):
@@ -176,9 +181,12 @@ class Store:
             schema = db.execute("PRAGMA user_version").fetchone()[0]
             if schema == 0:
                 db.executescript(f"BEGIN; {_SCHEMA} PRAGMA user_version={SCHEMA_VERSION}; COMMIT;")
-            elif schema == 1:
-                db.executescript(f"BEGIN; {_MIGRATE_1} PRAGMA user_version=2; COMMIT;")
-                log.info("%s: migrated from schema version 1 to 2", self.path)
+            elif schema in _MIGRATIONS:
+                steps = "".join(_MIGRATIONS[n] for n in range(schema, SCHEMA_VERSION))
+                db.executescript(f"BEGIN; {steps} PRAGMA user_version={SCHEMA_VERSION}; "
+                                 "COMMIT;")
+                log.info("%s: migrated from schema version %d to %d", self.path, schema,
+                         SCHEMA_VERSION)
             elif schema != SCHEMA_VERSION:
                 raise StorageCorrupt(self.path, f"schema version {schema}; this build reads "
                                                 f"{SCHEMA_VERSION}")
@@ -224,10 +232,10 @@ class Store:
                        for phrase, vector in self._db.execute(
                            "SELECT phrase, vector FROM detection_vectors WHERE cache = ?",
                            (name,))}
-            row = self._db.execute("SELECT observation, detection FROM calibration_scores "
-                                   "WHERE cache = ?", (name,)).fetchone()
+            row = self._db.execute("SELECT observation, detection, pair FROM "
+                                   "calibration_scores WHERE cache = ?", (name,)).fetchone()
         scores = None if row is None else CalibrationScores(
-            *(np.frombuffer(blob, dtype="<f8").astype(np.float64) for blob in row))
+            _floats(row[0]), _floats(row[1]), None if row[2] is None else _floats(row[2]))
         return Cache.restored(header, experiences, index, phrases, scores)
 
     def _header(self, name: str) -> Header:
@@ -484,12 +492,17 @@ def _write_op(db: sqlite3.Connection, name: str, op: Op) -> None:
         _change(db, name, op.version, "calibrate", op.calibration.to_dict())
         db.execute("DELETE FROM calibration_scores WHERE cache = ?", (name,))
         if op.scores is not None:
-            db.execute("INSERT INTO calibration_scores VALUES (?, ?, ?)", (
-                name, *(np.ascontiguousarray(x, dtype="<f8").tobytes()
-                        for x in (op.scores.observation, op.scores.detection))))
+            db.execute("INSERT INTO calibration_scores VALUES (?, ?, ?, ?)", (
+                name, *(None if x is None else np.ascontiguousarray(x, dtype="<f8").tobytes()
+                        for x in (op.scores.observation, op.scores.detection,
+                                  op.scores.pair))))
     elif isinstance(op, Configure):
         _change(db, name, op.version, "configure", {"k": op.k, "score": op.score,
                                                      "proposals": op.proposals})
+
+
+def _floats(blob: bytes) -> np.ndarray:
+    return np.frombuffer(blob, dtype="<f8").astype(np.float64)
 
 
 def _take_lock(path: Path) -> int:

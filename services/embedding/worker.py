@@ -59,7 +59,7 @@ def make_verdict(obs: Observation, robot: str, batch: ScoreBatch, cache: str,
         robot=robot, seq=obs.seq, score=scored.score, threshold=batch.threshold,
         is_anomaly=is_anomaly, k=batch.k, neighbors=scored.neighbors, model=batch.model or "",
         cache=cache, cache_version=batch.version, latency_ms=latency_ms, reason=reason,
-        p_value=scored.p_value, detections=scored.matches)
+        p_value=scored.p_value, detections=scored.matches, pair=scored.pair)
 
 
 class DetectorWorker:

@@ -41,7 +41,7 @@ from shared.messages import DecisionSource, Option, ReasonerDecision, ReasonerRe
 
 from .backends import BackendError, ChatBackend, Completion
 from .parsing import Parsed, ParseError, parse_decision, parse_partial
-from .prompts import Variant, build_messages, load_template, suspicious_scene
+from .prompts import Variant, build_messages, load_template, suspicious_scene, unusual_of
 
 log = logging.getLogger(__name__)
 
@@ -173,7 +173,7 @@ class Decider:
         deadline = start + request.deadline_s - self._config.margin_s
         flagged = suspicious_scene(task=request.observation.task,
                                    observation=request.observation.text,
-                                   unusual=request.unusual)
+                                   unusual=unusual_of(request))
         if flagged:
             return self._fallback(request, start, "parse_error",
                                   f"injection: {flagged}; LLM not asked")
@@ -211,7 +211,7 @@ class Decider:
     def _messages(self, request: ReasonerRequest) -> list[dict[str, str]]:
         return build_messages(self._template, task=request.observation.task or DEFAULT_TASK,
                               observation=request.observation.text, options=request.options,
-                              variant=self._config.variant, unusual=request.unusual)
+                              variant=self._config.variant, unusual=unusual_of(request))
 
     # ------------------------------------------------------------------ the race
 

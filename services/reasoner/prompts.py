@@ -25,7 +25,8 @@ fake LLM server and :mod:`services.reasoner.parsing` rely on them)::
     End your answer with one line exactly: FINAL ANSWER: <option number>
 
 The ``Unusual detections`` block is there only when the anomaly detector named the
-observation's odd detections (``ReasonerRequest.unusual``).
+observation's odd detections (``ReasonerRequest.unusual``) or pair of detections
+(``unusual_pair``: "a person together with a forklift (nearest nominal pair: ...)").
 
 The task, the observation and the detections are untrusted text: every line is quoted
 with ``"> "`` (the task and each detection are one line, line breaks folded to spaces) so
@@ -45,9 +46,10 @@ from typing import Literal
 
 import yaml
 
-from shared.messages import DetectionMatch, Option
+from shared.messages import DetectionMatch, Option, PairMatch, ReasonerRequest
 
 Variant = Literal["cot", "single"]
+Named = DetectionMatch | PairMatch  # what the anomaly detector named of a scene
 
 
 class PromptError(ValueError):
@@ -125,7 +127,7 @@ def build_prompt(
     observation: str,
     options: Sequence[Option],
     variant: Variant = "cot",
-    unusual: Sequence[DetectionMatch] = (),
+    unusual: Sequence[Named] = (),
 ) -> str:
     """The single-string prompt: description, scene, instruction (module docstring layout)."""
     scene = render_scene(task=task, observation=observation, options=options, unusual=unusual)
@@ -139,7 +141,7 @@ def build_messages(
     observation: str,
     options: Sequence[Option],
     variant: Variant = "cot",
-    unusual: Sequence[DetectionMatch] = (),
+    unusual: Sequence[Named] = (),
 ) -> list[dict[str, str]]:
     """OpenAI chat messages: system = description + instructions, user = the scene."""
     scene = render_scene(task=task, observation=observation, options=options, unusual=unusual)
@@ -151,7 +153,7 @@ UNUSUAL = "Unusual detections (nearest nominal detection, cosine similarity):"
 
 
 def render_scene(*, task: str, observation: str, options: Sequence[Option],
-                 unusual: Sequence[DetectionMatch] = ()) -> str:
+                 unusual: Sequence[Named] = ()) -> str:
     """The ``Task:`` / ``Observation:`` / [``Unusual detections:``] / ``Options:`` block."""
     return (
         f"Task:\n{QUOTE}{_single_line(task, 'task')}\n"
@@ -161,13 +163,28 @@ def render_scene(*, task: str, observation: str, options: Sequence[Option],
     )
 
 
-def unusual_line(match: DetectionMatch) -> str:
-    """"a keyboard on the ground (nearest nominal: a drill on the ground, 0.61)"."""
-    return (f"{' '.join(match.detection.split())} (nearest nominal: "
-            f"{' '.join(match.nearest.split())}, {match.similarity:.2f})")
+def unusual_of(request: ReasonerRequest) -> tuple[Named, ...]:
+    """What the verdict that raised the anomaly named: its detections, then its pair."""
+    pair = (request.unusual_pair,) if request.unusual_pair is not None else ()
+    return (*request.unusual, *pair)
 
 
-def render_unusual(unusual: Sequence[DetectionMatch]) -> str:
+def unusual_line(match: Named) -> str:
+    """"a keyboard on the ground (nearest nominal: a drill on the ground, 0.61)", or for
+    a pair "a person together with a forklift (nearest nominal pair: a person with a
+    shelf, 0.41)"."""
+    def one(text: str) -> str:
+        return " ".join(text.split())
+
+    if isinstance(match, PairMatch):
+        (a, b), (c, d) = match.detections, match.nearest
+        return (f"{one(a)} together with {one(b)} (nearest nominal pair: {one(c)} with "
+                f"{one(d)}, {match.similarity:.2f})")
+    return f"{one(match.detection)} (nearest nominal: {one(match.nearest)}, " \
+        f"{match.similarity:.2f})"
+
+
+def render_unusual(unusual: Sequence[Named]) -> str:
     """One quoted line per detection the anomaly detector named."""
     return "\n".join(QUOTE + unusual_line(m) for m in unusual)
 
@@ -272,7 +289,7 @@ def suspicious_observation(text: str) -> str | None:
 
 
 def suspicious_scene(*, task: str, observation: str,
-                     unusual: Sequence[DetectionMatch] = ()) -> str | None:
+                     unusual: Sequence[Named] = ()) -> str | None:
     """Which of the scene's untrusted texts tries to inject instructions, and how
     (``task flagged (...)``, ``observation flagged (...)``, ``detections flagged
     (...)``), else None."""

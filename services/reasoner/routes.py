@@ -59,7 +59,8 @@ async def reason(body: ReasonBody, decider: DeciderDep, settings: SettingsDep,
     request = ReasonerRequest(
         robot=body.observation.robot, request_id=body.request_id or uuid.uuid4().hex,
         observation=body.observation, options=tuple(body.options),
-        deadline_s=body.deadline_s, unusual=tuple(body.unusual))
+        deadline_s=body.deadline_s, unusual=tuple(body.unusual),
+        unusual_pair=body.unusual_pair)
     decision = await decider.decide(request)
     metrics.observe(decision)
     return decision

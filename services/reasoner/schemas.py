@@ -6,7 +6,15 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from shared.messages import MAX_DETECTIONS, DetectionMatch, Float, Int, Observation, Option
+from shared.messages import (
+    MAX_DETECTIONS,
+    DetectionMatch,
+    Float,
+    Int,
+    Observation,
+    Option,
+    PairMatch,
+)
 
 
 class ReasonBody(BaseModel):
@@ -17,6 +25,7 @@ class ReasonBody(BaseModel):
     options: list[Option] = Field(min_length=1)
     deadline_s: Float = Field(gt=0.0)
     unusual: list[DetectionMatch] = Field(default_factory=list, max_length=MAX_DETECTIONS)
+    unusual_pair: PairMatch | None = None
 
     @field_validator("options")
     @classmethod

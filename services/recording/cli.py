@@ -216,7 +216,7 @@ def _scores_offline(args: argparse.Namespace, scenes: list[Any]
 
     try:
         config = EvalConfig(k=args.k, alpha=args.alpha, method=args.method, score=args.score,
-                            tpr=args.tpr)
+                            tpr=args.tpr, pairs=args.pairs)
         calibration = read_jsonl(args.calibration) if args.calibration else []
         embedder = load_embedder(args.model or DEFAULT_MODEL)
         new, threshold, method = scores_offline(embedder, read_jsonl(args.nominal),

@@ -14,10 +14,11 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from services.bench.evaluate import EvalConfig, fit, score_all
+from services.bench.evaluate import EvalConfig, fit, fit_structured, score_all, score_structured
 from services.embedding.cache import Labelled
 from services.embedding.client import EmbeddingClient
 from services.embedding.embedders import Embedder
+from services.embedding.errors import InvalidInput
 from shared.messages import AnomalyVerdict, Detection, Observation
 
 from .recorded import RecordedObservation
@@ -114,8 +115,23 @@ def _verdict(score: float, is_anomaly: bool | None) -> str:
 def scores_offline(embedder: Embedder, nominal: Sequence[Labelled],
                    calibration: Sequence[Labelled], config: EvalConfig,
                    scenes: Sequence[Scene]) -> tuple[dict[Scene, NewScore], float, str]:
-    """Each scene's text score against a cache of ``nominal`` built in memory and
-    calibrated by ``config``; with tau and the method's name."""
+    """Each scene's score against a cache of ``nominal`` built in memory and calibrated
+    by ``config``; with tau and the method's name. ``--score combined`` judges each scene
+    with its detections as the service does (``detections`` alone is not a verdict the
+    service gives: refused)."""
+    if config.score == "detections":
+        raise InvalidInput("--recording takes --score topk, mahalanobis or combined",
+                           field="score")
+    if config.score == "combined":
+        cache, _ = fit_structured(embedder, nominal, calibration, config)
+        scored = score_structured(cache, embedder, [
+            Labelled(text, False, tuple(dict.fromkeys(d.phrase for d in found)))
+            for text, found in scenes])
+        cal = cache.calibration
+        assert cal is not None
+        return ({s: NewScore(r.score, r.is_anomaly) for s, r in zip(scenes, scored,
+                                                                    strict=True)},
+                cal.threshold, cal.method)
     cache, cal = fit(embedder, nominal, calibration, config)
     scores = score_all(cache, embedder, [text for text, _ in scenes], config.k)
     new = {s: NewScore(float(x), bool(x > cal.threshold))

@@ -405,6 +405,64 @@ def test_too_few_scenes_with_detections_to_ever_flag_is_refused(client: TestClie
     assert client.get("/v1/caches/wm").json()["calibration"] is None
 
 
+def neighbours(i: int) -> dict:
+    """A scene of two things next to each other in THINGS (a ring): a pallet is seen
+    with a scanner and with a brown package, never with a storage shelf."""
+    held = [THINGS[i % len(THINGS)], THINGS[(i + 1) % len(THINGS)]]
+    return {"text": f"scene {i}: " + ", ".join(held), "id": f"n{i}",
+            "detections": [{"label": x, "where": "on the belt"} for x in held]}
+
+
+def test_two_things_never_seen_together_are_named_when_pairs_are_calibrated(
+        tmp_path: Path) -> None:
+    with make_client(tmp_path) as client:
+        create(client, k=1)
+        client.post("/v1/caches/wm/experiences", headers=AUTH,
+                    json={"items": [neighbours(i) for i in range(40)]})
+        # the text of a nominal scene: only the pair can tell
+        odd = {"text": neighbours(0)["text"], "detections": [
+            {"label": "a pallet", "where": "on the belt"},
+            {"label": "a storage shelf", "where": "on the belt"}]}
+        body = {"queries": [odd, {"text": neighbours(0)["text"],
+                                  "detections": neighbours(0)["detections"]}]}
+        r = client.post("/v1/caches/wm/calibrate", headers=AUTH,
+                        json={"method": "loo-quantile", "alpha": 0.9})
+        assert r.status_code == 200 and r.json()["pairs"] is False
+        before = client.post("/v1/caches/wm/score", json=body).json()["results"][0]
+        assert before["is_anomaly"] is False and before["pair"] is None  # each is nominal
+        r = client.post("/v1/caches/wm/calibrate", headers=AUTH,
+                        json={"method": "loo-quantile", "alpha": 0.9, "pairs": True})
+        assert r.status_code == 200 and r.json()["pairs"] is True
+        assert client.get("/v1/caches/wm").json()["calibration"]["pairs"] is True
+        first = client.post("/v1/caches/wm/score", json=body).json()
+    flagged, nominal = first["results"]
+    assert flagged["is_anomaly"] is True and flagged["detections"] == []
+    assert flagged["pair"]["detections"] == ["a pallet on the belt",
+                                             "a storage shelf on the belt"]
+    assert flagged["pair"]["similarity"] < 1 and flagged["pair"]["p_value"] < 0.1
+    assert nominal["is_anomaly"] is False and nominal["pair"] is None
+    with make_client(tmp_path) as client:  # the pair scores are kept
+        assert client.post("/v1/caches/wm/score", json=body).json() == first
+
+
+@pytest.mark.parametrize(("body", "status"), [
+    ({"method": "loo-quantile", "pairs": "yes"}, 422),
+    ({"method": "tpr-target", "pairs": True,
+      "calibration": [{"text": "a", "label": "nominal"}, {"text": "b", "label": "anomaly"}]},
+     422),
+    ({"method": "loo-quantile", "pairs": True}, 409),  # no scene holds two things
+])
+def test_pairs_that_cannot_be_calibrated_are_refused_naming_pairs(
+        client: TestClient, body: dict, status: int) -> None:
+    create(client, k=1)
+    client.post("/v1/caches/wm/experiences", headers=AUTH, json={"items": [
+        {"text": f"scene {i}", "detections": [{"label": THINGS[i % 5]}]} for i in range(40)]})
+    r = client.post("/v1/caches/wm/calibrate", headers=AUTH, json=body)
+    assert r.status_code == status, r.text
+    assert r.json()["error"]["field"] == "pairs"
+    assert client.get("/v1/caches/wm").json()["calibration"] is None
+
+
 # -- proposals -------------------------------------------------------------------------
 
 

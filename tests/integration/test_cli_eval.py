@@ -136,7 +136,39 @@ def test_each_detection_is_scored_and_every_odd_object_flagged(
     # at 0.95 the 28 scenes are too few for the corrected p-value to ever be that small
     r = aesop("detector", "eval", "--nominal", str(structured["nominal"]), "--test",
               str(structured["test"]), "--score", "combined", "--json")
-    assert r.returncode == 2 and "28 calibration scores cannot flag anything" in r.stderr
+    assert r.returncode == 2 and "28 nominal calibration scores with detections cannot flag " \
+        "anything" in r.stderr
+
+
+def test_pairs_flag_two_nominal_objects_never_seen_together(tmp_path: Path) -> None:
+    # nominal: each object beside its neighbours in OBJECTS (a ring); anomalous: two
+    # nominal objects far apart in it, never seen together; one text for all, so that
+    # only the pairs can tell
+    n = len(OBJECTS)
+
+    def two(a: int, b: int, label: str) -> dict[str, object]:
+        return scene([OBJECTS[a % n], OBJECTS[b % n]]) | {"text": "the loading bay",
+                                                          "label": label}
+
+    nominal = [two(i, i + 1, "nominal") for i in range(4 * n)]
+    test = [two(i, i + 1, "nominal") for i in range(n)]
+    test += [two(i, i + n // 2, "anomaly") for i in range(n)]
+    paths = {}
+    for name, rows in (("nominal", nominal), ("test", test)):
+        paths[name] = tmp_path / f"{name}.jsonl"
+        paths[name].write_text("".join(json.dumps(r) + "\n" for r in rows))
+    got = {}
+    for pairs in ([], ["--pairs"]):
+        r = aesop("detector", "eval", "--nominal", str(paths["nominal"]), "--test",
+                  str(paths["test"]), "--score", "combined", "--alpha", "0.9", "--json", *pairs)
+        assert r.returncode == 0, r.stderr
+        got[bool(pairs)] = json.loads(r.stdout)
+    assert got[True]["pairs"] is True and got[False]["pairs"] is False
+    assert got[False]["tpr"] == 0.0  # every object is nominal on its own
+    assert got[True]["tpr"] == 1.0 and got[True]["fpr"] == 0.0
+    r = aesop("detector", "eval", "--nominal", str(paths["nominal"]), "--test",
+              str(paths["test"]), "--score", "detections", "--pairs")
+    assert r.returncode == 2 and "--pairs" in r.stderr and "Traceback" not in r.stderr
 
 
 def test_structured_user_errors(structured: dict[str, Path], files: dict[str, Path]) -> None:

@@ -148,6 +148,24 @@ def test_rescore_offline_against_a_nominal_set(flight: Path, tmp_path: Path) -> 
     assert result["against"].startswith(str(nominal))
 
 
+def test_rescore_offline_judges_each_scene_with_its_detections(flight: Path,
+                                                               tmp_path: Path) -> None:
+    nominal = tmp_path / "nominal.jsonl"
+    nominal.write_text("".join(json.dumps({
+        "text": t, "detections": [d.model_dump(exclude_none=True)
+                                  for d in observation(0, t).detections]}) + "\n"
+        for t in NOMINAL))
+    r = aesop("detector", "eval", "--recording", str(flight), "--nominal", str(nominal),
+              "--score", "combined", "--alpha", "0.9", "--json")
+    assert r.returncode == 0, r.stderr
+    result = json.loads(r.stdout)
+    # the battery is no nominal detection: flagged; every nominal scene is itself
+    assert result["observations"] == 245 and result["now_anomaly"] == 5
+    r = aesop("detector", "eval", "--recording", str(flight), "--nominal", str(nominal),
+              "--score", "detections")
+    assert r.returncode == 2 and "--score topk, mahalanobis or combined" in r.stderr
+
+
 @pytest.mark.parametrize(("args", "message"), [
     (["detector", "eval", "--recording", "{bad}", "--cache", "c"], "not an MCAP file"),
     (["detector", "eval", "--recording", "{flight}"], "either --nominal"),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -216,3 +218,51 @@ def test_a_text_only_query_is_judged_exactly_as_before() -> None:
     assert cache.calibration is not None
     for r in cache.score(q):
         assert r.is_anomaly == (r.score > cache.calibration.threshold) and r.p_value is None
+
+
+# -- pairs: two nominal detections never seen together ----------------------------------
+
+def paired_cache() -> Cache:
+    """The red box is seen with the drill and with the keyboard, never the drill with the
+    keyboard; every pair by many scenes."""
+    cache = make(k=1)
+    add_with(cache, [([1, 0.1 * i, 0], (("red box", "drill"), ("red box", "keyboard"),
+                                        ("drill",))[i % 3]) for i in range(60)])
+    return cache
+
+
+def calibrate_pairs(cache: Cache, alpha: float = 0.9) -> None:
+    obs, dets, pairs = cache.loo_scores(), cache.loo_detection_scores(), cache.loo_pair_scores()
+    cache.apply(cache.plan_calibration(replace(loo_quantile(obs, alpha), pairs=True),
+                                       CalibrationScores.of(obs, dets, pairs)))
+
+
+def test_a_cache_counts_the_pairs_its_experiences_hold_and_forgets_deleted_ones() -> None:
+    cache = paired_cache()
+    assert cache.pair_counts == {("drill", "red box"): 20, ("keyboard", "red box"): 20}
+    cache.apply(cache.plan_delete(cache.experiences[0].id))  # red box and drill
+    assert cache.pair_counts[("drill", "red box")] == 19
+    pairs = cache.nominal_pairs()
+    labels = cache.nominal_detections().labels
+    assert {(labels[a], labels[b]) for a, b in zip(pairs.first, pairs.second, strict=True)} \
+        == {("drill", "red box"), ("keyboard", "red box")}
+
+
+def test_two_nominal_detections_never_seen_together_are_flagged_and_named() -> None:
+    cache = paired_cache()
+    near = unit([[1, 0.5, 0]])
+    calibrate_both(cache)  # without pairs: every detection is nominal, so is the scene
+    (two,) = cache.score(near, detections=[found("drill", "keyboard")])
+    assert two.is_anomaly is False and two.pair is None and two.pair_score is None
+    calibrate_pairs(cache)
+    (odd,) = cache.score(near, detections=[found("drill", "keyboard")])
+    assert odd.is_anomaly is True and odd.matches == ()  # each is nominal on its own
+    assert odd.pair is not None and odd.pair.detections == ("drill", "keyboard")
+    assert odd.pair.nearest in (("drill", "red box"), ("keyboard", "red box"))
+    assert odd.pair.similarity == pytest.approx(0.0, abs=1e-4)
+    # 40 scenes with a pair, each pair held by many: the least p-value, 1/41, times three
+    assert odd.pair.p_value == pytest.approx(1 / 41) and odd.p_value == pytest.approx(3 / 41)
+    (seen,) = cache.score(near, detections=[found("keyboard", "red box")])
+    assert seen.is_anomaly is False and seen.pair is None and seen.pair_score == -1.0
+    (one,) = cache.score(near, detections=[found("drill")])  # no pair: still three tests
+    assert one.is_anomaly is False and one.pair_score is None and one.p_value == 1.0

@@ -22,7 +22,13 @@ from services.control.regions import Region
 from services.control.scenario import Scenario
 from services.control.settings import ControlSettings
 from shared.bus import Received
-from shared.messages import AnomalyVerdict, DetectionMatch, Observation, ReasonerDecision
+from shared.messages import (
+    AnomalyVerdict,
+    DetectionMatch,
+    Observation,
+    PairMatch,
+    ReasonerDecision,
+)
 
 # A small geometry that solves in milliseconds (see tests/unit/test_control_mpc.py).
 REGIONS = (
@@ -359,6 +365,21 @@ async def test_the_request_carries_the_detections_the_verdict_named() -> None:
     scene = Observation(robot="drone1", seq=1, text="a quadrotor on the red box")
     asked = await tick(rt, clock, flagged, observation=scene)
     assert asked.request is not None and asked.request.unusual == named
+    assert asked.request.unusual_pair is None
+
+
+async def test_the_request_carries_the_pair_the_verdict_named() -> None:
+    clock = FakeClock()
+    rt = await started(clock)
+    pair = PairMatch(detections=("a person on the floor", "a quadrotor on the ground"),
+                     nearest=("a person on the floor", "a red box"), similarity=0.4,
+                     p_value=0.01)
+    flagged = verdict(clock, 1, True)
+    flagged = Received(flagged.key, flagged.message.model_copy(update={"pair": pair}),
+                       flagged.received_at)
+    scene = Observation(robot="drone1", seq=1, text="a person beside the quadrotor")
+    asked = await tick(rt, clock, flagged, observation=scene)
+    assert asked.request is not None and asked.request.unusual_pair == pair
 
 
 async def test_continue_goes_back_to_nominal_and_only_a_new_verdict_asks_again() -> None:

@@ -16,6 +16,7 @@ from shared.messages import (
     Neighbor,
     Observation,
     Option,
+    PairMatch,
     PlanSnapshot,
     ReasonerDecision,
     ReasonerRequest,
@@ -24,13 +25,17 @@ from shared.process import ephemeral_range, free_port
 from shared.settings import ServiceSettings
 
 OBS = Observation(robot="r1", seq=3, task="land", text="a red box on the ground")
+PAIR = PairMatch(detections=("a red box", "a person"), nearest=("a red box", "a drill"),
+                 similarity=0.41, p_value=0.02)
 MESSAGES = [
     OBS,
     AnomalyVerdict(seq=3, score=-0.9, threshold=-0.95, is_anomaly=True, k=1, model="m",
                    cache="c", cache_version=4, latency_ms=12.5,
-                   neighbors=(Neighbor(id="a", text="t", similarity=0.9),)),
+                   neighbors=(Neighbor(id="a", text="t", similarity=0.9),), p_value=0.01,
+                   pair=PAIR),
     ReasonerRequest(request_id="q1", observation=OBS, deadline_s=4.3,
-                    options=(Option(index=0, label="continue"), Option(index=1, label="hold"))),
+                    options=(Option(index=0, label="continue"), Option(index=1, label="hold")),
+                    unusual_pair=PAIR),
     ReasonerDecision(request_id="q1", choice=1, source="timeout", latency_ms=4300.0),
     ControlState(t=1.0, x=tuple([0.0] * 12), u=(9.81, 0, 0, 0), mode="anomaly_pending"),
     PlanSnapshot(t=1.0, nominal=((0, 0, 1),), recovery={1: ((1, 1, 0),)}, consensus_steps=15,

@@ -186,16 +186,20 @@ def test_detections_and_calibration_scores_round_trip(tmp_path: Path) -> None:
                             detection_vectors=phrases)
         commit(store, cache, op)
         obs, dets = cache.loo_scores(), cache.loo_detection_scores()
+        pairs = cache.loo_pair_scores()
         commit(store, cache, cache.plan_calibration(loo_quantile(obs, 0.9),
-                                                    CalibrationScores.of(obs, dets)))
+                                                    CalibrationScores.of(obs, dets, pairs)))
     with Store(tmp_path) as store:
         loaded = store.load("d")
     assert loaded.experiences == cache.experiences  # detections and all
     assert loaded.detection_counts == {"a drill on the ground": 5, "a red box": 2}
-    assert loaded.calibration_scores is not None and cache.calibration_scores is not None
-    for got, want in [(loaded.calibration_scores.observation, cache.calibration_scores.observation),
-                      (loaded.calibration_scores.detection, cache.calibration_scores.detection)]:
-        assert got.tolist() == want.tolist() and len(got) == 5
+    assert loaded.pair_counts == {("a drill on the ground", "a red box"): 2}
+    kept, want = loaded.calibration_scores, cache.calibration_scores
+    assert kept is not None and want is not None and want.pair is not None
+    assert kept.pair is not None and kept.pair.tolist() == want.pair.tolist()
+    assert len(kept.pair) == 2  # the two experiences with both detections
+    for got, wanted in [(kept.observation, want.observation), (kept.detection, want.detection)]:
+        assert got.tolist() == wanted.tolist() and len(got) == 5
     np.testing.assert_array_equal(loaded.nominal_detections().vectors,
                                   cache.nominal_detections().vectors)
 
@@ -233,7 +237,26 @@ def test_a_version_1_database_is_migrated_keeping_everything(tmp_path: Path) -> 
         assert all(e.detections == () for e in loaded.experiences.values())
         commit_add(store, loaded, 1, seed=9)  # and it takes new writes
     with sqlite3.connect(tmp_path / DB_NAME) as db:
-        assert db.execute("PRAGMA user_version").fetchone()[0] == 2
+        assert db.execute("PRAGMA user_version").fetchone()[0] == 3
+
+
+def test_a_version_2_calibration_is_kept_without_pairs(tmp_path: Path) -> None:
+    with Store(tmp_path) as store:
+        cache = Cache(CacheConfig("c", None, 4, k=1))
+        store.create(cache.config)
+        commit_add(store, cache, 6, seed=2)
+        obs = cache.loo_scores()
+        commit(store, cache, cache.plan_calibration(loo_quantile(obs, 0.9),
+                                                    CalibrationScores.of(obs, obs[:0])))
+    with sqlite3.connect(tmp_path / DB_NAME) as db:  # as a version-2 build left it
+        db.executescript("BEGIN; ALTER TABLE calibration_scores DROP COLUMN pair; "
+                         "PRAGMA user_version=2; COMMIT;")
+    with Store(tmp_path) as store:
+        kept = store.load("c").calibration_scores
+        assert kept is not None and kept.pair is None
+        assert kept.observation.tolist() == np.sort(obs).tolist()
+    with sqlite3.connect(tmp_path / DB_NAME) as db:
+        assert db.execute("PRAGMA user_version").fetchone()[0] == 3
 
 
 # -- the format before SQLite --------------------------------------------------

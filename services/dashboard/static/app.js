@@ -99,8 +99,9 @@
     const v = flight.verdict;
     const verdict = $("verdict");
     verdict.dataset.anomaly = v ? String(v.is_anomaly) : "";
-    const named = v && v.is_anomaly && v.detections && v.detections.length
-      ? ` · ${v.detections[0].detection}` : "";
+    const named = !v || !v.is_anomaly ? ""
+      : v.detections && v.detections.length ? ` · ${v.detections[0].detection}`
+      : v.pair ? ` · ${v.pair.detections[0]} + ${v.pair.detections[1]}` : "";
     verdict.textContent = !v ? "no verdict yet"
       : `${v.is_anomaly ? "ANOMALY" : "nominal"} s=${v.score.toFixed(3)} τ=${
           v.threshold === null ? "none" : v.threshold.toFixed(3)}${
@@ -139,6 +140,16 @@
           ? "" : ` (p ${m.p_value.toFixed(3)})`}`;
         return line;
       });
+      // and the pair of detections no nominal experience holds together, if it named one
+      const p = r.unusual_pair;
+      if (p) {
+        const line = document.createElement("div");
+        line.className = "unusual";
+        line.textContent = `${p.detections[0]} together with ${p.detections[1]} — nearest ` +
+          `nominal pair: ${p.nearest[0]} with ${p.nearest[1]}, ${p.similarity.toFixed(2)}${
+            p.p_value === null || p.p_value === undefined ? "" : ` (p ${p.p_value.toFixed(3)})`}`;
+        unusual.push(line);
+      }
       const meta = document.createElement("div");
       meta.className = "meta";
       meta.textContent = `${clockOf(r.stamp)} · K=${r.deadline_s.toFixed(2)} s · ` +
