@@ -955,26 +955,29 @@ def _vm_hwm_mb() -> float | None:
 
 
 def bench_rest(bench: _Bench) -> dict[str, Any]:
-    """Concurrent single-text score requests against real servers, micro-batching on vs off."""
+    """Concurrent single-text score requests against real servers: the default model
+    (ONNX float32) with micro-batching on and off, then the torch backend (on)."""
     sizes = bench.sizes
     ds = bench.dataset("vtol")
     cache_x = bench.nominal_vectors("vtol", sizes.rest_cache, "brief")
     texts = [s.brief for s in ds.nominal[sizes.rest_cache:] + ds.anomalies]
     runs = {}
-    for microbatch in (True, False):  # one after the other, never concurrently
-        label = "microbatch" if microbatch else "no_microbatch"
+    for label, microbatch, model in (("microbatch", True, None),  # one after the other
+                                     ("no_microbatch", False, None),
+                                     ("torch", True, DEFAULT_MODEL)):
         with tempfile.TemporaryDirectory(prefix="aesop-bench-") as tmp, \
                 _server(Path(tmp), microbatch=microbatch) as base:
-            runs[label] = asyncio.run(_rest_run(base, cache_x, texts, sizes))
+            runs[label] = asyncio.run(_rest_run(base, cache_x, texts, sizes, model))
         log.info("rest %s: %.1f req/s, p50 %.0f ms", label, runs[label]["requests_per_s"],
                  runs[label]["latency"]["median_ms"])
-    on, off = runs["microbatch"], runs["no_microbatch"]
+    on, off, torch = runs["microbatch"], runs["no_microbatch"], runs["torch"]
     return {
         "cache_size": len(cache_x), "requests": sizes.rest_requests,
         "concurrency": sizes.rest_concurrency, **runs,
         "throughput_ratio": on["requests_per_s"] / off["requests_per_s"],
         "p50_ratio": on["latency"]["median_ms"] / off["latency"]["median_ms"],
         "p99_ratio": on["latency"]["p99_ms"] / off["latency"]["p99_ms"],
+        "onnx_over_torch": on["requests_per_s"] / torch["requests_per_s"],
     }
 
 
@@ -990,14 +993,14 @@ def _server(data_dir: Path, *, microbatch: bool) -> Iterator[str]:
         yield proc.url
 
 
-async def _rest_run(base: str, cache_x: np.ndarray, texts: Sequence[str], sizes: Sizes
-                    ) -> dict[str, Any]:
+async def _rest_run(base: str, cache_x: np.ndarray, texts: Sequence[str], sizes: Sizes,
+                    model: str | None = None) -> dict[str, Any]:
     import httpx
 
     limits = httpx.Limits(max_connections=sizes.rest_concurrency,
                           max_keepalive_connections=sizes.rest_concurrency)
     async with httpx.AsyncClient(base_url=base, timeout=120, limits=limits) as client:
-        await _rest_setup(client, cache_x)
+        info = await _rest_setup(client, cache_x, model)
         await _rest_load(client, texts, sizes.rest_concurrency, sizes.rest_concurrency)  # warm-up
         t0 = time.perf_counter()
         latencies, errors = await _rest_load(client, texts, sizes.rest_requests,
@@ -1005,12 +1008,16 @@ async def _rest_run(base: str, cache_x: np.ndarray, texts: Sequence[str], sizes:
         wall = time.perf_counter() - t0
         metrics = (await client.get("/metrics")).text
     return {"requests_per_s": sizes.rest_requests / wall, "latency": _stats(latencies),
-            "errors": errors, "wall_s": wall, "mean_batch": _mean_batch(metrics)}
+            "errors": errors, "wall_s": wall, "mean_batch": _mean_batch(metrics),
+            "model": info["model"]}
 
 
-async def _rest_setup(client: Any, cache_x: np.ndarray) -> None:
-    """PUT the cache (the server loads the model), POST the vectors, calibrate tau."""
-    (await client.put("/v1/caches/bench", json={"k": K})).raise_for_status()
+async def _rest_setup(client: Any, cache_x: np.ndarray, model: str | None) -> dict[str, Any]:
+    """PUT the cache (the server loads the model; None: the service's default), POST the
+    vectors, calibrate tau; the cache's info."""
+    body = {"k": K} | ({"model": model} if model else {})
+    r = await client.put("/v1/caches/bench", json=body)
+    r.raise_for_status()
     for start in range(0, len(cache_x), 500):
         chunk = cache_x[start:start + 500]
         ids = [f"n{i}" for i in range(start, start + len(chunk))]
@@ -1019,6 +1026,7 @@ async def _rest_setup(client: Any, cache_x: np.ndarray) -> None:
         r.raise_for_status()
     r = await client.post("/v1/caches/bench/calibrate", json={"method": "loo-quantile"})
     r.raise_for_status()
+    return (await client.get("/v1/caches/bench")).json()
 
 
 async def _rest_load(client: Any, texts: Sequence[str], n: int, concurrency: int
@@ -1272,13 +1280,16 @@ def _render_restart(r: Mapping[str, Any]) -> str:
 
 
 def _render_rest(r: Mapping[str, Any]) -> str:
-    rows = [{"server": label, "req/s": run["requests_per_s"],
+    rows = [{"server": label, "model": run["model"], "req/s": run["requests_per_s"],
              "p50 ms": run["latency"]["median_ms"], "p99 ms": run["latency"]["p99_ms"],
              "errors": run["errors"], "mean batch": run["mean_batch"]}
-            for label in ("microbatch", "no_microbatch") for run in (r[label],)]
-    rows.append({"server": "ratio on/off", "req/s": r["throughput_ratio"],
+            for label in ("microbatch", "no_microbatch", "torch") for run in (r[label],)]
+    rows.append({"server": "ratio on/off", "model": None, "req/s": r["throughput_ratio"],
                  "p50 ms": r["p50_ratio"], "p99 ms": r["p99_ratio"], "errors": None,
                  "mean batch": None})
+    rows.append({"server": "ratio default/torch (both on)", "model": None,
+                 "req/s": r["onnx_over_torch"], "p50 ms": None, "p99 ms": None,
+                 "errors": None, "mean batch": None})
     return table(f"[rest] POST /score, one text each, {r['requests']} requests from "
                   f"{r['concurrency']} concurrent clients, cache {r['cache_size']}", rows)
 
