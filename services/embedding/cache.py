@@ -375,7 +375,6 @@ class Cache:
         return Scored(score, neighbors, is_anomaly, worst, p_value, matches,
                       None if pair is None else pair.score, named)
 
-
     def nominal_detections(self) -> det.NominalDetections:
         """The distinct detections of the experiences (in phrase order), built once per
         version."""

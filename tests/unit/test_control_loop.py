@@ -354,32 +354,24 @@ async def test_an_anomaly_asks_the_reasoner_and_the_decision_is_routed_by_reques
     assert not [e for e in again.events if "decision" in e.message]
 
 
-async def test_the_request_carries_the_detections_the_verdict_named() -> None:
+NAMED = (DetectionMatch(detection="a quadrotor on the red box",
+                        nearest="a quadrotor on the ground", similarity=0.83, p_value=0.01),)
+PAIR = PairMatch(detections=("a person on the floor", "a quadrotor on the ground"),
+                 nearest=("a person on the floor", "a red box"), similarity=0.4, p_value=0.01)
+
+
+@pytest.mark.parametrize(("named", "pair"), [(NAMED, None), ((), PAIR), (NAMED, PAIR)])
+async def test_the_request_carries_what_the_verdict_named(
+        named: tuple[DetectionMatch, ...], pair: PairMatch | None) -> None:
     clock = FakeClock()
     rt = await started(clock)
-    named = (DetectionMatch(detection="a quadrotor on the red box",
-                            nearest="a quadrotor on the ground", similarity=0.83, p_value=0.01),)
     flagged = verdict(clock, 1, True)
-    flagged = Received(flagged.key, flagged.message.model_copy(update={"detections": named}),
-                       flagged.received_at)
+    flagged = Received(flagged.key, flagged.message.model_copy(
+        update={"detections": named, "pair": pair}), flagged.received_at)
     scene = Observation(robot="drone1", seq=1, text="a quadrotor on the red box")
     asked = await tick(rt, clock, flagged, observation=scene)
-    assert asked.request is not None and asked.request.unusual == named
-    assert asked.request.unusual_pair is None
-
-
-async def test_the_request_carries_the_pair_the_verdict_named() -> None:
-    clock = FakeClock()
-    rt = await started(clock)
-    pair = PairMatch(detections=("a person on the floor", "a quadrotor on the ground"),
-                     nearest=("a person on the floor", "a red box"), similarity=0.4,
-                     p_value=0.01)
-    flagged = verdict(clock, 1, True)
-    flagged = Received(flagged.key, flagged.message.model_copy(update={"pair": pair}),
-                       flagged.received_at)
-    scene = Observation(robot="drone1", seq=1, text="a person beside the quadrotor")
-    asked = await tick(rt, clock, flagged, observation=scene)
-    assert asked.request is not None and asked.request.unusual_pair == pair
+    assert asked.request is not None
+    assert asked.request.unusual == named and asked.request.unusual_pair == pair
 
 
 async def test_continue_goes_back_to_nominal_and_only_a_new_verdict_asks_again() -> None:
