@@ -49,7 +49,7 @@ import tempfile
 import time
 import traceback
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property, partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -110,6 +110,9 @@ class Sizes:
     loo_size: int = 20_000
     loo_repeats: int = 3
     memory_cache: int = 100_000
+    # the kinds part's domains (nominal, anomaly); None: the domain's own default (VTOL:
+    # 4000 / 1000; the quality part trims it to 2000 / 500 to embed full prompts)
+    kind_domains: Mapping[str, tuple[int | None, int | None]] = field(default_factory=dict)
     rest_concurrency: int = 32
     restart_cache: int = 200_000
 
@@ -121,6 +124,7 @@ FULL = Sizes(
 )
 QUICK = Sizes(
     domains={name: (100, 40) for name in QUALITY_DOMAINS},
+    kind_domains={name: (100, 40) for name in QUALITY_DOMAINS},
     repeats=1, threshold_seeds=2, latency_n=50, search_sizes=(10_000, 50_000),
     exact_queries=50, build_texts=300, rest_cache=100, rest_requests=200, loo_repeats=1,
     restart_cache=20_000,
@@ -205,7 +209,7 @@ class _Bench:
     def __init__(self, sizes: Sizes, seed: int) -> None:
         self.sizes = sizes
         self.seed = seed
-        self._datasets: dict[str, Dataset] = {}
+        self._datasets: dict[tuple[str, bool], Dataset] = {}
         self._vectors: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]] = {}
 
     @cached_property
@@ -218,14 +222,16 @@ class _Bench:
         embedder.embed(["warm-up"])
         return embedder
 
-    def dataset(self, name: str) -> Dataset:
-        if name not in self._datasets:
+    def dataset(self, name: str, *, kinds: bool = False) -> Dataset:
+        """Domain ``name`` at the quality part's sizes, or the kinds part's."""
+        if (name, kinds) not in self._datasets:
             from services.scenes import generate
 
-            n_nominal, n_anomaly = self.sizes.domains.get(name, (None, None))
-            self._datasets[name] = generate(name, seed=self.seed, n_nominal=n_nominal,
-                                            n_anomaly=n_anomaly)
-        return self._datasets[name]
+            sizes = self.sizes.kind_domains if kinds else self.sizes.domains
+            n_nominal, n_anomaly = sizes.get(name, (None, None))
+            self._datasets[name, kinds] = generate(name, seed=self.seed, n_nominal=n_nominal,
+                                                   n_anomaly=n_anomaly)
+        return self._datasets[name, kinds]
 
     def nominal_vectors(self, name: str, n: int, form: str = "prompt") -> np.ndarray:
         """The first ``n`` nominal embeddings: from ``vectors`` if already embedded, else
@@ -518,7 +524,8 @@ def bench_kinds(bench: _Bench) -> dict[str, Any]:
     memo = _Memo(bench.embedder)
     domains = {}
     for name in KIND_DOMAINS:
-        nominal, test = (_labelled(x) for x in bench.dataset(name).split_for_eval(bench.seed))
+        nominal, test = (_labelled(x)
+                         for x in bench.dataset(name, kinds=True).split_for_eval(bench.seed))
         kinds = {label: evaluate(memo, nominal, test, config=EvalConfig(
             k=K, alpha=ALPHA, method="loo-quantile", score=score, pairs=pairs))
             for label, (score, pairs) in KINDS.items()}
@@ -551,7 +558,7 @@ def _kind_quantiles(bench: _Bench, memo: Embedder) -> dict[str, Any]:
     (the same splits as the top-k table of the quality part)."""
     from services.bench.evaluate import EvalConfig, evaluate
 
-    ds = bench.dataset("vtol")
+    ds = bench.dataset("vtol", kinds=True)
     nominal, anomalies = _labelled(ds.nominal), _labelled(ds.anomalies)
     runs: dict[tuple[str, float], list[dict[str, Any]]] = {}
     for s in range(bench.sizes.threshold_seeds):
@@ -1160,7 +1167,8 @@ def _pm(point: Mapping[str, Any], key: str) -> str:
 
 
 def _render_kinds(r: Mapping[str, Any]) -> str:
-    rows = [{"domain": name, **{f"AUROC {k}": d["kinds"][k]["auroc"] for k in KINDS},
+    rows = [{"domain": name, "cache / test": f"{d['n_nominal']} / {d['n_test']}",
+             **{f"AUROC {k}": d["kinds"][k]["auroc"] for k in KINDS},
              **{f"bal.acc {k}": d["kinds"][k]["balanced_accuracy"] for k in KINDS},
              **{f"FPR {k}": d["kinds"][k]["fpr"] for k in CONFORMAL_KINDS}}
             for name, d in r["domains"].items()]
