@@ -283,6 +283,9 @@ def build_parser() -> argparse.ArgumentParser:
                           "the alpha quantile of the leave-one-out scores)")
     cc.add_argument("--cache", required=True)
     cc.add_argument("--alpha", type=float, default=0.95)
+    cc.add_argument("--pairs", action="store_true",
+                    help="score pairs of detections too (two nominal objects never seen "
+                         "together)")
     add_url_argument(cc)
     cc.add_argument("--json", action="store_true")
     cc.set_defaults(func=recording_command("cache_calibrate_command"))

@@ -66,10 +66,12 @@ class EmbeddingClient(JobClient):
     async def calibrate(self, name: str, method: Method, *, alpha: float | None = None,
                         tpr: float | None = None,
                         calibration: Sequence[tuple[str, bool]] = (),
-                        detections: Sequence[Sequence[Detection]] = ()) -> Calibrated:
+                        detections: Sequence[Sequence[Detection]] = (),
+                        pairs: bool = False) -> Calibrated:
         """Compute tau; ``calibration`` is (text, is_anomaly) pairs for ``conformal`` and
-        ``tpr-target``, ``detections`` each one's detections (or none)."""
-        body: dict[str, Any] = {"method": method}
+        ``tpr-target``, ``detections`` each one's detections (or none); ``pairs``: score
+        pairs of detections too."""
+        body: dict[str, Any] = {"method": method} | ({"pairs": True} if pairs else {})
         body |= {key: value for key, value in (("alpha", alpha), ("tpr", tpr))
                  if value is not None}
         if calibration:

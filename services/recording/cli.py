@@ -154,13 +154,15 @@ def cache_calibrate_command(args: argparse.Namespace) -> int:
 
     async def run() -> Any:
         async with EmbeddingClient(args.url, token=_admin_token(), timeout_s=120) as client:
-            return await client.calibrate(args.cache, "loo-quantile", alpha=args.alpha)
+            return await client.calibrate(args.cache, "loo-quantile", alpha=args.alpha,
+                                          pairs=args.pairs)
     try:
         done = asyncio.run(run())
     except (ServiceError, httpx.TransportError) as exc:
         raise _service_failure(exc, args.url) from None
     emit({"cache": done.cache, "method": done.method, "alpha": done.alpha,
-          "threshold": done.threshold, "n": done.n, "version": done.version}, args.json)
+          "threshold": done.threshold, "n": done.n, "pairs": done.pairs,
+          "version": done.version}, args.json)
     return 0
 
 

@@ -98,7 +98,11 @@ def test_import_calibrate_and_rescore_over_rest(flight: Path, service: ServicePr
     cal = aesop("cache", "calibrate", "--cache", "warehouse", "--url", service.url, "--json",
                 "--alpha", "0.9")
     assert cal.returncode == 0, cal.stderr
-    assert json.loads(cal.stdout)["n"] == 24
+    assert json.loads(cal.stdout)["n"] == 24 and json.loads(cal.stdout)["pairs"] is False
+    # one detection per scene: no pair to calibrate, and the service's 409 says so
+    pairs = aesop("cache", "calibrate", "--cache", "warehouse", "--url", service.url,
+                  "--alpha", "0.9", "--pairs")
+    assert pairs.returncode == 2 and "no pair to score against" in pairs.stderr, pairs.stderr
 
     r = aesop("detector", "eval", "--recording", str(flight), "--cache", "warehouse",
               "--url", service.url, "--json")
