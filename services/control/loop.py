@@ -459,9 +459,9 @@ class ControlRuntime:
         due = deadline + left * self.period_s
         deadline_s = max(due - self.clock() - self.settings.decision_margin_s, 1e-3)
         verdict = None if inputs.verdict is None else inputs.verdict.message
-        named = verdict is not None and verdict.is_anomaly and not silent
-        unusual = verdict.detections if named and verdict is not None else ()
-        pair = verdict.pair if named and verdict is not None else None
+        named = verdict if verdict is not None and verdict.is_anomaly and not silent else None
+        unusual = named.detections if named is not None else ()
+        pair = named.pair if named is not None else None
         return ReasonerRequest(robot=robot, request_id=uuid.uuid4().hex,
                                observation=observation,
                                options=options_for(self.scenario.regions, offered,

@@ -344,9 +344,8 @@ class Cache:
         p_each: list[float | None] = [None] * len(sims)
         p_value = p_pair = None
         is_anomaly = plain.is_anomaly
-        if scores is not None and scores.pair is not None:
-            pairs = True
-        pair = det.worst_pair(self.nominal_pairs(), all_sims) if pairs else None
+        with_pairs = pairs or (scores is not None and scores.pair is not None)
+        pair = det.worst_pair(self.nominal_pairs(), all_sims) if with_pairs else None
         if calibrated:
             assert cal is not None and cal.alpha is not None and scores is not None
             p_each = det.p_values_sorted(scores.detection, -sims).tolist()

@@ -235,7 +235,7 @@ class Store:
             row = self._db.execute("SELECT observation, detection, pair FROM "
                                    "calibration_scores WHERE cache = ?", (name,)).fetchone()
         scores = None if row is None else CalibrationScores(
-            _floats(row[0]), _floats(row[1]), None if row[2] is None else _floats(row[2]))
+            _from_blob(row[0]), _from_blob(row[1]), None if row[2] is None else _from_blob(row[2]))
         return Cache.restored(header, experiences, index, phrases, scores)
 
     def _header(self, name: str) -> Header:
@@ -501,7 +501,7 @@ def _write_op(db: sqlite3.Connection, name: str, op: Op) -> None:
                                                      "proposals": op.proposals})
 
 
-def _floats(blob: bytes) -> np.ndarray:
+def _from_blob(blob: bytes) -> np.ndarray:
     return np.frombuffer(blob, dtype="<f8").astype(np.float64)
 
 

@@ -122,6 +122,15 @@
     return flight.decisions.find((d) => d.request_id === requestId);
   }
 
+  function unusualLine(what, match) {
+    const line = document.createElement("div");
+    line.className = "unusual";
+    line.textContent = `${what}, ${match.similarity.toFixed(2)}${
+      match.p_value === null || match.p_value === undefined
+        ? "" : ` (p ${match.p_value.toFixed(3)})`}`;
+    return line;
+  }
+
   function renderRequests() {
     const items = flight.requests.slice().reverse().map((r) => {
       const li = document.createElement("li");
@@ -131,24 +140,14 @@
       countdown.className = "countdown";
       const text = document.createElement("div");
       text.textContent = `“${r.observation.text}”`;
-      // what the detector named: each odd detection beside its nearest nominal one
-      const unusual = (r.unusual || []).map((m) => {
-        const line = document.createElement("div");
-        line.className = "unusual";
-        line.textContent = `${m.detection} — nearest nominal: ${m.nearest}, ${
-          m.similarity.toFixed(2)}${m.p_value === null || m.p_value === undefined
-          ? "" : ` (p ${m.p_value.toFixed(3)})`}`;
-        return line;
-      });
-      // and the pair of detections no nominal experience holds together, if it named one
+      // what the detector named: each odd detection beside its nearest nominal one, and
+      // the pair of detections no nominal experience holds together, if it named one
       const p = r.unusual_pair;
+      const unusual = (r.unusual || []).map((m) =>
+        unusualLine(`${m.detection} — nearest nominal: ${m.nearest}`, m));
       if (p) {
-        const line = document.createElement("div");
-        line.className = "unusual";
-        line.textContent = `${p.detections[0]} together with ${p.detections[1]} — nearest ` +
-          `nominal pair: ${p.nearest[0]} with ${p.nearest[1]}, ${p.similarity.toFixed(2)}${
-            p.p_value === null || p.p_value === undefined ? "" : ` (p ${p.p_value.toFixed(3)})`}`;
-        unusual.push(line);
+        unusual.push(unusualLine(`${p.detections[0]} together with ${p.detections[1]} — ` +
+          `nearest nominal pair: ${p.nearest[0]} with ${p.nearest[1]}`, p));
       }
       const meta = document.createElement("div");
       meta.className = "meta";
