@@ -28,9 +28,9 @@ such observations, so ``P(p_pair <= t/3) <= t/3`` overall and the bound holds). 
 helps where the nominal experiences show most nominal pairs (measured per domain in
 ``aesop bench detector --only kinds``).
 
-Similarities are rounded to :data:`DECIMALS` places: the same phrase embedded in two
-batches can differ in the seventh decimal, and a nominal detection seen again must tie
-with its calibration scores, not score a hair above them.
+Similarities are rounded to :data:`~.scoring.DECIMALS` places, as the top-k score's are:
+the same phrase embedded in two batches can differ in the seventh decimal, and a nominal
+detection seen again must tie with its calibration scores, not score a hair above them.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-DECIMALS = 4
+from .scoring import DECIMALS
 
 
 @dataclass(frozen=True)

@@ -34,6 +34,11 @@ __all__ = [
     "topk_score",
 ]
 
+# Similarities are rounded to this many decimals before they are scored: the same text
+# embedded in two batches can differ in the seventh decimal (1.0 to its copies in one
+# batch, 1.0000002 to a copy embedded alone), and a nominal observation seen again must
+# tie with its calibration scores, not land a hair beyond every one of them.
+DECIMALS = 4
 # Cosine similarities from float32 embeddings can overshoot +-1 by rounding;
 # anything further out is not a cosine similarity (e.g. FAISS's -FLT_MAX padding
 # for missing results, or L2 distances passed by mistake).
@@ -94,7 +99,8 @@ def topk_score(similarities: np.ndarray, k: int) -> np.ndarray:
     """Top-k score: minus the mean of each row's k largest cosine similarities.
 
     s(e_t; D_e) = -(1/k) sum_{j<=k} cos(e_t, e_(j)), with e_(j) the j-th most
-    similar cache member; k=1 is the ``-max`` score of Sec. IV-A.
+    similar cache member; k=1 is the ``-max`` score of Sec. IV-A. Each similarity is
+    rounded to :data:`DECIMALS` places first (float noise must not order equal texts).
 
     Args:
         similarities: (n, m) cosine similarities of n queries to their m >= k
@@ -111,7 +117,7 @@ def topk_score(similarities: np.ndarray, k: int) -> np.ndarray:
     """
     sims = _as_similarities(similarities)
     _check_k(k, sims.shape[1])
-    scores: np.ndarray = -sims[:, :k].mean(axis=1)
+    scores: np.ndarray = -np.round(sims[:, :k], DECIMALS).mean(axis=1)
     return scores
 
 

@@ -34,8 +34,8 @@ def test_topk_score_is_negated_mean_similarity_of_nearest() -> None:
     add(cache, [[1, 0, 0], [0, 1, 0], [0, 0, 1]], ids=["x", "y", "z"])
     q = unit([[1, 1, 0]])
     (r,) = cache.score(q, k=2, neighbors=2)
-    # cos to x and y is 1/sqrt(2) each: s = -(0.7071 + 0.7071) / 2
-    assert r.score == pytest.approx(-1 / np.sqrt(2), abs=1e-6)
+    # cos to x and y is 1/sqrt(2) each, rounded to 4 decimals: s = -(0.7071 + 0.7071) / 2
+    assert r.score == pytest.approx(-0.7071, abs=1e-12)
     assert {n.id for n in r.neighbors} == {"x", "y"}
 
 
@@ -43,10 +43,11 @@ def test_leave_one_out_never_scores_a_member_against_itself() -> None:
     cache = make(k=1)
     add(cache, [[1, 0, 0], [1, 0.1, 0], [0, 0, 1], [0, 0.1, 1]])
     loo = cache.loo_scores()
-    # each point's nearest *other* point: cos between (1,0,0) and (1,.1,0) = 1/sqrt(1.01)
-    assert loo == pytest.approx([-1 / np.sqrt(1.01)] * 4, abs=1e-6)
+    # each point's nearest *other* point: cos between (1,0,0) and (1,.1,0) = 1/sqrt(1.01),
+    # 0.99504 (rounded to 4 decimals: 0.995)
+    assert loo == pytest.approx([-0.995] * 4, abs=1e-12)
     tau = loo_quantile(loo, 0.5).threshold
-    assert tau == pytest.approx(-1 / np.sqrt(1.01), abs=1e-6)
+    assert tau == pytest.approx(-0.995, abs=1e-12)
 
 
 def test_planning_validates_without_changing_anything() -> None:
