@@ -74,11 +74,12 @@ def warn_unknown_settings(environ: Mapping[str, str]) -> list[str]:
     from services.embedding.settings import EmbeddingSettings
     from services.fakes.llm import FakeLLMServiceSettings, FakeLLMSettings
     from services.reasoner.settings import ReasonerSettings
+    from services.sim.settings import SimSettings
     from shared.settings import unknown_names
 
     classes: list[type[BaseSettings]] = [EmbeddingSettings, ReasonerSettings, ControlSettings,
-                                          DashboardSettings, FakeLLMServiceSettings,
-                                          FakeLLMSettings]
+                                          DashboardSettings, SimSettings,
+                                          FakeLLMServiceSettings, FakeLLMSettings]
     lines = [f"aesop: {name} is not a setting of any service" +
              (f" (did you mean {meant}?)" if meant else "")
              for name, meant in unknown_names(environ, classes).items()]
@@ -104,14 +105,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     serve = sub.add_parser("serve", help="run one service (settings also from AESOP_* env vars)")
     serve.add_argument("service",
-                       choices=["embedding", "reasoner", "control", "dashboard", "fake-llm"],
-                       help="fake-llm: an OpenAI-compatible test server; see its --help")
+                       choices=["embedding", "reasoner", "control", "dashboard", "sim",
+                                "fake-llm"],
+                       help="sim: the simulated vehicle control flies; fake-llm: an "
+                            "OpenAI-compatible test server, see its --help")
     serve.add_argument("--host")
     serve.add_argument("--port", type=int)
     serve.add_argument("--data-dir", type=Path)
     serve.add_argument("--scenario", default=None,
-                       help="control only: a bundled scenario (paper, hardware) or a file "
-                            "(default: AESOP_CONTROL_SCENARIO, else paper)")
+                       help="control and sim: a bundled scenario (paper, hardware) or a file "
+                            "(default: AESOP_CONTROL_SCENARIO or AESOP_SIM_SCENARIO, else "
+                            "paper)")
     serve.set_defaults(func=cmd_serve)
 
     detector = sub.add_parser("detector", help="offline tools for the fast anomaly detector")
@@ -199,6 +203,13 @@ def build_parser() -> argparse.ArgumentParser:
     bc.add_argument("--scenario", type=Path, default=None,
                     help="a bundled scenario (paper, hardware) or a file (default: paper)")
     bc.add_argument("--plot", type=Path, default=None, help="write a figure of case 0 (PNG)")
+    bc.add_argument("--state-delay-ms", type=float, nargs="+", default=[0.0],
+                    help="the vehicle's state is published this long after the instant it is "
+                         "valid for (default 0); several: one condition each")
+    bc.add_argument("--state-rate-hz", type=float, nargs="+", default=[100.0],
+                    help="the vehicle's state rate (default 100); several: one condition each")
+    bc.add_argument("--methods", nargs="+", choices=["naive", "fsmpc", "aesop"],
+                    default=["naive", "fsmpc", "aesop"], help="(default: all three)")
     bc.add_argument("--json", action="store_true")
     bc.set_defaults(func=cmd_bench_closed_loop)
     bl = bsub.add_parser("loop", help="the fixed-rate control loop's jitter and overruns over "
@@ -338,8 +349,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     overrides = {k: v for k, v in (("host", args.host), ("port", args.port),
                                    ("data_dir", args.data_dir)) if v is not None}
-    if args.scenario is not None and args.service != "control":
-        raise CliError("--scenario: only `aesop serve control` flies a scenario")
+    if args.scenario is not None and args.service not in ("control", "sim"):
+        raise CliError("--scenario: only `aesop serve control` and `aesop serve sim` take a "
+                       "scenario")
+    if args.service == "sim":
+        return serve_sim(overrides, args.scenario)
     if args.service == "reasoner":
         return serve_reasoner(overrides)
     if args.service == "control":
@@ -404,6 +418,29 @@ def serve_control(overrides: dict[str, Any], scenario: str | None = None) -> int
     except ValueError as exc:
         raise CliError(str(exc)) from None
     app = create_app(settings, runtime, bus_factory=lambda: Bus.open(settings, SERVICE))
+    serve(app, settings)
+    return 0
+
+
+def serve_sim(overrides: dict[str, Any], scenario: str | None = None) -> int:
+    from services.control.scenario import ScenarioError, load_scenario
+    from services.sim.api import create_app
+    from services.sim.service import SERVICE
+    from services.sim.settings import SimSettings
+    from shared.bus import Bus
+    from shared.http import serve
+
+    if scenario is not None:
+        overrides = {**overrides, "scenario": scenario}
+    settings = SimSettings(**overrides)
+    try:
+        settings.check_exposure()
+        app = create_app(settings, load_scenario(settings.scenario),
+                         bus_factory=lambda: Bus.open(settings, SERVICE))
+    except ScenarioError as exc:
+        raise CliError(f"--scenario: {exc}" if scenario is not None else str(exc)) from None
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
     serve(app, settings)
     return 0
 
@@ -603,18 +640,30 @@ def _mpc_row(run: dict) -> dict:
 
 def cmd_bench_closed_loop(args: argparse.Namespace) -> int:
     from services.bench.control import bench_closed_loop
+    from services.sim.vehicle import Reporting
     from shared.tables import table
 
     if args.scenarios < 1 or args.workers < 1 or args.inconsequential < 0:
         raise CliError("--scenarios and --workers must be >= 1, --inconsequential >= 0")
+    if any(not 0 < r <= 10_000 for r in args.state_rate_hz):
+        raise CliError("--state-rate-hz: every rate must be in (0, 10000]")
+    if any(not 0 <= d <= 10_000 for d in args.state_delay_ms):
+        raise CliError("--state-delay-ms: every delay must be in [0, 10000]")
+    reportings = [Reporting(rate_hz=r, delay_s=d / 1000.0)
+                  for r in args.state_rate_hz for d in args.state_delay_ms]
     result = bench_closed_loop(args.scenarios, args.seed, args.workers,
-                               _control_scenario(args.scenario), args.inconsequential, args.plot)
+                               _control_scenario(args.scenario), args.inconsequential, args.plot,
+                               reportings, args.methods)
     if args.json:
         emit(result, True)
         return 0
-    rows = [{"method": m, **r} for m, r in result["methods"].items()]
-    print(table(f"closed loop, {args.scenarios} cases, seed {args.seed}", rows))
-    print(f"inconsequential case: {result['inconsequential']}")
+    rows = [{"state": f"{c['state']['rate_hz']:g} Hz, {c['state']['delay_ms']:g} ms",
+             "method": m, **r} for c in result["conditions"] for m, r in c["methods"].items()]
+    print(table(f"closed loop, {result['scenario']}, {args.scenarios} cases, seed {args.seed}",
+                rows))
+    for c in result["conditions"]:
+        print(f"inconsequential case at {c['state']['rate_hz']:g} Hz, "
+              f"{c['state']['delay_ms']:g} ms: {c['inconsequential']}")
     return 0
 
 
@@ -623,7 +672,8 @@ def cmd_bench_loop(args: argparse.Namespace) -> int:
 
     if not args.minutes > 0 or any(not r > 0 for r in args.rates):
         raise CliError("--minutes and every --rates value must be > 0")
-    result = bench_loop(args.rates, args.minutes, _control_scenario(args.scenario), args.seed)
+    _control_scenario(args.scenario)  # a bad scene is a usage error, named here
+    result = bench_loop(args.rates, args.minutes, args.scenario, args.seed)
     if args.json:
         emit(result, True)
     else:

@@ -318,12 +318,16 @@ class Subscription(_Stream[Received[M]], _Decoding[M]):
 
 
 class Latest(_Declared, _Decoding[M]):
-    """The newest decoded message on ``key_expr``; thread-safe, for fixed-rate loops."""
+    """The newest decoded message on ``key_expr``; thread-safe, for fixed-rate loops.
+    ``on_update`` (quick, never blocking) is called on the Zenoh thread after each one,
+    to wake a loop that waits for it."""
 
-    def __init__(self, session: zenoh.Session, key_expr: str, model: type[M]) -> None:
+    def __init__(self, session: zenoh.Session, key_expr: str, model: type[M],
+                 on_update: Callable[[], None] | None = None) -> None:
         self._decoder = _Decoder(key_expr, model)
         self._lock = threading.Lock()
         self._latest: Received[M] | None = None
+        self._on_update = on_update
         self._subscriber = session.declare_subscriber(key_expr, self._on_sample)
         self._undeclare = _once(self._subscriber.undeclare)
 
@@ -332,6 +336,8 @@ class Latest(_Declared, _Decoding[M]):
         if got is not None:
             with self._lock:
                 self._latest = got
+            if self._on_update is not None:
+                self._on_update()
 
     def get(self) -> Received[M] | None:
         with self._lock:
@@ -343,6 +349,23 @@ class Latest(_Declared, _Decoding[M]):
         if got is None:
             return None
         return (time.monotonic() if now is None else now) - got.received_at
+
+
+class Answering(_Declared):
+    """A queryable on ``key``: each query is answered with ``reply()``, on a Zenoh thread
+    (``reply`` must be quick and must not block; one that raises answers nothing)."""
+
+    def __init__(self, session: zenoh.Session, key: str, reply: Callable[[], Message]) -> None:
+        self.key = key
+        self._reply = reply
+        self._queryable = session.declare_queryable(key, self._on_query)
+        self._undeclare = _once(self._queryable.undeclare)
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        try:
+            query.reply(self.key, self._reply().encode())
+        except Exception:  # a callback must never break the Zenoh thread
+            log.exception("answering a query on %s failed", self.key)
 
 
 class LivelinessWatch(_Stream[HealthChange]):
@@ -441,13 +464,32 @@ class Bus:
         return self._adopt(Subscription(self._open_session(), key_expr, model, maxsize=maxsize,
                                         on_error=on_error))
 
-    def latest(self, key_expr: str, model: type[M]) -> Latest[M]:
-        """A slot holding the newest ``model`` message on ``key_expr``; no loop needed."""
-        return self._adopt(Latest(self._open_session(), key_expr, model))
+    def latest(self, key_expr: str, model: type[M],
+               on_update: Callable[[], None] | None = None) -> Latest[M]:
+        """A slot holding the newest ``model`` message on ``key_expr``; no loop needed
+        (``on_update``: called on the Zenoh thread after each message)."""
+        return self._adopt(Latest(self._open_session(), key_expr, model, on_update))
 
     def watch_alive(self, prefix: str = HEALTH_ALL, *, history: bool = True) -> LivelinessWatch:
         """An async iterator of services appearing and vanishing; call inside the loop."""
         return self._adopt(LivelinessWatch(self._open_session(), prefix, history=history))
+
+    def answer(self, key: str, reply: Callable[[], Message]) -> Answering:
+        """Answer every query on the concrete ``key`` with ``reply()`` (a queryable)."""
+        return self._adopt(Answering(self._open_session(), key, reply))
+
+    def ask(self, key: str, model: type[M], *, timeout: float = 1.0) -> list[Received[M]]:
+        """Query ``key`` and decode the answers as ``model`` (one that does not decode is
+        left out); blocks until the query completes, at most ``timeout`` s. Each answer's
+        ``received_at`` is its arrival (``time.monotonic()``)."""
+        decoder = _Decoder(key, model)
+        out: list[Received[M]] = []
+        for reply in self._open_session().get(key, timeout=timeout):
+            sample = reply.ok
+            got = None if sample is None else decoder(sample)
+            if got is not None:
+                out.append(got)
+        return out
 
     def alive(self, prefix: str = HEALTH_ALL, *, timeout: float = 2.0) -> set[str]:
         """Names of the services whose liveliness tokens under ``prefix`` are alive now.

@@ -14,7 +14,7 @@ import time
 from enum import StrEnum
 from typing import Annotated, Any, Literal, TypeVar
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
 SCHEMA_VERSION = 1
 
@@ -220,6 +220,9 @@ class ControlState(Message):
     t_anom: Float | None = None
     chosen: Int | None = None
     active_regions: tuple[Int, ...] = ()
+    # how old the vehicle state this tick planned from was (s, since it was valid);
+    # None when it had none fresh (waiting, or flying blind)
+    state_age_s: Float | None = None
 
 
 Point3 = tuple[Float, Float, Float]
@@ -272,3 +275,77 @@ class Event(Message):
     severity: Severity = "info"
     message: str = ""
     data: dict[str, str | int | float | bool | None] = Field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- the vehicle
+
+Quaternion4 = tuple[Float, Float, Float, Float]
+Covariance3 = tuple[Float, Float, Float, Float, Float, Float, Float, Float, Float]
+
+
+class VehicleState(Message):
+    """A vehicle's state estimate, vehicle -> control (``aesop/{robot}/vehicle/state``), at
+    the vehicle's own rate.
+
+    ``stamp`` is the time the estimate is valid for, on the vehicle's clock (control
+    does not assume it shares that clock: it judges freshness by arrival and ``seq``,
+    and reads the offset from ``aesop/{robot}/vehicle/clock`` when the vehicle answers
+    it). ``frame`` names the world frame (x forward, y left, z up, m); ``attitude`` is the
+    unit quaternion ``(w, x, y, z)`` from the body frame (x forward, y left, z up) to it,
+    ``body_rates`` the angular velocity in the body frame. Numbers are not checked for
+    finiteness here: control refuses a non-finite state with an alarm, it does not
+    drop it unseen.
+    """
+
+    seq: Int = Field(ge=0)
+    frame: str = Field(default="world", min_length=1, max_length=64)
+    position: Point3  # m
+    velocity: Point3  # m/s, world frame
+    attitude: Quaternion4 = (1.0, 0.0, 0.0, 0.0)
+    body_rates: Point3 = (0.0, 0.0, 0.0)  # rad/s
+    position_covariance: Covariance3 | None = None  # m^2, row-major 3x3
+    velocity_covariance: Covariance3 | None = None  # (m/s)^2, row-major 3x3
+
+
+class VehicleSetpoint(Message):
+    """What the control loop commands, control -> vehicle (``aesop/{robot}/vehicle/setpoint``),
+    once per tick while it flies.
+
+    Exactly one command: ``acceleration`` (m/s^2, world frame: the ``point-mass`` model, for
+    the vehicle's flight controller to track) or ``thrust`` (N) with ``torque`` (N m, body
+    frame: the ``quadrotor`` hover model, for the motors). ``position`` and ``velocity`` are
+    the plan at the same instant, for a vehicle that tracks those instead. ``t`` is that
+    instant and ``valid_until`` the moment past which, without a newer set-point, the vehicle
+    holds position on its own: both on the *vehicle's* clock (the stamp ``state_stamp`` of
+    the state ``state_seq`` this was computed from, plus that state's age when the tick
+    ran), so a vehicle never compares two clocks. ``stamp`` is control's own clock.
+    """
+
+    seq: Int = Field(ge=0)
+    state_seq: Int = Field(ge=0)
+    state_stamp: Finite
+    t: Finite
+    valid_until: Finite
+    mode: Mode
+    acceleration: Point3 | None = None
+    thrust: Float | None = None
+    torque: Point3 | None = None
+    position: Point3
+    velocity: Point3
+
+    @model_validator(mode="after")
+    def _one_command(self) -> VehicleSetpoint:
+        motors = (self.thrust is not None, self.torque is not None)
+        if motors[0] != motors[1]:
+            raise ValueError("thrust and torque go together")
+        if (self.acceleration is not None) == motors[0]:
+            raise ValueError("a set-point carries either an acceleration or a thrust with a "
+                             "torque")
+        return self
+
+
+class VehicleClock(Message):
+    """The vehicle's answer to a query on ``aesop/{robot}/vehicle/clock``: its ``stamp`` is
+    the vehicle's clock when it answered, so control can map state stamps onto its own
+    clock (the query's round trip bounds the error). Optional: without it control takes the
+    fastest arrival it has seen as instant."""

@@ -35,6 +35,9 @@ state = _robot_key("state")
 plan = _robot_key("plan")
 regions = _robot_key("regions")
 event = _robot_key("event")
+vehicle_state = _robot_key("vehicle/state")
+vehicle_setpoint = _robot_key("vehicle/setpoint")
+vehicle_clock = _robot_key("vehicle/clock")
 
 
 def health(service: str) -> str:

@@ -22,8 +22,9 @@ import numpy as np
 
 from services.control.controllers import METHODS, make_controller, mpc_config, planning_model
 from services.control.mpc import SolveStatus, promised_step
-from services.control.plant import make_plant
 from services.control.scenario import Scenario, load_scenario
+from services.sim.plant import make_plant
+from services.sim.vehicle import Reporting
 
 from .reference import reference_solve
 from .sim import fly, run_case, sample_cases, summarize, time_lost
@@ -136,31 +137,43 @@ def _reference_tick(model, scenario, config, controller) -> tuple[float, list[fl
 
 def bench_closed_loop(scenarios: int = 500, seed: int = 0, workers: int = 2,
                       scenario: Scenario | None = None, inconsequential: int = 5,
-                      plot: Path | None = None) -> dict:
+                      plot: Path | None = None, reportings: Sequence[Reporting] = (),
+                      methods: Sequence[str] = METHODS) -> dict:
+    """The ablation of ``methods`` over ``scenarios`` seeded cases, once per way the
+    vehicle reports its state (``reportings``; default: 100 Hz, no delay): one
+    condition each, the same cases in every one."""
     scenario = scenario or load_scenario()
     cases = sample_cases(scenario, scenarios, seed)
-    methods, outcomes = {}, {}
+    conditions = []
     started = time.perf_counter()
     with ProcessPoolExecutor(max(1, workers)) as pool:
-        for method in METHODS:
-            outcomes[method] = list(pool.map(run_case, [(method, scenario, c) for c in cases]))
-            methods[method] = summarize(outcomes[method])
-            print(f"bench closed-loop: {method} done, {time.perf_counter() - started:.0f} s",
-                  file=sys.stderr)
-        lost = list(pool.map(_time_lost, [(scenario, c) for c in cases[:inconsequential]]))
-    losses = [r["time_lost_s"] for r in lost if r["time_lost_s"] is not None]
-    result = {
-        "scenarios": scenarios,
-        "seed": seed,
-        "methods": methods,
-        "inconsequential": {"cases": len(lost),
-                            "mean_time_lost_s": float(np.mean(losses)) if losses else None,
-                            "max_time_lost_s": float(np.max(losses)) if losses else None,
-                            "reached_goal": len(losses)},
-        "failures": {m: [o.case for o in outs if not o.success][:20]
-                     for m, outs in outcomes.items()},
-        "wall_s": time.perf_counter() - started,
-    }
+        for reporting in reportings or (Reporting(),):
+            state = {"rate_hz": reporting.rate_hz, "delay_ms": round(reporting.delay_s * 1e3, 3)}
+            rows, outcomes = {}, {}
+            for method in methods:
+                outcomes[method] = list(pool.map(run_case, [(method, scenario, c, reporting)
+                                                            for c in cases]))
+                rows[method] = summarize(outcomes[method])
+                print(f"bench closed-loop: {method} at {state['rate_hz']:g} Hz, "
+                      f"{state['delay_ms']:g} ms done, {time.perf_counter() - started:.0f} s",
+                      file=sys.stderr)
+            lost = list(pool.map(_time_lost, [(scenario, c, reporting)
+                                               for c in cases[:inconsequential]]))
+            losses = [r["time_lost_s"] for r in lost if r["time_lost_s"] is not None]
+            conditions.append({
+                "state": state,
+                "methods": rows,
+                "inconsequential": {"cases": len(lost),
+                                    "mean_time_lost_s": float(np.mean(losses)) if losses
+                                    else None,
+                                    "max_time_lost_s": float(np.max(losses)) if losses
+                                    else None,
+                                    "reached_goal": len(losses)},
+                "failures": {m: [o.case for o in outs if not o.success][:20]
+                             for m, outs in outcomes.items()},
+            })
+    result = {"scenario": scenario.name, "scenarios": scenarios, "seed": seed,
+              "conditions": conditions, "wall_s": time.perf_counter() - started}
     if plot is not None:
         plot_case(scenario, cases[0], plot)
         result["plot"] = str(plot)
@@ -168,8 +181,8 @@ def bench_closed_loop(scenarios: int = 500, seed: int = 0, workers: int = 2,
 
 
 def _time_lost(args) -> dict:
-    scenario, case = args
-    return time_lost(scenario, case)
+    scenario, case, reporting = args
+    return time_lost(scenario, case, reporting=reporting)
 
 
 def plot_case(scenario: Scenario, case, path: Path) -> None:

@@ -2,32 +2,49 @@
 
 The service's own loop (:class:`~.loop.FixedRateScheduler` driving
 :class:`~.loop.ControlRuntime` on its tick thread) runs for a number of
-simulated minutes at each rate, without Zenoh: a fresh nominal verdict every
-tick, an anomaly every ``cycle_s`` of flight (in the middle of the scene's
+simulated minutes at each rate, flying the simulated vehicle as a separate process
+(``aesop serve sim``) over Zenoh: its state arrives on the bus at 100 Hz, the
+set-points go back on it, and the vehicle's clock is queried as the service queries
+it. The verdicts and decisions are scripted in this process: a fresh nominal verdict
+every tick, an anomaly every ``cycle_s`` of flight (in the middle of the scene's
 anomaly window), the reasoner's answer (the first region offered) ``answer_s``
-later, and a reset to a new start once the recovery has had time to land, run
-beside the loop on the event loop as the ``POST /v1/reset`` route runs it. So
-every mode of Algorithm 1 is timed, resets included.
+later, and a new flight once the recovery has had time to land: the vehicle moved to
+a new start over its HTTP route, then the loop reset beside the ticks on the event
+loop as the ``POST /v1/reset`` route runs it. So every mode of Algorithm 1 is timed,
+resets included.
 
 Jitter is a tick's start minus its deadline; an overrun is a tick whose work
-ended after the next deadline. The plant advances ``dt`` per tick whatever the
-rate, so 20 Hz flies the simulation at twice real time.
+ended after the next deadline. The vehicle runs ``rate * dt`` simulated seconds per
+second (its ``time_scale``), so 20 Hz flies the paper scene (dt 0.1 s) at twice real
+time and the hardware scene (dt 0.05 s) in real time.
 """
 
 from __future__ import annotations
 
 import asyncio
 import sys
+import tempfile
+import threading
 import time
 from collections.abc import Sequence
 from concurrent.futures import Future
+from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from services.control.loop import ControlRuntime, FixedRateScheduler
-from services.control.scenario import Scenario, load_scenario
+from services.control.scenario import Scenario, load_scenario, resolve_scenario
+from services.control.service import sync_clock
 from services.control.settings import ControlSettings
-from shared.bus import Received
-from shared.messages import AnomalyVerdict, ReasonerDecision
+from services.sim.client import SimClient
+from shared import topics
+from shared.bus import Bus, Received
+from shared.messages import AnomalyVerdict, ReasonerDecision, VehicleState
+from shared.process import ServiceProcess, free_port
+from shared.settings import BusSettings
+
+ROBOT = "bench"
 
 NOMINAL = AnomalyVerdict(seq=0, score=-0.9, threshold=-0.7, is_anomaly=False, k=1,
                          model="bench", cache="bench", cache_version=1, latency_ms=1.0)
@@ -61,35 +78,66 @@ class FlightScript:
         return k % self.cycle == self.cycle - 1
 
 
-async def time_loop(scenario: Scenario, rate_hz: float, ticks: int, seed: int = 0,
-                    script: FlightScript | None = None) -> dict[str, Any]:
-    """Run ``ticks`` ticks of the loop at ``rate_hz``; the scheduler's statistics.
+async def time_loop(scenario: Scenario, rate_hz: float, ticks: int, bus: Bus, sim: SimClient,
+                    seed: int = 0, script: FlightScript | None = None) -> dict[str, Any]:
+    """Run ``ticks`` ticks of the loop at ``rate_hz`` flying the vehicle behind ``bus`` and
+    ``sim``; the scheduler's statistics and the vehicle state's age at the ticks.
 
-    As in the service, the ticks run on their own thread, and the resets (as
-    ``POST /v1/reset`` would) on this event loop, beside them.
+    As in the service, the ticks run on their own thread, the clock queries on another,
+    and the resets (as ``POST /v1/reset`` would) on this event loop, beside them.
     """
-    settings = ControlSettings(rate_hz=rate_hz, seed=seed, stats_window=max(ticks, 10),
+    settings = ControlSettings(rate_hz=rate_hz, robot=ROBOT, stats_window=max(ticks, 10),
                                verdict_stale_s=max(0.5, 5.0 / rate_hz))
     runtime = ControlRuntime(settings, scenario)
     scheduler = FixedRateScheduler(runtime.period_s, window=max(ticks, 10))
     script = script or FlightScript(scenario.dt, **_timeline(scenario))
-    counts = {"requests": 0, "resets": 0}
+    counts = {"requests": 0, "resets": 0, "setpoints": 0, "stale_state_ticks": 0}
+    ages: list[float] = []
     resets: list[Future] = []
     loop = asyncio.get_running_loop()
+    rng = np.random.default_rng(seed)
+    states = bus.latest(topics.vehicle_state(ROBOT), VehicleState)
+    setpoints = topics.vehicle_setpoint(ROBOT)
+    stop_sync = threading.Event()
+    syncing = threading.Thread(target=sync_clock, args=(bus, ROBOT, runtime.vehicle.clock, 1.0,
+                                                        stop_sync), daemon=True)
     k = 0
+
+    async def new_flight(start: np.ndarray) -> None:
+        """The vehicle moved to ``start``; once its state says so, the loop reset there."""
+        await sim.reset([float(v) for v in start[0:3]])
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline:
+            newest = runtime.vehicle.newest
+            if newest is not None and np.linalg.norm(newest[0:3] - start[0:3]) < 0.05:
+                break
+            await asyncio.sleep(0.01)
+        await runtime.reset()
 
     def tick(deadline: float) -> None:
         nonlocal k
         verdict = Received("bench", script.verdict(k), time.monotonic())
-        result = runtime.tick(deadline=deadline, verdict=verdict, decision=script.decision(k))
+        result = runtime.tick(deadline=deadline, verdict=verdict, decision=script.decision(k),
+                              state=states.get())
+        if result.setpoint is not None:
+            bus.publish(setpoints, result.setpoint)
+            counts["setpoints"] += 1
+        if result.output.mode.value != "waiting":
+            if result.vehicle.fresh and result.vehicle.age is not None:
+                ages.append(result.vehicle.age * 1000.0)
+            else:
+                counts["stale_state_ticks"] += 1
         if result.request is not None:
             counts["requests"] += 1
             script.answered(k, result.request.request_id, result.request.options[1].index)
         if script.reset_after(k):
-            resets.append(asyncio.run_coroutine_threadsafe(runtime.reset(), loop))
+            resets.append(asyncio.run_coroutine_threadsafe(
+                new_flight(scenario.sample_start(rng)), loop))
             counts["resets"] += 1
         k += 1
 
+    await sim.reset([float(v) for v in scenario.start_center])  # where the loop warmed up
+    syncing.start()
     switch = sys.getswitchinterval()
     sys.setswitchinterval(settings.switch_interval_s)
     started = time.monotonic()
@@ -97,11 +145,40 @@ async def time_loop(scenario: Scenario, rate_hz: float, ticks: int, seed: int = 
         await asyncio.to_thread(scheduler.run, tick, max_ticks=ticks)
     finally:
         sys.setswitchinterval(switch)
+        stop_sync.set()
+        states.close()
     for reset in resets:
         await asyncio.wrap_future(reset)
     summary = scheduler.stats.summary()
+    vehicle = await sim.state()
     return {"rate_hz": rate_hz, "wall_s": round(time.monotonic() - started, 1),
-            "simulated_s": round(ticks * scenario.dt, 1), **counts, **summary}
+            "simulated_s": round(ticks * scenario.dt, 1), **counts, **summary,
+            "state_age_p50_ms": _pct(ages, 50), "state_age_p99_ms": _pct(ages, 99),
+            "state_age_max_ms": round(max(ages), 3) if ages else None,
+            "setpoint_age_p50_ms": vehicle.setpoints["age_p50_ms"],
+            "setpoint_age_p99_ms": vehicle.setpoints["age_p99_ms"],
+            "setpoint_age_max_ms": vehicle.setpoints["age_max_ms"]}
+
+
+def _pct(values: Sequence[float], q: float) -> float | None:
+    return round(float(np.percentile(values, q)), 3) if values else None
+
+
+async def fly_rate(scenario: Scenario, path: Path, rate_hz: float, ticks: int,
+                   seed: int, script: FlightScript | None = None) -> dict[str, Any]:
+    """:func:`time_loop` against a simulator process of its own, as fast as the rate flies
+    the scene (``time_scale = rate * dt``)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with tempfile.TemporaryDirectory(prefix="aesop-bench-loop-") as tmp, \
+            Bus.open(BusSettings(zenoh_listen=[endpoint], robot=ROBOT), "bench") as bus:
+        port = free_port()
+        env = {"AESOP_ZENOH_CONNECT": endpoint, "AESOP_ZENOH_LISTEN": "", "AESOP_ROBOT": ROBOT,
+               "AESOP_SIM_TIME_SCALE": str(rate_hz * scenario.dt), "AESOP_SIM_SEED": str(seed)}
+        with ServiceProcess(["serve", "sim", "--port", str(port), "--scenario", str(path)],
+                            port=port, env=env, log_path=Path(tmp) / "sim.log",
+                            unset=["AESOP_ADMIN_TOKEN"]) as process:
+            async with SimClient(process.url, timeout_s=30) as sim:
+                return await time_loop(scenario, rate_hz, ticks, bus, sim, seed, script)
 
 
 def _timeline(scenario: Scenario) -> dict[str, float]:
@@ -113,16 +190,18 @@ def _timeline(scenario: Scenario) -> dict[str, float]:
 
 
 def bench_loop(rates: Sequence[float] = (10.0, 20.0), minutes: float = 10.0,
-               scenario: Scenario | None = None, seed: int = 0) -> dict[str, Any]:
-    """``minutes`` of simulated flight at each of ``rates``, one after the other."""
-    scenario = scenario or load_scenario()
-    ticks = max(1, round(minutes * 60.0 / scenario.dt))
+               scenario: Path | None = None, seed: int = 0) -> dict[str, Any]:
+    """``minutes`` of simulated flight at each of ``rates``, one after the other, each
+    against a simulator process of its own (``scenario``: a bundled name or a file)."""
+    path = resolve_scenario(scenario or "paper")
+    scene = load_scenario(path)
+    ticks = max(1, round(minutes * 60.0 / scene.dt))
     runs = []
     for rate in rates:
         print(f"bench loop: {ticks} ticks at {rate:g} Hz ({ticks / rate:.0f} s of wall time)",
               file=sys.stderr, flush=True)
-        runs.append(asyncio.run(time_loop(scenario, rate, ticks, seed)))
-    return {"scenario": scenario.name, "simulated_minutes": minutes, "ticks": ticks,
+        runs.append(asyncio.run(fly_rate(scene, path, rate, ticks, seed)))
+    return {"scenario": scene.name, "simulated_minutes": minutes, "ticks": ticks,
             "runs": runs}
 
 
@@ -130,10 +209,17 @@ def print_loop_table(result: dict[str, Any], out=sys.stdout) -> None:
     print(f"control loop, {result['simulated_minutes']:g} min of simulated flight per rate "
           f"({result['ticks']} ticks, scenario {result['scenario']})", file=out)
     print(f"{'rate':>6} {'jitter p50':>11} {'jitter p99':>11} {'jitter max':>11} "
-          f"{'tick p50':>9} {'tick p99':>9} {'overruns':>9} {'missed':>7} {'requests':>9}",
+          f"{'tick p50':>9} {'tick p99':>9} {'overruns':>9} {'missed':>7} {'requests':>9} "
+          f"{'state age p50/p99/max':>22} {'stale':>6} {'set-point age p50/p99/max':>26}",
           file=out)
+
+    def ages(r: dict[str, Any], what: str) -> str:
+        got = [r[f"{what}_age_{q}_ms"] for q in ("p50", "p99", "max")]
+        return "/".join("-" if v is None else f"{v:.1f}" for v in got) + "ms"
+
     for r in result["runs"]:
         print(f"{r['rate_hz']:>4g}Hz {r['jitter_p50_ms']:>9.3f}ms {r['jitter_p99_ms']:>9.3f}ms "
               f"{r['jitter_max_ms']:>9.3f}ms {r['tick_p50_ms']:>7.2f}ms "
               f"{r['tick_p99_ms']:>7.2f}ms {r['overruns']:>9} {r['missed_ticks']:>7} "
-              f"{r['requests']:>9}", file=out)
+              f"{r['requests']:>9} {ages(r, 'state'):>22} {r['stale_state_ticks']:>6} "
+              f"{ages(r, 'setpoint'):>26}", file=out)

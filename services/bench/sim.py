@@ -12,6 +12,14 @@ out of reach by its step is planned to reach it later, see
 ends inside the chosen region and never left the state or input limits on
 the way, both judged on the nonlinear truth with :data:`TOLERANCE` and
 :data:`LIMIT_TOLERANCE`.
+
+The vehicle is the simulator's own (:class:`services.sim.vehicle.SimVehicle`), in
+process: it reports its state as configured (:class:`~services.sim.vehicle.Reporting`:
+rate, delay, noise, drop-outs) and follows the set-points; the loop reads the states
+through the control service's :class:`~services.control.vehicle.StateInput` (with
+the vehicle's clock known exactly, as a clock query on loopback nearly gives it), so
+a late state is carried forward as the service carries it. Time is simulated: a
+set-point reaches the vehicle at the instant of its tick.
 """
 
 from __future__ import annotations
@@ -24,9 +32,11 @@ import numpy as np
 
 from services.control.controllers import METHODS, Method, make_controller, planning_model
 from services.control.mpc import MPCConfig
-from services.control.plant import make_plant
 from services.control.regions import Tolerance
 from services.control.scenario import Scenario
+from services.control.vehicle import ClockMap, StateInput, setpoint
+from services.sim.vehicle import Reporting, SimVehicle
+from shared.bus import Received
 from shared.messages import Mode
 
 TOLERANCE = Tolerance()  # how close to a region's box counts as inside (regions.py)
@@ -133,24 +143,51 @@ def count_violations(states: np.ndarray, inputs: np.ndarray, scenario: Scenario,
     return int(np.sum(bad))
 
 
+STALE_TICKS = 3.0  # as the control service's default state_stale_ticks
+SETPOINT_TICKS = 3.0  # and setpoint_valid_ticks
+
+
+def vehicle_loop(scenario: Scenario, x0: np.ndarray, reporting: Reporting
+                 ) -> tuple[SimVehicle, StateInput]:
+    """The simulated vehicle at ``x0`` and the loop's view of it, on one exact clock."""
+    vehicle = SimVehicle(scenario, x0, reporting, now=0.0)
+    clock = ClockMap(sync_max_age_s=math.inf)
+    clock.sample(0.0, 0.0, vehicle.clock(0.0))  # a clock query with no round trip
+    view = StateInput(limit_s=STALE_TICKS * scenario.dt, clock=clock,
+                      max_speed=2.0 * math.sqrt(3.0) * scenario.limits.velocity)
+    return vehicle, view
+
+
 def fly(method: Method, scenario: Scenario, case: Case, config: MPCConfig | None = None,
-        duration_s: float | None = None) -> Flight:
-    """One closed-loop flight of ``method`` on the simulated vehicle."""
+        duration_s: float | None = None, reporting: Reporting | None = None) -> Flight:
+    """One closed-loop flight of ``method`` on the simulated vehicle (reporting its state
+    as ``reporting`` says: by default at 100 Hz, without delay or noise)."""
     controller = make_controller(method, scenario, config)
-    plant = make_plant(scenario, case.x0)
+    vehicle, view = vehicle_loop(scenario, case.x0, reporting or Reporting())
     dt = scenario.dt
     anomaly_tick = int(round(case.anomaly_s / dt))
     latency_ticks = max(1, math.ceil(case.latency_s / dt - 1e-9))
     end_s = duration_s or case.anomaly_s + scenario.horizon_s + SETTLE_S
     steps = int(round(end_s / dt))
-    states, inputs = [plant.state], []
+    states, inputs = [], []
     modes: list[str] = []
     flight = Flight(method, case, np.empty(0), np.empty(0), modes)
     answer: int | None = None
     answer_tick: int | None = None
     for tick in range(steps):
+        now = tick * dt
+        for report in vehicle.advance(now):
+            view.offer(Received("sim", report.state, report.at))
+        states.append(vehicle.truth)
+        reading = view.read(now)
         decision = answer if answer_tick is not None and tick == answer_tick else None
-        out = controller.make_step(plant.state, tick == anomaly_tick, decision)
+        x = reading.x if reading.fresh else None
+        out = controller.make_step(x, tick == anomaly_tick, decision,
+                                   (reading.age or 0.0) if x is not None else 0.0)
+        sent = setpoint(robot="bench", seq=tick, output=out, model=controller.model,
+                        reading=reading, valid_s=SETPOINT_TICKS * dt, mode=out.mode)
+        if sent is not None:
+            vehicle.receive(sent, now)
         if out.request is not None and answer_tick is None:
             answer, answer_tick = case.choose(out.request), tick + latency_ticks
             flight.t_anom_s = tick * dt
@@ -165,9 +202,10 @@ def fly(method: Method, scenario: Scenario, case: Case, config: MPCConfig | None
             flight.solve_ms.append(out.plan.solve_ms)
         inputs.append(out.u)
         modes.append(str(out.mode))
-        states.append(plant.step(out.u))
         if out.mode is Mode.RECOVERING and flight.chosen is None:
             flight.chosen = out.chosen
+    vehicle.advance(steps * dt)
+    states.append(vehicle.truth)
     flight.states, flight.inputs = np.array(states), np.array(inputs)
     return flight
 
@@ -194,9 +232,9 @@ def judge(flight: Flight, scenario: Scenario) -> Outcome:
                    flight.time_to_region_s(scenario), flight.mean_speed(), flight.fallback)
 
 
-def run_case(args: tuple[Method, Scenario, Case]) -> Outcome:
-    method, scenario, case = args
-    return judge(fly(method, scenario, case), scenario)
+def run_case(args: tuple[Method, Scenario, Case, Reporting | None]) -> Outcome:
+    method, scenario, case, reporting = args
+    return judge(fly(method, scenario, case, reporting=reporting), scenario)
 
 
 def summarize(outcomes: Sequence[Outcome]) -> dict:
@@ -217,7 +255,7 @@ def summarize(outcomes: Sequence[Outcome]) -> dict:
 
 
 def time_lost(scenario: Scenario, case: Case, reach_m: float = 0.2,
-              duration_s: float | None = None) -> dict:
+              duration_s: float | None = None, reporting: Reporting | None = None) -> dict:
     """The inconsequential case: AESOP slows for the K window, resumes after ``y = 0``.
 
     Time to come within ``reach_m`` of the goal with the anomaly, against the
@@ -232,8 +270,9 @@ def time_lost(scenario: Scenario, case: Case, reach_m: float = 0.2,
 
     quiet = Case(case.index, case.x0, duration_s + 1.0, case.latency_s, case.pick)
     noisy = Case(case.index, case.x0, case.anomaly_s, case.latency_s, case.pick, continue_=True)
-    base = arrival(fly("aesop", scenario, quiet, duration_s=duration_s))
-    with_anomaly = arrival(fly("aesop", scenario, noisy, duration_s=duration_s))
+    base = arrival(fly("aesop", scenario, quiet, duration_s=duration_s, reporting=reporting))
+    with_anomaly = arrival(fly("aesop", scenario, noisy, duration_s=duration_s,
+                               reporting=reporting))
     lost = None if base is None or with_anomaly is None else with_anomaly - base
     return {"arrival_s": with_anomaly, "arrival_no_anomaly_s": base, "time_lost_s": lost}
 

@@ -50,6 +50,8 @@ landing zone. Upon reaching the waypoint, it descends and lands.").
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
@@ -62,6 +64,8 @@ from .models import PlanningModel
 from .mpc import BranchProblem, MPCConfig, Plan, SolveStatus, promised_step, tightened_inputs
 from .regions import Region
 from .selection import SubsetSelector
+
+SENT_KEPT = 64  # inputs remembered for delay compensation (3.2 s at 20 Hz)
 
 
 class Route:
@@ -107,6 +111,12 @@ class ControlOutput:
     fallback: bool = False  # the recovery was committed without a decision
     consensus_left: int | None = None  # ticks until the fallback at K, while one is pending
     alarms: tuple[str, ...] = ()  # what went wrong in this step (non-finite state or input)
+    # the model state the plan expects at this instant (the set-point's position and
+    # velocity); None when the step hovers without a plan
+    reference: np.ndarray | None = None
+    # flying blind on the kept branch: its steps left after this one (0: spent, its last
+    # input repeated); None when the input comes from this step's own plan
+    blind: int | None = None
 
 
 @dataclass
@@ -118,6 +128,7 @@ class _Memory:
     chosen: int | None = None
     fallback: bool = False
     inputs: np.ndarray | None = None  # last feasible plan's inputs (T, m)
+    states: np.ndarray | None = None  # and its states (T+1, n), the branch those inputs fly
     age: int = 0  # ticks since that plan
     held: int = 0  # ticks since a subset was feasible at full K and T (holding if > 0)
     degraded: bool = False  # recovering on the least-violating plan
@@ -146,6 +157,16 @@ class _Controller:
         self.goal = route.goal  # this step's nominal target (model state)
         self.measured = model.rest_state(np.zeros(3))  # the model state of the last step
         self._alarms: list[str] = []  # what went wrong in this step
+        # (input, lag states before it) of the steps sent, newest last: what a state that
+        # arrives late has not yet seen (make_step's ``age``)
+        self._sent: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=SENT_KEPT)
+        self._reference: np.ndarray | None = None  # this step's, for ControlOutput
+        self._blind_left: int | None = None
+
+    @property
+    def state(self) -> np.ndarray:
+        """The 12-state the last step planned from (carried forward to its time)."""
+        return self._x.copy()
 
     @property
     def lag(self) -> np.ndarray:
@@ -157,6 +178,7 @@ class _Controller:
         on the route and the lag states of the commands it sent."""
         self.route.index = other.route.index
         self._lag = other.lag.copy()
+        self._sent = deque(other._sent, maxlen=SENT_KEPT)
 
     @property
     def mode(self) -> Mode:
@@ -222,7 +244,9 @@ class _Controller:
         if plan is not None and accept:
             if np.all(np.isfinite(plan.u0)) and np.all(np.isfinite(plan.inputs)):
                 mem.inputs = next(iter(plan.recovery_inputs.values()), plan.inputs)
+                mem.states = next(iter(plan.recovery.values()), plan.nominal)
                 mem.age = 0
+                self._reference, self._blind_left = self.measured, None
                 return plan.u0, plan
             self._alarms.append("non-finite plan from the solver: flying the last plan's "
                                 "recovery branch")
@@ -232,9 +256,13 @@ class _Controller:
         """The last kept plan's next input (it ends at rest in its region), or hover."""
         mem = self.memory
         if mem.inputs is None:
+            self._reference, self._blind_left = None, 0
             return self.model.linear.u_hover.copy()
         mem.age += 1
-        return mem.inputs[min(mem.age, len(mem.inputs) - 1)].copy()
+        step = min(mem.age, len(mem.inputs) - 1)
+        self._blind_left = len(mem.inputs) - 1 - step
+        self._reference = None if mem.states is None else mem.states[step]
+        return mem.inputs[step].copy()
 
     def _select(self, selector: SubsetSelector, x: np.ndarray
                 ) -> tuple[np.ndarray, Plan | None, SolveStatus]:
@@ -318,27 +346,51 @@ class _Controller:
             for region in self.regions.values():
                 self._recovery_problem(soft).solve(x, goal, [region], 0, self.config.horizon)
 
-    def make_step(self, x: np.ndarray, anomaly: bool, decision: int | None = None
-                  ) -> ControlOutput:
-        """One tick: the plant's 12-state ``x`` measured, ``anomaly`` from the detector, the
-        reasoner's ``decision`` for the pending anomaly (``None`` while it thinks)."""
+    def make_step(self, x: np.ndarray | None, anomaly: bool, decision: int | None = None,
+                  age: float = 0.0) -> ControlOutput:
+        """One tick: the vehicle's 12-state ``x`` measured ``age`` seconds ago (model time),
+        ``anomaly`` from the detector, the reasoner's ``decision`` for the pending anomaly
+        (``None`` while it thinks). ``x`` is carried forward to now with the planning model
+        and the inputs sent since (delay compensation). ``x`` None: no usable state (the
+        caller raised the alarm); the step flies blind as for a non-finite one, silently."""
+        if x is None:
+            return self._measurement_lost(decision, alarm=False)
         self._x = np.asarray(x, dtype=float)
         if not np.all(np.isfinite(self._x)):
             return self._measurement_lost(decision)
+        if age > 0.0:
+            self._x = self._predict(self._x, age)
         xm = self.model.measure(self._x, self._lag)
         self.measured = xm
         self.goal = self.route.target(xm, self.model)
         return self._step(xm, anomaly, decision)
 
-    def _measurement_lost(self, decision: int | None) -> ControlOutput:
-        """A non-finite state: no solver sees it. Fly the kept recovery branch (or hover),
-        take the decision, and raise an alarm; the next finite state resumes the loop."""
+    def _predict(self, x: np.ndarray, age: float) -> np.ndarray:
+        """``x``, measured ``age`` seconds before this step, carried forward under the
+        inputs sent since: the step it was measured in for the rest of that step, then
+        each later one (as far back as :data:`SENT_KEPT` steps reach)."""
+        dt = self.model.dt
+        back = min(math.ceil(age / dt - 1e-9), len(self._sent))
+        if back <= 0:
+            return x
+        first_s = min(age - (back - 1) * dt, dt)  # of the oldest step, what the state missed
+        u_first, lag_first = self._sent[-back]
+        lag = self.model.advance_by(lag_first, u_first, dt - first_s) if self.model.n_lag \
+            else lag_first
+        inputs = [u for u, _ in list(self._sent)[len(self._sent) - back:]]
+        return self.model.predict(x, lag, inputs, first_s)
+
+    def _measurement_lost(self, decision: int | None, *, alarm: bool = True) -> ControlOutput:
+        """No usable state: no solver sees one. Fly the kept recovery branch (or hover) and
+        take the decision; a non-finite state raises an alarm (``alarm``). The next usable
+        state resumes the loop."""
         self._take_decision(decision)
         mem = self.memory
         if self.commits_at_k and mem.mode is Mode.PENDING and self._k() >= self.config.consensus:
             self._commit_fallback(None)
-        self._alarms.append("non-finite state measured: flying the last plan's recovery "
-                            "branch")
+        if alarm:
+            self._alarms.append("non-finite state measured: flying the last plan's recovery "
+                                "branch")
         active = {Mode.RECOVERING: (mem.chosen,), Mode.PENDING: mem.options}.get(
             mem.mode, self._active)
         return self._output(self._blind(), SolveStatus.FAILED, None, active)
@@ -373,6 +425,7 @@ class _Controller:
         if alarms:
             status = SolveStatus.FAILED
         u = np.asarray(u, dtype=float)
+        planned = u
         if np.all(np.isfinite(self._x)):
             u = self._command(u)
         if not np.all(np.isfinite(u)):
@@ -381,12 +434,16 @@ class _Controller:
                 mem.inputs, u = None, self.model.linear.u_hover.copy()
             alarms += ("non-finite input from the solver: flying the last plan's recovery "
                        "branch",)
+            planned = u
+        self._sent.append((np.asarray(planned, dtype=float).copy(), self._lag))
         self._lag = self.model.advance(self._lag, u)
         left = self.config.consensus - self._k() if mem.mode is Mode.PENDING else None
         out = ControlOutput(u=u, mode=mem.mode, status=status, plan=plan, active_regions=active,
                             t_anom=mem.t_anom, chosen=mem.chosen, request=request,
                             events=tuple(mem.events), fallback=mem.fallback,
-                            consensus_left=left, alarms=alarms)
+                            consensus_left=left, alarms=alarms, reference=self._reference,
+                            blind=self._blind_left)
+        self._reference, self._blind_left = None, None
         mem.events.clear()
         mem.t += 1
         return out

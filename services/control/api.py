@@ -47,8 +47,7 @@ def create_app(settings: ControlSettings, runtime: ControlRuntime,
         ready=lambda: None if runtime.last is not None else {"reason": "no tick yet"},
         admin_token=settings.admin_token,
         max_body_bytes=settings.max_body_bytes,
-        limits={"ResetBody": {"start": inside},
-                "RegionIn": {"position_lo": inside, "position_hi": inside}})
+        limits={"RegionIn": {"position_lo": inside, "position_hi": inside}})
     app.state.runtime, app.state.settings = runtime, settings
     app.include_router(router)
     return app

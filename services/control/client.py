@@ -23,7 +23,6 @@ class ControlClient(ServiceClient):
         body = [r.model_dump(mode="json") if isinstance(r, RegionBox) else r for r in regions]
         return await self.request("POST", "/v1/regions", RegionsAnswer, json={"regions": body})
 
-    async def reset(self, start: Sequence[float] | None = None) -> ResetAnswer:
-        """Start the flight again, at rest at ``start`` (m) or a fresh draw."""
-        body = {} if start is None else {"start": [float(v) for v in start]}
-        return await self.request("POST", "/v1/reset", ResetAnswer, json=body)
+    async def reset(self) -> ResetAnswer:
+        """Start the flight again from wherever the vehicle is (it is not moved)."""
+        return await self.request("POST", "/v1/reset", ResetAnswer, json={})

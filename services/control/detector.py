@@ -13,7 +13,8 @@ Pure logic: no clock, no I/O (the runtime in :mod:`.loop` feeds it).
   any pending anomaly is refused while the detector is silent; the tree of
   recoveries is kept and the fallback is committed at K as for any anomaly.
   Fresh verdicts end a silent spell's episode (unless the reasoner has already
-  chosen a region, which stands).
+  chosen a region, which stands). A vehicle whose state has gone stale is the same:
+  the loop is unmonitored (:data:`UNMONITORED`) until both are fresh again.
 """
 
 from __future__ import annotations
@@ -28,6 +29,10 @@ class Cause(StrEnum):
 
     ANOMALY = "anomaly"  # the detector flagged the scene
     SILENCE = "silence"  # the detector went silent
+    VEHICLE = "vehicle"  # the vehicle's state went stale (or was refused)
+
+
+UNMONITORED = (Cause.SILENCE, Cause.VEHICLE)  # the loop cannot see: "continue" is withheld
 
 
 class Sightings:
@@ -81,21 +86,22 @@ class Directive:
 
 
 def directive(*, fresh: bool, flagged: bool, pending: Cause | None, silence_asked: bool,
-              decision: int | None) -> Directive:
+              decision: int | None, blind: Cause = Cause.SILENCE) -> Directive:
     """The fail-safe policy for one tick (module docstring).
 
-    ``fresh``: a verdict answers a recent observation. ``flagged``: that verdict
-    is an anomaly worth asking about (new, not cleared). ``pending``: the cause
-    of the request being waited on, if any. ``silence_asked``: this silent spell
-    has raised its request already. ``decision``: the reasoner's answer to the
-    pending request, if it came this tick.
+    ``fresh``: the loop is monitored (a verdict answers a recent observation and the
+    vehicle's state is fresh); when it is not, ``blind`` says why (:data:`UNMONITORED`).
+    ``flagged``: that verdict is an anomaly worth asking about (new, not cleared).
+    ``pending``: the cause of the request being waited on, if any. ``silence_asked``:
+    this unmonitored spell has raised its request already. ``decision``: the reasoner's
+    answer to the pending request, if it came this tick.
     """
     if not fresh:
         refused = decision == 0
         ask = pending is None and not silence_asked
         return Directive(anomaly=ask, decision=None if refused else decision,
-                         cause=Cause.SILENCE if ask else None, refused_continue=refused)
-    if pending is Cause.SILENCE and not decision:
+                         cause=blind if ask else None, refused_continue=refused)
+    if pending in UNMONITORED and not decision:
         # the detector is back: the silence is over, and the scene is judged afresh
         return Directive(anomaly=flagged, decision=0, cause=Cause.ANOMALY if flagged else None,
                          ended_silence=True)

@@ -21,6 +21,7 @@ input deviations ``du = u - u_hover``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -106,24 +107,26 @@ def body_z(phi: float, theta: float, psi: float) -> np.ndarray:
 
 
 def continuous_dynamics(x: np.ndarray, u: np.ndarray, params: QuadrotorParams) -> np.ndarray:
-    """``dx/dt`` of the rigid-body quadrotor (Newton-Euler, Z-Y-X Euler angles)."""
-    phi, theta, psi = x[ATT]
-    omega = x[RATE]
-    thrust = u[0]
-    torque = u[1:]
-    inertia = np.asarray(params.inertia)
-    accel = body_z(phi, theta, psi) * thrust / params.mass
-    accel[2] -= params.gravity
-    cf, sf = np.cos(phi), np.sin(phi)
-    ct, tt = np.cos(theta), np.tan(theta)
-    p, q, r = omega
-    euler_rates = np.array([
-        p + sf * tt * q + cf * tt * r,
-        cf * q - sf * r,
-        (sf * q + cf * r) / ct,
+    """``dx/dt`` of the rigid-body quadrotor (Newton-Euler, Z-Y-X Euler angles).
+
+    Written on plain floats: the simulator integrates it hundreds of times per simulated
+    second, and numpy's per-call overhead on 3-vectors was most of its cost."""
+    _, _, _, vx, vy, vz, phi, theta, psi, p, q, r = np.asarray(x, dtype=float).tolist()
+    thrust, tau_x, tau_y, tau_z = np.asarray(u, dtype=float).tolist()
+    cf, sf = math.cos(phi), math.sin(phi)
+    ct, st = math.cos(theta), math.sin(theta)
+    cp, sp = math.cos(psi), math.sin(psi)
+    tt = st / ct
+    f = thrust / params.mass  # along the body z axis (the third column of rotation())
+    jx, jy, jz = params.inertia
+    hx, hy, hz = jx * p, jy * q, jz * r  # J omega; omega x (J omega) below
+    return np.array([
+        vx, vy, vz,
+        (cp * st * cf + sp * sf) * f, (sp * st * cf - cp * sf) * f, ct * cf * f - params.gravity,
+        p + sf * tt * q + cf * tt * r, cf * q - sf * r, (sf * q + cf * r) / ct,
+        (tau_x - (q * hz - r * hy)) / jx, (tau_y - (r * hx - p * hz)) / jy,
+        (tau_z - (p * hy - q * hx)) / jz,
     ])
-    omega_dot = (torque - cross(omega, inertia * omega)) / inertia
-    return np.concatenate([x[VEL], accel, euler_rates, omega_dot])
 
 
 def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -174,17 +177,28 @@ def discretize_zoh(a: np.ndarray, b: np.ndarray, dt: float) -> tuple[np.ndarray,
 
 @dataclass(frozen=True)
 class LinearModel:
-    """``x[k+1] = A x[k] + B du[k]`` with ``du = u - u_hover`` (hover at any position)."""
+    """``x[k+1] = A x[k] + B du[k]`` with ``du = u - u_hover`` (hover at any position),
+    the zero-order hold at ``dt`` of ``x' = Ac x + Bc du`` (:meth:`over` holds ``du`` for
+    any other duration)."""
 
     a: np.ndarray
     b: np.ndarray
     dt: float  # s
     u_hover: np.ndarray
+    ac: np.ndarray
+    bc: np.ndarray
 
     @classmethod
     def hover(cls, params: QuadrotorParams, dt: float = 0.1) -> LinearModel:
-        a, b = discretize_zoh(*linearize_hover(params), dt)
-        return cls(a=a, b=b, dt=dt, u_hover=params.hover_input)
+        ac, bc = linearize_hover(params)
+        a, b = discretize_zoh(ac, bc, dt)
+        return cls(a=a, b=b, dt=dt, u_hover=params.hover_input, ac=ac, bc=bc)
+
+    def over(self, duration: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(A, B)`` of the zero-order hold for ``duration`` seconds (``dt``: ``a``, ``b``)."""
+        if abs(duration - self.dt) <= 1e-12:
+            return self.a, self.b
+        return discretize_zoh(self.ac, self.bc, duration)
 
     @property
     def n(self) -> int:

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 from shared.messages import AnomalyVerdict, Mode, ReasonerDecision, Severity
 
-from .detector import Cause, directive
+from .detector import UNMONITORED, Cause, directive
 
 NoteData = dict[str, str | int | float | bool | None]
 
@@ -61,7 +61,8 @@ class Handshake:
     delivered: bool = False  # its answer went to the controller
     refused: str | None = None  # request_id whose "continue" was refused (said once)
     stale: bool | None = None  # None until the flight's first tick
-    silence_asked: bool = False  # this silent spell has raised its request
+    monitored: bool | None = None  # verdicts and the vehicle's state were fresh last tick
+    silence_asked: bool = False  # this unmonitored spell has raised its request
     verdict_asked: int | None = None  # seq of the verdict that asked
     asked_about: str | None = None  # the scene text of the pending request
     cleared: set[str] = field(default_factory=set)  # scenes answered "continue"
@@ -69,18 +70,20 @@ class Handshake:
 
     def read(self, *, mode: Mode, age: float | None, limit: float,
              verdict: AnomalyVerdict | None, scene: str | None,
-             decision: ReasonerDecision | None) -> Reading:
+             decision: ReasonerDecision | None, vehicle: bool = True) -> Reading:
         """One tick's inputs: the age of the newest verdict (s, of the observation it
         answers; ``None`` when there is none or it is older than anything remembered),
-        the freshness ``limit`` (s), that verdict, the scene text it judged, and the
-        newest decision on the bus."""
+        the freshness ``limit`` (s), that verdict, the scene text it judged, the newest
+        decision on the bus, and whether the vehicle's state is fresh (``vehicle``; the
+        runtime says why when it is not)."""
         notes: list[Note] = []
         fresh = age is not None and age <= limit
         if mode is Mode.WAITING:
-            if not fresh:
-                return Reading(False, None, None, True, True)
-            notes.append(Note("flight_started", "info", "the anomaly detector is answering: "
-                              "the flight starts", {"age_s": round(age or 0.0, 3)}))
+            if not (fresh and vehicle):
+                return Reading(False, None, None, not fresh, True)
+            notes.append(Note("flight_started", "info", "the anomaly detector is answering and "
+                              "the vehicle's state is fresh: the flight starts",
+                              {"age_s": round(age or 0.0, 3)}))
         if not fresh and self.stale is not True:
             why = ("no anomaly verdict has arrived" if verdict is None else
                    "the newest anomaly verdict answers an observation older than anything "
@@ -90,17 +93,20 @@ class Handshake:
                 "verdict_stale", "alarm",
                 f"{why} (limit {limit:g} s): the detector is silent, counted as an anomaly",
                 {"age_s": None if age is None else round(age, 3)}))
-            self.silence_asked = False
         elif fresh and self.stale is True:
             notes.append(Note("verdict_fresh", "info", "anomaly verdicts are answering fresh "
                               "observations again", {"age_s": round(age or 0.0, 3)}))
         self.stale = not fresh
+        monitored = fresh and vehicle
+        if not monitored and self.monitored is not False:  # a new unmonitored spell
+            self.silence_asked = False
+        self.monitored = monitored
         routed = None
         if (decision is not None and self.pending is not None and not self.delivered
                 and decision.request_id == self.pending):
             routed, self.delivered = decision.choice, True
         pending = self.cause if mode is Mode.PENDING else None
-        if fresh and routed == 0 and pending is Cause.ANOMALY and self.asked_about:
+        if monitored and routed == 0 and pending is Cause.ANOMALY and self.asked_about:
             self.cleared.add(self.asked_about)  # before this tick's verdict is judged
         flagged = (fresh and verdict is not None and verdict.is_anomaly
                    and verdict.seq != self.verdict_asked)
@@ -112,18 +118,21 @@ class Handshake:
                                   "harmless by the reasoner: not asking again",
                                   {"seq": verdict.seq if verdict else None}))
         self.said_cleared = judged if judged in self.cleared else None
-        act = directive(fresh=fresh, flagged=flagged, pending=pending,
-                        silence_asked=self.silence_asked, decision=routed)
+        act = directive(fresh=monitored, flagged=flagged, pending=pending,
+                        silence_asked=self.silence_asked, decision=routed,
+                        blind=Cause.SILENCE if not fresh else Cause.VEHICLE)
         if act.refused_continue:
             self.delivered = False  # a later region answer to this request still counts
             if self.refused != self.pending:  # the slot repeats its answer every tick
                 self.refused = self.pending
+                why = "the detector is silent" if not fresh else "the vehicle's state is stale"
                 notes.append(Note("continue_refused", "warning", "the reasoner said continue, "
-                                  "but the detector is silent: still waiting for a region "
-                                  "or the fallback at K"))
+                                  f"but {why}: still waiting for a region or the fallback "
+                                  "at K"))
         if act.ended_silence:
-            notes.append(Note("silence_ended", "info", "the detector answers again: the "
-                              "silent spell's episode ends"))
+            notes.append(Note("silence_ended", "info", "the detector answers and the "
+                              "vehicle's state is fresh again: the unmonitored spell's "
+                              "episode ends"))
         return Reading(act.anomaly, act.decision, act.cause, not fresh, False, tuple(notes))
 
     def asked(self, request_id: str, cause: Cause | None, scene: str | None,
@@ -131,7 +140,7 @@ class Handshake:
         """A request went out this tick: about ``scene`` (the observation text) for a
         flagged verdict ``verdict_seq``, or about the detector's silence."""
         self.pending, self.delivered, self.cause = request_id, False, cause
-        if cause is Cause.SILENCE:
+        if cause in UNMONITORED:
             self.asked_about, self.silence_asked = None, True
         else:
             self.asked_about = scene

@@ -13,11 +13,14 @@ returns.
   It records each tick's jitter (start minus deadline) and, when a tick's work
   ends after the next deadline, counts an overrun and skips to the first
   deadline still in the future, counting the ticks missed. Clock and sleep are injectable.
-* :class:`ControlRuntime` is one robot's closed loop: the detector read by
+* :class:`ControlRuntime` is one robot's closed loop: the vehicle's newest state
+  read by :mod:`.vehicle`'s rules (fresh by arrival, refused when it cannot be
+  right, carried forward to the tick's time by the controller), the detector read by
   :mod:`.detector`'s rules, reasoner decisions routed by ``request_id``, the
-  controller's ``make_step``, the simulated plant advanced by ``dt``, and the
-  messages of the tick. A tick holds its ``lock``; a reset or a change of
-  regions builds the new controller off the tick and swaps it in under the
+  controller's ``make_step``, and the messages of the tick, the vehicle's set-point
+  among them. No vehicle is simulated here: whatever publishes the state is flown
+  (``aesop serve sim`` is one such vehicle). A tick holds its ``lock``; a reset or a
+  change of regions builds the new controller off the tick and swaps it in under the
   lock, between two ticks.
 """
 
@@ -47,6 +50,8 @@ from shared.messages import (
     ReasonerDecision,
     ReasonerRequest,
     Severity,
+    VehicleSetpoint,
+    VehicleState,
 )
 
 from .aesop import ControlOutput
@@ -55,15 +60,17 @@ from .detector import Cause, Sightings, verdict_age
 from .dynamics import N_STATE, POS
 from .handshake import Handshake
 from .mpc import SolveStatus
-from .plant import make_plant
 from .regions import Region
 from .scenario import Scenario, ScenarioError
 from .settings import ControlSettings
+from .vehicle import StateInput, StateReading, setpoint
 
 SOURCE = "control"
 SPIN_S = 0.0005  # s: the scheduler spins, rather than sleeps, this close to a deadline
 SILENT = ("the anomaly detector has gone silent: no verdict answers a recent observation, "
           "so the scene is unmonitored and continuing is not an option")
+BLIND = ("the vehicle's state has stopped arriving (or was refused): the robot flies blind on "
+         "its last verified recovery branch, so continuing is not an option")
 Clock = Callable[[], float]
 Sleep = Callable[[float], Any]
 
@@ -198,9 +205,11 @@ class TickResult:
     request: ReasonerRequest | None
     events: tuple[Event, ...]
     output: ControlOutput
-    step_ms: float  # make_step + plant step, wall time
+    step_ms: float  # make_step, wall time
     anomaly: bool  # the flag make_step was given
     stale: bool  # the verdict was missing or older than verdict_stale_s
+    vehicle: StateReading  # the vehicle's state as this tick saw it
+    setpoint: VehicleSetpoint | None = None  # for the vehicle; None while waiting
 
 
 @dataclass
@@ -236,17 +245,10 @@ def points(states: np.ndarray) -> tuple[tuple[float, float, float], ...]:
     return tuple((float(x), float(y), float(z)) for x, y, z in np.asarray(states)[:, POS])
 
 
-def check_start(scenario: Scenario, start: Sequence[float]) -> np.ndarray:
-    """A rest state at ``start`` (m), which must lie inside the scenario's position fence."""
-    pos = np.asarray(start, dtype=float)
-    lo, hi = np.asarray(scenario.limits.position_lo), np.asarray(scenario.limits.position_hi)
-    if pos.shape != (3,) or not np.all(np.isfinite(pos)):
-        raise ValueError("start: expected 3 finite numbers (m)")
-    if np.any(pos < lo) or np.any(pos > hi):
-        raise ValueError(f"start: {pos.tolist()} is outside the position limits "
-                         f"{list(scenario.limits.position_lo)}..{list(scenario.limits.position_hi)}")
+def rest_at(position: Sequence[float]) -> np.ndarray:
+    """The 12-state at rest at ``position`` (m)."""
     x = np.zeros(N_STATE)
-    x[POS] = pos
+    x[POS] = np.asarray(position, dtype=float)
     return x
 
 
@@ -262,27 +264,33 @@ def check_fence(scenario: Scenario, regions: Sequence[Region]) -> None:
 
 
 class ControlRuntime:
-    """One robot's closed loop: verdict and decision in, messages out, one tick at a time.
+    """One robot's closed loop: vehicle state, verdict and decision in, messages (the
+    vehicle's set-point among them) out, one tick at a time.
 
-    A flight starts ``waiting``: the robot holds its start state until a fresh
-    verdict shows the detector is watching, then flies (the same after a reset).
+    A flight starts ``waiting``: nothing is solved and no set-point is sent (the
+    vehicle holds itself) until a fresh verdict shows the detector is watching and a
+    fresh state shows the vehicle is there; then it flies (the same after a reset).
     The detector is read by :mod:`.detector`'s rules: freshness from the
     observation a verdict answers, silence as an anomaly that "continue" cannot
-    end. ``tick`` holds ``lock`` while it runs; ``replace_regions`` and
-    ``reset`` take it too, so a controller is only ever swapped between ticks.
+    end; a stale or refused vehicle state is such an anomaly too (:mod:`.vehicle`).
+    ``tick`` holds ``lock`` while it runs; ``replace_regions`` and ``reset`` take it
+    too, so a controller is only ever swapped between ticks.
     """
 
     def __init__(self, settings: ControlSettings, scenario: Scenario, *,
                  clock: Clock = time.monotonic) -> None:
         self.settings, self.scenario, self.clock = settings, scenario, clock
         self.lock = threading.Lock()
-        self._rng = np.random.default_rng(settings.seed)
-        x0 = self._start_state(None)
+        x0 = rest_at(scenario.start_center)  # warm-up only: the vehicle says where it is
         self.controller = self.build_controller(scenario, x0)
-        self.plant = make_plant(scenario, x0)
-        self._last_x = x0  # the newest finite measurement
-        self._k = 0  # plant ticks since the flight (re)started
-        self._k0 = 0  # plant tick at which the controller was built
+        self.vehicle = StateInput(
+            limit_s=settings.state_stale_ticks * self.period_s, frame=settings.vehicle_frame,
+            jump_m=settings.state_jump_m, reset_s=settings.state_reset_s,
+            max_speed=2.0 * math.sqrt(3.0) * scenario.limits.velocity)
+        self._last_x = x0  # the newest state the loop planned from
+        self._setpoints = 0  # set-points sent (their seq)
+        self._k = 0  # ticks flown since the flight (re)started
+        self._k0 = 0  # tick at which the controller was built
         self.mode = Mode.WAITING
         self._queued: list[Event] = [self._waiting_event()]
         self.handshake = Handshake()  # the pending request, silence, cleared scenes
@@ -306,17 +314,16 @@ class ControlRuntime:
             controller.warm_up(x0)
         return controller
 
-    def _start_state(self, start: Sequence[float] | None) -> np.ndarray:
-        if start is None:
-            start = self.settings.start_position
-        if start is not None:
-            return check_start(self.scenario, start)
-        return self.scenario.sample_start(self._rng)
-
     @property
     def period_s(self) -> float:
         """Wall seconds between ticks: the configured rate's, else the scene's dt."""
         return self.settings.period_s(self.scenario.dt)
+
+    @property
+    def time_scale(self) -> float:
+        """Model seconds per wall second: 1 when the loop ticks at the scene's 1/dt (a real
+        vehicle), more when it flies a simulator faster than real time."""
+        return self.scenario.dt / self.period_s
 
     @property
     def pending(self) -> str | None:
@@ -332,21 +339,27 @@ class ControlRuntime:
 
     def tick(self, *, deadline: float, verdict: Received[AnomalyVerdict] | None,
              decision: ReasonerDecision | None = None,
-             observation: Received[Observation] | Observation | None = None) -> TickResult:
-        """Run one tick whose deadline was ``deadline`` (scheduler clock, s); on the tick
-        thread (it blocks for the controller's and the plant's step)."""
+             observation: Received[Observation] | Observation | None = None,
+             state: Received[VehicleState] | None = None) -> TickResult:
+        """Run one tick whose deadline was ``deadline`` (scheduler clock, s) with the
+        newest vehicle ``state`` on the bus; on the tick thread (it blocks for the
+        controller's step)."""
         with self.lock:
             seen = self._see(observation)
-            inputs = self._read_inputs(verdict, decision)
-            x = self.plant.state
+            if state is not None:
+                self.vehicle.offer(state, gate=self.mode is not Mode.WAITING)
+            reading = self.vehicle.read(self.clock())
+            inputs = self._read_inputs(verdict, decision, reading)
             if inputs.waiting:
-                result = self._finish(x, self._hold(), inputs, 0.0, deadline, seen)
+                result = self._finish(self._hold(), inputs, 0.0, deadline, seen, reading)
                 self.last = result
                 return result
+            x = reading.x if reading.fresh else None
+            age = (reading.age or 0.0) * self.time_scale if x is not None else 0.0
             started = time.perf_counter()
-            output = self._step(x, inputs.anomaly, inputs.decision)
+            output = self.controller.make_step(x, inputs.anomaly, inputs.decision, age)
             step_ms = (time.perf_counter() - started) * 1000.0
-            result = self._finish(x, output, inputs, step_ms, deadline, seen)
+            result = self._finish(output, inputs, step_ms, deadline, seen, reading)
             self.last = result
             return result
 
@@ -364,21 +377,17 @@ class ControlRuntime:
         self._sightings.record(message.seq, at)
         return message
 
-    def _step(self, x: np.ndarray, anomaly: bool, decision: int | None) -> ControlOutput:
-        """The controller's step, then the plant's."""
-        output = self.controller.make_step(x, anomaly, decision)
-        self.plant.step(output.u)
-        return output
-
     def _hold(self) -> ControlOutput:
-        """While waiting: nothing is solved and the simulated robot holds its start."""
+        """While waiting: nothing is solved and nothing is sent (the vehicle holds)."""
         u = self.controller.model.linear.u_hover.copy()
         return ControlOutput(u=u, mode=Mode.WAITING, status=SolveStatus.SOLVED, plan=None,
                              active_regions=(), t_anom=None, chosen=None)
 
     def _read_inputs(self, verdict: Received[AnomalyVerdict] | None,
-                     decision: ReasonerDecision | None) -> _Inputs:
+                     decision: ReasonerDecision | None, reading: StateReading) -> _Inputs:
         events, self._queued = self._queued, []
+        events.extend(self._event(n.kind, n.severity, n.message, **n.data)
+                      for n in reading.notes)
         now = self.clock()
         age = None if verdict is None else verdict_age(
             self._sightings, verdict.message.seq, verdict.received_at, now)
@@ -386,7 +395,7 @@ class ControlRuntime:
             mode=self.mode, age=age, limit=self.settings.verdict_stale_s,
             verdict=None if verdict is None else verdict.message,
             scene=self._scene_of(verdict) if verdict and verdict.message.is_anomaly else None,
-            decision=decision)
+            decision=decision, vehicle=reading.fresh)
         events.extend(self._event(n.kind, n.severity, n.message, **n.data)
                       for n in reading.notes)
         return _Inputs(reading.anomaly, reading.decision, reading.stale, verdict, events,
@@ -400,8 +409,9 @@ class ControlRuntime:
         seq = verdict.message.seq
         return next((o.text for o in reversed(self._seen) if o.seq == seq), self._seen[-1].text)
 
-    def _finish(self, x: np.ndarray, output: ControlOutput, inputs: _Inputs, step_ms: float,
-                deadline: float, observation: Observation | None) -> TickResult:
+    def _finish(self, output: ControlOutput, inputs: _Inputs, step_ms: float,
+                deadline: float, observation: Observation | None,
+                reading: StateReading) -> TickResult:
         dt = self.scenario.dt
         t = self._k * dt
         events = inputs.events
@@ -419,12 +429,24 @@ class ControlRuntime:
         events.extend(self._output_events(output, request))
         self.mode = output.mode
         t_anom = None if output.t_anom is None else (self._k0 + output.t_anom) * dt
-        if np.all(np.isfinite(x)):
-            self._last_x = x
-        state = ControlState(  # a non-finite measurement is not news: the last finite one
+        if inputs.waiting:
+            if reading.x is not None and np.all(np.isfinite(reading.x)):
+                self._last_x = reading.x
+        elif reading.fresh and np.all(np.isfinite(self.controller.state)):
+            self._last_x = self.controller.state  # carried forward to this tick
+        sent = None
+        if not inputs.waiting:
+            sent = setpoint(robot=self.settings.robot, seq=self._setpoints, output=output,
+                            model=self.controller.model, reading=reading,
+                            valid_s=self.settings.setpoint_valid_ticks * self.period_s,
+                            mode=output.mode)
+            self._setpoints += sent is not None
+        state = ControlState(  # no fresh state is not news: the last one planned from
             robot=self.settings.robot, t=t, x=tuple(float(v) for v in self._last_x),
             u=tuple(float(v) for v in output.u), mode=output.mode.value, t_anom=t_anom,
-            chosen=output.chosen, active_regions=tuple(int(i) for i in output.active_regions))
+            chosen=output.chosen, active_regions=tuple(int(i) for i in output.active_regions),
+            state_age_s=None if inputs.waiting or not reading.fresh or reading.age is None
+            else round(reading.age, 6))
         plan = None
         if output.plan is not None:
             p = output.plan
@@ -437,18 +459,19 @@ class ControlRuntime:
         if not inputs.waiting:
             self._k += 1
         return TickResult(state, plan, request, tuple(events), output, step_ms,
-                          inputs.anomaly, inputs.stale)
+                          inputs.anomaly, inputs.stale, reading, sent)
 
     def _request(self, offered: tuple[int, ...], inputs: _Inputs,
                  observation: Observation | None, deadline: float,
                  consensus_left: int | None) -> ReasonerRequest:
         robot = self.settings.robot
-        silent = inputs.cause is Cause.SILENCE
+        silent = inputs.cause in (Cause.SILENCE, Cause.VEHICLE)
         if silent:  # the reasoner is told, and may not answer "continue"
             last = "" if observation is None else f"; the last observation:\n{observation.text}"
             seq = observation.seq if observation is not None else (
                 0 if inputs.verdict is None else inputs.verdict.message.seq)
-            observation = Observation(robot=robot, seq=seq, text=SILENT + last)
+            why = SILENT if inputs.cause is Cause.SILENCE else BLIND
+            observation = Observation(robot=robot, seq=seq, text=why + last)
         elif observation is None:
             text = "the anomaly detector flagged the scene; no observation text was received"
             seq = 0 if inputs.verdict is None else inputs.verdict.message.seq
@@ -484,8 +507,9 @@ class ControlRuntime:
                                               else self.handshake.pending)})]
 
     def _waiting_event(self) -> Event:
-        return self._event("waiting", "info", "holding the start state until the anomaly "
-                           "detector answers a fresh observation")
+        return self._event("waiting", "info", "sending nothing (the vehicle holds itself) "
+                           "until the anomaly detector answers a fresh observation and the "
+                           "vehicle's state is fresh")
 
     def _event(self, kind: str, severity: Severity, message: str,
                **data: str | int | float | bool | None) -> Event:
@@ -504,7 +528,7 @@ class ControlRuntime:
         scenario = self.scenario.with_regions(regions)
         if self.mode not in CALM:
             raise NotNominal(self.mode.value)
-        controller = await asyncio.to_thread(self.build_controller, scenario, self.plant.state)
+        controller = await asyncio.to_thread(self.build_controller, scenario, self._last_x)
         await asyncio.to_thread(self._swap_regions, scenario, controller)
 
     def _swap_regions(self, scenario: Scenario, controller: Any) -> None:
@@ -519,20 +543,22 @@ class ControlRuntime:
                 "regions_updated", "info", f"{len(regions)} recovery regions: "
                 + ", ".join(r.name for r in regions), count=len(regions)))
 
-    async def reset(self, start: Sequence[float] | None = None) -> np.ndarray:
-        """Start the flight again, at rest at ``start`` (m) or a fresh draw; returns x0."""
-        x0 = self._start_state(start)  # ValueError before anything changes
+    async def reset(self) -> tuple[float, float, float] | None:
+        """Start the flight again from wherever the vehicle is (it is not moved: a
+        simulator has its own reset); returns its newest position, None before any state.
+        The new controller is warmed up there, off the tick."""
+        newest = self.vehicle.newest
+        x0 = self._last_x if newest is None else newest
         controller = await asyncio.to_thread(self.build_controller, self.scenario, x0)
-        await asyncio.to_thread(self._swap_flight, controller, x0)
-        return x0
+        await asyncio.to_thread(self._swap_flight, controller)
+        return None if newest is None else (float(x0[0]), float(x0[1]), float(x0[2]))
 
-    def _swap_flight(self, controller: Any, x0: np.ndarray) -> None:
+    def _swap_flight(self, controller: Any) -> None:
         with self.lock:  # between two ticks
             self.controller = controller
-            self.plant = make_plant(self.scenario, x0)
+            self.vehicle.forget()
             self._k = self._k0 = 0
             self.mode, self.handshake = Mode.WAITING, Handshake()
             self._queued.append(self._waiting_event())
-            self._queued.append(self._event(
-                "reset", "info", "flight restarted at (" +
-                ", ".join(f"{v:.2f}" for v in x0[POS]) + ") m"))
+            self._queued.append(self._event("reset", "info", "flight restarted: waiting for "
+                                            "a fresh verdict and a fresh vehicle state"))

@@ -32,6 +32,7 @@ README); the point mass converges in tens.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -103,6 +104,31 @@ class PlanningModel:
         lagged: np.ndarray = (decay * lag
                               + (1.0 - decay) * np.asarray(u, dtype=float)[list(self.lag_inputs)])
         return lagged
+
+    def advance_by(self, lag: np.ndarray, u: np.ndarray, duration: float) -> np.ndarray:
+        """The lag states ``duration`` seconds on with ``u`` held (:meth:`advance` for dt)."""
+        decay = np.asarray(self.lag_decay) ** (duration / self.dt)
+        lagged: np.ndarray = (decay * lag
+                              + (1.0 - decay) * np.asarray(u, dtype=float)[list(self.lag_inputs)])
+        return lagged
+
+    def predict(self, x: np.ndarray, lag: np.ndarray, inputs: Sequence[np.ndarray],
+                first_s: float) -> np.ndarray:
+        """The 12-state ``x`` (with the model's ``lag`` states at its time) carried forward
+        under ``inputs`` (absolute, in the model's units): the first held ``first_s``
+        seconds, each later one ``dt``. The coordinates the model has are predicted
+        (position and velocity for the point mass, all twelve for the hover model); the
+        rest of ``x`` is kept."""
+        z = self.measure(x, lag)
+        hover = self.linear.u_hover
+        for i, u in enumerate(inputs):
+            a, b = self.linear.over(first_s if i == 0 else self.dt)
+            z = a @ z + b @ (np.asarray(u, dtype=float) - hover)
+        out = np.asarray(x, dtype=float).copy()
+        if self.n == N_STATE:
+            return z
+        out[:6] = z[:6]
+        return out
 
     def rest_state(self, position: np.ndarray | tuple[float, ...]) -> np.ndarray:
         """At rest (and level) at ``position`` (m)."""
@@ -176,7 +202,8 @@ def point_mass_model(dt: float, position_lo: tuple[float, float, float],
                            np.full(len(axes), np.inf)])
     names = ("px", "py", "pz", "vx", "vy", "vz") + tuple(f"a{'xyz'[i]}" for i in axes)
     return PlanningModel(
-        name="point-mass", linear=LinearModel(a=ad, b=bd, dt=dt, u_hover=np.zeros(3)),
+        name="point-mass", linear=LinearModel(a=ad, b=bd, dt=dt, u_hover=np.zeros(3), ac=a,
+                                              bc=b),
         x_lo=x_lo, x_hi=x_hi, u_lo=-accel, u_hi=accel,
         state_names=names, input_names=("ax", "ay", "az"),
         state_groups=("position",) * 3 + ("velocity",) * 3 + ("lag",) * len(axes),

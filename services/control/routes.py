@@ -36,6 +36,7 @@ async def state(runtime: RuntimeDep, settings: SettingsDep, service: ServiceDep)
         method=settings.method, scenario=runtime.scenario.name,
         verdict_stale=None if last is None else last.stale,
         pending_request=runtime.pending,
+        vehicle=vehicle_summary(runtime, service),
         loop={
             "rate_hz": 1.0 / runtime.period_s,
             **(service.scheduler.stats.summary() if service else {}),
@@ -66,11 +67,26 @@ async def post_regions(body: RegionsBody, runtime: RuntimeDep, settings: Setting
 
 @router.post("/v1/reset", responses=errors(401))
 async def reset(runtime: RuntimeDep, body: ResetBody | None = None) -> ResetAnswer:
-    try:
-        x0 = await runtime.reset(None if body is None else body.start)
-    except ValueError as exc:
-        raise ApiError(422, "invalid", str(exc), "start") from None
-    return ResetAnswer(start=(float(x0[0]), float(x0[1]), float(x0[2])), mode=runtime.mode)
+    position = await runtime.reset()
+    return ResetAnswer(position=position, mode=runtime.mode)
+
+
+def vehicle_summary(runtime: ControlRuntime, service: ControlService | None
+                    ) -> dict[str, float | int | bool | str | None]:
+    """The vehicle as the last tick saw it, and the service's window of state ages."""
+    last = runtime.last
+    reading = None if last is None else last.vehicle
+    trip = runtime.vehicle.clock.round_trip_s(runtime.clock())
+    return {
+        "fresh": None if reading is None else reading.fresh,
+        "seq": None if reading is None else reading.seq,
+        "age_ms": None if reading is None or reading.age is None
+        else round(reading.age * 1000.0, 3),
+        "clock": None if reading is None else reading.clock,
+        "clock_round_trip_ms": None if trip is None else round(trip * 1000.0, 3),
+        "accepted": runtime.vehicle.accepted, "refused": runtime.vehicle.refused,
+        **(service.ages.summary() if service else {}),
+    }
 
 
 def regions_answer(runtime: ControlRuntime, settings: ControlSettings) -> RegionsAnswer:

@@ -35,7 +35,8 @@ class RegionsBody(Body):
 
 
 class ResetBody(Body):
-    start: Point3 | None = None  # m; None: a fresh draw from the start box
+    """Nothing: the flight restarts from wherever the vehicle is (the control service
+    never moves the vehicle; a simulator has its own ``POST /v1/reset``)."""
 
 
 class State(Answer):
@@ -50,6 +51,9 @@ class State(Answer):
     verdict_stale: bool | None
     pending_request: str | None  # request_id of the request being waited on
     loop: dict[str, Float | Int | None]  # rate_hz, ticks, overruns, jitter and tick percentiles
+    # fresh, seq, age_ms, clock (sync | arrival), clock_round_trip_ms, accepted, refused,
+    # age_p50_ms, age_p99_ms, age_max_ms, stale_ticks, setpoints
+    vehicle: dict[str, Float | Int | bool | str | None]
 
 
 class RegionsAnswer(Answer):
@@ -61,5 +65,5 @@ class RegionsAnswer(Answer):
 
 
 class ResetAnswer(Answer):
-    start: Point3  # m
+    position: Point3 | None  # m: the vehicle's newest position; None before any state
     mode: Mode

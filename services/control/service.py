@@ -2,12 +2,14 @@
 
 The loop runs on its own thread (the tick thread), not on the event loop, so
 that a tick starts on time whatever the HTTP side is doing. Each tick reads
-the newest ``AnomalyVerdict``, ``ReasonerDecision`` and ``Observation`` of its
-robot from ``Latest`` slots (thread-safe; nothing queues up behind a slow
-tick), runs the runtime, then publishes ``ControlState`` (every tick),
-``PlanSnapshot`` (when the step produced a plan), ``ReasonerRequest`` (on the
-detection tick), ``Event``s and ``Regions`` (on start, when they change and every
-``REGIONS_EVERY_S``). The bus declares ``aesop/health/control``.
+the newest ``VehicleState``, ``AnomalyVerdict``, ``ReasonerDecision`` and
+``Observation`` of its robot from ``Latest`` slots (thread-safe; nothing queues up
+behind a slow tick), runs the runtime, then publishes the ``VehicleSetpoint`` first,
+``ControlState`` (every tick), ``PlanSnapshot`` (when the step produced a plan),
+``ReasonerRequest`` (on the detection tick), ``Event``s and ``Regions`` (on start,
+when they change and every ``REGIONS_EVERY_S``). A second thread queries the
+vehicle's clock every ``clock_sync_s`` (:class:`.vehicle.ClockMap`). The bus declares
+``aesop/health/control``.
 """
 
 from __future__ import annotations
@@ -16,16 +18,28 @@ import logging
 import sys
 import threading
 import time
+from collections import deque
 
+import numpy as np
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
 from shared import topics
 from shared.bus import Bus, Latest
-from shared.messages import AnomalyVerdict, Mode, Observation, ReasonerDecision, RegionBox, Regions
+from shared.messages import (
+    AnomalyVerdict,
+    Mode,
+    Observation,
+    ReasonerDecision,
+    RegionBox,
+    Regions,
+    VehicleClock,
+    VehicleState,
+)
 
 from .loop import ControlRuntime, FixedRateScheduler, TickResult, TickTiming
 from .scenario import Scenario
 from .settings import ControlSettings
+from .vehicle import ClockMap
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +83,18 @@ class ControlMetrics:
                                  "a decision", registry=registry)
         self.errors = Counter("aesop_control_tick_errors", "Ticks that raised",
                               registry=registry)
+        self.state_age = Histogram(
+            "aesop_control_state_age_seconds", "Age of the vehicle state a tick planned from "
+            "(since it was valid, through the vehicle's clock)", registry=registry,
+            buckets=(.002, .005, .01, .02, .05, .1, .2, .5, 1.0))
+        self.state_stale = Counter("aesop_control_stale_state_ticks", "Ticks without a fresh "
+                                   "vehicle state (flown blind, counted as anomalies)",
+                                   registry=registry)
+        self.state_refused = Counter("aesop_control_state_refusals", "Vehicle states "
+                                     "refused (not finite, another frame, a jump)",
+                                     registry=registry)
+        self.setpoints = Counter("aesop_control_setpoints", "Set-points sent to the vehicle",
+                                 registry=registry)
         for mode in Mode:
             self.mode.labels(mode.value).set(1.0 if mode is Mode.WAITING else 0.0)
 
@@ -85,11 +111,68 @@ class ControlMetrics:
             self.mode.labels(mode.value).set(1.0 if mode is result.output.mode else 0.0)
         self.stale.inc(int(result.stale))
         self.requests.inc(int(result.request is not None))
+        self.setpoints.inc(int(result.setpoint is not None))
+        if result.output.mode is not Mode.WAITING:
+            if result.vehicle.fresh and result.vehicle.age is not None:
+                self.state_age.observe(result.vehicle.age)
+            else:
+                self.state_stale.inc()
         for event in result.events:
             if event.kind == "verdict_stale":
                 self.stale_alarms.inc()
             elif event.kind == "fallback":
                 self.fallbacks.inc()
+            elif event.kind == "state_refused":
+                self.state_refused.inc()
+
+
+def sync_clock(bus: Bus, robot: str, clock: ClockMap, period_s: float,
+               stop: threading.Event) -> None:
+    """Query ``robot``'s vehicle clock every ``period_s`` (a burst of three: the shortest
+    round trip wins) into ``clock`` until ``stop`` is set. A vehicle that does not
+    answer is no fault: the clock map falls back to arrivals."""
+    key = topics.vehicle_clock(robot)
+    while True:
+        for _ in range(3):
+            sent = time.monotonic()
+            try:
+                answers = bus.ask(key, VehicleClock, timeout=0.5)
+            except Exception as exc:  # a closed bus on shutdown, a refused query
+                log.debug("clock query failed: %s", exc)
+                break
+            for got in answers:
+                clock.sample(sent, got.received_at, got.message.stamp)
+        if stop.wait(period_s):
+            return
+
+
+class VehicleAges:
+    """A window of the vehicle state's age at the ticks that flew on a fresh one (ms), and
+    the counts behind ``GET /v1/state``'s ``vehicle``."""
+
+    def __init__(self, window: int = 1000) -> None:
+        self.ages_ms: deque[float] = deque(maxlen=window)
+        self.stale_ticks = 0
+        self.setpoints = 0
+
+    def record(self, result: TickResult) -> None:
+        self.setpoints += result.setpoint is not None
+        if result.output.mode is Mode.WAITING:
+            return
+        if result.vehicle.fresh and result.vehicle.age is not None:
+            self.ages_ms.append(result.vehicle.age * 1000.0)
+        else:
+            self.stale_ticks += 1
+
+    def summary(self) -> dict[str, float | int | None]:
+        ages = np.asarray(self.ages_ms)
+
+        def pct(q: float) -> float | None:
+            return round(float(np.percentile(ages, q)), 3) if len(ages) else None
+
+        return {"age_p50_ms": pct(50), "age_p99_ms": pct(99),
+                "age_max_ms": round(float(ages.max()), 3) if len(ages) else None,
+                "stale_ticks": self.stale_ticks, "setpoints": self.setpoints}
 
 
 class ControlService:
@@ -108,11 +191,16 @@ class ControlService:
         self.verdicts: Latest[AnomalyVerdict] | None = None
         self.decisions: Latest[ReasonerDecision] | None = None
         self.observations: Latest[Observation] | None = None
+        self.states: Latest[VehicleState] | None = None
         if bus is not None:
             self.verdicts = bus.latest(topics.anomaly(robot), AnomalyVerdict)
             self.decisions = bus.latest(topics.reasoner_decision(robot), ReasonerDecision)
             self.observations = bus.latest(topics.observation(robot), Observation)
+            self.states = bus.latest(topics.vehicle_state(robot), VehicleState)
         self.scheduler = FixedRateScheduler(runtime.period_s, window=settings.stats_window)
+        self.ages = VehicleAges(settings.stats_window)
+        self._sync_stop = threading.Event()
+        self._sync_thread: threading.Thread | None = None
         self._last_error_log: float | None = None
         self._thread: threading.Thread | None = None
         self._regions_of: Scenario | None = None  # the scene whose regions went out last
@@ -129,17 +217,30 @@ class ControlService:
                                         kwargs={"on_tick": self.metrics.timing},
                                         name="control-tick", daemon=True)
         self._thread.start()
+        if self.bus is not None and self.settings.clock_sync_s > 0:
+            self._sync_stop.clear()
+            self._sync_thread = threading.Thread(target=self._sync_clock, name="control-clock",
+                                                 daemon=True)
+            self._sync_thread.start()
+
+    def _sync_clock(self) -> None:
+        assert self.bus is not None
+        sync_clock(self.bus, self.settings.robot, self.runtime.vehicle.clock,
+                   self.settings.clock_sync_s, self._sync_stop)
 
     def _tick(self, deadline: float) -> None:
         try:
             verdict = self.verdicts.get() if self.verdicts else None
             decision = self.decisions.get() if self.decisions else None
             observation = self.observations.get() if self.observations else None
+            state = self.states.get() if self.states else None
             result = self.runtime.tick(
                 deadline=deadline, verdict=verdict,
-                decision=None if decision is None else decision.message, observation=observation)
+                decision=None if decision is None else decision.message, observation=observation,
+                state=state)
             self._publish(result)
             self.metrics.result(result)
+            self.ages.record(result)
         except Exception:  # one bad tick must not stop the loop; it is counted and logged
             self.metrics.errors.inc()
             now = time.monotonic()
@@ -151,6 +252,8 @@ class ControlService:
         if self.bus is None:
             return
         robot = self.settings.robot
+        if result.setpoint is not None:  # first: the vehicle is waiting for it
+            self.bus.publish(topics.vehicle_setpoint(robot), result.setpoint)
         if result.request is not None:
             self.bus.publish(topics.reasoner_request(robot), result.request)
         self.bus.publish(topics.state(robot), result.state)
@@ -166,10 +269,14 @@ class ControlService:
     def stop(self, timeout_s: float = 5.0) -> None:
         """End the loop after the tick in progress and wait for its thread."""
         self.scheduler.stop()
+        self._sync_stop.set()
         if self._thread is not None:
             self._thread.join(timeout_s)
             self._thread = None
             sys.setswitchinterval(self._switch)
+        if self._sync_thread is not None:
+            self._sync_thread.join(timeout_s)
+            self._sync_thread = None
 
     def close(self) -> None:
         """Close the bus if it is ours (after the loop has ended)."""

@@ -27,15 +27,25 @@ class ControlSettings(ServiceSettings):
     verdict_stale_s: float = Field(default=0.5, gt=0.0)
     # time kept back from the reasoner's deadline for the trip back over Zenoh (s)
     decision_margin_s: float = Field(default=0.02, ge=0.0)
-    seed: int = 0  # draws the start state from the scenario's start box
-    start_position: tuple[float, float, float] | None = None  # m; overrides the draw
+    # the vehicle (docs/architecture.md, "The vehicle contract"): a state that arrived more
+    # than this many ticks ago is stale (an anomaly, flown blind on the recovery branch)
+    state_stale_ticks: float = Field(default=3.0, gt=0.0, le=100.0)
+    # a set-point is valid this many ticks past the instant it is for; then the vehicle holds
+    setpoint_valid_ticks: float = Field(default=3.0, gt=0.0, le=100.0)
+    vehicle_frame: str = Field(default="world", min_length=1, max_length=64)
+    # a state farther than this (m), plus the scene's top speed times the time between
+    # stamps, from the last accepted one is a jump: refused until it has held state_reset_s
+    state_jump_m: float = Field(default=0.5, gt=0.0)
+    state_reset_s: float = Field(default=0.5, ge=0.0)
+    # s between queries of the vehicle's clock (aesop/{robot}/vehicle/clock); 0: never ask
+    clock_sync_s: float = Field(default=1.0, ge=0.0)
     mpc_max_iter: int | None = Field(default=None, ge=1)  # OSQP iterations per warm solve
     mpc_max_iter_cold: int | None = Field(default=None, ge=1)
     stats_window: int = Field(default=1000, ge=10)  # ticks behind the jitter percentiles
     # s: how soon Python hands the GIL to the tick thread once it wakes (sys.setswitchinterval)
     switch_interval_s: float = Field(default=0.0002, gt=0.0, le=0.01)
 
-    @field_validator("scenario", "start_position", "mpc_max_iter", "mpc_max_iter_cold", "rate_hz",
+    @field_validator("scenario", "mpc_max_iter", "mpc_max_iter_cold", "rate_hz",
                      mode="before")
     @classmethod
     def _empty_is_none(cls, v: object) -> object:

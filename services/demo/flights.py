@@ -4,11 +4,14 @@ It brings the stack up (:mod:`services.stack.up`, logs under ``<out>/logs``),
 builds the nominal cache of the hardware scene over REST (every combination of
 up to 4 nominal detections, each with its detections), calibrates it split-conformal
 (top-1 scores; observations with detections judged by the combined p-value), then
-flies each scenario of :data:`services.scenes.hardware.SCENARIOS`: reset the
-control loop at the start position, publish the scripted ``Observation``s at
-the loop rate, and record what comes back over Zenoh (states, requests,
-decisions, events) until the flight's time is up. Then it judges each flight,
-prints the summary table and writes the report.
+flies each scenario of :data:`services.scenes.hardware.SCENARIOS`: move the simulated
+vehicle (its own process, ``aesop serve sim``) to the start, reset the control loop
+there, publish the scripted ``Observation``s at the loop rate, and record what comes
+back over Zenoh (states, requests, decisions, events) until the flight's time is up.
+Then it judges each flight on the simulator's truth (its ``/v1/trace``: where the
+vehicle really flew, not where the loop believed it was), with the state's age at
+the loop's ticks and the set-points' age at the vehicle, prints the summary table and
+writes the report.
 
 :func:`fly_scenarios` is the same cache building and flying against a stack
 that is already up (the browser test flies one scenario while a page watches).
@@ -40,6 +43,7 @@ from services.scenes.hardware import (
     camera_observation,
     observation_text,
 )
+from services.sim.client import SimClient
 from services.stack.acl import MONITOR, robot_user
 from services.stack.up import (
     DETECTOR_CACHE,
@@ -65,6 +69,7 @@ from .report import ended_in, flight_measures, judge, summary_table, write_repor
 
 FLIGHT_S = 22.0  # simulated seconds per scenario: the way in, T = 10 s after the anomaly, settling
 ROUTE_TIMEOUT_S = 60.0
+STALE_WAIT_S = 0.8  # the control loop's verdicts go stale after 0.5 s by default
 CAMERA_PERIOD_S = 0.1  # observations at 10 Hz (the paper's detector ran at 18.8 Hz)
 
 
@@ -148,8 +153,8 @@ def fly_scenarios(plan: StackPlan, names: Sequence[str] | None = None, *,
     settings = plan.bus_settings(robot_user(plan.robot), robot=robot)
     recorders = None if record_dir is None else Recorders(
         plan.bus_settings(MONITOR, robot=robot), record_dir, robot)
-    return asyncio.run(_demo(plan.url("embedding"), plan.url("control"), plan.token, settings,
-                             scenario, model, demos, recorders))
+    return asyncio.run(_demo(plan.url("embedding"), plan.url("control"), plan.url("sim"),
+                             plan.token, settings, scenario, model, demos, recorders))
 
 
 @dataclass(frozen=True)
@@ -181,15 +186,16 @@ class Recorder:
         return self.states[-1].t if self.states else 0.0
 
 
-async def _demo(embedding_url: str | None, control_url: str | None, token: str,
-                settings: BusSettings, scenario: Scenario, model: str | None,
+async def _demo(embedding_url: str | None, control_url: str | None, sim_url: str | None,
+                token: str, settings: BusSettings, scenario: Scenario, model: str | None,
                 demos: Sequence[DemoScenario] = SCENARIOS, recorders: Recorders | None = None
                 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    assert embedding_url and control_url
+    assert embedding_url and control_url and sim_url
     async with EmbeddingClient(embedding_url, token=token, timeout_s=60) as client:
         info, cal = await build_scene_cache(client, DETECTOR_CACHE, model=model, say=_say)
     detector = {"size": info.size, "k": info.k, "calibration": cal.model_dump(mode="json")}
     rows, flights = [], {}
+    state_rate_hz: float | None = None
     with Bus.open(settings, "demo") as bus:
         robot = settings.robot
         rec = Recorder()
@@ -210,20 +216,23 @@ async def _demo(embedding_url: str | None, control_url: str | None, token: str,
         tasks.append(asyncio.create_task(camera.run()))
         try:
             await _first_verdict(verdicts)
-            async with ControlClient(control_url, token=token, timeout_s=60) as control:
+            async with ControlClient(control_url, token=token, timeout_s=60) as control, \
+                    SimClient(sim_url, token=token, timeout_s=60) as sim:
+                pilots = Pilots(control, sim)
                 for demo in demos:
-                    row, states = await fly(control, camera, verdicts, rec, demo, scenario,
+                    row, states = await fly(pilots, camera, verdicts, rec, demo, scenario,
                                             None if recorders is None else recorders.of(demo))
                     rows.append(row)
                     flights[demo.name] = states
                     _say(f"  {demo.name}: {row['outcome']}")
+                state_rate_hz = (await sim.state()).reporting["rate_hz"]
             add_time_lost(rows)
         finally:
             for task in tasks:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
     return {"ok": all(r["outcome"] == "ok" for r in rows), "scenarios": rows,
-            "detector": detector}, flights
+            "detector": detector, "state_rate_hz": state_rate_hz}, flights
 
 
 class Camera:
@@ -235,6 +244,7 @@ class Camera:
         self.home = tuple(home)
         self.scene: DemoScenario = SCENARIOS[0]
         self.flying = False
+        self.paused = False  # publishes nothing (a new flight is being set up)
         self.seq = 0
 
     def detections(self) -> tuple[str, ...]:
@@ -244,36 +254,71 @@ class Camera:
 
     async def run(self) -> None:
         while True:
-            self.seq += 1
-            seen = self.detections()
-            self.bus.publish(topics.observation(self.robot),
-                             camera_observation(observation_text(seen), self.seq, self.robot))
+            if not self.paused:
+                self.seq += 1
+                seen = self.detections()
+                self.bus.publish(topics.observation(self.robot),
+                                 camera_observation(observation_text(seen), self.seq,
+                                                    self.robot))
             await asyncio.sleep(self.period_s)
 
 
-async def fly(control: ControlClient, camera: Camera, verdicts: Subscription[AnomalyVerdict],
+@dataclass(frozen=True)
+class Pilots:
+    """The two services a demo flight is started through: the control loop and the
+    simulated vehicle."""
+
+    control: ControlClient
+    sim: SimClient
+
+    async def new_flight(self, camera: Camera, start: Sequence[float],
+                         timeout_s: float = ROUTE_TIMEOUT_S) -> None:
+        """A new flight from ``start``, as an operator starts one: the camera off (so the
+        loop, once reset, waits: no fresh verdict), the loop reset (it sends nothing
+        while it waits, the vehicle holds), the vehicle moved to ``start``; once the loop
+        sees it there, the camera on again: the detector answers and the flight starts."""
+        camera.paused = True
+        await asyncio.sleep(STALE_WAIT_S)  # the newest verdict goes stale
+        await self.control.reset()
+        await self.sim.reset(start)
+        deadline = time.monotonic() + timeout_s
+        try:
+            while True:
+                state = (await self.control.state()).state
+                if state is not None and state.mode == "waiting" and float(np.linalg.norm(
+                        np.asarray(state.x[:3]) - np.asarray(start))) < 0.05:
+                    return
+                if time.monotonic() > deadline:
+                    raise RuntimeError("the control loop does not see the vehicle at the "
+                                       "start")
+                await asyncio.sleep(0.05)
+        finally:
+            camera.paused = False
+
+
+async def fly(pilots: Pilots, camera: Camera, verdicts: Subscription[AnomalyVerdict],
               rec: Recorder, demo: DemoScenario, scenario: Scenario,
               recorder: Background | None = None) -> tuple[dict[str, Any], np.ndarray]:
     camera.scene, camera.flying = demo, False
     await _calm(camera, verdicts)
     if recorder is None:
-        return await _fly(control, camera, rec, demo, scenario)
+        return await _fly(pilots, camera, rec, demo, scenario)
     await asyncio.to_thread(recorder.start)
     try:
-        row, states = await _fly(control, camera, rec, demo, scenario)
+        row, states = await _fly(pilots, camera, rec, demo, scenario)
     finally:  # a failed flight's recording is finished (indexed) too
         totals = await asyncio.to_thread(recorder.stop)
     row["recording"] = recording_row(totals, recorder.out)
     return row, states
 
 
-async def _fly(control: ControlClient, camera: Camera, rec: Recorder, demo: DemoScenario,
+async def _fly(pilots: Pilots, camera: Camera, rec: Recorder, demo: DemoScenario,
                scenario: Scenario) -> tuple[dict[str, Any], np.ndarray]:
     rec.recording = False
     rec.states, rec.requests, rec.decisions, rec.events = [], [], [], []
     rec.detector_alarms = 0
     start = [float(v) for v in scenario.start_center]
-    await control.reset(start)
+    await pilots.new_flight(camera, start)
     rec.recording = True
     camera.flying = True
     wall = time.monotonic()
@@ -284,7 +329,10 @@ async def _fly(control: ControlClient, camera: Camera, rec: Recorder, demo: Demo
         await asyncio.sleep(0.05)
     camera.flying = False
     rec.recording = False
-    return summarize(rec, demo, scenario, time.monotonic() - wall)
+    vehicle, trace = await pilots.sim.state(), await pilots.sim.trace()
+    truth = np.array([x for t, x in zip(trace.t, trace.x, strict=True) if t <= rec.t + 1e-9])
+    return summarize(rec, demo, scenario, time.monotonic() - wall, truth,
+                     vehicle.setpoints)
 
 
 def recording_row(totals: Totals, path: Path) -> dict[str, Any]:
@@ -307,10 +355,14 @@ def add_time_lost(rows: list[dict[str, Any]]) -> None:
             row["time_lost_s"] = round(lost - nominal, 2)
 
 
-def summarize(rec: Recorder, demo: DemoScenario, scenario: Scenario, wall_s: float
+def summarize(rec: Recorder, demo: DemoScenario, scenario: Scenario, wall_s: float,
+              truth: np.ndarray, setpoints: Mapping[str, float | int | None]
               ) -> tuple[dict[str, Any], np.ndarray]:
-    states = np.array([s.x for s in rec.states])
+    """A flight's row, judged on the vehicle's ``truth`` (its trace, 12-state rows) and the
+    loop's inputs; ``setpoints``: their age at the vehicle (the simulator's summary)."""
+    states = truth if len(truth) else np.array([s.x for s in rec.states])
     inputs = np.array([s.u for s in rec.states])
+    ages = [s.state_age_s * 1000.0 for s in rec.states if s.state_age_s is not None]
     # the anomaly behind the flight's last decision (a late verdict may have raised one before)
     anomaly_at = next((s.t_anom for s in reversed(rec.states) if s.t_anom is not None), None)
     ids = {r.request_id: r for r in rec.requests}
@@ -330,8 +382,8 @@ def summarize(rec: Recorder, demo: DemoScenario, scenario: Scenario, wall_s: flo
     violations = count_violations(states, inputs, scenario)
     problems = judge(demo, ended=ended, detector_alarms=rec.detector_alarms,
                      anomaly_at_s=anomaly_at, decision=decision, violations=violations)
-    measures = flight_measures([s.t for s in rec.states], states, [s.mode for s in rec.states],
-                               scenario.goal, anomaly_at)
+    measures = flight_measures([s.t for s in rec.states], np.array([s.x for s in rec.states]),
+                               [s.mode for s in rec.states], scenario.goal, anomaly_at)
     row = {"name": demo.name, "expected": demo.expected, "outcome": "; ".join(problems) or "ok",
            "ended_in": ended, "anomaly_at_s": None if anomaly_at is None else round(anomaly_at, 2),
            "decision": decision, "decision_source": source,
@@ -341,6 +393,10 @@ def summarize(rec: Recorder, demo: DemoScenario, scenario: Scenario, wall_s: flo
            "decision_latency_ms": None if decided is None else round(decided.latency_ms, 1),
            "reasoner_requests": len(rec.requests),
            "stale_verdict_alarms": sum(e.kind == "verdict_stale" for e in rec.events),
+           "stale_state_alarms": sum(e.kind == "state_stale" for e in rec.events),
+           "state_age_ms": _percentiles(ages),
+           "setpoint_age_ms": [setpoints.get("age_p50_ms"), setpoints.get("age_p99_ms"),
+                               setpoints.get("age_max_ms")],
            "approach_altitude_m": _round(measures.approach_altitude_m),
            "landed_s": _round(measures.landed_s),
            "speeds": [_round(measures.speed_before_m_s), _round(measures.speed_waiting_m_s),
@@ -404,3 +460,11 @@ def _on_event(rec: Recorder, msg: Event) -> None:
 
 def _round(value: float | None) -> float | None:
     return None if value is None else round(value, 2)
+
+
+def _percentiles(values: Sequence[float]) -> list[float | None]:
+    """p50, p99 and max, rounded (None for none)."""
+    if not values:
+        return [None, None, None]
+    return [round(float(np.percentile(values, 50)), 2), round(float(np.percentile(values, 99)), 2),
+            round(float(max(values)), 2)]

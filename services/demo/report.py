@@ -6,8 +6,8 @@ The scenarios themselves are :mod:`services.scenes.hardware`.
   flight: the approach altitude, the speed before the detector fires, the
   slowest while the reasoner thinks and the fastest after it answers, and the
   closest approach to the red box once the detector has fired.
-* :func:`ended_in`, :func:`judge` — where a flight
-  ended and what went wrong, from the published ``ControlState``s.
+* :func:`ended_in`, :func:`judge` — where a flight ended (on the simulator's truth)
+  and what went wrong.
 * :func:`summary_table`, :func:`write_report` — what a person reads.
 """
 
@@ -125,6 +125,8 @@ COLUMNS = (("name", "scenario"), ("anomaly_at_s", "anomaly at [s]"), ("decision"
            ("speeds", "speed before / slowest waiting / fastest after [m/s]"),
            ("closest_to_goal_m", "closest to red box after [m]"),
            ("time_lost_s", "time lost [s]"), ("stale_verdict_alarms", "stale alarms"),
+           ("state_age_ms", "state age at the loop p50 / p99 / max [ms]"),
+           ("setpoint_age_ms", "set-point age at the vehicle p50 / p99 / max [ms]"),
            ("outcome", "outcome"))
 
 
@@ -223,7 +225,9 @@ td,th{{border:1px solid #ccc;padding:4px 8px}} th{{background:#eee}}</style></he
 <body><h1>AESOP demo: the paper's quadrotor hardware scenarios, in simulation</h1>
 <p>Task: {html.escape(TASK)}. Scene: {html.escape(result['scene'])}; the whole stack ran as
 processes over Zenoh (vector cache, reasoner with {html.escape(result['llm'])}, control loop at
-{result['rate_hz']:g} Hz).</p>
+{result['rate_hz']:g} Hz, the simulated vehicle its own process: its state on the bus at
+{result['state_rate_hz']:g} Hz, the set-points back). Violations and where a flight
+ended are judged on the simulator's truth.</p>
 <table><tr>{head}</tr>{body}</table>
 <p>{'All scenarios ended as expected.' if result['ok'] else 'SOME SCENARIOS FAILED.'}</p>
 <h2>Flights</h2><img src="flights.png" alt="flights, top and side view" width="100%">

@@ -6,8 +6,10 @@ router's ACL then allows, per user, only what that part of the stack does
 
 - everyone may subscribe to ``aesop/**`` (messages, liveliness) and receive it;
 - each service may publish only its own keys and declare only its own health token;
-- a robot ``robot-<id>`` may publish only its own observations and events
-  (``aesop/<id>/observation``, ``aesop/<id>/event``);
+- a robot ``robot-<id>`` may publish only its own observations, events and vehicle
+  state (``aesop/<id>/observation``, ``aesop/<id>/event``, ``aesop/<id>/vehicle/state``),
+  answer queries of its own clock (``aesop/<id>/vehicle/clock``) and declare the
+  simulator's health token; only control publishes set-points and asks the clock;
 - ``monitor`` (``aesop watch``, a recorder) only reads.
 
 An ACL is enforced on what passes through the router, so sessions must be clients
@@ -29,9 +31,10 @@ SERVICE_PUTS: Mapping[str, tuple[str, ...]] = {
     "embedding": ("aesop/*/anomaly", "aesop/*/event"),
     "reasoner": ("aesop/*/reasoner/decision", "aesop/*/event"),
     "control": ("aesop/*/state", "aesop/*/plan", "aesop/*/reasoner/request",
-                "aesop/*/regions", "aesop/*/event"),
+                "aesop/*/regions", "aesop/*/event", "aesop/*/vehicle/setpoint"),
     "dashboard": ("aesop/*/event",),
 }
+CLOCK = "aesop/*/vehicle/clock"  # the vehicle answers, control asks
 MONITOR = "monitor"
 MAX_MESSAGE_BYTES = 1024 * 1024  # the largest message the router passes on
 
@@ -56,20 +59,32 @@ def stack_acl(robots: Sequence[str]) -> dict[str, Any]:
         # put for which it knows no subscriber
         _rule("receive", "egress", ["put", "delete", "declare_subscriber", "liveliness_token"],
               [ALL]),
+        # the clock query: to the vehicle and its answer back, whoever asked
+        _rule("clock-relay", "egress", ["query", "reply", "declare_queryable"], [CLOCK]),
+        _rule("control-clock", "ingress", ["query"], [CLOCK]),
     ]
     policies: list[dict[str, Any]] = [
-        {"id": "everyone", "rules": ["subscribe", "receive"], "subjects": users_of(robots)}]
+        {"id": "everyone", "rules": ["subscribe", "receive", "clock-relay"],
+         "subjects": users_of(robots)}]
     for service, keys in SERVICE_PUTS.items():
         rules += [_rule(f"{service}-puts", "ingress", ["put", "delete"], list(keys)),
                   _rule(f"{service}-health", "ingress", ["liveliness_token"],
                         [f"aesop/health/{service}"])]
-        policies.append({"id": service, "rules": [f"{service}-puts", f"{service}-health"],
-                         "subjects": [service]})
+        extra = ["control-clock"] if service == "control" else []
+        policies.append({"id": service, "rules": [f"{service}-puts", f"{service}-health",
+                                                  *extra], "subjects": [service]})
     for robot in robots:
         user = robot_user(robot)
-        rules.append(_rule(f"{user}-puts", "ingress", ["put", "delete"],
-                           [f"aesop/{robot}/observation", f"aesop/{robot}/event"]))
-        policies.append({"id": user, "rules": [f"{user}-puts"], "subjects": [user]})
+        rules += [
+            _rule(f"{user}-puts", "ingress", ["put", "delete"],
+                  [f"aesop/{robot}/observation", f"aesop/{robot}/event",
+                   f"aesop/{robot}/vehicle/state"]),
+            _rule(f"{user}-clock", "ingress", ["declare_queryable", "reply"],
+                  [f"aesop/{robot}/vehicle/clock"]),
+            _rule(f"{user}-health", "ingress", ["liveliness_token"], ["aesop/health/sim"]),
+        ]
+        policies.append({"id": user, "rules": [f"{user}-puts", f"{user}-clock",
+                                               f"{user}-health"], "subjects": [user]})
     return {
         "enabled": True,
         "default_permission": "deny",
@@ -126,8 +141,9 @@ ROUTER_HEADER = """\
 // same code as the ACL of `aesop up`'s hub (services/stack/acl.py): regenerate it, do not
 // edit it. Every session authenticates (user:password, the dictionary is the compose
 // secret zenoh-users, made by `aesop zenoh credentials deploy/secrets`); each service may
-// publish only its own keys, robot-<id> only its own observations and events, monitor
-// only reads; a message past the size limit is dropped. See deploy/README.md.
+// publish only its own keys, robot-<id> only its own observations, events and vehicle
+// state (and answer its clock), monitor only reads; a message past the size limit is
+// dropped. See deploy/README.md.
 """
 
 

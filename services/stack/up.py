@@ -2,8 +2,9 @@
 
 A Zenoh hub (:mod:`services.stack.hub`, router mode on loopback), then the
 fake LLM (unless ``AESOP_REASONER_LLM_BASE_URL`` names a real backend), the vector-cache
-(embedding), the slow reasoner, the control loop with its simulated quadrotor
-and the dashboard, all as ``python -m services.cli serve ...`` clients of the hub.
+(embedding), the slow reasoner, the control loop, the simulated quadrotor it flies
+(``serve sim``, as the robot's user: a vehicle like any other) and the dashboard, all
+as ``python -m services.cli serve ...`` clients of the hub.
 Every Zenoh session authenticates to the hub with its own user and a password
 generated per start (:mod:`.acl`; kept in ``<data-dir>/zenoh``, 0600), and the hub's
 access-control list lets each publish only its own keys.
@@ -32,12 +33,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from services.control.scenario import bundled_path, resolve_scenario
+from services.control.scenario import bundled_path, load_scenario, resolve_scenario
 from services.control.settings import ControlSettings
 from services.dashboard.settings import DashboardSettings
 from services.embedding.settings import EmbeddingSettings
 from services.fakes.llm import FakeLLMServiceSettings, FakeLLMSettings
 from services.reasoner.settings import ReasonerSettings
+from services.sim.settings import SimSettings
 from shared.process import (
     Child,
     ChildSpec,
@@ -49,7 +51,7 @@ from shared.process import (
 )
 from shared.settings import BusSettings, ServiceSettings, read_settings, to_env
 
-from .acl import new_passwords, users_of, write_credentials, write_private
+from .acl import new_passwords, robot_user, users_of, write_credentials, write_private
 
 DETECTOR_CACHE = "quadrotor"
 FAKE_LLM_LATENCY_S = 3.1  # the paper's mean GPT-3.5-turbo CoT latency (Table "jetson timings")
@@ -70,12 +72,13 @@ class Ports:
     control: int = 8003
     dashboard: int = 8080
     fake_llm: int = 8010
+    sim: int = 8004
 
     @classmethod
     def free(cls) -> Ports:
-        """Six distinct free ports."""
+        """Seven distinct free ports."""
         ports: list[int] = []
-        while len(ports) < 6:
+        while len(ports) < 7:
             port = free_port()
             if port not in ports:
                 ports.append(port)
@@ -172,11 +175,18 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
     control = read_settings(ControlSettings, environ, **forced)
     scenario = options.scenario or resolve_scenario(control.scenario or hardware_scenario())
     control = control.model_copy(update={"scenario": scenario})  # a resolved, existing path
+    # the vehicle: the robot's own user; as fast as the loop flies the scene (real time at
+    # the scene's 1/dt)
+    dt = load_scenario(scenario).dt
+    sim = read_settings(SimSettings, environ, **common, **user(robot_user(robot)),
+                        port=ports.sim, data_dir=data("sim"), scenario=scenario,
+                        time_scale=dt / control.period_s(dt))
     settings: list[tuple[str, ServiceSettings]] = []
     if fake:
         settings.append(("fake-llm", read_settings(FakeLLMServiceSettings, environ, **common,
                                                    port=ports.fake_llm)))
-    settings += [("embedding", embedding), ("reasoner", reasoner), ("control", control)]
+    settings += [("embedding", embedding), ("reasoner", reasoner), ("sim", sim),
+                 ("control", control)]
     if options.dashboard:
         settings.append(("dashboard", read_settings(DashboardSettings, environ, **common,
                                                     **user("dashboard"), port=ports.dashboard,

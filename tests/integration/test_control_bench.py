@@ -23,13 +23,26 @@ def test_bench_closed_loop_json(tmp_path) -> None:
     assert r.returncode == 0, r.stderr[-3000:]
     result = json.loads(r.stdout)
     assert result["scenarios"] == 2 and result["seed"] == 0
-    assert set(result["methods"]) == {"naive", "fsmpc", "aesop"}
-    for row in result["methods"].values():
+    (only,) = result["conditions"]
+    assert only["state"] == {"rate_hz": 100.0, "delay_ms": 0.0}
+    assert set(only["methods"]) == {"naive", "fsmpc", "aesop"}
+    for row in only["methods"].values():
         assert {"success_rate", "constraint_violations", "mean_time_to_region_s",
                 "mean_speed_m_s"} <= set(row)
         assert 0.0 <= row["success_rate"] <= 1.0
-    assert result["inconsequential"]["cases"] == 1
+    assert only["inconsequential"]["cases"] == 1
     assert plot.stat().st_size > 10_000  # a real PNG figure
+
+
+def test_bench_closed_loop_state_delay_and_rate_make_one_condition_each() -> None:
+    r = _aesop("bench", "closed-loop", "--scenarios", "1", "--workers", "2",
+               "--inconsequential", "0", "--methods", "aesop", "--state-rate-hz", "50",
+               "--state-delay-ms", "0", "50", "--json")
+    assert r.returncode == 0, r.stderr[-3000:]
+    result = json.loads(r.stdout)
+    assert [c["state"] for c in result["conditions"]] == [
+        {"rate_hz": 50.0, "delay_ms": 0.0}, {"rate_hz": 50.0, "delay_ms": 50.0}]
+    assert all(set(c["methods"]) == {"aesop"} for c in result["conditions"])
 
 
 def test_bench_mpc_json() -> None:
@@ -46,3 +59,5 @@ def test_bench_mpc_json() -> None:
 def test_bench_rejects_bad_arguments() -> None:
     r = _aesop("bench", "closed-loop", "--scenarios", "0", "--json")
     assert r.returncode == 2 and "--scenarios" in r.stderr and r.stdout == ""
+    r = _aesop("bench", "closed-loop", "--state-rate-hz", "0", "--json")
+    assert r.returncode == 2 and "--state-rate-hz" in r.stderr and r.stdout == ""

@@ -17,8 +17,16 @@ import pytest
 import zenoh
 
 from services.stack.acl import new_passwords, robot_user, users_of, write_credentials
+from shared import topics
 from shared.bus import Bus
-from shared.messages import AnomalyVerdict, Observation
+from shared.messages import (
+    AnomalyVerdict,
+    Mode,
+    Observation,
+    VehicleClock,
+    VehicleSetpoint,
+    VehicleState,
+)
 from shared.process import free_port
 from shared.settings import BusSettings
 
@@ -150,3 +158,60 @@ def test_aesop_watch_without_credentials_says_what_it_needs(hub: Hub) -> None:
                          capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
     assert run.returncode != 0
     assert "AESOP_ZENOH_USER" in run.stderr and "Traceback" not in run.stderr, run.stderr
+
+
+def vehicle_state(robot: str, seq: int) -> VehicleState:
+    return VehicleState(robot=robot, seq=seq, position=(0.0, 0.0, 1.0), velocity=(0.0, 0.0, 0.0))
+
+
+def setpoint(robot: str, seq: int) -> VehicleSetpoint:
+    return VehicleSetpoint(robot=robot, seq=seq, state_seq=1, state_stamp=1.0, t=1.0,
+                           valid_until=1.15, mode=Mode.NOMINAL, acceleration=(0.0, 0.0, 0.0),
+                           position=(0.0, 0.0, 1.0), velocity=(0.0, 0.0, 0.0))
+
+
+def test_a_robot_publishes_only_its_own_vehicle_state(hub: Hub) -> None:
+    with hub.session("monitor") as monitor, hub.session(robot_user("robot-a")) as robot_a, \
+            hub.session("control") as control:
+        heard = Heard(monitor, "aesop/*/vehicle/state")
+        own = topics.vehicle_state("robot-a")
+        routed(lambda: robot_a.publish(own, vehicle_state("robot-a", 1)), heard, "its own")
+        robot_a.publish(topics.vehicle_state("robot-b"), vehicle_state("robot-b", 2))
+        control.publish(own, vehicle_state("robot-a", 3))  # control reads states, never writes
+        routed(lambda: robot_a.publish(own, vehicle_state("robot-a", 4)), heard, "its own")
+    assert set(heard.keys) == {own}
+    assert 3 not in {VehicleState.decode(p).seq for p in heard.payloads}
+
+
+def test_only_control_publishes_set_points(hub: Hub) -> None:
+    with hub.session("monitor") as monitor, hub.session("control") as control, \
+            hub.session(robot_user("robot-a")) as robot_a, hub.session("dashboard") as dashboard:
+        heard = Heard(monitor, "aesop/*/vehicle/setpoint")
+        key = topics.vehicle_setpoint("robot-a")
+        routed(lambda: control.publish(key, setpoint("robot-a", 1)), heard, "a set-point")
+        robot_a.publish(key, setpoint("robot-a", 1000))
+        dashboard.publish(key, setpoint("robot-a", 1001))
+        routed(lambda: control.publish(key, setpoint("robot-a", 2)), heard, "a set-point")
+    assert max(VehicleSetpoint.decode(p).seq for p in heard.payloads) < 1000
+
+
+def ask_clock(bus: Bus, robot: str) -> list[float]:
+    """The vehicle clock readings one query on ``robot``'s clock brings back."""
+    return [got.message.stamp for got in bus.ask(topics.vehicle_clock(robot), VehicleClock,
+                                                 timeout=1.0)]
+
+
+def test_control_asks_a_robot_its_clock_and_no_one_else_may_answer_or_ask(hub: Hub) -> None:
+    with hub.session("control") as control, hub.session(robot_user("robot-a")) as robot_a, \
+            hub.session(robot_user("robot-b")) as robot_b, \
+            hub.session("dashboard") as dashboard:
+        robot_a.answer(topics.vehicle_clock("robot-a"),
+                       lambda: VehicleClock(robot="robot-a", stamp=1000.0))
+        robot_b.answer(topics.vehicle_clock("robot-a"),  # an impostor for robot-a's clock
+                       lambda: VehicleClock(robot="robot-a", stamp=2000.0))
+        deadline = time.monotonic() + 20
+        while not (got := ask_clock(control, "robot-a")):
+            assert time.monotonic() < deadline, "no answer to control's clock query"
+            time.sleep(0.1)
+        assert set(got) == {1000.0}
+        assert ask_clock(dashboard, "robot-a") == []

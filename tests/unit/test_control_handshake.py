@@ -34,6 +34,7 @@ class Tick:
     verdict: AnomalyVerdict | None = field(default_factory=lambda: verdict(7, False))
     scene: str | None = KEYBOARD
     decision: ReasonerDecision | None = None
+    vehicle: bool = True  # the vehicle's state is fresh
 
 
 @dataclass(frozen=True)
@@ -46,7 +47,10 @@ class Handed:
     notes: tuple[str, ...] = ()
 
 
-SILENT = Handshake(stale=True, silence_asked=True, pending=REQ, cause=Cause.SILENCE)
+SILENT = Handshake(stale=True, monitored=False, silence_asked=True, pending=REQ,
+                   cause=Cause.SILENCE)
+BLIND = Handshake(stale=False, monitored=False, silence_asked=True, pending=REQ,
+                  cause=Cause.VEHICLE)
 ASKED = Handshake(stale=False, pending=REQ, cause=Cause.ANOMALY, verdict_asked=7,
                   asked_about=KEYBOARD)
 PENDING, FLAG = Mode.PENDING, verdict(8, True)
@@ -103,6 +107,24 @@ TABLE: list[tuple[str, Handshake, Tick, Handed, dict[str, Any]]] = [
      Tick(PENDING, decision=answer(2, "req-old")), Handed(), {"delivered": False}),
     ("an answer is handed on once", replace(ASKED, delivered=True),
      Tick(PENDING, decision=answer(2)), Handed(), {}),
+    ("waiting, a fresh verdict but no fresh state: hold", Handshake(),
+     Tick(Mode.WAITING, vehicle=False), Handed(waiting=True), {"stale": None}),
+    ("a stale vehicle state is an anomaly: ask about the vehicle",
+     Handshake(stale=False, monitored=True), Tick(vehicle=False),
+     Handed(anomaly=True, cause=Cause.VEHICLE), {"monitored": False, "silence_asked": False}),
+    ("a flagged verdict while the state is stale asks about the vehicle, once",
+     Handshake(stale=False, monitored=True), Tick(verdict=FLAG, vehicle=False),
+     Handed(anomaly=True, cause=Cause.VEHICLE), {}),
+    ("continue is refused while the state is stale", BLIND,
+     Tick(PENDING, decision=answer(0), vehicle=False), Handed(notes=("continue_refused",)),
+     {"delivered": False, "refused": REQ}),
+    ("the detector falling silent in the same spell does not ask again",
+     replace(BLIND, pending=None, cause=None), Tick(age=OLD, vehicle=False),
+     Handed(stale=True, notes=("verdict_stale",)), {}),
+    ("a fresh state ends the vehicle's episode", BLIND, Tick(PENDING),
+     Handed(decision=0, notes=("silence_ended",)), {"monitored": True}),
+    ("a region chosen while the state was stale stands", replace(BLIND, refused=REQ),
+     Tick(PENDING, decision=answer(1)), Handed(decision=1), {"delivered": True}),
     ("a verdict older than anything remembered is silence", Handshake(stale=False),
      Tick(age=None), Handed(anomaly=True, cause=Cause.SILENCE, stale=True,
                             notes=("verdict_stale",)), {}),
@@ -115,7 +137,7 @@ def test_one_tick_of_the_handshake(before: Handshake, tick: Tick, handed: Handed
                                    after: dict[str, Any]) -> None:
     state = replace(before, cleared=set(before.cleared))
     reading = state.read(mode=tick.mode, age=tick.age, limit=LIMIT, verdict=tick.verdict,
-                         scene=tick.scene, decision=tick.decision)
+                         scene=tick.scene, decision=tick.decision, vehicle=tick.vehicle)
     got = Handed(reading.anomaly, reading.decision, reading.cause, reading.stale,
                  reading.waiting, tuple(n.kind for n in reading.notes))
     assert got == handed

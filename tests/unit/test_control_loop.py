@@ -1,5 +1,6 @@
 """The control loop without I/O: the deadline scheduler on a fake clock, and the runtime's
-tick (fail-safe verdicts, decisions routed by request_id, the messages it builds)."""
+tick (fail-safe verdicts, decisions routed by request_id, the messages it builds), flying
+the simulator's vehicle in process (tests/vehicles.py)."""
 
 from __future__ import annotations
 
@@ -28,7 +29,9 @@ from shared.messages import (
     Observation,
     PairMatch,
     ReasonerDecision,
+    VehicleState,
 )
+from tests.vehicles import Vehicle, fly_tick
 
 # A small geometry that solves in milliseconds (see tests/unit/test_control_mpc.py).
 REGIONS = (
@@ -159,10 +162,15 @@ def test_stats_percentiles() -> None:
 # --------------------------------------------------------------------------- runtime
 
 
-def runtime(clock: FakeClock, **kw: object) -> ControlRuntime:
-    settings = ControlSettings(start_position=(0.0, 0.0, 1.0), verdict_stale_s=0.5,
-                               robot="drone1", **kw)
-    return ControlRuntime(settings, SCENARIO, clock=clock)
+VEHICLES: dict[int, Vehicle] = {}  # each runtime's vehicle, by id(runtime)
+
+
+def runtime(clock: FakeClock, start: tuple[float, float, float] = (0.0, 0.0, 1.0),
+            scenario: Scenario = SCENARIO, **kw: object) -> ControlRuntime:
+    settings = ControlSettings(verdict_stale_s=0.5, robot="drone1", **kw)
+    rt = ControlRuntime(settings, scenario, clock=clock)
+    VEHICLES[id(rt)] = Vehicle(scenario, start, clock.now)
+    return rt
 
 
 def verdict(clock: FakeClock, seq: int, anomaly: bool) -> Received[AnomalyVerdict]:
@@ -175,7 +183,8 @@ def verdict(clock: FakeClock, seq: int, anomaly: bool) -> Received[AnomalyVerdic
 async def tick(rt: ControlRuntime, clock: FakeClock, v: Received[AnomalyVerdict] | None,
                decision: ReasonerDecision | None = None,
                observation: Received[Observation] | Observation | None = None) -> TickResult:
-    result = rt.tick(deadline=clock.now, verdict=v, decision=decision, observation=observation)
+    result = fly_tick(rt, VEHICLES[id(rt)], clock.now, verdict=v, decision=decision,
+                      observation=observation)
     clock.now += 0.1
     return result
 
@@ -449,8 +458,7 @@ async def test_new_regions_mid_flight_keep_the_flights_progress() -> None:
     scene = replace(SCENARIO, model="point-mass", approach_height=0.3,
                     acceleration_lag=(0.08, 0.08, 0.0))
     clock = FakeClock()
-    rt = ControlRuntime(ControlSettings(start_position=(1.0, 0.0, 1.3), verdict_stale_s=0.5,
-                                        robot="drone1"), scene, clock=clock)
+    rt = runtime(clock, (1.0, 0.0, 1.3), scene)
     for seq in range(8):  # at rest on the waypoint: the route moves on to the descent
         await tick(rt, clock, verdict(clock, seq, False))
     assert rt.controller.route.index == 1
@@ -461,23 +469,25 @@ async def test_new_regions_mid_flight_keep_the_flights_progress() -> None:
     assert np.array_equal(rt.controller.lag, lag)
 
 
-async def test_reset_restarts_the_flight() -> None:
+async def test_reset_restarts_the_flight_from_wherever_the_vehicle_is() -> None:
     clock = FakeClock()
     rt = await started(clock)
     old = verdict(clock, 0, False)
     clock.now += 0.6
     await tick(rt, clock, old)  # silent: asks the reasoner, mode pending
     assert rt.mode.value == "anomaly_pending"
-    with pytest.raises(ValueError, match="start"):
-        await rt.reset((0.0, 0.0, 99.0))
-    x0 = await rt.reset((0.5, 0.0, 1.0))
-    assert np.allclose(x0[:3], (0.5, 0.0, 1.0)) and rt.mode.value == "waiting"
+    VEHICLES[id(rt)].teleport((0.5, 0.0, 1.0), clock.now)  # moved between flights
+    await tick(rt, clock, old)
+    position = await rt.reset()
+    assert position is not None and np.allclose(position, (0.5, 0.0, 1.0), atol=1e-6)
+    assert rt.mode.value == "waiting"
     held = await tick(rt, clock, old)  # the old verdict does not start the new flight
     assert held.state.mode == "waiting" and "reset" in kinds(held)
-    assert "verdict_stale" not in kinds(held)
+    assert "verdict_stale" not in kinds(held) and not held.setpoint  # nothing sent
     result = await tick(rt, clock, verdict(clock, 1, False))
-    assert result.state.t == 0.0 and result.state.x[:3] == (0.5, 0.0, 1.0)
+    assert result.state.t == 0.0 and result.state.x[:3] == pytest.approx((0.5, 0.0, 1.0), abs=0.01)
     assert result.state.mode == "nominal" and "flight_started" in kinds(result)
+    assert result.setpoint is not None
 
 
 async def test_a_scene_the_reasoner_cleared_does_not_ask_again_until_a_reset() -> None:
@@ -514,35 +524,37 @@ async def test_a_scene_the_reasoner_cleared_does_not_ask_again_until_a_reset() -
     assert again.request is not None  # a new flight judges the scene afresh
 
 
-class LostEstimate:
-    """A plant whose state estimate reads NaN for one tick, then recovers."""
-
-    def __init__(self, plant) -> None:
-        self.plant, self.dt, self.lost = plant, plant.dt, True
-
-    @property
-    def state(self) -> np.ndarray:
-        x = self.plant.state
-        if self.lost:
-            self.lost = False
-            x[0] = np.nan
-        return x
-
-    def step(self, u: np.ndarray) -> np.ndarray:
-        assert np.all(np.isfinite(u))  # nothing non-finite reaches the plant
-        return self.plant.step(u)
-
-
-async def test_a_lost_estimate_raises_an_alarm_and_the_loop_goes_on() -> None:
+async def test_a_non_finite_state_is_refused_with_an_alarm_and_the_loop_goes_on() -> None:
     clock = FakeClock()
     rt = await started(clock)
     before = await tick(rt, clock, verdict(clock, 1, False))
-    rt.plant = LostEstimate(rt.plant)
-    lost = await tick(rt, clock, verdict(clock, 2, False))
-    alarm = [e for e in lost.events if e.kind == "non_finite"]
-    assert alarm and alarm[0].severity == "alarm" and "non-finite state" in alarm[0].message
-    assert lost.state.x == before.state.x  # the last finite state is published
-    assert lost.state.encode() and lost.state.mode == "nominal"
+    vehicle = VEHICLES[id(rt)]
+    good = vehicle.advance(clock.now)
+    assert good is not None
+    bad = good.message.model_copy(update={"seq": good.message.seq + 1,
+                                          "position": (float("nan"), 0.0, 1.0)})
+    result = rt.tick(deadline=clock.now, verdict=verdict(clock, 2, False),
+                     state=Received(good.key, bad, clock.now))
+    vehicle.follow(result, clock.now)
+    clock.now += 0.1
+    alarm = [e for e in result.events if e.kind == "state_refused"]
+    assert alarm and alarm[0].severity == "alarm" and "not finite" in alarm[0].message
+    assert result.state.mode == "nominal" and result.state.encode()
+    assert all(np.isfinite(result.state.x))  # never a NaN on the bus
     after = await tick(rt, clock, verdict(clock, 3, False))
-    assert not [e for e in after.events if e.kind == "non_finite"]
+    assert not [e for e in after.events if e.kind == "state_refused"]
     assert after.state.x != before.state.x and after.plan is not None
+
+
+async def test_the_flight_waits_for_a_fresh_vehicle_state_too() -> None:
+    clock = FakeClock()
+    settings = ControlSettings(verdict_stale_s=0.5, robot="drone1")
+    rt = ControlRuntime(settings, SCENARIO, clock=clock)
+    held = rt.tick(deadline=clock.now, verdict=verdict(clock, 1, False))  # no vehicle yet
+    assert held.state.mode == "waiting" and held.setpoint is None
+    vehicle = Vehicle(SCENARIO, (0.0, 0.0, 1.0), clock.now)
+    clock.now += 0.1
+    flying = fly_tick(rt, vehicle, clock.now, verdict=verdict(clock, 2, False))
+    assert flying.state.mode == "nominal" and flying.setpoint is not None
+    assert flying.setpoint.thrust is not None and flying.setpoint.acceleration is None
+    assert isinstance(vehicle.slot.message, VehicleState)

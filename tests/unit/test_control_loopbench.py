@@ -6,8 +6,8 @@ import json
 import subprocess
 import sys
 
-from services.bench.loop import FlightScript, time_loop
-from services.control.scenario import load_scenario
+from services.bench.loop import FlightScript, fly_rate
+from services.control.scenario import load_scenario, resolve_scenario
 
 SCENARIO = load_scenario()
 
@@ -25,9 +25,11 @@ def test_script_flags_one_anomaly_per_cycle_and_answers_it_later():
 
 
 def test_a_short_run_times_every_tick_through_an_anomaly_and_a_reset():
+    """Against a simulator process: the state over the bus, the set-points back."""
     script = FlightScript(SCENARIO.dt, cycle_s=3.0, anomaly_s=0.5, answer_s=0.3)
-    result = asyncio.run(time_loop(SCENARIO, 50.0, 35, script=script))
+    result = asyncio.run(fly_rate(SCENARIO, resolve_scenario("paper"), 50.0, 35, 0, script))
     assert result["ticks"] == 35 and result["requests"] == 1 and result["resets"] == 1
+    assert result["setpoints"] > 0 and result["state_age_p50_ms"] is not None
     assert 0 <= result["jitter_p50_ms"] <= result["jitter_p99_ms"] <= result["jitter_max_ms"]
     assert result["tick_p50_ms"] <= result["tick_p99_ms"]
     assert result["overruns"] <= 35 and result["simulated_s"] == 3.5

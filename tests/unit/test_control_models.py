@@ -15,7 +15,7 @@ from services.control.controllers import mpc_config, planning_model
 from services.control.dynamics import QuadrotorParams
 from services.control.models import point_mass_model
 from services.control.mpc import BranchProblem, decouple, promised_step
-from services.control.plant import TrackedQuadrotor
+from services.sim.plant import TrackedQuadrotor
 from services.control.scenario import load_scenario
 
 SCENE = load_scenario("hardware")

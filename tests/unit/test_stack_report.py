@@ -125,22 +125,27 @@ def test_summary_table_has_a_row_per_scenario() -> None:
 
 
 def options(tmp: Path) -> StackOptions:
-    return StackOptions(data_dir=tmp, ports=Ports(1, 2, 3, 4, 5, 6), rate_hz=5.0, python="py")
+    return StackOptions(data_dir=tmp, ports=Ports(1, 2, 3, 4, 5, 6, 7), rate_hz=5.0, python="py")
 
 
 def test_plan_starts_the_fake_llm_without_a_backend_and_generates_the_token(
         tmp_path: Path) -> None:
     plan = plan_stack(options(tmp_path), {"AESOP_ZENOH_LISTEN": "tcp/0.0.0.0:7447"}, "t" * 24)
     names = [s.name for s in plan.services]
-    assert names == ["fake-llm", "embedding", "reasoner", "control", "dashboard"]
+    assert names == ["fake-llm", "embedding", "reasoner", "sim", "control", "dashboard"]
     assert plan.token_generated and plan.fake_llm
     env = plan.services[2].env
     assert env["AESOP_REASONER_LLM_BASE_URL"] == "http://127.0.0.1:6/v1"
     assert env["AESOP_ADMIN_TOKEN"] == "t" * 24
     assert env["AESOP_ZENOH_CONNECT"] == "tcp/127.0.0.1:1"
     assert env["AESOP_ZENOH_LISTEN"] == ""  # no endpoint of its own: it joins the hub
-    control = plan.services[3].env
+    control = plan.services[4].env
     assert control["AESOP_CONTROL_RATE_HZ"] == "5.0" and control["AESOP_CONTROL_PORT"] == "4"
+    # the vehicle: the robot's user, the same scene, as fast as the loop flies it
+    sim = plan.services[3].env
+    assert sim["AESOP_SIM_SCENARIO"] == control["AESOP_CONTROL_SCENARIO"] == str(plan.scenario)
+    assert float(sim["AESOP_SIM_TIME_SCALE"]) == pytest.approx(5.0 * 0.05)  # hardware dt
+    assert sim["AESOP_SIM_PORT"] == "7" and sim["AESOP_ZENOH_USER"] == "robot-robot0"
     assert control["AESOP_CONTROL_VERDICT_STALE_S"] == "0.5"  # every setting, defaults too
     assert "AESOP_CONTROL_MPC_MAX_ITER" not in control  # None: the MPC's own
     assert "AESOP_REASONER_LLM_BASE_URL" not in control  # only its own and the shared ones
@@ -150,9 +155,10 @@ def test_plan_starts_the_fake_llm_without_a_backend_and_generates_the_token(
     assert plan.services[1].env["AESOP_EMBEDDING_DETECTOR_CACHE"] == "quadrotor"
     # every service is a client of the hub with a user of its own; the hub checks them
     for spec in plan.services[1:]:
+        user = "robot-robot0" if spec.name == "sim" else spec.name
         assert spec.env["AESOP_ZENOH_MODE"] == "client", spec.name
-        assert spec.env["AESOP_ZENOH_USER"] == spec.name
-        assert spec.env["AESOP_ZENOH_PASSWORD"] == plan.passwords[spec.name]
+        assert spec.env["AESOP_ZENOH_USER"] == user
+        assert spec.env["AESOP_ZENOH_PASSWORD"] == plan.passwords[user]
     assert len(set(plan.passwords.values())) == len(plan.passwords)  # one each
     assert set(plan.passwords) == {"embedding", "reasoner", "control", "dashboard", "monitor",
                                    "robot-robot0"}
@@ -172,7 +178,8 @@ def test_plan_uses_a_configured_backend_and_token(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(("name", "value", "field"), [
     ("AESOP_CONTROL_VERDICT_STALE_S", "-1", "verdict_stale_s"),
-    ("AESOP_CONTROL_START_POSITION", "[0, 1]", "start_position"),
+    ("AESOP_SIM_START_POSITION", "[0, 1]", "start_position"),
+    ("AESOP_SIM_STATE_RATE_HZ", "0", "state_rate_hz"),
     ("AESOP_REASONER_FALLBACK", "panic", "fallback"),
     ("AESOP_EMBEDDING_MAX_ITEMS", "lots", "max_items"),
     ("AESOP_ROBOT", "no spaces", "robot"),

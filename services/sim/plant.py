@@ -1,8 +1,8 @@
-"""The simulated vehicle the control service flies.
+"""The simulated quadrotor's truth and flight controller (the simulator's physics).
 
-The truth is always the nonlinear 12-state quadrotor of :mod:`.dynamics`,
-integrated with RK4. What the controller's input means depends on the
-scenario's planning model (:mod:`.models`):
+The truth is always the nonlinear 12-state quadrotor of
+:mod:`services.control.dynamics`, integrated with RK4. What a set-point's command
+means depends on the scenario's planning model (:mod:`services.control.models`):
 
 * ``quadrotor``: thrust and torques, applied to the motors
   (:class:`SimulatedQuadrotor`), clipped to what the rotors can produce;
@@ -13,8 +13,10 @@ scenario's planning model (:mod:`.models`):
   sent acceleration set-points and "relies on the PX4's internal PID
   controllers to track" them.
 
-Both plants have the same ``step(u) -> x`` shape, so the closed loop does
-not care which one it drives.
+Both plants have the same ``step(u, duration) -> x`` shape (``duration`` defaults to
+their ``dt``), so whoever drives them does not care which one it is:
+:class:`.vehicle.SimVehicle` (the simulator ``aesop serve sim`` runs, and the
+benchmarks in process) and the control benchmarks.
 """
 
 from __future__ import annotations
@@ -25,8 +27,8 @@ from typing import Protocol
 
 import numpy as np
 
-from .dynamics import QuadrotorParams, body_z, cross, simulate_step
-from .scenario import Scenario
+from services.control.dynamics import QuadrotorParams, body_z, cross, simulate_step
+from services.control.scenario import Scenario
 
 
 class Plant(Protocol):
@@ -37,7 +39,7 @@ class Plant(Protocol):
     @property
     def state(self) -> np.ndarray: ...
 
-    def step(self, u: np.ndarray) -> np.ndarray: ...
+    def step(self, u: np.ndarray, duration: float | None = None) -> np.ndarray: ...
 
 
 class SimulatedQuadrotor:
@@ -55,11 +57,14 @@ class SimulatedQuadrotor:
     def state(self) -> np.ndarray:
         return self._x.copy()
 
-    def step(self, u: np.ndarray) -> np.ndarray:
-        """Hold ``u`` (clipped to the actuator box) for ``dt``; return the new state."""
+    def step(self, u: np.ndarray, duration: float | None = None) -> np.ndarray:
+        """Hold ``u`` (clipped to the actuator box) for ``duration`` (``dt``); return the
+        new state."""
+        span = self.dt if duration is None else duration
         u = np.clip(np.asarray(u, dtype=float), self._lo, self._hi)
-        self._x = simulate_step(self._x, u, self.dt, self.params, self.substeps)
-        self.t += self.dt
+        substeps = max(1, math.ceil(self.substeps * span / self.dt - 1e-9))
+        self._x = simulate_step(self._x, u, span, self.params, substeps)
+        self.t += span
         return self.state
 
 
@@ -92,17 +97,28 @@ class FlightController:
 
     def command(self, x: np.ndarray, accel: np.ndarray) -> np.ndarray:
         p, g = self.params, self.gains
-        force = p.mass * (np.asarray(accel, dtype=float) + np.array([0.0, 0.0, p.gravity]))
-        norm = max(float(np.linalg.norm(force)), 1e-6)
-        phi_d = float(np.clip(math.asin(np.clip(-force[1] / norm, -1.0, 1.0)),
-                              -g.max_tilt, g.max_tilt))
-        theta_d = float(np.clip(math.atan2(force[0], force[2]), -g.max_tilt, g.max_tilt))
-        thrust = float(force @ body_z(*x[6:9]))
-        error = np.array([phi_d, theta_d, 0.0]) - x[6:9]
-        rate_sp = np.clip(g.attitude * error, -self._max_rate, self._max_rate)
-        omega = x[9:12]
-        torque = self._inertia * g.rate * (rate_sp - omega) + cross(omega, self._inertia * omega)
-        return np.clip(np.concatenate([[thrust], torque]), self._lo, self._hi)
+        ax, ay, az = np.asarray(accel, dtype=float).tolist()
+        fx, fy, fz = p.mass * ax, p.mass * ay, p.mass * (az + p.gravity)
+        norm = max(math.sqrt(fx * fx + fy * fy + fz * fz), 1e-6)
+        phi_d = _clip(math.asin(_clip(-fy / norm, 1.0)), g.max_tilt)
+        theta_d = _clip(math.atan2(fx, fz), g.max_tilt)
+        phi, theta, psi, wx, wy, wz = np.asarray(x, dtype=float)[6:12].tolist()
+        bx, by, bz = body_z(phi, theta, psi).tolist()
+        thrust = fx * bx + fy * by + fz * bz
+        jx, jy, jz = p.inertia
+        rx, ry, rz = (_clip(g.attitude * (phi_d - phi), g.max_rate[0]),
+                      _clip(g.attitude * (theta_d - theta), g.max_rate[1]),
+                      _clip(g.attitude * (0.0 - psi), g.max_rate[2]))
+        hx, hy, hz = jx * wx, jy * wy, jz * wz  # omega x (J omega): gyroscopic compensation
+        u = np.array([thrust,
+                      jx * g.rate * (rx - wx) + (wy * hz - wz * hy),
+                      jy * g.rate * (ry - wy) + (wz * hx - wx * hz),
+                      jz * g.rate * (rz - wz) + (wx * hy - wy * hx)])
+        return np.minimum(np.maximum(u, self._lo), self._hi)
+
+
+def _clip(value: float, limit: float) -> float:
+    return -limit if value < -limit else limit if value > limit else value
 
 
 class TrackedQuadrotor:
@@ -130,15 +146,18 @@ class TrackedQuadrotor:
     def state(self) -> np.ndarray:
         return self._x.copy()
 
-    def step(self, u: np.ndarray) -> np.ndarray:
-        """Track the acceleration ``u`` (m/s^2, world frame) for ``dt``."""
+    def step(self, u: np.ndarray, duration: float | None = None) -> np.ndarray:
+        """Track the acceleration ``u`` (m/s^2, world frame) for ``duration`` (``dt``)."""
+        span = self.dt if duration is None else duration
+        inner = self.inner if duration is None else max(1, math.ceil(span * self.gains.hz
+                                                                       - 1e-9))
         accel = np.asarray(u, dtype=float)
         x = self._x
-        h = self.dt / self.inner
-        for _ in range(self.inner):
+        h = span / inner
+        for _ in range(inner):
             x = simulate_step(x, self.controller.command(x, accel), h, self.params, 1)
         self._x = x
-        self.t += self.dt
+        self.t += span
         return self.state
 
 
