@@ -253,7 +253,8 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--robot", help="only this robot (default: every robot)")
     rec.add_argument("--topics", nargs="+", metavar="TOPIC",
                      help="only these: observation anomaly state plan reasoner/request "
-                          "reasoner/decision event regions (default: all)")
+                          "reasoner/decision event regions vehicle/state vehicle/setpoint "
+                          "(default: all)")
     rec.add_argument("--connect", action="append", metavar="ENDPOINT",
                      help="Zenoh endpoint (repeatable; default: AESOP_ZENOH_CONNECT)")
     rec.set_defaults(func=recording_command("record_command"))

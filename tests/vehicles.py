@@ -4,16 +4,19 @@ runtime as the bus's slot would hand them, the runtime's set-points handed back.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from services.control.dynamics import N_STATE
 from services.control.loop import ControlRuntime, TickResult
 from services.control.scenario import Scenario
+from services.control.settings import ControlSettings
 from services.sim.vehicle import Reporting, SimVehicle
 from shared.bus import Received
-from shared.messages import VehicleState
+from shared.messages import AnomalyVerdict, Observation, ReasonerDecision, VehicleState
 
 
 def rest(position: Sequence[float]) -> np.ndarray:
@@ -59,3 +62,77 @@ def fly_tick(rt: ControlRuntime, vehicle: Vehicle, now: float, **inputs: object)
     result = rt.tick(deadline=now, state=vehicle.advance(now), **inputs)  # type: ignore[arg-type]
     vehicle.follow(result, now)
     return result
+
+
+class FakeClock:
+    """Monotonic seconds that move only when the test moves them."""
+
+    def __init__(self, now: float = 1000.0) -> None:
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@dataclass
+class Flown:
+    """What a flight left: the truth at every tick, the inputs, what the loop said."""
+
+    truth: list[np.ndarray] = field(default_factory=list)
+    inputs: list[np.ndarray] = field(default_factory=list)
+    results: list[TickResult] = field(default_factory=list)
+    holding: list[bool] = field(default_factory=list)  # the vehicle held itself
+
+    def kinds(self) -> list[str]:
+        return [e.kind for r in self.results for e in r.events]
+
+    def modes(self) -> list[str]:
+        return [r.state.mode.value for r in self.results]
+
+
+Fault = Callable[[Vehicle, float, float], None]  # (vehicle, flight time, clock) each tick
+
+
+def fly(scenario: Scenario, seconds: float, *, reporting: Reporting | None = None,
+        latency_s: float = 0.0, fault: Fault | None = None, sync_every_s: float | None = 1.0,
+        decide: Callable[[TickResult], int | None] | None = None,
+        start: Sequence[float] | None = None) -> Flown:
+    """The control runtime flying the simulated vehicle for ``seconds`` of simulated time
+    at the scene's rate, the detector answering every tick with a nominal verdict.
+
+    ``fault`` is called before each tick; ``sync_every_s``: how often the vehicle's clock
+    is read as a clock query would (None: never, the arrivals are all the loop has);
+    ``decide``: the reasoner, given each tick's result with a request (None: it never
+    answers and the loop commits its fallback at K)."""
+    clock = FakeClock()
+    rt = ControlRuntime(ControlSettings(robot="drone1"), scenario, clock=clock)
+    vehicle = Vehicle(scenario, start or scenario.start_center, clock.now, reporting,
+                      latency_s)
+    flown = Flown()
+    decision: ReasonerDecision | None = None
+    synced = -math.inf
+    for k in range(round(seconds / scenario.dt)):
+        now, t = clock.now, k * scenario.dt
+        if fault is not None:
+            fault(vehicle, t, now)
+        if sync_every_s is not None and now - synced >= sync_every_s:
+            rt.vehicle.clock.sample(now, now, vehicle.sim.clock(now))
+            synced = now
+        seen = Received("aesop/drone1/observation",
+                        Observation(robot="drone1", seq=k, text="the red box"), now)
+        verdict = Received("aesop/drone1/anomaly", AnomalyVerdict(
+            robot="drone1", seq=k, score=-0.9, threshold=-0.7, is_anomaly=False, k=1,
+            model="m", cache="c", cache_version=1, latency_ms=1.0), now)
+        result = fly_tick(rt, vehicle, now, verdict=verdict, observation=seen,
+                          decision=decision)
+        if result.request is not None and decide is not None:
+            choice = decide(result)
+            if choice is not None:
+                decision = ReasonerDecision(robot="drone1", request_id=result.request.request_id,
+                                            choice=choice, source="llm", latency_ms=1.0)
+        flown.truth.append(vehicle.sim.truth)
+        flown.inputs.append(result.output.u)
+        flown.results.append(result)
+        flown.holding.append(vehicle.sim.holding)
+        clock.now += scenario.dt
+    return flown

@@ -3,9 +3,10 @@
 It starts ``aesop serve embedding`` (the bundled all-MiniLM-L6-v2 unless
 ``--model``; a cache of the quadrotor hardware scene, every combination of up
 to ``cache_detections`` nominal detections, calibrated for a 0.9 TPR with
-top-1 scoring, as ``aesop demo`` does) and ``aesop serve control`` (the
-packaged paper scenario, 10 Hz) as child processes, all on a private Zenoh
-endpoint that this process listens on. Then, in two phases:
+top-1 scoring, as ``aesop demo`` does), ``aesop serve control`` (the
+packaged paper scenario, 10 Hz) and the vehicle it flies (``aesop serve sim``) as child
+processes, all on a private Zenoh endpoint that this process listens on. Then, in two
+phases:
 
 1. **verdict latency**: ``observations`` Observations, published at
    ``rate_hz`` on a fixed schedule, cycling through the paper's four test
@@ -15,10 +16,11 @@ endpoint that this process listens on. Then, in two phases:
    It is two Zenoh hops plus the service's embedding and scoring.
 2. **control reaction latency**: ``anomalies`` trials, with a scene stream
    at ``rate_hz`` going on throughout so the control loop's verdicts stay
-   fresh. Each trial restarts the flight (``POST /v1/reset``) while the scene
-   is nominal and waits for a nominal ``ControlState`` of the restarted
-   flight; then the scene turns anomalous (every frame published from then on
-   shows the anomaly, as a real scene would). Reaction = the arrival here of
+   fresh. Each trial moves the vehicle back to the start and restarts the flight
+   (the simulator's and control's ``POST /v1/reset``) while the scene is nominal and
+   waits for a nominal ``ControlState`` of the restarted flight; then the scene turns
+   anomalous (every frame published from then on shows the anomaly, as a real scene
+   would). Reaction = the arrival here of
    the first ``ControlState`` with ``mode != "nominal"`` (the detection tick:
    Algorithm 1 enters ``anomaly_pending`` and asks the reasoner) minus the
    publish of the first anomalous observation. It is the verdict latency, plus
@@ -60,6 +62,7 @@ from services.scenes.hardware import (
     detections_of,
     observation_text,
 )
+from services.sim.client import SimClient
 from services.stack.up import DETECTOR_CACHE
 from shared import topics
 from shared.bus import Bus, Received, Subscription
@@ -91,9 +94,11 @@ class Stack:
     token: str
     embedding: ServiceProcess
     control: ServiceProcess
+    sim: ServiceProcess
     bus: Bus
     detector: EmbeddingClient
     pilot: ControlClient
+    vehicle: SimClient
     cache: CacheInfo | None = None
 
 
@@ -113,9 +118,18 @@ def embedding_process(tmp: Path, endpoint: str, token: str, **env: str) -> Servi
 def control_process(tmp: Path, endpoint: str, token: str, **env: str) -> ServiceProcess:
     port = free_port()
     full = {**service_env(endpoint, token), "AESOP_CONTROL_RATE_HZ": str(CONTROL_RATE_HZ),
-            "AESOP_CONTROL_START_POSITION": str(list(START)), **env}
+            **env}
     return ServiceProcess(["serve", "control", "--port", str(port), "--data-dir", str(tmp)],
                           port=port, env=full, log_path=tmp / "control.log", ready_timeout_s=60)
+
+
+def sim_process(tmp: Path, endpoint: str, token: str, **env: str) -> ServiceProcess:
+    """The vehicle control flies (the paper scene at the start, in real time at 10 Hz)."""
+    port = free_port()
+    full = {**service_env(endpoint, token), "AESOP_SIM_START_POSITION": str(list(START)),
+            **env}
+    return ServiceProcess(["serve", "sim", "--port", str(port), "--data-dir", str(tmp)],
+                          port=port, env=full, log_path=tmp / "sim.log", ready_timeout_s=60)
 
 
 async def pick_scenes(detector: EmbeddingClient, cache_detections: int = 4
@@ -144,12 +158,15 @@ async def running_stack(tmp: Path, model: str, cache_detections: int):
     with Bus.open(BusSettings(zenoh_listen=[endpoint]), "bench") as bus:
         embedding = embedding_process(tmp, endpoint, token)
         control = control_process(tmp, endpoint, token)
-        say(f"starting embedding and control on Zenoh {endpoint}")
-        with embedding, control:
+        sim = sim_process(tmp, endpoint, token)
+        say(f"starting embedding, control and the vehicle on Zenoh {endpoint}")
+        with embedding, control, sim:
             async with EmbeddingClient(embedding.url, token=token,
                                        timeout_s=WAIT_S * 5) as detector, \
-                    ControlClient(control.url, token=token, timeout_s=WAIT_S) as pilot:
-                stack = Stack(endpoint, token, embedding, control, bus, detector, pilot)
+                    ControlClient(control.url, token=token, timeout_s=WAIT_S) as pilot, \
+                    SimClient(sim.url, token=token, timeout_s=WAIT_S) as vehicle:
+                stack = Stack(endpoint, token, embedding, control, sim, bus, detector, pilot,
+                              vehicle)
                 stack.cache, _ = await build_scene_cache(detector, CACHE, model=model, say=say,
                                                          max_detections=cache_detections)
                 yield stack
@@ -290,7 +307,9 @@ async def nominal_flight(stack: Stack, scene: Scene, verdicts: Verdicts,
         scene.publish(nominal)
         for seq in [s for s in scene.sent if s not in verdicts.arrived]:
             await verdicts.wait(seq)
-        await stack.pilot.reset(START)
+        await stack.vehicle.reset(START)
+        await asyncio.sleep(0.2)  # its state at the start reaches the loop
+        await stack.pilot.reset()
         await next_state(states, lambda s: s.t == 0.0, "the restarted flight")
         got = await next_state(states, lambda s: True, "a tick")
         if got.message.mode == "nominal":

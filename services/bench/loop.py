@@ -59,6 +59,7 @@ class FlightScript:
         self.anomaly = round(anomaly_s / dt)
         self.answer = max(1, round(answer_s / dt))
         self._decision: tuple[int, ReasonerDecision] | None = None
+        self.paused = False  # no verdicts while a new flight is set up
 
     def verdict(self, k: int) -> AnomalyVerdict:
         flagged = k % self.cycle == self.anomaly
@@ -104,7 +105,10 @@ async def time_loop(scenario: Scenario, rate_hz: float, ticks: int, bus: Bus, si
     k = 0
 
     async def new_flight(start: np.ndarray) -> None:
-        """The vehicle moved to ``start``; once its state says so, the loop reset there."""
+        """As an operator starts one: the detector off (the reset loop waits), the loop
+        reset, the vehicle moved to ``start``; once its state says so, the detector on."""
+        script.paused = True
+        await runtime.reset()
         await sim.reset([float(v) for v in start[0:3]])
         deadline = time.monotonic() + 5.0
         while time.monotonic() < deadline:
@@ -112,11 +116,12 @@ async def time_loop(scenario: Scenario, rate_hz: float, ticks: int, bus: Bus, si
             if newest is not None and np.linalg.norm(newest[0:3] - start[0:3]) < 0.05:
                 break
             await asyncio.sleep(0.01)
-        await runtime.reset()
+        script.paused = False
 
     def tick(deadline: float) -> None:
         nonlocal k
-        verdict = Received("bench", script.verdict(k), time.monotonic())
+        verdict = None if script.paused else Received("bench", script.verdict(k),
+                                                      time.monotonic())
         result = runtime.tick(deadline=deadline, verdict=verdict, decision=script.decision(k),
                               state=states.get())
         if result.setpoint is not None:
@@ -147,6 +152,7 @@ async def time_loop(scenario: Scenario, rate_hz: float, ticks: int, bus: Bus, si
         sys.setswitchinterval(switch)
         stop_sync.set()
         states.close()
+        runtime.close()
     for reset in resets:
         await asyncio.wrap_future(reset)
     summary = scheduler.stats.summary()

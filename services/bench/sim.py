@@ -153,8 +153,7 @@ def vehicle_loop(scenario: Scenario, x0: np.ndarray, reporting: Reporting
     vehicle = SimVehicle(scenario, x0, reporting, now=0.0)
     clock = ClockMap(sync_max_age_s=math.inf)
     clock.sample(0.0, 0.0, vehicle.clock(0.0))  # a clock query with no round trip
-    view = StateInput(limit_s=STALE_TICKS * scenario.dt, clock=clock,
-                      max_speed=2.0 * math.sqrt(3.0) * scenario.limits.velocity)
+    view = StateInput(limit_s=STALE_TICKS * scenario.dt, clock=clock)
     return vehicle, view
 
 

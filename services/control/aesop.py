@@ -354,10 +354,10 @@ class _Controller:
         and the inputs sent since (delay compensation). ``x`` None: no usable state (the
         caller raised the alarm); the step flies blind as for a non-finite one, silently."""
         if x is None:
-            return self._measurement_lost(decision, alarm=False)
+            return self._measurement_lost(decision, anomaly, alarm=False)
         self._x = np.asarray(x, dtype=float)
         if not np.all(np.isfinite(self._x)):
-            return self._measurement_lost(decision)
+            return self._measurement_lost(decision, anomaly)
         if age > 0.0:
             self._x = self._predict(self._x, age)
         xm = self.model.measure(self._x, self._lag)
@@ -380,10 +380,12 @@ class _Controller:
         inputs = [u for u, _ in list(self._sent)[len(self._sent) - back:]]
         return self.model.predict(x, lag, inputs, first_s)
 
-    def _measurement_lost(self, decision: int | None, *, alarm: bool = True) -> ControlOutput:
-        """No usable state: no solver sees one. Fly the kept recovery branch (or hover) and
-        take the decision; a non-finite state raises an alarm (``alarm``). The next usable
-        state resumes the loop."""
+    def _measurement_lost(self, decision: int | None, anomaly: bool = False, *,
+                          alarm: bool = True) -> ControlOutput:
+        """No usable state: no solver sees one. Fly the kept recovery branch (or hover),
+        take the decision, and on an anomaly in nominal flight ask the reasoner among the
+        regions the kept tree holds (as a solved step would); a non-finite state raises an
+        alarm (``alarm``). The next usable state resumes the loop."""
         self._take_decision(decision)
         mem = self.memory
         if self.commits_at_k and mem.mode is Mode.PENDING and self._k() >= self.config.consensus:
@@ -391,9 +393,17 @@ class _Controller:
         if alarm:
             self._alarms.append("non-finite state measured: flying the last plan's recovery "
                                 "branch")
+        request = None
+        if anomaly and mem.mode is Mode.NOMINAL:
+            options = self._active or tuple(sorted(self.regions))
+            mem.mode, mem.t_anom, mem.options = Mode.PENDING, mem.t, options
+            mem.chosen, mem.fallback, mem.spent = None, False, mem.held
+            mem.events.append(f"anomaly while flying blind: asking the reasoner among regions "
+                              f"{options}")
+            request = options
         active = {Mode.RECOVERING: (mem.chosen,), Mode.PENDING: mem.options}.get(
             mem.mode, self._active)
-        return self._output(self._blind(), SolveStatus.FAILED, None, active)
+        return self._output(self._blind(), SolveStatus.FAILED, None, active, request)
 
     def _k(self) -> int:
         """Ticks of the consensus budget used since the anomaly (a hold's included)."""

@@ -27,12 +27,14 @@ returns.
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 import threading
 import time
 import uuid
 from collections import deque
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -65,8 +67,11 @@ from .scenario import Scenario, ScenarioError
 from .settings import ControlSettings
 from .vehicle import StateInput, StateReading, setpoint
 
+log = logging.getLogger(__name__)
+
 SOURCE = "control"
 SPIN_S = 0.0005  # s: the scheduler spins, rather than sleeps, this close to a deadline
+WARM_M = 0.05  # m: a waiting flight's controller is warmed up again if the vehicle is farther
 SILENT = ("the anomaly detector has gone silent: no verdict answers a recent observation, "
           "so the scene is unmonitored and continuing is not an option")
 BLIND = ("the vehicle's state has stopped arriving (or was refused): the robot flies blind on "
@@ -285,9 +290,11 @@ class ControlRuntime:
         self.controller = self.build_controller(scenario, x0)
         self.vehicle = StateInput(
             limit_s=settings.state_stale_ticks * self.period_s, frame=settings.vehicle_frame,
-            jump_m=settings.state_jump_m, reset_s=settings.state_reset_s,
-            max_speed=2.0 * math.sqrt(3.0) * scenario.limits.velocity)
+            jump_m=settings.state_jump_m, reset_s=settings.state_reset_s)
         self._last_x = x0  # the newest state the loop planned from
+        self._warm_at = x0[POS].copy()  # where the controller was warmed up
+        self._warming: Future[tuple[Controller, np.ndarray]] | None = None
+        self._builder: ThreadPoolExecutor | None = None
         self._setpoints = 0  # set-points sent (their seq)
         self._k = 0  # ticks flown since the flight (re)started
         self._k0 = 0  # tick at which the controller was built
@@ -349,7 +356,8 @@ class ControlRuntime:
             if state is not None:
                 self.vehicle.offer(state, gate=self.mode is not Mode.WAITING)
             reading = self.vehicle.read(self.clock())
-            inputs = self._read_inputs(verdict, decision, reading)
+            ready = self.mode is not Mode.WAITING or self._warm_where(reading)
+            inputs = self._read_inputs(verdict, decision, reading, ready)
             if inputs.waiting:
                 result = self._finish(self._hold(), inputs, 0.0, deadline, seen, reading)
                 self.last = result
@@ -377,6 +385,31 @@ class ControlRuntime:
         self._sightings.record(message.seq, at)
         return message
 
+    def _warm_where(self, reading: StateReading) -> bool:
+        """While waiting: whether the controller is warm where the vehicle is. When it is
+        not (the vehicle was moved, or started elsewhere), a controller warmed up there is
+        built off the tick and swapped in by a later tick: the flight starts then, not
+        with a cold solve (a few hundred ms at the hardware grid, an overrun)."""
+        if not reading.fresh or reading.x is None:
+            return True  # nothing to warm up at: waiting anyway
+        if self._warming is not None:
+            if not self._warming.done():
+                return False
+            warming, self._warming = self._warming, None
+            try:
+                self.controller, self._warm_at = warming.result()
+            except Exception:  # a build that failed: the next tick tries again
+                log.exception("warming the controller up failed")
+                return False
+        if float(np.linalg.norm(reading.x[POS] - self._warm_at)) <= WARM_M:
+            return True
+        if self._builder is None:
+            self._builder = ThreadPoolExecutor(1, thread_name_prefix="control-warm")
+        x, scenario = reading.x.copy(), self.scenario
+        self._warming = self._builder.submit(
+            lambda: (self.build_controller(scenario, x), x[POS].copy()))
+        return False
+
     def _hold(self) -> ControlOutput:
         """While waiting: nothing is solved and nothing is sent (the vehicle holds)."""
         u = self.controller.model.linear.u_hover.copy()
@@ -384,10 +417,11 @@ class ControlRuntime:
                              active_regions=(), t_anom=None, chosen=None)
 
     def _read_inputs(self, verdict: Received[AnomalyVerdict] | None,
-                     decision: ReasonerDecision | None, reading: StateReading) -> _Inputs:
+                     decision: ReasonerDecision | None, vehicle: StateReading,
+                     ready: bool = True) -> _Inputs:
         events, self._queued = self._queued, []
         events.extend(self._event(n.kind, n.severity, n.message, **n.data)
-                      for n in reading.notes)
+                      for n in vehicle.notes)
         now = self.clock()
         age = None if verdict is None else verdict_age(
             self._sightings, verdict.message.seq, verdict.received_at, now)
@@ -395,7 +429,7 @@ class ControlRuntime:
             mode=self.mode, age=age, limit=self.settings.verdict_stale_s,
             verdict=None if verdict is None else verdict.message,
             scene=self._scene_of(verdict) if verdict and verdict.message.is_anomaly else None,
-            decision=decision, vehicle=reading.fresh)
+            decision=decision, vehicle=vehicle.fresh and ready)
         events.extend(self._event(n.kind, n.severity, n.message, **n.data)
                       for n in reading.notes)
         return _Inputs(reading.anomaly, reading.decision, reading.stale, verdict, events,
@@ -537,6 +571,7 @@ class ControlRuntime:
                 raise NotNominal(self.mode.value)
             controller.carry_on(self.controller)
             self.scenario, self.controller, self._k0 = scenario, controller, self._k
+            self._warming = None  # one being built has the old regions
             self.handshake.forget_request()
             regions = scenario.regions
             self._queued.append(self._event(
@@ -550,12 +585,18 @@ class ControlRuntime:
         newest = self.vehicle.newest
         x0 = self._last_x if newest is None else newest
         controller = await asyncio.to_thread(self.build_controller, self.scenario, x0)
-        await asyncio.to_thread(self._swap_flight, controller)
+        await asyncio.to_thread(self._swap_flight, controller, x0)
         return None if newest is None else (float(x0[0]), float(x0[1]), float(x0[2]))
 
-    def _swap_flight(self, controller: Any) -> None:
+    def close(self) -> None:
+        """Let the warm-up thread go (after the loop has ended)."""
+        if self._builder is not None:
+            self._builder.shutdown(wait=False, cancel_futures=True)
+            self._builder = None
+
+    def _swap_flight(self, controller: Any, x0: np.ndarray) -> None:
         with self.lock:  # between two ticks
-            self.controller = controller
+            self.controller, self._warm_at, self._warming = controller, x0[POS].copy(), None
             self.vehicle.forget()
             self._k = self._k0 = 0
             self.mode, self.handshake = Mode.WAITING, Handshake()

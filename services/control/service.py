@@ -280,5 +280,6 @@ class ControlService:
 
     def close(self) -> None:
         """Close the bus if it is ours (after the loop has ended)."""
+        self.runtime.close()
         if self.owns_bus and self.bus is not None:
             self.bus.close()

@@ -33,8 +33,9 @@ class ControlSettings(ServiceSettings):
     # a set-point is valid this many ticks past the instant it is for; then the vehicle holds
     setpoint_valid_ticks: float = Field(default=3.0, gt=0.0, le=100.0)
     vehicle_frame: str = Field(default="world", min_length=1, max_length=64)
-    # a state farther than this (m), plus the scene's top speed times the time between
-    # stamps, from the last accepted one is a jump: refused until it has held state_reset_s
+    # a state farther than this (m), plus what 5 m/s^2 adds over the time between stamps,
+    # from where the last accepted one was heading is a jump: refused until it has held
+    # state_reset_s
     state_jump_m: float = Field(default=0.5, gt=0.0)
     state_reset_s: float = Field(default=0.5, ge=0.0)
     # s between queries of the vehicle's clock (aesop/{robot}/vehicle/clock); 0: never ask

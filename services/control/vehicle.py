@@ -10,13 +10,14 @@
 * :class:`StateInput` — the newest usable state. A message is *new* when its ``seq``
   moved on (or the vehicle restarted: a lower ``seq`` with a later stamp); a repeated
   one refreshes nothing. A state is *refused* when it is not finite, is in another
-  frame, has an attitude that is no unit quaternion, or has jumped farther from the
-  last accepted one than the vehicle could have flown (``jump_m`` plus the scene's top
-  speed times the time between their stamps); a jumped estimate that stays
-  self-consistent for ``reset_s`` is taken as the vehicle's new truth (an estimator
-  reset). Freshness is judged on this host alone: the newest accepted state arrived
-  at most ``limit_s`` ago. Its *age* (for delay compensation) is the time since it was
-  valid, through the clock map, never less than the time since it arrived.
+  frame, has an attitude that is no unit quaternion, or has jumped: it lies farther from
+  where the last accepted one was heading (its position plus its velocity times the time
+  between their stamps) than ``jump_m`` plus what ``max_accel`` could add in that time
+  (``a t^2 / 2``). A jumped estimate that stays self-consistent for ``reset_s`` is taken
+  as the vehicle's new truth (an estimator reset). Freshness is judged on this host
+  alone: the newest accepted state arrived at most ``limit_s`` ago. Its *age* (for delay
+  compensation) is the time since it was valid, through the clock map, never less than
+  the time since it arrived.
 * :func:`state_vector`, :func:`setpoint` — the contract's messages to and from the
   12-state model's arrays.
 """
@@ -117,6 +118,14 @@ class StateReading:
         return (float(self.x[0]), float(self.x[1]), float(self.x[2]))
 
 
+@dataclass(frozen=True)
+class Refusal:
+    """Why a state was refused: its ``kind`` (one alarm per run of one kind) and words."""
+
+    kind: Literal["frame", "finite", "attitude", "jump"]
+    why: str
+
+
 @dataclass
 class _Accepted:
     x: np.ndarray
@@ -127,20 +136,20 @@ class _Accepted:
 
 class StateInput:
     """The newest usable vehicle state, offered each tick from the bus's slot (module
-    docstring). ``max_speed`` (m/s) bounds how far the vehicle may move between two
-    stamps before a state counts as a jump."""
+    docstring). ``max_accel`` (m/s^2) bounds how far the vehicle may stray between two
+    stamps from where it was heading before a state counts as a jump."""
 
     def __init__(self, *, limit_s: float, frame: str = "world", jump_m: float = 0.5,
-                 reset_s: float = 0.5, max_speed: float = 5.0,
+                 reset_s: float = 0.5, max_accel: float = 5.0,
                  clock: ClockMap | None = None) -> None:
         self.limit_s, self.frame = limit_s, frame
-        self.jump_m, self.reset_s, self.max_speed = jump_m, reset_s, max_speed
+        self.jump_m, self.reset_s, self.max_accel = jump_m, reset_s, max_accel
         self.clock = clock or ClockMap()
         self._last: _Accepted | None = None
         self._offered: tuple[int, float] | None = None  # (seq, arrival) of the last offer
         self._candidate: _Accepted | None = None  # a jumped estimate, and since when
         self._candidate_since: float | None = None
-        self._refusal: str | None = None  # why the newest new message was refused
+        self._refusal: Refusal | None = None  # why the newest new message was refused
         self._notes: list[Note] = []
         self._fresh: bool | None = None  # as the last read said
         self._newest: np.ndarray | None = None
@@ -181,41 +190,46 @@ class StateInput:
             why = self._jump(x, msg, got.received_at, last)
         if why is not None:
             self.refused += 1
-            if why != self._refusal:
+            if self._refusal is None or why.kind != self._refusal.kind:  # once a run
                 self._notes.append(Note("state_refused", "alarm", f"vehicle state {msg.seq} "
-                                        f"refused: {why}", {"seq": msg.seq}))
+                                        f"refused: {why.why}", {"seq": msg.seq,
+                                                                "refusal": why.kind}))
             self._refusal = why
             return
         self._refusal = None
         self._accept(_Accepted(x, msg.seq, msg.stamp, got.received_at))
 
-    def _check(self, msg: VehicleState, x: np.ndarray) -> str | None:
+    def _check(self, msg: VehicleState, x: np.ndarray) -> Refusal | None:
         if msg.frame != self.frame:
-            return f"frame {msg.frame!r} is not the loop's {self.frame!r}"
+            return Refusal("frame", f"frame {msg.frame!r} is not the loop's {self.frame!r}")
         if not (np.all(np.isfinite(x)) and math.isfinite(msg.stamp)):
-            return "not finite"
+            return Refusal("finite", "not finite")
         norm = math.sqrt(sum(v * v for v in msg.attitude))
         if abs(norm - 1.0) > QUATERNION_SLACK:
-            return f"the attitude is not a unit quaternion (norm {norm:.3f})"
+            return Refusal("attitude", f"the attitude is not a unit quaternion "
+                                       f"(norm {norm:.3f})")
         return None
 
     def _jump(self, x: np.ndarray, msg: VehicleState, arrived: float, last: _Accepted
-              ) -> str | None:
+              ) -> Refusal | None:
         """None if ``x`` is within reach of the last accepted state; else why, unless it
         continues a jumped estimate that has now held for ``reset_s`` (then accepted)."""
         if self._within(x, msg.stamp, last):
             self._candidate = self._candidate_since = None
             return None
-        moved = float(np.linalg.norm(x[0:3] - last.x[0:3]))
+        moved = float(np.linalg.norm(x[0:3] - last.x[0:3] - last.x[3:6] * (msg.stamp
+                                                                           - last.stamp)))
         here = _Accepted(x, msg.seq, msg.stamp, arrived)
+        jumped = Refusal("jump", f"it jumped {moved:.2f} m from where the last accepted state "
+                                 "was heading")
         candidate = self._candidate
         if candidate is None or not self._within(x, msg.stamp, candidate):
             self._candidate, self._candidate_since = here, msg.stamp
-            return f"it jumped {moved:.2f} m from the last accepted state"
+            return jumped
         self._candidate = here
         since = self._candidate_since if self._candidate_since is not None else msg.stamp
         if msg.stamp - since < self.reset_s:
-            return f"it jumped {moved:.2f} m from the last accepted state"
+            return jumped
         self._notes.append(Note("state_reset", "alarm", f"the vehicle's estimate moved "
                                 f"{moved:.2f} m and has held there for {msg.stamp - since:.2f} s:"
                                 " taken as its new state", {"seq": msg.seq,
@@ -224,8 +238,10 @@ class StateInput:
         return None
 
     def _within(self, x: np.ndarray, stamp: float, ref: _Accepted) -> bool:
-        reach = self.jump_m + self.max_speed * abs(stamp - ref.stamp)
-        return bool(np.linalg.norm(x[0:3] - ref.x[0:3]) <= reach)
+        span = abs(stamp - ref.stamp)
+        heading = ref.x[0:3] + ref.x[3:6] * (stamp - ref.stamp)
+        reach = self.jump_m + 0.5 * self.max_accel * span * span
+        return bool(np.linalg.norm(x[0:3] - heading) <= reach)
 
     def _accept(self, state: _Accepted) -> None:
         self._last = state
@@ -246,7 +262,7 @@ class StateInput:
             age = arrival_age if mapped is None else max(arrival_age,
                                                          now - (last.stamp - mapped[0]))
         if self._fresh is True and not fresh:
-            why = (f"the newest vehicle states were refused ({self._refusal})"
+            why = (f"the newest vehicle states were refused ({self._refusal.why})"
                    if self._refusal is not None else
                    f"no vehicle state for {(arrival_age or 0.0) * 1000:.0f} ms")
             notes.append(Note("state_stale", "alarm", f"{why} (limit {self.limit_s * 1000:.0f}"
@@ -256,7 +272,8 @@ class StateInput:
         elif self._fresh is False and fresh:
             notes.append(Note("state_fresh", "info", "the vehicle's state is arriving again",
                               {"age_s": round(arrival_age or 0.0, 3)}))
-        self._fresh = fresh
+        if fresh or self._fresh is not None:  # no "fresh again" for the first state
+            self._fresh = fresh
         return StateReading(None if last is None else last.x.copy(), fresh,
                             None if last is None else last.seq,
                             None if last is None else last.stamp, arrival_age, age, source,
@@ -288,4 +305,4 @@ def setpoint(*, robot: str, seq: int, output: ControlOutput, model: PlanningMode
         command = {"thrust": float(u[0]), "torque": (float(u[1]), float(u[2]), float(u[3]))}
     return VehicleSetpoint(robot=robot, seq=seq, state_seq=reading.seq or 0,
                            state_stamp=reading.stamp, t=t, valid_until=t + valid_s, mode=mode,
-                           position=position, velocity=velocity, **command)  # type: ignore[arg-type]
+                           position=position, velocity=velocity, **command)

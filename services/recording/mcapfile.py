@@ -35,6 +35,8 @@ from shared.messages import (
     ReasonerDecision,
     ReasonerRequest,
     Regions,
+    VehicleSetpoint,
+    VehicleState,
 )
 
 # the last part(s) of a robot's key -> its message type (docs/architecture.md, section 3)
@@ -47,6 +49,8 @@ MODELS: dict[str, type[Message]] = {
     "reasoner/decision": ReasonerDecision,
     "event": Event,
     "regions": Regions,
+    "vehicle/state": VehicleState,
+    "vehicle/setpoint": VehicleSetpoint,
 }
 CHUNK_BYTES = 64 * 1024  # a SIGKILL loses at most this much of the newest messages
 

@@ -27,7 +27,7 @@ from typing import Protocol
 
 import numpy as np
 
-from services.control.dynamics import QuadrotorParams, body_z, cross, simulate_step
+from services.control.dynamics import QuadrotorParams, body_z, simulate_step
 from services.control.scenario import Scenario
 
 

@@ -10,7 +10,7 @@ closed-loop benchmarks run in process, so both fly the same vehicle:
   model sends), applied from the moment it arrives. Past the set-point's
   ``valid_until`` on the vehicle's clock, or before any, it *holds* on its own: a
   position loop around the flight controller brings it to rest where it was
-  (``HOLD_GAINS``), as PX4 drops out of offboard mode into a hold;
+  (:func:`hold_gains`), as PX4 drops out of offboard mode into a hold;
 * the states it reports (:class:`Reporting`): at ``rate_hz``, each published
   ``delay_s`` after the instant it is valid for, with Gaussian noise, lost at
   random with ``drop_rate``, stamped on a clock ``clock_offset_s`` off the true one;
@@ -30,15 +30,27 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from services.control.dynamics import N_STATE
+from services.control.dynamics import N_STATE, QuadrotorParams
 from services.control.scenario import Scenario
 from shared.frames import quaternion_from_euler
 from shared.messages import VehicleSetpoint, VehicleState
 
 from .plant import FlightController, FlightControllerGains, Plant, make_plant
 
-HOLD_GAINS = (2.0, 2.5)  # (1/s^2, 1/s): the hold's position and velocity gains
-HOLD_ACCEL = 2.0  # m/s^2 per axis at most while holding
+# The hold's position and velocity gains (1/s^2, 1/s) and its acceleration per axis (m/s^2):
+# brisk for an airframe that tilts fast, gentle for one that does not (the paper's
+# simulated quadrotor, 0.45 kg m^2 against a torque box of 0.49 N m, diverges under the
+# brisk ones: its attitude loop saturates).
+BRISK_HOLD = (2.0, 2.5, 2.0)
+GENTLE_HOLD = (0.5, 1.2, 0.5)
+BRISK_TILT_RAD_S2 = 10.0  # the angular acceleration the torque box gives, at least
+
+
+def hold_gains(params: QuadrotorParams) -> tuple[float, float, float]:
+    """``(kp, kd, accel)`` of the vehicle's own hold, by how fast its airframe tilts."""
+    torque = params.input_bounds()[1][1]
+    tilt = torque / max(params.inertia[0], params.inertia[1])
+    return BRISK_HOLD if tilt >= BRISK_TILT_RAD_S2 else GENTLE_HOLD
 
 
 @dataclass(frozen=True)
@@ -119,6 +131,7 @@ class SimVehicle:
         self.robot, self.frame = robot, frame
         self.accelerations = scenario.model == "point-mass"  # else thrust and torques
         self._fc = FlightController(scenario.vehicle, FlightControllerGains())
+        self._hold = hold_gains(scenario.vehicle)
         self._step_s = 1.0 / FlightControllerGains().hz
         self._rng = np.random.default_rng(seed)
         self.faults = Faults()
@@ -221,8 +234,8 @@ class SimVehicle:
 
     def _hold_accel(self, x: np.ndarray) -> np.ndarray:
         target = self._hold_at if self._hold_at is not None else x[0:3]
-        kp, kd = HOLD_GAINS
-        return np.clip(kp * (target - x[0:3]) - kd * x[3:6], -HOLD_ACCEL, HOLD_ACCEL)
+        kp, kd, most = self._hold
+        return np.clip(kp * (target - x[0:3]) - kd * x[3:6], -most, most)
 
     def _measure(self, t: float) -> None:
         """The state valid at ``t``, queued for publication ``delay_s`` later (or lost)."""
@@ -253,7 +266,7 @@ def state_message(x: np.ndarray, position: np.ndarray, velocity: np.ndarray, *, 
     """The contract's state message of the 12-state ``x`` (attitude and rates from it)."""
     assert len(x) == N_STATE
     return VehicleState(robot=robot, seq=seq, stamp=stamp, frame=frame,
-                        position=tuple(float(v) for v in position),  # type: ignore[arg-type]
-                        velocity=tuple(float(v) for v in velocity),  # type: ignore[arg-type]
+                        position=tuple(float(v) for v in position),
+                        velocity=tuple(float(v) for v in velocity),
                         attitude=quaternion_from_euler(*(float(v) for v in x[6:9])),
-                        body_rates=tuple(float(v) for v in x[9:12]))  # type: ignore[arg-type]
+                        body_rates=tuple(float(v) for v in x[9:12]))

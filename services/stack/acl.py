@@ -8,8 +8,9 @@ router's ACL then allows, per user, only what that part of the stack does
 - each service may publish only its own keys and declare only its own health token;
 - a robot ``robot-<id>`` may publish only its own observations, events and vehicle
   state (``aesop/<id>/observation``, ``aesop/<id>/event``, ``aesop/<id>/vehicle/state``),
-  answer queries of its own clock (``aesop/<id>/vehicle/clock``) and declare the
-  simulator's health token; only control publishes set-points and asks the clock;
+  answer queries of its own clock (``aesop/<id>/vehicle/clock``) and declare a
+  vehicle's health token (``aesop/health/sim`` or ``aesop/health/vehicle``); only control
+  publishes set-points and asks the clock;
 - ``monitor`` (``aesop watch``, a recorder) only reads.
 
 An ACL is enforced on what passes through the router, so sessions must be clients
@@ -81,7 +82,8 @@ def stack_acl(robots: Sequence[str]) -> dict[str, Any]:
                    f"aesop/{robot}/vehicle/state"]),
             _rule(f"{user}-clock", "ingress", ["declare_queryable", "reply"],
                   [f"aesop/{robot}/vehicle/clock"]),
-            _rule(f"{user}-health", "ingress", ["liveliness_token"], ["aesop/health/sim"]),
+            _rule(f"{user}-health", "ingress", ["liveliness_token"],
+                  ["aesop/health/sim", "aesop/health/vehicle"]),
         ]
         policies.append({"id": user, "rules": [f"{user}-puts", f"{user}-clock",
                                                f"{user}-health"], "subjects": [user]})

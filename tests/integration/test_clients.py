@@ -21,6 +21,7 @@ from services.embedding.embedders import EmbedderPool
 from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingSettings
 from services.reasoner.client import ReasonerClient
+from services.sim.client import SimClient
 from shared.client import ServiceError
 from shared.jobs import JobInfo
 from shared.messages import Observation, Option
@@ -98,26 +99,53 @@ async def test_errors_come_back_with_status_code_and_field(embedding_url: str) -
 @pytest.mark.slow
 def test_the_control_client_speaks_to_a_real_control_service(tmp_path: Path) -> None:
     port = free_port()
-    env = {"AESOP_ADMIN_TOKEN": TOKEN, "AESOP_ZENOH_LISTEN": f"tcp/127.0.0.1:{free_port()}",
-           "AESOP_CONTROL_RATE_HZ": "10", "AESOP_CONTROL_START_POSITION": "[0, 0, 1]"}
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    env = {"AESOP_ADMIN_TOKEN": TOKEN, "AESOP_ZENOH_LISTEN": endpoint,
+           "AESOP_CONTROL_RATE_HZ": "10"}
+    sim_port = free_port()
     with ServiceProcess(["serve", "control", "--port", str(port)], port=port, env=env,
                         log_path=tmp_path / "control.log", ready_timeout_s=60) as proc:
-        asyncio.run(_control_round_trip(proc.url))
+        asyncio.run(_control_round_trip(proc.url, None))
+        sim_env = {"AESOP_ADMIN_TOKEN": TOKEN, "AESOP_ZENOH_CONNECT": endpoint}
+        with ServiceProcess(["serve", "sim", "--port", str(sim_port)], port=sim_port,
+                            env=sim_env, log_path=tmp_path / "sim.log",
+                            ready_timeout_s=60) as sim:
+            asyncio.run(_sim_round_trip(sim.url, proc.url))
 
 
-async def _control_round_trip(url: str) -> None:
+async def _control_round_trip(url: str, position: tuple[float, float, float] | None) -> None:
     async with ControlClient(url, token=TOKEN) as control:
         state = await control.state()
         assert state.mode == "waiting" and state.method == "aesop"
         assert state.scenario == "paper-quadrotor-sim"  # the default scene, paper.yaml
         regions = await control.regions()
         assert len(regions.regions) == 4 and len(regions.goal) == 3
-        reset = await control.reset([0.0, 0.0, 1.0])
-        assert reset.start == (0.0, 0.0, 1.0) and reset.mode == "waiting"
+        reset = await control.reset()  # no vehicle yet: nowhere to say
+        assert reset.position == position and reset.mode == "waiting"
         swapped = await control.set_regions(regions.regions[:2])
         assert [r.name for r in swapped.regions] == [r.name for r in regions.regions[:2]]
+
+
+async def _sim_round_trip(url: str, control_url: str) -> None:
+    async with SimClient(url, token=TOKEN) as sim, \
+            ControlClient(control_url, token=TOKEN) as control:
+        moved = await sim.reset([10.0, 2.0, 2.0])
+        assert moved.start == (10.0, 2.0, 2.0)
+        state = await sim.state()
+        assert state.truth.position == pytest.approx((10.0, 2.0, 2.0), abs=0.01)
+        assert state.holding and state.scenario == "paper-quadrotor-sim"
+        assert (await sim.reporting(delay_s=0.02)).reporting["delay_s"] == 0.02
+        assert (await sim.faults(deaf_s=1.0)).faults["deaf_left_s"] > 0
+        deadline = asyncio.get_running_loop().time() + 30
+        while (await control.state()).vehicle["seq"] is None:  # its state reaches control
+            assert asyncio.get_running_loop().time() < deadline
+            await asyncio.sleep(0.1)
+        reset = await control.reset()
+        assert reset.position == pytest.approx((10.0, 2.0, 2.0), abs=0.01)
+        trace = await sim.trace()
+        assert len(trace.t) == len(trace.x) > 0 and len(trace.x[0]) == 12
         with pytest.raises(ServiceError) as outside:
-            await control.reset([1e6, 0.0, 1.0])
+            await sim.reset([1e6, 0.0, 1.0])
         assert outside.value.status == 422 and outside.value.field == "start"
 
 

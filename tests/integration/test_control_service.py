@@ -1,5 +1,6 @@
-"""`aesop serve control` as a real process on a real Zenoh link: the loop's messages,
-the reasoner round trip, the stale-verdict alarm, and the HTTP admin API."""
+"""`aesop serve control` as a real process on a real Zenoh link, flying `aesop serve sim`
+(another process): the loop's messages, the set-points, the reasoner round trip, the
+stale-verdict and stale-state alarms, and the HTTP admin API."""
 
 from __future__ import annotations
 
@@ -125,9 +126,11 @@ class VerdictSource:
 
 
 class Stack:
-    def __init__(self, proc: ServiceProcess, bus: Bus, source: VerdictSource) -> None:
-        self.proc, self.bus, self.source = proc, bus, source
+    def __init__(self, proc: ServiceProcess, sim: ServiceProcess, bus: Bus,
+                 source: VerdictSource) -> None:
+        self.proc, self.sim, self.bus, self.source = proc, sim, bus, source
         self.http = httpx.Client(base_url=proc.url, timeout=10, headers=AUTH)
+        self.vehicle = httpx.Client(base_url=sim.url, timeout=10, headers=AUTH)
         self.states = Inbox(bus, topics.state(ROBOT), ControlState)
         self.plans = Inbox(bus, topics.plan(ROBOT), PlanSnapshot)
         self.requests = Inbox(bus, topics.reasoner_request(ROBOT), ReasonerRequest)
@@ -135,16 +138,22 @@ class Stack:
         self.regions = Inbox(bus, topics.regions(ROBOT), Regions)
 
     def nominal_flight(self) -> None:
-        """Verdicts flowing, nothing flagged, the flight restarted and seen nominal."""
+        """A new flight from the start, nothing flagged, seen nominal: as an operator starts
+        one, the detector off (the reset loop waits), the loop reset, the vehicle moved to
+        the start, the detector on again."""
         self.source.anomaly = False
-        self.source.running.set()
-        time.sleep(0.3)  # let a nominal verdict replace any flagged one
-        wait_until(lambda: self.http.get("/v1/state").json()["verdict_stale"] is False,
-                   "fresh verdicts", WAIT_S)
-        since = self.states.mark()  # before the reset: its first state may come before 200
-        r = self.http.post("/v1/reset", headers=AUTH, json={"start": [0.0, 0.0, 1.0]})
+        self.source.running.clear()
+        time.sleep(1.2)  # the newest verdict goes stale (verdict_stale_s 1.0)
+        r = self.http.post("/v1/reset", json={})
         assert r.status_code == 200, r.text
-        self.states.wait_for(lambda s: s.mode == "nominal" and s.t == 0.0, "the reset", since)
+        r = self.vehicle.post("/v1/reset", json={"start": [0.0, 0.0, 1.0]})
+        assert r.status_code == 200, r.text
+        wait_until(lambda: np.allclose(self.http.get("/v1/state").json()["state"]["x"][:3],
+                                       (0.0, 0.0, 1.0), atol=0.02), "the vehicle at the start",
+                   WAIT_S)
+        since = self.states.mark()  # only the new flight's from here
+        self.source.running.set()
+        self.states.wait_for(lambda s: s.mode == "nominal" and s.t == 0.0, "the flight", since)
 
 
 @pytest.fixture(scope="module")
@@ -155,17 +164,24 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
     port = free_port()
     env = {"AESOP_ADMIN_TOKEN": TOKEN, "AESOP_CONTROL_SCENARIO": str(tmp / "light.yaml"),
            "AESOP_ZENOH_LISTEN": endpoint, "AESOP_ROBOT": ROBOT, "AESOP_CONTROL_RATE_HZ": "10",
-           "AESOP_CONTROL_VERDICT_STALE_S": "1.0", "AESOP_CONTROL_START_POSITION": "[0, 0, 1]"}
+           "AESOP_CONTROL_VERDICT_STALE_S": "1.0"}
     proc = ServiceProcess(["serve", "control", "--port", str(port)], port=port, env=env,
                           log_path=tmp / "control.log", ready_timeout_s=60)
-    with proc, Bus.open(BusSettings(zenoh_connect=[endpoint]), "tester") as bus:
+    sim_port = free_port()
+    sim = ServiceProcess(["serve", "sim", "--port", str(sim_port), "--scenario",
+                          str(tmp / "light.yaml")], port=sim_port,
+                         env={"AESOP_ADMIN_TOKEN": TOKEN, "AESOP_ZENOH_CONNECT": endpoint,
+                              "AESOP_ROBOT": ROBOT}, log_path=tmp / "sim.log",
+                         ready_timeout_s=60)
+    with proc, sim, Bus.open(BusSettings(zenoh_connect=[endpoint]), "tester") as bus:
         source = VerdictSource(bus)
-        stack = Stack(proc, bus, source)
+        stack = Stack(proc, sim, bus, source)
         try:
             yield stack
         finally:
             source.close()
             stack.http.close()
+            stack.vehicle.close()
 
 
 def test_state_and_plans_stream_one_per_tick(stack: Stack) -> None:
@@ -190,7 +206,10 @@ def test_state_and_plans_stream_one_per_tick(stack: Stack) -> None:
     assert loop["rate_hz"] == 10 and loop["ticks"] > 10
     assert loop["jitter_p50_ms"] is not None and loop["jitter_p99_ms"] >= loop["jitter_p50_ms"]
     assert loop["overruns"] >= 0 and loop["last_step_ms"] > 0
-    assert "control" in stack.bus.alive()
+    vehicle = body["vehicle"]
+    assert vehicle["fresh"] and vehicle["clock"] == "sync" and vehicle["setpoints"] > 0
+    assert stack.vehicle.get("/v1/state").json()["setpoints"]["received"] > 0
+    assert {"control", "sim"} <= stack.bus.alive()
 
 
 def test_an_anomaly_asks_the_reasoner_and_its_decision_starts_the_recovery(
@@ -223,6 +242,22 @@ def test_silent_detector_raises_one_stale_alarm(stack: Stack) -> None:
     stack.source.running.set()
     stack.events.wait_for(lambda e: e.kind == "verdict_fresh", "verdicts again", since)
     assert [e.kind for e in stack.events.items()[since:]].count("verdict_stale") == 1
+
+
+def test_a_vehicle_that_falls_silent_is_an_anomaly_and_its_return_ends_it(
+        stack: Stack) -> None:
+    stack.nominal_flight()
+    since_event, since_req = stack.events.mark(), stack.requests.mark()
+    r = stack.vehicle.post("/v1/faults", json={"dropout_s": 1.0})
+    assert r.status_code == 200 and r.json()["faults"]["dropout_left_s"] > 0
+    alarm = stack.events.wait_for(lambda e: e.kind == "state_stale", "the stale-state alarm",
+                                  since_event)
+    assert alarm.severity == "alarm" and alarm.source == "control"
+    request = stack.requests.wait_for(lambda r: True, "a request about the vehicle", since_req)
+    assert "vehicle's state" in request.observation.text
+    assert 0 not in [o.index for o in request.options]
+    stack.events.wait_for(lambda e: e.kind == "silence_ended", "the state back", since_event)
+    assert stack.http.get("/v1/state").json()["mode"] == "nominal"
 
 
 def test_regions_routes(stack: Stack) -> None:
@@ -283,9 +318,13 @@ def test_the_regions_and_goal_go_out_on_the_bus_again_for_late_subscribers(
 def test_reset_and_ops_routes(stack: Stack) -> None:
     http = stack.http
     assert httpx.post(f"{stack.proc.url}/v1/reset", json={}).status_code == 401
-    r = http.post("/v1/reset", headers=AUTH, json={"start": [0.0, 0.0, 99.0]})
+    r = http.post("/v1/reset", json={"start": [0.0, 0.0, 1.0]})  # control moves no vehicle
     assert r.status_code == 422 and r.json()["error"]["field"] == "start"
-    assert http.post("/v1/reset", headers=AUTH).status_code == 200  # no body: a fresh draw
+    assert http.post("/v1/reset").status_code == 200  # no body
+    r = stack.vehicle.post("/v1/reset", json={"start": [0.0, 0.0, 99.0]})
+    assert r.status_code == 422 and r.json()["error"]["field"] == "start"
+    r = stack.vehicle.post("/v1/faults", json={"jump": [1.0, 0.0, 0.0]})
+    assert r.status_code == 422 and r.json()["error"]["field"] == "jump_s"
     assert http.get("/healthz").json() == {"status": "ok"}
     assert http.get("/readyz").status_code == 200
     metrics = http.get("/metrics").text
@@ -294,7 +333,9 @@ def test_reset_and_ops_routes(stack: Stack) -> None:
                    "aesop_control_step_seconds_bucket", 'aesop_control_mode{mode="nominal"}',
                    "aesop_control_stale_verdict_ticks_total",
                    "aesop_control_stale_verdict_alarms_total",
-                   "aesop_control_reasoner_requests_total"):
+                   "aesop_control_reasoner_requests_total",
+                   "aesop_control_state_age_seconds_bucket", "aesop_control_setpoints_total",
+                   "aesop_control_stale_state_ticks_total"):
         assert series in metrics, series
     assert "aesop_control_tick_errors_total 0.0" in metrics
 
@@ -322,5 +363,5 @@ def test_serve_control_takes_the_scenario_as_a_flag(tmp_path: Path) -> None:
                             "--scenario", "hardware"],
                            env=env, capture_output=True, text=True, timeout=60, cwd=root)
     assert other.returncode == 2, other.stderr
-    assert "--scenario: only `aesop serve control` flies a scenario" in other.stderr, \
-        other.stderr
+    assert "--scenario: only `aesop serve control` and `aesop serve sim` take a scenario" \
+        in other.stderr, other.stderr

@@ -1,11 +1,12 @@
 """Faults on the real stack: real processes on a private Zenoh endpoint, the real model.
 
-One embedding service (a small calibrated cache of the quadrotor scene) and one control
-loop (the paper scenario, 10 Hz) serve the whole module; each test starts its own fake
-LLM and reasoner. A feed publishes the scene as Observations at 10 Hz; a test turns it
-anomalous and watches what the services publish. The fail-safe rules under test
-(docs/architecture.md): a dead reasoner never leaves the robot waiting, a stale anomaly
-verdict counts as an anomaly, and a bad LLM answer becomes a labelled fallback.
+One embedding service (a small calibrated cache of the quadrotor scene), one control
+loop (the paper scenario, 10 Hz) and the simulated vehicle it flies serve the whole
+module; each test starts its own fake LLM and reasoner. A feed publishes the scene as
+Observations at 10 Hz; a test turns it anomalous and watches what the services publish.
+The fail-safe rules under test (docs/architecture.md): a dead reasoner never leaves the
+robot waiting, a stale anomaly verdict counts as an anomaly, and a bad LLM answer becomes a
+labelled fallback.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from pathlib import Path
 from typing import Generic, TypeVar
 
 import httpx
+import numpy as np
 import pytest
 import zenoh
 
@@ -32,6 +34,7 @@ from services.bench.bus import (
     embedding_process,
     pick_scenes,
     service_env,
+    sim_process,
 )
 from services.embedding.client import EmbeddingClient
 from services.scenes.hardware import build_scene_cache, camera_observation
@@ -103,12 +106,15 @@ class SceneFeed:
 
     def __init__(self, bus: Bus, text: str) -> None:
         self.bus, self.text, self.seq = bus, text, 0
+        self.paused = False  # the camera off: nothing published
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
         while not self._stop.wait(0.1):
+            if self.paused:
+                continue
             self.seq += 1
             self.bus.publish(topics.observation(ROBOT),
                              camera_observation(self.text, self.seq, ROBOT))
@@ -131,6 +137,7 @@ class Stack:
         self.verdicts = Inbox(bus, topics.anomaly(ROBOT), AnomalyVerdict)
         self.embedding = embedding_process(tmp / "embedding", endpoint, token)
         self.control = control_process(tmp, endpoint, token, AESOP_CONTROL_VERDICT_STALE_S="1.0")
+        self.sim = sim_process(tmp, endpoint, token)
         self.nominal = self.anomalous = ""
         self.feed: SceneFeed | None = None
 
@@ -140,6 +147,7 @@ class Stack:
             asyncio.run(self._build_cache())
             assert http.get(f"/v1/caches/{CACHE}").json()["calibration"] is not None
         self.control.start()
+        self.sim.start()
         self.feed = SceneFeed(self.bus, self.nominal)
 
     async def _build_cache(self) -> None:
@@ -152,6 +160,7 @@ class Stack:
     def stop(self) -> None:
         if self.feed is not None:
             self.feed.close()
+        self.sim.stop()
         self.control.stop()
         self.embedding.stop()
 
@@ -166,22 +175,29 @@ class Stack:
         self.feed.text = text
 
     def nominal_flight(self) -> None:
-        """The scene nominal, verdicts fresh at control, the flight restarted and nominal.
+        """The scene nominal, a new flight from the start, its first tick nominal: as an
+        operator starts one, the camera off (the reset loop then waits), the loop reset,
+        the vehicle moved to the start, the camera on again.
 
         A restart is tried again if the flight leaves nominal on its own (a verdict
         that came late on a loaded machine counts as an anomaly, by design).
         """
+        assert self.feed is not None
         self.show(self.nominal)
-        with self.pilot() as http:
+        with self.pilot() as http, httpx.Client(base_url=self.sim.url, headers=self.auth,
+                                                timeout=30) as vehicle:
             for _attempt in range(3):
-                wait_until(lambda: http.get("/v1/state").json()["verdict_stale"] is False,
-                           "fresh verdicts at the control loop", WAIT_S)
-                time.sleep(0.3)  # let nominal verdicts replace any flagged one
-                since = self.states.mark()
-                r = http.post("/v1/reset", json={"start": list(START)})
+                self.feed.paused = True
+                time.sleep(1.2)  # the newest verdict goes stale (verdict_stale_s 1.0)
+                r = http.post("/v1/reset", json={})
                 assert r.status_code == 200, r.text
-                self.states.wait_for(lambda s: s.t == 0.0, "the reset", since)
-                after = self.states.wait_for(lambda s: s.t > 0.0, "a tick", since)
+                assert vehicle.post("/v1/reset", json={"start": list(START)}).status_code == 200
+                wait_until(lambda: np.allclose(http.get("/v1/state").json()["state"]["x"][:3],
+                                               START, atol=0.02), "the vehicle at the start",
+                           WAIT_S)
+                since = self.states.mark()  # only the new flight's from here
+                self.feed.paused = False
+                after = self.states.wait_for(lambda s: s.t > 0.0, "the flight", since)
                 if after.mode == "nominal":
                     return
         raise AssertionError(f"the flight kept leaving nominal: {self.events.messages()[-5:]}")

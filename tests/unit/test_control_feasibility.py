@@ -21,9 +21,9 @@ import pytest
 from services.bench.reference import reference_solve
 from services.control.controllers import make_controller, mpc_config, planning_model
 from services.control.mpc import SolveStatus, promised_step
-from services.sim.plant import make_plant
 from services.control.scenario import load_scenario
 from services.control.selection import SubsetSelector
+from services.sim.plant import make_plant
 from shared.messages import Mode
 
 SCENE = load_scenario("hardware")

@@ -459,6 +459,8 @@ async def test_new_regions_mid_flight_keep_the_flights_progress() -> None:
                     acceleration_lag=(0.08, 0.08, 0.0))
     clock = FakeClock()
     rt = runtime(clock, (1.0, 0.0, 1.3), scene)
+    await tick(rt, clock, None)  # waiting: the vehicle seen away from the scene's start ...
+    await rt.reset()  # ... where the controller is warmed up now
     for seq in range(8):  # at rest on the waypoint: the route moves on to the descent
         await tick(rt, clock, verdict(clock, seq, False))
     assert rt.controller.route.index == 1
@@ -544,6 +546,24 @@ async def test_a_non_finite_state_is_refused_with_an_alarm_and_the_loop_goes_on(
     after = await tick(rt, clock, verdict(clock, 3, False))
     assert not [e for e in after.events if e.kind == "state_refused"]
     assert after.state.x != before.state.x and after.plan is not None
+
+
+async def test_a_vehicle_away_from_the_warm_up_point_starts_once_warmed_up_there() -> None:
+    """Waiting, the loop sees the vehicle far from where its controller was warmed up: it
+    builds one warmed up there off the tick and starts only once it is swapped in, never
+    with a cold solve."""
+    clock = FakeClock()
+    rt = runtime(clock, (0.6, 0.0, 1.0))
+    first = await tick(rt, clock, verdict(clock, 1, False))
+    assert first.state.mode == "waiting"  # fresh verdict, fresh state: still warming up
+    for seq in range(2, 400):
+        result = await tick(rt, clock, verdict(clock, seq, False))
+        if result.state.mode != "waiting":
+            break
+        time.sleep(0.01)  # the build runs on its own thread, in real time
+    assert result.state.mode == "nominal" and "flight_started" in kinds(result)
+    assert np.allclose(rt._warm_at, (0.6, 0.0, 1.0), atol=0.05)
+    rt.close()
 
 
 async def test_the_flight_waits_for_a_fresh_vehicle_state_too() -> None:

@@ -15,8 +15,8 @@ from services.control.controllers import mpc_config, planning_model
 from services.control.dynamics import QuadrotorParams
 from services.control.models import point_mass_model
 from services.control.mpc import BranchProblem, decouple, promised_step
-from services.sim.plant import TrackedQuadrotor
 from services.control.scenario import load_scenario
+from services.sim.plant import TrackedQuadrotor
 
 SCENE = load_scenario("hardware")
 LAG = 0.0825

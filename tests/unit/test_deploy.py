@@ -53,19 +53,21 @@ SETTINGS = {
     "reasoner": ["services.reasoner.settings:ReasonerSettings"],
     "control": ["services.control.settings:ControlSettings"],
     "dashboard": ["services.dashboard.settings:DashboardSettings"],
+    "sim": ["services.sim.settings:SimSettings"],
     "fake-llm": ["services.fakes.llm:FakeLLMServiceSettings",
                  "services.fakes.llm:FakeLLMSettings"],
 }
 STACK = {"embedding", "reasoner", "control", "dashboard"}  # the Zenoh services
+VEHICLE = "sim"  # the simulated vehicle: the robot's user
 ROBOT = "robot0"
 # docs/architecture.md, "Zenoh key expressions": who publishes what.
 PUBLISHES: dict[str, list[Callable[[str], str]]] = {
     "embedding": [topics.anomaly, topics.event],
     "reasoner": [topics.reasoner_decision, topics.event],
     "control": [topics.state, topics.plan, topics.reasoner_request, topics.regions,
-                topics.event],
+                topics.event, topics.vehicle_setpoint],
     "dashboard": [topics.event],
-    "robot": [topics.observation, topics.event],
+    "robot": [topics.observation, topics.event, topics.vehicle_state],
 }
 
 
@@ -234,15 +236,16 @@ def test_the_router_image_is_the_version_of_the_zenoh_wheel() -> None:
 def test_the_stack_serves_every_service_and_the_llms_sit_behind_profiles() -> None:
     services = compose()["services"]
     served = {name: serve_args(svc)[0].service for name, svc in aesop_services().items()}
-    assert served == {s: s for s in (*STACK, "fake-llm")}
-    assert {n for n, s in services.items() if not s.get("profiles")} == {"zenoh", *STACK}
+    assert served == {s: s for s in (*STACK, VEHICLE, "fake-llm")}
+    assert {n for n, s in services.items() if not s.get("profiles")} == {"zenoh", *STACK,
+                                                                           VEHICLE}
     assert services["fake-llm"]["profiles"] == ["demo"]
     assert services["ollama"]["profiles"] == ["local-llm"]
     assert services["ollama"]["image"].startswith("ollama/ollama:")
     assert not services["ollama"]["image"].endswith(":latest")
 
 
-@pytest.mark.parametrize("name", sorted([*STACK, "fake-llm"]))
+@pytest.mark.parametrize("name", sorted([*STACK, VEHICLE, "fake-llm"]))
 def test_commands_parse_and_listen_on_every_interface(name: str) -> None:
     args, fake = serve_args(aesop_services()[name])
     assert args.host == "0.0.0.0"
@@ -250,7 +253,7 @@ def test_commands_parse_and_listen_on_every_interface(name: str) -> None:
         assert fake.profile in {"fixed", "normal", "bimodal", "stall"}
 
 
-@pytest.mark.parametrize("name", sorted([*STACK, "fake-llm"]))
+@pytest.mark.parametrize("name", sorted([*STACK, VEHICLE, "fake-llm"]))
 def test_every_environment_variable_is_a_setting_of_that_service(name: str) -> None:
     svc = aesop_services()[name]
     known = set().union(*(env_names(c) for c in settings_classes(serve_args(svc)[0].service)))
@@ -258,7 +261,7 @@ def test_every_environment_variable_is_a_setting_of_that_service(name: str) -> N
     assert not unknown, f"{name}: no such setting: {sorted(unknown)}"
 
 
-@pytest.mark.parametrize("name", sorted([*STACK, "fake-llm"]))
+@pytest.mark.parametrize("name", sorted([*STACK, VEHICLE, "fake-llm"]))
 def test_settings_load_in_the_container_and_ports_agree(
         name: str, monkeypatch: pytest.MonkeyPatch) -> None:
     svc = aesop_services()[name]
@@ -270,7 +273,7 @@ def test_settings_load_in_the_container_and_ports_agree(
         "compose wants strings (quote true/false and numbers)"
 
 
-@pytest.mark.parametrize("name", sorted(STACK))
+@pytest.mark.parametrize("name", sorted([*STACK, VEHICLE]))
 def test_services_are_zenoh_clients_of_the_router(
         name: str, monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     svc = aesop_services()[name]
@@ -281,11 +284,14 @@ def test_services_are_zenoh_clients_of_the_router(
                            .split("/", 1)[1]).port
     assert settings.zenoh_connect == [f"tcp/zenoh:{router_port}"]
     assert container_port(compose()["services"]["zenoh"]) == router_port
-    # it authenticates as itself, with the password compose mounts as its secret
-    assert settings.zenoh_user == name and name in acl_users()
-    assert settings.zenoh_password_file == Path(f"/run/secrets/zenoh-{name}")
-    assert svc["secrets"] == [f"zenoh-{name}"]
-    assert compose()["secrets"][f"zenoh-{name}"] == {"file": f"./deploy/secrets/{name}.password"}
+    # it authenticates as itself (the vehicle as the robot), with the password compose
+    # mounts as its secret
+    user, secret_name = (f"robot-{ROBOT}", "robot") if name == VEHICLE else (name, name)
+    assert settings.zenoh_user == user and user in acl_users()
+    assert settings.zenoh_password_file == Path(f"/run/secrets/zenoh-{secret_name}")
+    assert svc["secrets"] == [f"zenoh-{secret_name}"]
+    assert compose()["secrets"][f"zenoh-{secret_name}"] == {
+        "file": f"./deploy/secrets/{user}.password"}
     secret = tmp_path / f"{name}.password"
     secret.write_text("a-password\n")
     monkeypatch.setenv("AESOP_ZENOH_CONFIG", str(host_path(svc, str(settings.zenoh_config))))
@@ -294,7 +300,7 @@ def test_services_are_zenoh_clients_of_the_router(
     assert json.loads(conf.get_json("mode")) == "client"
     assert json.loads(conf.get_json("connect/endpoints")) == [f"tcp/zenoh:{router_port}"]
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
-    assert json.loads(conf.get_json("transport/auth/usrpwd/user")) == name
+    assert json.loads(conf.get_json("transport/auth/usrpwd/user")) == user
 
 
 def test_secrets_come_from_the_operators_environment() -> None:

@@ -1,0 +1,120 @@
+"""The simulated vehicle (services/sim/vehicle.py): how it reports its state, follows
+set-points and holds itself when they stop, and the faults it can be given."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.control.scenario import load_scenario
+from services.sim.vehicle import Reporting, SimVehicle
+from shared.frames import euler_from_quaternion
+from shared.messages import Mode, VehicleSetpoint
+
+HARDWARE = load_scenario("hardware")
+PAPER = load_scenario("paper")
+START = np.r_[-4.0, 0.0, 1.2, np.zeros(9)]
+
+
+def vehicle(reporting: Reporting | None = None, scenario=HARDWARE, **kw) -> SimVehicle:
+    return SimVehicle(scenario, START, reporting or Reporting(), now=100.0, **kw)
+
+
+def accel(seq: int, t: float, a=(0.5, 0.0, 0.0), valid_s: float = 0.15) -> VehicleSetpoint:
+    return VehicleSetpoint(seq=seq, state_seq=0, state_stamp=t, t=t, valid_until=t + valid_s,
+                           mode=Mode.NOMINAL, acceleration=a, position=(0.0, 0.0, 0.0),
+                           velocity=(0.0, 0.0, 0.0))
+
+
+def test_states_come_at_the_rate_each_published_after_the_delay() -> None:
+    v = vehicle(Reporting(rate_hz=50.0, delay_s=0.03))
+    reports = v.advance(101.0)
+    stamps = [r.state.stamp for r in reports]
+    assert len(reports) == 49  # valid at 100.00 .. 100.96, each out 30 ms later
+    assert np.diff(stamps) == pytest.approx(0.02) and stamps[0] == pytest.approx(100.0)
+    assert all(r.at == pytest.approx(r.state.stamp + 0.03) for r in reports)
+    assert np.all(np.diff([r.state.seq for r in reports]) == 1)
+    first = reports[0].state
+    assert first.position == pytest.approx((-4.0, 0.0, 1.2)) and first.frame == "world"
+    assert euler_from_quaternion(first.attitude) == pytest.approx((0.0, 0.0, 0.0))
+
+
+def test_noise_drops_and_a_clock_offset() -> None:
+    v = vehicle(Reporting(position_noise_m=0.01, drop_rate=0.5, clock_offset_s=-7.0), seed=1)
+    reports = v.advance(102.0)
+    assert 60 < len(reports) < 140  # about half of the 200 states
+    seqs = [r.state.seq for r in reports]
+    assert max(np.diff(seqs)) > 1  # the lost ones leave gaps in the count
+    assert reports[0].state.stamp == pytest.approx(93.0)  # its clock, 7 s behind
+    spread = np.std([r.state.position[0] for r in reports])
+    assert 0.005 < spread < 0.02
+
+
+def test_it_follows_a_set_point_then_holds_itself_when_it_expires() -> None:
+    v = vehicle()
+    v.advance(100.5)
+    assert v.holding  # no set-point yet: it holds where it is
+    assert np.linalg.norm(v.truth[0:3] - START[0:3]) < 1e-3
+    assert v.receive(accel(1, v.clock(100.5)), 100.5)
+    assert not v.holding
+    v.advance(100.6)  # within valid_until: accelerating along x
+    moving = v.truth[3]
+    assert moving > 0.01
+    v.advance(101.5)  # 150 ms after its instant, no newer one: hold, brake to rest
+    assert v.holding
+    v.advance(106.0)
+    assert np.linalg.norm(v.truth[3:6]) < 0.02 and abs(v.truth[0] - START[0]) < 0.2
+
+
+def test_a_set_point_of_the_wrong_kind_or_an_older_one_is_not_taken() -> None:
+    v = vehicle()
+    motors = VehicleSetpoint(seq=1, state_seq=0, state_stamp=100.0, t=100.0,
+                             valid_until=100.2, mode=Mode.NOMINAL, thrust=9.8,
+                             torque=(0.0, 0.0, 0.0), position=(0.0, 0.0, 0.0),
+                             velocity=(0.0, 0.0, 0.0))
+    assert not v.receive(motors, 100.0)  # the hardware scene's vehicle takes accelerations
+    assert v.receive(accel(5, 100.0), 100.0)
+    assert not v.receive(accel(4, 99.9), 100.01)  # older than the one it follows
+    assert v.ages.refused == 2 and v.ages.received == 1
+    hover = vehicle(scenario=PAPER)
+    assert hover.receive(motors, 100.0)  # the paper scene's vehicle takes thrust and torques
+
+
+def test_faults_a_drop_out_a_stop_lost_set_points_and_a_jump() -> None:
+    v = vehicle()
+    v.faults.silent_until = 100.5
+    assert v.advance(100.49) == [] and len(v.advance(101.0)) == 51  # 100.50 .. 101.00
+    v.faults.deaf_until = 101.2
+    assert not v.receive(accel(1, 101.1), 101.1) and v.holding
+    assert v.receive(accel(2, 101.25), 101.25)
+    v.faults.jump, v.faults.jump_until = (2.0, 0.0, 0.0), 101.4
+    jumped = v.advance(101.5)
+    offsets = [r.state.position[0] - v.truth[0] for r in jumped]
+    assert max(offsets) > 1.5 and min(offsets) < 0.5  # only those valid before 101.4
+    v.faults.stopped = True
+    assert v.advance(103.0) == []
+
+
+def test_the_truth_runs_time_scale_seconds_per_second() -> None:
+    fast = vehicle(time_scale=2.0)
+    slow = vehicle()
+    for v in (fast, slow):
+        v.receive(accel(1, 100.0, valid_s=10.0), 100.0)
+    fast.advance(100.5)
+    slow.advance(101.0)
+    assert fast.truth[0:6] == pytest.approx(slow.truth[0:6], abs=1e-3)
+
+
+@pytest.mark.parametrize("scenario", [HARDWARE, PAPER], ids=["hardware", "paper"])
+def test_its_own_hold_brings_either_airframe_to_rest(scenario) -> None:
+    """Moving at 0.5 m/s when the set-points stop: it comes to rest near where it was, the
+    fast-tilting airframe briskly, the paper's slow one gently (brisk gains diverge it)."""
+    x0 = np.r_[scenario.start_center, np.zeros(9)]
+    v = SimVehicle(scenario, x0, Reporting(), now=0.0)  # no set-point: holding at x0
+    v.plant._x[3] = 0.5
+    worst = 0.0
+    for t in np.arange(0.1, 20.0, 0.1):
+        v.advance(float(t))
+        worst = max(worst, float(np.linalg.norm(v.truth[0:3] - x0[0:3])))
+    assert v.holding and worst < 0.5
+    assert np.linalg.norm(v.truth[0:3] - x0[0:3]) < 0.02 and np.linalg.norm(v.truth[3:6]) < 0.01
