@@ -77,6 +77,7 @@ CONTROL_RATE_HZ = 10.0
 START = (10.0, 2.0, 2.0)  # m: the paper scenario's start-box centre
 MAX_ATTEMPTS = 5
 WAIT_S = 60.0  # generous bound on any one wait (a loaded machine is slow, not broken)
+STALE_WAIT_S = 0.8  # the control loop's verdicts go stale after 0.5 s by default
 
 
 class BenchError(RuntimeError):
@@ -181,6 +182,7 @@ class Scene:
     def __init__(self, bus: Bus, rate_hz: float, text: str, first_seq: int) -> None:
         self.bus, self.period, self.text = bus, 1.0 / rate_hz, text
         self.seq = first_seq
+        self.paused = False  # the stream publishes nothing (a new flight is being set up)
         self.sent: dict[int, float] = {}  # seq -> monotonic time just before publish
 
     def publish(self, text: str | None = None) -> tuple[int, float]:
@@ -202,7 +204,8 @@ class Scene:
             delay = start + k * self.period - time.monotonic()
             if delay > 0:
                 await asyncio.sleep(delay)
-            self.publish()
+            if not self.paused:
+                self.publish()
             k += 1
 
 
@@ -298,23 +301,37 @@ async def reaction_phase(stack: Stack, scene: Scene, verdicts: Verdicts, nominal
 
 async def nominal_flight(stack: Stack, scene: Scene, verdicts: Verdicts,
                          states: Subscription[ControlState], nominal: str) -> None:
-    """Every verdict in, the scene nominal, the flight restarted and one nominal tick seen.
-
-    Waiting for every verdict so far keeps a late anomalous one from the previous
-    trial from reaching the restarted flight.
-    """
+    """A new flight from the start, the scene nominal, one nominal tick seen: as an
+    operator starts one, the camera off (the reset loop then waits: no fresh verdict),
+    every verdict so far in (so a late anomalous one from the previous trial cannot
+    reach the new flight), the loop reset, the vehicle moved to the start and seen
+    there, the camera on again."""
     for _attempt in range(MAX_ATTEMPTS):
-        scene.publish(nominal)
+        scene.paused, scene.text = True, nominal
         for seq in [s for s in scene.sent if s not in verdicts.arrived]:
             await verdicts.wait(seq)
-        await stack.vehicle.reset(START)
-        await asyncio.sleep(0.2)  # its state at the start reaches the loop
+        await asyncio.sleep(STALE_WAIT_S)
         await stack.pilot.reset()
-        await next_state(states, lambda s: s.t == 0.0, "the restarted flight")
+        await stack.vehicle.reset(START)
+        deadline = time.monotonic() + WAIT_S
+        while not await at_start(stack.pilot):
+            if time.monotonic() > deadline:
+                raise BenchError("control never saw the vehicle at the start")
+            await asyncio.sleep(0.05)
+        scene.paused = False
+        await next_state(states, lambda s: s.mode == "nominal" and s.t == 0.0,
+                         "the restarted flight")
         got = await next_state(states, lambda s: True, "a tick")
         if got.message.mode == "nominal":
             return
     raise BenchError(f"the restarted flight never stayed nominal ({MAX_ATTEMPTS} attempts)")
+
+
+async def at_start(pilot: ControlClient) -> bool:
+    """The loop waits, with the vehicle seen at rest at the start."""
+    state = (await pilot.state()).state
+    return state is not None and state.mode == "waiting" and bool(
+        np.allclose(state.x[:3], START, atol=0.02))
 
 
 async def next_state(states: Subscription[ControlState], cond: Any, what: str

@@ -170,7 +170,7 @@ class StateInput:
     def forget(self) -> None:
         """A new flight: the next state is taken wherever it is (no jump from the last)."""
         self._last = self._candidate = None
-        self._candidate_since = self._refusal = None
+        self._candidate_since = self._refusal = self._fresh = None
 
     def offer(self, got: Received[VehicleState], *, gate: bool = True) -> None:
         """The slot's newest message (perhaps the one offered last tick). ``gate``: refuse a

@@ -7,7 +7,7 @@ from typing import Any
 
 from shared.client import ServiceClient
 
-from .schemas import ResetAnswer, SimState, TraceAnswer
+from .schemas import SimState, TraceAnswer
 
 
 class SimClient(ServiceClient):
@@ -17,10 +17,10 @@ class SimClient(ServiceClient):
     async def trace(self) -> TraceAnswer:
         return await self.request("GET", "/v1/trace", TraceAnswer)
 
-    async def reset(self, start: Sequence[float] | None = None) -> ResetAnswer:
+    async def reset(self, start: Sequence[float] | None = None) -> SimState:
         """At rest at ``start`` (m), or a fresh draw from the start box."""
         body = {} if start is None else {"start": [float(v) for v in start]}
-        return await self.request("POST", "/v1/reset", ResetAnswer, json=body)
+        return await self.request("POST", "/v1/reset", SimState, json=body)
 
     async def reporting(self, **changes: float) -> SimState:
         return await self.request("PUT", "/v1/reporting", SimState, json=changes)

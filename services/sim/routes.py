@@ -15,7 +15,6 @@ from shared.http import ApiError, errors, from_state
 from .schemas import (
     FaultsBody,
     ReportingBody,
-    ResetAnswer,
     ResetBody,
     SimState,
     TraceAnswer,
@@ -69,14 +68,14 @@ async def trace(service: ServiceDep) -> TraceAnswer:
 
 
 @router.post("/v1/reset", responses=errors(401))
-async def reset(service: ServiceDep, body: ResetBody | None = None) -> ResetAnswer:
+async def reset(service: ServiceDep, body: ResetBody | None = None) -> SimState:
     try:
         x0 = start_state(service.vehicle.scenario, None if body is None else body.start,
                          service.settings.seed)
     except StartError as exc:
         raise ApiError(422, "invalid", str(exc), "start") from None
     service.reset(x0)
-    return ResetAnswer(start=_point(x0[0:3]))
+    return await state(service)
 
 
 @router.put("/v1/reporting", responses=errors(401))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, StrictBool
 
 from shared.messages import Float, Int, NotBool, Point3
 
@@ -41,8 +41,8 @@ class FaultsBody(Body):
     for ``jump_s``."""
 
     dropout_s: PositiveS | None = None
-    stop: bool = False
-    resume: bool = False
+    stop: StrictBool = False
+    resume: StrictBool = False
     deaf_s: PositiveS | None = None
     jump: Point3 | None = None
     jump_s: PositiveS | None = None
@@ -69,10 +69,6 @@ class SimState(Answer):
     states_published: Int
     reporting: dict[str, Float]
     faults: dict[str, Float | bool | None]
-
-
-class ResetAnswer(Answer):
-    start: Point3
 
 
 class TraceAnswer(Answer):

@@ -38,19 +38,21 @@ from shared.messages import VehicleSetpoint, VehicleState
 from .plant import FlightController, FlightControllerGains, Plant, make_plant
 
 # The hold's position and velocity gains (1/s^2, 1/s) and its acceleration per axis (m/s^2):
-# brisk for an airframe that tilts fast, gentle for one that does not (the paper's
-# simulated quadrotor, 0.45 kg m^2 against a torque box of 0.49 N m, diverges under the
-# brisk ones: its attitude loop saturates).
+# vertically brisk (thrust acts at once); horizontally brisk for an airframe that tilts
+# fast, gentle for one that does not (the paper's simulated quadrotor, 0.45 kg m^2 against
+# a torque box of 0.49 N m, diverges under the brisk ones: its attitude loop saturates).
 BRISK_HOLD = (2.0, 2.5, 2.0)
 GENTLE_HOLD = (0.5, 1.2, 0.5)
 BRISK_TILT_RAD_S2 = 10.0  # the angular acceleration the torque box gives, at least
 
 
-def hold_gains(params: QuadrotorParams) -> tuple[float, float, float]:
-    """``(kp, kd, accel)`` of the vehicle's own hold, by how fast its airframe tilts."""
+def hold_gains(params: QuadrotorParams) -> np.ndarray:
+    """``(kp, kd, accel)`` of the vehicle's own hold per axis (rows x, y, z): the
+    horizontal ones by how fast its airframe tilts."""
     torque = params.input_bounds()[1][1]
     tilt = torque / max(params.inertia[0], params.inertia[1])
-    return BRISK_HOLD if tilt >= BRISK_TILT_RAD_S2 else GENTLE_HOLD
+    across = BRISK_HOLD if tilt >= BRISK_TILT_RAD_S2 else GENTLE_HOLD
+    return np.array([across, across, BRISK_HOLD])
 
 
 @dataclass(frozen=True)
@@ -234,7 +236,7 @@ class SimVehicle:
 
     def _hold_accel(self, x: np.ndarray) -> np.ndarray:
         target = self._hold_at if self._hold_at is not None else x[0:3]
-        kp, kd, most = self._hold
+        kp, kd, most = self._hold.T
         return np.clip(kp * (target - x[0:3]) - kd * x[3:6], -most, most)
 
     def _measure(self, t: float) -> None:

@@ -25,7 +25,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 TOKEN = "contract-token-0123456789"
 CONFIG = Path(__file__).with_name("schemathesis.toml")
 SCHEMATHESIS = Path(sys.executable).with_name("st")
-EXAMPLES = 30  # per operation and phase: about 2,000 requests over the four services
+EXAMPLES = 30  # per operation and phase: about 2,500 requests over the five services
 SEED = 1
 
 
@@ -40,7 +40,7 @@ def service_args(service: str, tmp_path: Path) -> tuple[list[str], dict[str, str
     return args, env
 
 
-@pytest.mark.parametrize("service", ["embedding", "reasoner", "control", "dashboard"])
+@pytest.mark.parametrize("service", ["embedding", "reasoner", "control", "dashboard", "sim"])
 def test_the_service_keeps_its_published_contract(service: str, tmp_path: Path) -> None:
     args, env = service_args(service, tmp_path)
     port = free_port()
@@ -74,16 +74,20 @@ def keywords_json_schema_lacks(schema: object, path: str = "") -> list[str]:
 
 
 def test_published_schemas_use_json_schema_keywords_only() -> None:
+    from services.control.scenario import load_scenario
     from services.control.schemas import RegionsAnswer, RegionsBody, ResetAnswer, ResetBody, State
     from services.dashboard.model import Snapshot
     from services.embedding.api import create_app as embedding_app
     from services.embedding.settings import EmbeddingSettings
     from services.reasoner.api import create_app as reasoner_app
     from services.reasoner.settings import ReasonerSettings
+    from services.sim.api import create_app as sim_app
+    from services.sim.settings import SimSettings
 
     schemas: dict[str, object] = {
         "embedding": embedding_app(EmbeddingSettings(zenoh_worker=False)).openapi(),
         "reasoner": reasoner_app(ReasonerSettings()).openapi(),
+        "sim": sim_app(SimSettings(), load_scenario()).openapi(),
         **{m.__name__: m.model_json_schema() for m in
            (RegionsBody, ResetBody, State, RegionsAnswer, ResetAnswer, Snapshot)},
     }

@@ -130,14 +130,21 @@ async def _sim_round_trip(url: str, control_url: str) -> None:
     async with SimClient(url, token=TOKEN) as sim, \
             ControlClient(control_url, token=TOKEN) as control:
         moved = await sim.reset([10.0, 2.0, 2.0])
-        assert moved.start == (10.0, 2.0, 2.0)
+        assert moved.truth.position == pytest.approx((10.0, 2.0, 2.0), abs=1e-3)
+        assert moved.t < 0.5  # a new flight
         state = await sim.state()
         assert state.truth.position == pytest.approx((10.0, 2.0, 2.0), abs=0.01)
         assert state.holding and state.scenario == "paper-quadrotor-sim"
         assert (await sim.reporting(delay_s=0.02)).reporting["delay_s"] == 0.02
         assert (await sim.faults(deaf_s=1.0)).faults["deaf_left_s"] > 0
         deadline = asyncio.get_running_loop().time() + 30
-        while (await control.state()).vehicle["seq"] is None:  # its state reaches control
+
+        async def seen_there() -> bool:  # the moved vehicle's state has reached control
+            shown = (await control.state()).state
+            return shown is not None and shown.x[:3] == pytest.approx((10.0, 2.0, 2.0),
+                                                                      abs=0.01)
+
+        while not await seen_there():
             assert asyncio.get_running_loop().time() < deadline
             await asyncio.sleep(0.1)
         reset = await control.reset()
