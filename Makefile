@@ -46,7 +46,7 @@ $(LLAMA_STAMP):
 	touch $@
 
 test: $(STAMP) browser llama
-	$(VENV)/bin/ruff check shared services tests
+	$(VENV)/bin/ruff check shared services tools tests
 	$(VENV)/bin/mypy
 	$(PY) -m pytest -q
 
@@ -57,7 +57,7 @@ bench: $(STAMP)
 	$(VENV)/bin/aesop bench detector
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check shared services tests
+	$(VENV)/bin/ruff check shared services tools tests
 	$(VENV)/bin/mypy
 
 clean:

@@ -1,1 +1,2 @@
-"""The AESOP services and the `aesop` command."""
+"""The AESOP services: each package is one process (settings, schemas, routes, api,
+worker, client)."""

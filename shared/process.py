@@ -6,10 +6,10 @@
   for the Zenoh hub) and passes signals to its whole group.
 * :func:`await_ready` waits for several children at once and names the one
   that died or never became ready, with the tail of its output.
-* :class:`ServiceProcess` is one ``python -m services.cli ...`` child with a
+* :class:`ServiceProcess` is one ``python -m tools.cli ...`` child with a
   log file, started ready or not at all (the benchmarks and the tests);
   ``aesop up`` and ``aesop demo`` supervise a whole stack with
-  :class:`services.stack.up.Stack`, on the same :class:`Child`.
+  :class:`tools.stack.up.Stack`, on the same :class:`Child`.
 """
 
 from __future__ import annotations
@@ -231,7 +231,7 @@ def file_sink(directory: Path) -> Sink:
 
 
 class ServiceProcess:
-    """``python -m services.cli <args>`` with its output in ``log_path``, started ready."""
+    """``python -m tools.cli <args>`` with its output in ``log_path``, started ready."""
 
     def __init__(self, args: Sequence[str], *, port: int, log_path: Path,
                  env: Mapping[str, str] | None = None, ready_timeout_s: float = 120.0,
@@ -243,7 +243,7 @@ class ServiceProcess:
         self.env = merged
         self.ready_timeout_s = ready_timeout_s
         name = self.args[1] if len(self.args) > 1 and self.args[0] == "serve" else self.args[0]
-        self.child = Child(ChildSpec(name, (sys.executable, "-m", "services.cli", *self.args),
+        self.child = Child(ChildSpec(name, (sys.executable, "-m", "tools.cli", *self.args),
                                      port, merged), lambda *_: None, log_path=log_path)
 
     @property

@@ -10,8 +10,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from services.control.scenario import load_scenario
-from services.stack.up import Ports, Stack, StackOptions, StackPlan, hardware_scenario, plan_stack
 from shared.process import file_sink
+from tools.stack.up import Ports, Stack, StackOptions, StackPlan, hardware_scenario, plan_stack
 
 
 @contextlib.contextmanager

@@ -21,9 +21,9 @@ from .aesop import (
     Route,
     _Controller,
 )
-from .models import PlanningModel, point_mass_model, quadrotor_model
+from .models import PlanningModel
 from .mpc import MPCConfig
-from .scenario import Scenario
+from .scenario import Scenario, planning_model
 
 Method = Literal["naive", "fsmpc", "aesop"]
 METHODS: tuple[Method, ...] = ("naive", "fsmpc", "aesop")
@@ -51,15 +51,6 @@ class Controller(Protocol):
                   age: float = 0.0) -> ControlOutput: ...
 
     def carry_on(self, other: Self) -> None: ...
-
-
-def planning_model(scenario: Scenario) -> PlanningModel:
-    """The linear model the scenario's MPC plans with (:mod:`.models`)."""
-    if scenario.model == "point-mass":
-        lim = scenario.limits
-        return point_mass_model(scenario.dt, lim.position_lo, lim.position_hi, lim.velocity,
-                                lim.acceleration, scenario.acceleration_lag)
-    return quadrotor_model(scenario.vehicle, scenario.dt, scenario.limits.box())
 
 
 _INT_FIELDS = {f.name for f in fields(MPCConfig) if f.type in ("int", int)}

@@ -26,8 +26,8 @@ state) and the rest states at a position (goals and the centres of regions).
 
 Why two: at the paper's hardware grid (dt 0.05 s, T 10 s, 200 steps) the
 hover model's x/pitch and y/roll chains are fourth-order integrator chains
-whose ADMM iterations run into the tens of thousands (measured, see the
-README); the point mass converges in tens.
+whose ADMM iterations run into the tens of thousands (measured, see
+docs/control.md); the point mass converges in tens.
 """
 
 from __future__ import annotations

@@ -29,7 +29,7 @@ import numpy as np
 import yaml
 
 from .dynamics import N_STATE, POS, RATE, VEL, QuadrotorParams
-from .models import MODEL_NAMES
+from .models import MODEL_NAMES, PlanningModel, point_mass_model, quadrotor_model
 from .regions import Region, check_regions
 
 BUNDLED = ("paper", "hardware")  # scenario names that load the packaged files
@@ -313,3 +313,12 @@ def load_scenario(name_or_path: Path | str | None = None) -> Scenario:
         raise ScenarioError(str(path), f"not valid {path.suffix.lstrip('.') or 'YAML'}: {exc}") \
             from None
     return scenario_from_dict(data)
+
+
+def planning_model(scenario: Scenario) -> PlanningModel:
+    """The linear model the scenario's MPC plans with (:mod:`.models`)."""
+    if scenario.model == "point-mass":
+        lim = scenario.limits
+        return point_mass_model(scenario.dt, lim.position_lo, lim.position_hi, lim.velocity,
+                                lim.acceleration, scenario.acceleration_lag)
+    return quadrotor_model(scenario.vehicle, scenario.dt, scenario.limits.box())

@@ -27,7 +27,6 @@ from __future__ import annotations
 import importlib
 import sys
 import threading
-from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -234,7 +233,7 @@ def resolve_model(model: str, *, hf_cache_dir: str | Path | None = None) -> Mode
             f"bundled package {BUNDLED_PACKAGE}: skipped, it only provides {DEFAULT_MODEL}"
         )
     directory = Path(model).expanduser()
-    if _is_dir(directory):
+    if is_dir(directory):
         resolved = directory.resolve()
         return ModelSource(str(resolved), resolved, "directory")
     state = "exists but is not a directory" if _exists(directory) else "does not exist"
@@ -245,7 +244,7 @@ def resolve_model(model: str, *, hf_cache_dir: str | Path | None = None) -> Mode
     raise ModelNotFound(_not_found_message(model, looked))
 
 
-def _is_dir(path: Path) -> bool:
+def is_dir(path: Path) -> bool:
     """``path.is_dir()``, False for a name the file system refuses (too long, ...)."""
     try:
         return path.is_dir()
@@ -547,36 +546,6 @@ def _shape_of(payload: Any) -> str:
 # --- choosing and sharing embedders ------------------------------------------
 
 
-def load_embedder(
-    model: str,
-    *,
-    openai_base_url: str = DEFAULT_OPENAI_BASE_URL,
-    openai_api_key: str | None = None,
-    device: str = "cpu",
-    hf_cache_dir: str | Path | None = None,
-    export_dir: Path | None = None,
-    threads: int = 1,
-) -> Embedder:
-    """``"openai:<name>"`` -> ``OpenAIEmbedder``; ``"onnx:<model>"`` or
-    ``"onnx-int8:<model>"`` -> ``OnnxEmbedder`` (exported once into ``export_dir``);
-    anything else -> a local ``SentenceTransformerEmbedder`` (``ModelNotFound`` if it is
-    not on disk)."""
-    from . import onnx_backend
-
-    onnx = split_onnx(model)
-    if onnx is not None:
-        return onnx_backend.OnnxEmbedder(
-            onnx[0], int8=onnx[1], export_dir=export_dir or onnx_backend.default_export_dir(),
-            threads=threads, hf_cache_dir=hf_cache_dir)
-    if model.startswith(OPENAI_PREFIX):
-        name = model.removeprefix(OPENAI_PREFIX)
-        if not name:
-            raise ModelNotFound(f"{model!r}: give the model after the prefix, e.g. "
-                                "'openai:text-embedding-3-small'")
-        return OpenAIEmbedder(name, base_url=openai_base_url, api_key=openai_api_key)
-    return SentenceTransformerEmbedder(model, device=device, hf_cache_dir=hf_cache_dir)
-
-
 def split_onnx(model: str) -> tuple[str, bool] | None:
     """``onnx-int8:<model>`` -> (``<model>``, True); None without an ONNX prefix."""
     for prefix, int8 in ONNX_PREFIXES.items():
@@ -599,117 +568,24 @@ def pool_key(model: str) -> str:
     if model.lower() in _BUNDLED_ALIASES:
         return DEFAULT_MODEL
     path = Path(model).expanduser()
-    if _is_dir(path):
+    if is_dir(path):
         return str(path.resolve())
     return model if "/" in model else f"{_ST_ORG}/{model}"
-
-
-class _Slot:
-    def __init__(self) -> None:
-        self.lock = threading.Lock()
-        self.embedder: Embedder | None = None
-
-
-class EmbedderPool(Closing):
-    """Loads each model once and shares it between callers; thread-safe.
-
-    Two threads asking for the same model wait for one load; different models
-    load in parallel. A failed load is not remembered: the next ``get`` retries.
-    At most ``max_loaded`` models stay loaded: the least recently used one is let
-    go (a caller still holding it finishes with it). A model given as a directory
-    must lie inside ``model_dir`` (when one is set): the service's callers name
-    models, they do not pick files of the machine.
-    """
-
-    def __init__(
-        self,
-        *,
-        openai_base_url: str = DEFAULT_OPENAI_BASE_URL,
-        openai_api_key: str | None = None,
-        device: str = "cpu",
-        hf_cache_dir: str | Path | None = None,
-        loader: Callable[[str], Embedder] | None = None,
-        model_dir: Path | None = None,
-        max_loaded: int = 4,
-        export_dir: Path | None = None,
-        threads: int = 1,
-    ) -> None:
-        """``export_dir``: where ONNX exports are kept; ``threads``: per ONNX inference."""
-        self._loader = loader or (
-            lambda model: load_embedder(
-                model, openai_base_url=openai_base_url, openai_api_key=openai_api_key,
-                device=device, hf_cache_dir=hf_cache_dir, export_dir=export_dir,
-                threads=threads,
-            )
-        )
-        self._lock = threading.Lock()
-        self._slots: OrderedDict[str, _Slot] = OrderedDict()  # least recently used first
-        self._closed = False
-        self._model_dir = model_dir.resolve() if model_dir is not None else None
-        self._max_loaded = max_loaded
-
-    def get(self, model: str) -> Embedder:
-        self._check_directory(model)
-        key = pool_key(model)
-        with self._lock:
-            if self._closed:
-                raise RuntimeError("the embedder pool is closed")
-            slot = self._slots.setdefault(key, _Slot())
-            self._slots.move_to_end(key)
-        with slot.lock:
-            if slot.embedder is None:
-                slot.embedder = self._loader(model)
-            embedder = slot.embedder
-        self._evict()
-        return embedder
-
-    def _check_directory(self, model: str) -> None:
-        if self._model_dir is None or model.startswith(OPENAI_PREFIX):
-            return
-        onnx = split_onnx(model)
-        path = Path(model if onnx is None else onnx[0]).expanduser()
-        if (_is_dir(path) or path.is_absolute()) and \
-                not path.resolve().is_relative_to(self._model_dir):
-            raise ModelNotFound(f"{model!r}: a model given as a directory must be inside "
-                                f"{self._model_dir} (AESOP_EMBEDDING_MODEL_DIR)")
-
-    def _evict(self) -> None:
-        with self._lock:
-            loaded = [key for key, slot in self._slots.items() if slot.embedder is not None]
-            for key in loaded[:max(0, len(loaded) - self._max_loaded)]:
-                del self._slots[key]  # a caller that holds it keeps using it
-
-    def loaded(self) -> list[str]:
-        """Names of the embedders loaded so far."""
-        with self._lock:
-            slots = list(self._slots.values())
-        return [s.embedder.name for s in slots if s.embedder is not None]
-
-    def close(self) -> None:
-        """Closes every embedder (HTTP clients let go of their connections); idempotent."""
-        with self._lock:
-            self._closed = True
-            slots, self._slots = list(self._slots.values()), OrderedDict()
-        for slot in slots:
-            with slot.lock:
-                embedder, slot.embedder = slot.embedder, None
-            if embedder is not None:
-                embedder.close()
 
 
 __all__ = [
     "DEFAULT_MODEL",
     "Embedder",
     "EmbedderError",
-    "EmbedderPool",
     "ModelNotFound",
     "ModelSource",
     "OpenAIEmbedder",
     "ProgressFn",
     "SentenceTransformerEmbedder",
-    "load_embedder",
+    "is_dir",
     "normalize",
     "parse_embeddings_response",
     "pool_key",
+    "split_onnx",
     "resolve_model",
 ]

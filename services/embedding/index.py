@@ -21,7 +21,7 @@ import torch
 
 IndexKind = Literal["flat", "hnsw"]
 # HNSW candidates per search: recall@5 0.966 at 1M vectors (64: 0.909) for 0.41 ms a query
-# (aesop bench detector --only search, the README's efSearch table)
+# (aesop bench detector --only search, docs/benchmarks.md, search and restart)
 EF_SEARCH = 128
 FEW_QUERIES = 16  # searches of at most this many queries run on ``query_threads`` threads
 

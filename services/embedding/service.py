@@ -59,10 +59,11 @@ from .calibration import (
     tpr_target,
 )
 from .detections import floats
-from .embedders import Embedder, EmbedderPool, ModelNotFound
+from .embedders import Embedder, ModelNotFound
 from .errors import Busy, Conflict, InvalidInput, NotFound
 from .index import IndexKind
 from .legacy import legacy_caches, read_legacy
+from .loading import EmbedderPool
 from .proposals import Policy, Proposal, State, scene_id
 from .schemas import Added, CacheInfo, Calibrated, Deleted, Experience, Roc
 from .settings import EmbeddingSettings

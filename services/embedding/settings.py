@@ -12,7 +12,7 @@ from shared.settings import ServiceSettings
 DEFAULT_MODEL = "sentence-transformers/all-MiniLM-L6-v2"
 # the service's default: the same model run by ONNX Runtime in float32, exported once into
 # <data_dir>/onnx: the torch vectors (cosine > 0.9999, the same AUROCs on every domain)
-# and about twice as fast on the bus (README, Benchmarks)
+# and about twice as fast on the bus (docs/benchmarks.md)
 SERVICE_MODEL = "onnx:" + DEFAULT_MODEL
 
 
@@ -65,6 +65,6 @@ class EmbeddingSettings(ServiceSettings):
     torch_threads: int = Field(default=1, ge=0, le=256)
     # ONNX Runtime threads per inference (onnx: and onnx-int8: models). Its pool is told
     # not to spin, so a second thread costs nothing while idle; measured with
-    # `aesop bench detector --only latency` and `aesop bench bus` (README, Benchmarks)
+    # `aesop bench detector --only latency` and `aesop bench bus` (docs/benchmarks.md)
     onnx_threads: int = Field(default=1, ge=1, le=256)
     fsync: bool = True

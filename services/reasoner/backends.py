@@ -2,7 +2,7 @@
 
 One adapter, :class:`OpenAIChatBackend`, speaks ``POST {base_url}/chat/completions`` to
 cloud OpenAI, Ollama (``/v1``), vLLM, llama.cpp's server and the fake LLM
-(:mod:`services.fakes.llm`). It is deliberately thin:
+(:mod:`tools.fakes.llm`). It is deliberately thin:
 
 - **No hidden retries** (transport ``retries=0``, no retry loop): a 429 or 5xx is one
   request and one :class:`BackendError`; the caller decides what to do by its deadline.

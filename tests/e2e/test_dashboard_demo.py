@@ -1,11 +1,11 @@
 """The dashboard page in real headless Chromium (Debian's, driven by Playwright) while the
 real stack flies one of `aesop demo`'s scenarios.
 
-The stack is the one `aesop demo --random-ports` brings up (:mod:`services.stack.up`: a
+The stack is the one `aesop demo --random-ports` brings up (:mod:`tools.stack.up`: a
 Zenoh hub, the fake LLM, the vector cache, the reasoner, the control loop and the
 dashboard, as processes); the cache is built and calibrated and scenario 2a (another
 quadrotor on the red box) is flown by the demo's own code
-(:func:`services.demo.flights.fly_scenarios`) while the page watches. The page must stay
+(:func:`tools.demo.flights.fly_scenarios`) while the page watches. The page must stay
 connected, draw the flown trajectory and show the reasoner's decision: the LLM's choice
 of the alternative landing site, beside the detection the detector named. Then scenario 3
 (a keyboard on the ground) is flown: the LLM answers "continue" and the keyboard's scene
@@ -28,10 +28,10 @@ import numpy as np
 import pytest
 from playwright.sync_api import Browser, Page, expect
 
-from services.demo.flights import demo_scenario, fly_scenarios
-from services.stack.up import StackPlan
 from tests.demo_stack import demo_stack
 from tests.e2e.browser import canvas_count, screenshot
+from tools.demo.flights import demo_scenario, fly_scenarios
+from tools.stack.up import StackPlan
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(540)]
 

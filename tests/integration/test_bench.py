@@ -17,16 +17,16 @@ from typing import Any
 
 import pytest
 
-from services.bench.detector import BACKENDS, QUICK, _jsonable
 from services.embedding.embedders import pool_key
 from shared.tables import table
+from tools.bench.detector import BACKENDS, QUICK, _jsonable
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def aesop(*args: str, timeout: float, env: dict[str, str] | None = None
           ) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "services.cli", *args], cwd=ROOT,
+    return subprocess.run([sys.executable, "-m", "tools.cli", *args], cwd=ROOT,
                           capture_output=True, text=True, timeout=timeout, check=False,
                           env=None if env is None else {**os.environ, **env})
 

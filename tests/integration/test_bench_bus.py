@@ -18,7 +18,7 @@ OBSERVATIONS, ANOMALIES, RATE_HZ = 30, 3, 20.0
 
 
 def test_bench_bus_reports_consistent_latencies() -> None:
-    r = subprocess.run([sys.executable, "-m", "services.cli", "bench", "bus", "--json",
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "bench", "bus", "--json",
                         "--observations", str(OBSERVATIONS), "--anomalies", str(ANOMALIES),
                         "--rate", str(RATE_HZ), "--cache-detections", "2"],
                        capture_output=True, text=True, timeout=540, stdin=subprocess.DEVNULL)
@@ -41,7 +41,7 @@ def test_bench_bus_reports_consistent_latencies() -> None:
 
 
 def test_bench_bus_refuses_bad_arguments() -> None:
-    r = subprocess.run([sys.executable, "-m", "services.cli", "bench", "bus", "--json",
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "bench", "bus", "--json",
                         "--observations", "0"], capture_output=True, text=True, timeout=60,
                        stdin=subprocess.DEVNULL)
     assert r.returncode == 2 and r.stdout == ""

@@ -27,7 +27,7 @@ def write(path: Path, rows: list[tuple[str, str]]) -> Path:
 
 
 def aesop(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "services.cli", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "tools.cli", *args], capture_output=True,
                           text=True, timeout=240, stdin=subprocess.DEVNULL)
 
 

@@ -344,7 +344,7 @@ def test_a_bad_scenario_stops_the_command_with_the_field(tmp_path: Path) -> None
     path = tmp_path / "bad.yaml"
     path.write_text(SCENARIO.replace("goal: [1.0, 0.0, 1.0]\n", ""))
     env = {"AESOP_CONTROL_SCENARIO": str(path), "PATH": "/usr/bin:/bin"}
-    done = subprocess.run([sys.executable, "-m", "services.cli", "serve", "control"],
+    done = subprocess.run([sys.executable, "-m", "tools.cli", "serve", "control"],
                           env=env, capture_output=True, text=True, timeout=60,
                           cwd=Path(__file__).resolve().parents[2])
     assert done.returncode == 2 and "goal: required" in done.stderr
@@ -354,12 +354,12 @@ def test_serve_control_takes_the_scenario_as_a_flag(tmp_path: Path) -> None:
     env = {"PATH": "/usr/bin:/bin"}
     root = Path(__file__).resolve().parents[2]
     missing = tmp_path / "missing.yaml"
-    done = subprocess.run([sys.executable, "-m", "services.cli", "serve", "control",
+    done = subprocess.run([sys.executable, "-m", "tools.cli", "serve", "control",
                            "--scenario", str(missing)],
                           env=env, capture_output=True, text=True, timeout=60, cwd=root)
     assert done.returncode == 2, done.stderr
     assert f"--scenario: {missing}: No such file" in done.stderr, done.stderr
-    other = subprocess.run([sys.executable, "-m", "services.cli", "serve", "embedding",
+    other = subprocess.run([sys.executable, "-m", "tools.cli", "serve", "embedding",
                             "--scenario", "hardware"],
                            env=env, capture_output=True, text=True, timeout=60, cwd=root)
     assert other.returncode == 2, other.stderr

@@ -57,7 +57,7 @@ def test_watch_prints_the_flight_and_exits_0_on_ctrl_c(
     env["PYTHONFAULTHANDLER"] = "1"  # SIGABRT then writes every thread's stack to watch.err
     with open(tmp_path / "watch.err", "w") as err:
         proc = subprocess.Popen(
-            [*launcher, sys.executable, "-m", "services.cli", "watch", "--robot", ROBOT,
+            [*launcher, sys.executable, "-m", "tools.cli", "watch", "--robot", ROBOT,
              "--connect", endpoint, "--state-every", "0.5"],
             stdout=subprocess.PIPE, stderr=err, stdin=subprocess.DEVNULL, text=True, env=env)
     try:

@@ -13,11 +13,10 @@ import pytest
 
 from services.embedding.embedders import (
     DEFAULT_MODEL,
-    EmbedderPool,
     SentenceTransformerEmbedder,
-    load_embedder,
     resolve_model,
 )
+from services.embedding.loading import EmbedderPool, load_embedder
 
 pytestmark = pytest.mark.slow
 

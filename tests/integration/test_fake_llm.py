@@ -15,7 +15,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from services.fakes.llm import (
+from shared.process import free_port
+from tools.fakes.llm import (
     FakeLLMConfig,
     FakeLLMSettings,
     UnknownModel,
@@ -24,7 +25,6 @@ from services.fakes.llm import (
     parse_prompt,
     sample_latency,
 )
-from shared.process import free_port
 
 OPTIONS = """Options:
 0: continue — proceed with landing on the red box
@@ -193,7 +193,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     root = Path(__file__).resolve().parents[2]
     with open(log, "wb") as out:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "services.fakes.llm", "--port", str(port),
+            [sys.executable, "-m", "tools.fakes.llm", "--port", str(port),
              "--profile", "fixed", "--fixed-s", "0.05", "--time-scale", "0.1", "--seed", "1",
              "--log-level", "warning"],
             cwd=root, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)

@@ -26,18 +26,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from services.bench.bus import (
-    CACHE,
-    ROBOT,
-    START,
-    control_process,
-    embedding_process,
-    pick_scenes,
-    service_env,
-    sim_process,
-)
 from services.embedding.client import EmbeddingClient
-from services.scenes.hardware import build_scene_cache, camera_observation
 from shared import topics
 from shared.bus import Bus
 from shared.messages import (
@@ -51,6 +40,17 @@ from shared.messages import (
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
 from tests.zenoh_peers import wait_until
+from tools.bench.bus import (
+    CACHE,
+    ROBOT,
+    START,
+    control_process,
+    embedding_process,
+    pick_scenes,
+    service_env,
+    sim_process,
+)
+from tools.scenes.hardware import build_scene_cache, camera_observation
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
 

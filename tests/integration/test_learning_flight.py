@@ -13,10 +13,10 @@ from pathlib import Path
 
 import pytest
 
-from services.demo.flights import fly_scenarios
 from services.embedding.client import EmbeddingClient
-from services.stack.up import DETECTOR_CACHE, StackPlan
 from tests.demo_stack import demo_stack
+from tools.demo.flights import fly_scenarios
+from tools.stack.up import DETECTOR_CACHE, StackPlan
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 

@@ -15,7 +15,7 @@ REQUIRED = {"requests", "deadline_s", "deadline_misses", "overshoot_ms", "fallba
 
 
 def test_bench_reasoner_json_is_one_object_with_the_required_keys() -> None:
-    r = subprocess.run([sys.executable, "-m", "services.cli", "bench", "reasoner",
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "bench", "reasoner",
                         "--requests", "60", "--scale", "0.05", "--json"],
                        capture_output=True, text=True, timeout=280, stdin=subprocess.DEVNULL)
     assert r.returncode == 0, r.stderr[-3000:]

@@ -17,10 +17,10 @@ import pytest
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
-from services.recording.mcapfile import MODELS, read_messages
 from shared import topics
 from shared.bus import Bus
 from shared.messages import ControlState, Event, Message, Observation
+from tools.recording.mcapfile import MODELS, read_messages
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -29,7 +29,7 @@ class Recorder:
     def __init__(self, endpoint: str, out: Path, *extra: str) -> None:
         env = {k: v for k, v in os.environ.items() if not k.startswith("AESOP_")}
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "services.cli", "record", "--out", str(out), "--connect",
+            [sys.executable, "-m", "tools.cli", "record", "--out", str(out), "--connect",
              endpoint, *extra], env=env, stderr=subprocess.PIPE, text=True,
             stdin=subprocess.DEVNULL)
         self.lines: list[str] = []
@@ -126,7 +126,7 @@ def test_a_recorder_killed_with_sigkill_leaves_a_readable_file(
 
 
 def test_an_unknown_topic_is_refused_by_name(endpoint: str, tmp_path: Path) -> None:
-    run = subprocess.run([sys.executable, "-m", "services.cli", "record", "--out",
+    run = subprocess.run([sys.executable, "-m", "tools.cli", "record", "--out",
                           str(tmp_path / "x.mcap"), "--topics", "nonsense"],
                          capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
     assert run.returncode != 0 and "nonsense" in run.stderr and "Traceback" not in run.stderr

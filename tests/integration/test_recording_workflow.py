@@ -14,10 +14,10 @@ from pathlib import Path
 import httpx
 import pytest
 
-from services.recording.importer import scene_id
-from services.recording.mcapfile import FlightWriter
 from shared.messages import AnomalyVerdict, Detection, Observation
 from shared.process import ServiceProcess, free_port
+from tools.recording.importer import scene_id
+from tools.recording.mcapfile import FlightWriter
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
@@ -73,7 +73,7 @@ def aesop(*args: str, token: str | None = TOKEN) -> subprocess.CompletedProcess[
     env = {k: v for k, v in os.environ.items() if not k.startswith("AESOP_")}
     if token:
         env["AESOP_ADMIN_TOKEN"] = token
-    return subprocess.run([sys.executable, "-m", "services.cli", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "tools.cli", *args], capture_output=True,
                           text=True, timeout=240, stdin=subprocess.DEVNULL, env=env)
 
 

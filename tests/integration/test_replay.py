@@ -18,11 +18,11 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from services.recording.mcapfile import FlightWriter, read_messages
-from services.recording.replay import replay as replay_file
 from shared.bus import zenoh_config
 from shared.messages import ControlState, Observation
 from shared.settings import BusSettings
+from tools.recording.mcapfile import FlightWriter, read_messages
+from tools.recording.replay import replay as replay_file
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -77,7 +77,7 @@ def heard(endpoint: str) -> Iterator[Heard]:
 
 def replay(*args: str) -> subprocess.Popen[str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("AESOP_")}
-    return subprocess.Popen([sys.executable, "-m", "services.cli", "replay", *args], env=env,
+    return subprocess.Popen([sys.executable, "-m", "tools.cli", "replay", *args], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             stdin=subprocess.DEVNULL)
 

@@ -15,9 +15,9 @@ from pathlib import Path
 import httpx
 import pytest
 
-from services.demo.flights import fly_scenarios
-from services.stack.up import Ports, Stack, StackOptions, plan_stack
 from shared.process import file_sink
+from tools.demo.flights import fly_scenarios
+from tools.stack.up import Ports, Stack, StackOptions, plan_stack
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
 

@@ -18,8 +18,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from services.embedding.api import create_app
-from services.embedding.embedders import EmbedderPool
 from services.embedding.errors import Busy
+from services.embedding.loading import EmbedderPool
 from services.embedding.service import CacheService, Item
 from services.embedding.settings import EmbeddingSettings
 from tests.fakes.hash_embedder import HashEmbedder

@@ -9,13 +9,13 @@ from pathlib import Path
 
 import pytest
 
-from services.recording.mcapfile import read_messages
+from tools.recording.mcapfile import read_messages
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
 
 def test_demo_flies_the_papers_hardware_scenarios(tmp_path: Path) -> None:
-    r = subprocess.run([sys.executable, "-m", "services.cli", "demo", "--json", "--random-ports",
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "demo", "--json", "--random-ports",
                         "--out", str(tmp_path / "report")],
                        capture_output=True, text=True, timeout=540, stdin=subprocess.DEVNULL)
     assert r.returncode == 0, r.stderr[-3000:] + r.stdout[-3000:]

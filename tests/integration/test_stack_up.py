@@ -37,7 +37,7 @@ def test_up_serves_every_service_and_sigint_stops_them_all(tmp_path: Path) -> No
     env = {k: v for k, v in os.environ.items()
            if k not in ("AESOP_ADMIN_TOKEN", "AESOP_REASONER_LLM_BASE_URL")}
     proc = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "up", "--random-ports", "--data-dir",
+        [sys.executable, "-m", "tools.cli", "up", "--random-ports", "--data-dir",
          str(tmp_path / "data")], env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
         stdin=subprocess.DEVNULL, text=True)
     try:
@@ -69,7 +69,7 @@ def test_up_serves_every_service_and_sigint_stops_them_all(tmp_path: Path) -> No
 
 
 def test_up_rejects_a_missing_scenario_file(tmp_path: Path) -> None:
-    r = subprocess.run([sys.executable, "-m", "services.cli", "up", "--random-ports",
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "up", "--random-ports",
                         "--scenario", str(tmp_path / "nope.yaml")],
                        capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
     assert r.returncode == 2

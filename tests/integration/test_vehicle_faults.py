@@ -13,12 +13,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from services.bench.sim import count_violations
 from services.control.scenario import load_scenario
-from services.demo.report import ended_in
-from services.scenes.hardware import GOAL
+from services.sim.judge import count_violations
 from services.sim.vehicle import Reporting
 from tests.vehicles import Flown, Vehicle, fly
+from tools.demo.report import ended_in
+from tools.scenes.hardware import GOAL
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 from prometheus_client import CollectorRegistry
 
-from services.embedding.embedders import EmbedderPool
 from services.embedding.errors import Conflict
+from services.embedding.loading import EmbedderPool
 from services.embedding.metrics import Metrics
 from services.embedding.service import CacheService, Item
 from services.embedding.settings import EmbeddingSettings

@@ -16,7 +16,6 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from services.stack.acl import new_passwords, robot_user, users_of, write_credentials
 from shared import topics
 from shared.bus import Bus
 from shared.messages import (
@@ -29,6 +28,7 @@ from shared.messages import (
 )
 from shared.process import free_port
 from shared.settings import BusSettings
+from tools.stack.acl import new_passwords, robot_user, users_of, write_credentials
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -40,7 +40,7 @@ class Hub:
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.passwords = new_passwords(users_of(ROBOTS))
         write_credentials(folder, self.passwords)
-        argv = [sys.executable, "-m", "services.stack.hub", "--listen", self.endpoint,
+        argv = [sys.executable, "-m", "tools.stack.hub", "--listen", self.endpoint,
                 "--users", str(folder / "users.txt"), "--max-message-bytes", "100000"]
         for robot in ROBOTS:
             argv += ["--robot", robot]
@@ -153,7 +153,7 @@ def test_a_message_past_the_size_cap_is_dropped_and_the_session_goes_on(hub: Hub
 
 def test_aesop_watch_without_credentials_says_what_it_needs(hub: Hub) -> None:
     env = {k: v for k, v in os.environ.items() if not k.startswith("AESOP_")}
-    run = subprocess.run([sys.executable, "-m", "services.cli", "watch", "--connect",
+    run = subprocess.run([sys.executable, "-m", "tools.cli", "watch", "--connect",
                           hub.endpoint], env={**env, "AESOP_ZENOH_MODE": "client"},
                          capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
     assert run.returncode != 0

@@ -6,7 +6,7 @@ import importlib.util
 
 import pytest
 
-from services import cli
+from tools import cli
 
 
 def test_bench_and_demo_name_the_missing_bench_extra(

@@ -18,13 +18,13 @@ import dataclasses
 import numpy as np
 import pytest
 
-from services.bench.reference import reference_solve
-from services.control.controllers import make_controller, mpc_config, planning_model
+from services.control.controllers import make_controller, mpc_config
 from services.control.mpc import SolveStatus, promised_step
-from services.control.scenario import load_scenario
+from services.control.scenario import load_scenario, planning_model
 from services.control.selection import SubsetSelector
 from services.sim.plant import make_plant
 from shared.messages import Mode
+from tools.bench.reference import reference_solve
 
 SCENE = load_scenario("hardware")
 MODEL = planning_model(SCENE)

@@ -6,8 +6,8 @@ import json
 import subprocess
 import sys
 
-from services.bench.loop import FlightScript, fly_rate
 from services.control.scenario import load_scenario, resolve_scenario
+from tools.bench.loop import FlightScript, fly_rate
 
 SCENARIO = load_scenario()
 
@@ -36,7 +36,7 @@ def test_a_short_run_times_every_tick_through_an_anomaly_and_a_reset():
 
 
 def test_cli_json_and_bad_arguments():
-    run = [sys.executable, "-m", "services.cli", "bench", "loop"]
+    run = [sys.executable, "-m", "tools.cli", "bench", "loop"]
     out = subprocess.run([*run, "--minutes", "0.02", "--rates", "20", "--json"],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr

@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from services.bench.reference import reference_solve
 from services.control.aesop import Route
-from services.control.controllers import mpc_config, planning_model
+from services.control.controllers import mpc_config
 from services.control.dynamics import QuadrotorParams
 from services.control.models import point_mass_model
 from services.control.mpc import BranchProblem, decouple, promised_step
-from services.control.scenario import load_scenario
+from services.control.scenario import load_scenario, planning_model
 from services.sim.plant import TrackedQuadrotor
+from tools.bench.reference import reference_solve
 
 SCENE = load_scenario("hardware")
 LAG = 0.0825

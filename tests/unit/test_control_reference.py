@@ -1,6 +1,6 @@
 """The OSQP assembly of eq. 3 (BranchProblem) against the plain CVXPY statement of it.
 
-``services.bench.reference`` writes the same problem from the maths and
+``tools.bench.reference`` writes the same problem from the maths and
 solves it with CLARABEL (interior point, ~1e-8 accurate). OSQP is a
 first-order method whose answer is only ``eps``-accurate, and its costs sit
 *below* the optimum by roughly ``eps`` (relative): it accepts a primal
@@ -25,11 +25,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from services.bench.reference import reference_solve
 from services.control.dynamics import QuadrotorParams
 from services.control.models import quadrotor_model
 from services.control.mpc import BranchProblem, MPCConfig, Plan
 from services.control.scenario import load_scenario
+from tools.bench.reference import reference_solve
 
 SCENARIO = load_scenario()
 PARAMS = QuadrotorParams()
@@ -193,8 +193,9 @@ HARDWARE = load_scenario("hardware")
 @pytest.mark.parametrize(("x", "vx", "ax", "k"), [(-4.0, 0.0, 0.0, 0), (0.0, 0.87, 0.0, 0),
                                                   (1.5, 0.5, -0.5, 10), (1.0, -0.8, 0.3, 60)])
 def test_point_mass_tree_at_the_papers_grid_matches_reference(x, vx, ax, k) -> None:
-    from services.control.controllers import mpc_config, planning_model
+    from services.control.controllers import mpc_config
     from services.control.mpc import promised_step
+    from services.control.scenario import planning_model
 
     model = planning_model(HARDWARE)
     config = dataclasses.replace(mpc_config(HARDWARE), eps_abs=1e-6, eps_rel=1e-6,

@@ -6,10 +6,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.bench.sim import Case, Flight, count_violations, fly, judge, sample_cases
-from services.control.controllers import planning_model
 from services.control.dynamics import QuadrotorParams
-from services.control.scenario import load_scenario
+from services.control.scenario import load_scenario, planning_model
+from services.sim.judge import count_violations
+from tools.bench.sim import Case, Flight, fly, judge, sample_cases
 
 SCENARIO = load_scenario()
 CASES = sample_cases(SCENARIO, 10, 0)

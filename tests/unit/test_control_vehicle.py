@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from services.control.aesop import ControlOutput
-from services.control.controllers import make_controller, planning_model
+from services.control.controllers import make_controller
 from services.control.mpc import SolveStatus
-from services.control.scenario import load_scenario
+from services.control.scenario import load_scenario, planning_model
 from services.control.vehicle import ClockMap, StateInput, setpoint, state_vector
 from shared.bus import Received
 from shared.frames import euler_from_quaternion, quaternion_from_euler

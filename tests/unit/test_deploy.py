@@ -31,14 +31,14 @@ import zenoh
 from pydantic import AliasChoices
 from pydantic_settings import BaseSettings
 
-from services.cli import build_parser
-from services.stack.acl import new_passwords, router_config_text, write_credentials
 from shared import topics
 from shared.bus import HEALTH_ALL, Bus, zenoh_config
 from shared.messages import Event
 from shared.process import free_port
 from shared.settings import BusSettings, ServiceSettings
 from tests.zenoh_peers import wait_until
+from tools.cli import build_parser
+from tools.stack.acl import new_passwords, router_config_text, write_credentials
 
 ROOT = Path(__file__).resolve().parents[2]
 COMPOSE = ROOT / "docker-compose.yml"
@@ -54,8 +54,8 @@ SETTINGS = {
     "control": ["services.control.settings:ControlSettings"],
     "dashboard": ["services.dashboard.settings:DashboardSettings"],
     "sim": ["services.sim.settings:SimSettings"],
-    "fake-llm": ["services.fakes.llm:FakeLLMServiceSettings",
-                 "services.fakes.llm:FakeLLMSettings"],
+    "fake-llm": ["tools.fakes.llm:FakeLLMServiceSettings",
+                 "tools.fakes.llm:FakeLLMSettings"],
 }
 STACK = {"embedding", "reasoner", "control", "dashboard"}  # the Zenoh services
 VEHICLE = "sim"  # the simulated vehicle: the robot's user
@@ -146,7 +146,7 @@ def serve_args(svc: dict[str, Any]) -> tuple[argparse.Namespace, argparse.Namesp
     if args.service != "fake-llm":
         assert extra == [], f"aesop would refuse {extra}"
         return args, None
-    from services.fakes.llm import build_parser as fake_llm_parser
+    from tools.fakes.llm import build_parser as fake_llm_parser
 
     return args, fake_llm_parser().parse_args(extra)
 

@@ -9,7 +9,7 @@ from math import ceil, comb
 
 import pytest
 
-from services.scenes import (
+from tools.scenes import (
     DOMAINS,
     NOMINAL_DETECTIONS,
     QUADROTOR_CHOICES,
@@ -26,7 +26,7 @@ from services.scenes import (
     quadrotor_observation,
     write_jsonl,
 )
-from services.scenes.quadrotor import (
+from tools.scenes.quadrotor import (
     CALIBRATION_ANOMALIES,
     QUADROTOR,
     SCENARIO_ANOMALIES,
@@ -412,7 +412,7 @@ def test_write_jsonl_round_trip(tmp_path) -> None:  # type: ignore[no-untyped-de
 
 
 def test_the_eval_split_holds_out_a_fifth_of_the_nominal_samples_and_every_anomaly() -> None:
-    from services.scenes.registry import generate
+    from tools.scenes.registry import generate
 
     data = generate("quadrotor", seed=3)
     nominal, test = data.split_for_eval(3)

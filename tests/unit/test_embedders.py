@@ -19,15 +19,14 @@ from services.embedding.embedders import (
     DEFAULT_MODEL,
     Embedder,
     EmbedderError,
-    EmbedderPool,
     ModelNotFound,
     OpenAIEmbedder,
-    load_embedder,
     normalize,
     parse_embeddings_response,
     pool_key,
     resolve_model,
 )
+from services.embedding.loading import EmbedderPool, load_embedder
 from tests.fakes.openai_embeddings import fake_embedding, start_fake_embeddings_server
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -103,9 +102,10 @@ def test_importing_and_failing_to_find_a_model_never_imports_torch() -> None:
     code = (
         "import sys\n"
         "import services.embedding.embedders as e\n"
+        "import services.embedding.loading as loading\n"
         "assert 'torch' not in sys.modules and 'sentence_transformers' not in sys.modules\n"
         "try:\n"
-        "    e.load_embedder('definitely-not-a-model')\n"
+        "    loading.load_embedder('definitely-not-a-model')\n"
         "except e.ModelNotFound:\n"
         "    pass\n"
         "assert 'torch' not in sys.modules and 'sentence_transformers' not in sys.modules\n"

@@ -6,7 +6,6 @@ from importlib import resources
 
 import pytest
 
-from services.fakes.llm import parse_prompt
 from services.reasoner.prompts import (
     CONTINUE_LINE,
     CONTINUE_WITHHELD,
@@ -21,6 +20,7 @@ from services.reasoner.prompts import (
     unusual_of,
 )
 from shared.messages import DetectionMatch, Observation, Option, PairMatch, ReasonerRequest
+from tools.fakes.llm import parse_prompt
 
 OPTIONS = (
     Option(index=0, label="continue"),

@@ -7,28 +7,28 @@ from pathlib import Path
 
 import pytest
 
-from services.demo.report import recordings_section
-from services.recording.importer import distinct_scenes, scene_id
-from services.recording.mcapfile import FlightWriter
-from services.recording.recorded import (
+from shared.messages import AnomalyVerdict, ControlState, Detection, Observation
+from tools.demo.report import recordings_section
+from tools.recording.importer import distinct_scenes, scene_id
+from tools.recording.mcapfile import FlightWriter
+from tools.recording.recorded import (
     RecordingError,
     check_recording,
     observations,
     parse_when,
     verdicts,
 )
-from services.recording.replay import due_s, topic_filter
-from services.recording.rescore import (
+from tools.recording.replay import due_s, topic_filter
+from tools.recording.rescore import (
     NewScore,
     Rescored,
     compare,
     summary,
     table,
 )
-from services.recording.rescore import (
+from tools.recording.rescore import (
     distinct_scenes as distinct_observed,
 )
-from shared.messages import AnomalyVerdict, ControlState, Detection, Observation
 
 T0 = 1_700_000_000_000_000_000  # ns
 

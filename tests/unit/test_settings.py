@@ -13,9 +13,9 @@ from pydantic_settings import BaseSettings
 from services.control.settings import ControlSettings
 from services.dashboard.settings import DashboardSettings
 from services.embedding.settings import EmbeddingSettings
-from services.fakes.llm import FakeLLMServiceSettings
 from services.reasoner.settings import ReasonerSettings
 from shared.settings import env_names, to_env
+from tools.fakes.llm import FakeLLMServiceSettings
 
 SERVICES: list[type[BaseSettings]] = [EmbeddingSettings, ReasonerSettings, ControlSettings,
                                       DashboardSettings, FakeLLMServiceSettings]
@@ -99,7 +99,7 @@ def test_a_bad_value_is_refused_naming_the_field() -> None:
 
 
 def test_an_old_or_misspelt_name_is_pointed_out() -> None:
-    from services.cli import warn_unknown_settings
+    from tools.cli import warn_unknown_settings
 
     said = warn_unknown_settings({"AESOP_LLM_BASE_URL": "http://llm/v1", "AESOP_ROBOT": "r1",
                                   "AESOP_CONTROL_RATE_HZ": "20", "AESOP_CONTROL_RATEHZ": "5",

@@ -7,7 +7,6 @@ import math
 import pytest
 from pydantic import ValidationError
 
-from services.stack.up import Ports
 from shared import topics
 from shared.messages import (
     AnomalyVerdict,
@@ -23,6 +22,7 @@ from shared.messages import (
 )
 from shared.process import ephemeral_range, free_port
 from shared.settings import ServiceSettings
+from tools.stack.up import Ports
 
 OBS = Observation(robot="r1", seq=3, task="land", text="a red box on the ground")
 PAIR = PairMatch(detections=("a red box", "a person"), nearest=("a red box", "a drill"),

@@ -10,10 +10,10 @@ import pytest
 from pydantic import ValidationError
 
 from services.control.scenario import load_scenario
-from services.demo.flights import add_time_lost
-from services.demo.report import ended_in, flight_measures, judge, summary_table
-from services.scenes.hardware import GOAL, SCENARIOS, observation_text
-from services.stack.up import Ports, StackOptions, hardware_scenario, plan_stack
+from tools.demo.flights import add_time_lost
+from tools.demo.report import ended_in, flight_measures, judge, summary_table
+from tools.scenes.hardware import GOAL, SCENARIOS, observation_text
+from tools.stack.up import Ports, StackOptions, hardware_scenario, plan_stack
 
 SCENE = load_scenario(hardware_scenario())
 BY_NAME = {s.name: s for s in SCENARIOS}

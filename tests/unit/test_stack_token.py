@@ -5,7 +5,7 @@ from __future__ import annotations
 import stat
 from pathlib import Path
 
-from services.stack.up import write_token
+from tools.stack.up import write_token
 
 
 def mode(path: Path) -> int:

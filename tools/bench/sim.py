@@ -10,8 +10,7 @@ out of reach by its step is planned to reach it later, see
 ``aesop._Controller._late``), and a landing is judged once it has settled.
 ``Outcome.time_to_region_s`` says when it arrived. Success: the flight
 ends inside the chosen region and never left the state or input limits on
-the way, both judged on the nonlinear truth with :data:`TOLERANCE` and
-:data:`LIMIT_TOLERANCE`.
+the way, both judged on the nonlinear truth (:mod:`services.sim.judge`).
 
 The vehicle is the simulator's own (:class:`services.sim.vehicle.SimVehicle`), in
 process: it reports its state as configured (:class:`~services.sim.vehicle.Reporting`:
@@ -30,35 +29,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.control.controllers import METHODS, Method, make_controller, planning_model
+from services.control.controllers import METHODS, Method, make_controller
 from services.control.mpc import MPCConfig
-from services.control.regions import Tolerance
 from services.control.scenario import Scenario
 from services.control.vehicle import ClockMap, StateInput, setpoint
+from services.sim.judge import LIMIT_TOLERANCE, TOLERANCE, LimitTolerance, count_violations
 from services.sim.vehicle import Reporting, SimVehicle
 from shared.bus import Received
 from shared.messages import Mode
 
-TOLERANCE = Tolerance()  # how close to a region's box counts as inside (regions.py)
 SETTLE_S = 3.0  # s after t_anom + T at which a flight ends and is judged
 
 
-@dataclass(frozen=True)
-class LimitTolerance:
-    """How far the nonlinear truth may exceed a limit before it counts as a violation."""
-
-    position: float = 0.05  # m
-    velocity: float = 0.05  # m/s
-    tilt: float = 0.02  # rad
-    rate: float = 0.05  # rad/s
-    input: float = 1e-6  # the model's input units (the plant clips; the controller must
-    # not ask beyond)
-
-    def state(self) -> np.ndarray:
-        return np.repeat([self.position, self.velocity, self.tilt, self.rate], 3)
-
-
-LIMIT_TOLERANCE = LimitTolerance()
 
 
 @dataclass(frozen=True)
@@ -122,25 +104,6 @@ class Flight:
 
     def mean_speed(self) -> float:
         return float(np.mean(np.linalg.norm(self.states[:, 3:6], axis=1)))
-
-
-def count_violations(states: np.ndarray, inputs: np.ndarray, scenario: Scenario,
-                     tol: LimitTolerance = LIMIT_TOLERANCE) -> int:
-    """Ticks at which a 12-state ``states`` row left the scenario's limits or an ``inputs``
-    row the planning model's input box, beyond ``tol``."""
-    states, inputs = np.asarray(states, dtype=float), np.asarray(inputs, dtype=float)
-    if not len(states):
-        return 0
-    lo, hi = scenario.limits.box()
-    slack = tol.state()
-    bad = np.any((states > hi + slack) | (states < lo - slack) | ~np.isfinite(states), axis=1)
-    if len(inputs):
-        model = planning_model(scenario)
-        bad_u = np.any((inputs > model.u_hi + tol.input) | (inputs < model.u_lo - tol.input),
-                       axis=1)
-        n = min(len(bad), len(bad_u))
-        bad[:n] |= bad_u[:n]
-    return int(np.sum(bad))
 
 
 STALE_TICKS = 3.0  # as the control service's default state_stale_ticks
@@ -276,5 +239,5 @@ def time_lost(scenario: Scenario, case: Case, reach_m: float = 0.2,
     return {"arrival_s": with_anomaly, "arrival_no_anomaly_s": base, "time_lost_s": lost}
 
 
-__all__ = ["METHODS", "SETTLE_S", "Case", "Flight", "Outcome", "count_violations", "fly",
+__all__ = ["METHODS", "SETTLE_S", "Case", "Flight", "Outcome", "fly",
            "judge", "run_case", "sample_cases", "summarize", "time_lost"]

@@ -40,7 +40,7 @@ A stream ends with a usage chunk when ``stream_options.include_usage`` is true (
 OpenAI's API does). When ``response_format`` asks for JSON (``json_object`` /
 ``json_schema``) the content is ``{"reasoning": str, "answer": int}``.
 
-Run: ``python -m services.fakes.llm --port 8010 [--profile bimodal]``; every
+Run: ``python -m tools.fakes.llm --port 8010 [--profile bimodal]``; every
 flag also from ``AESOP_FAKE_LLM_*`` (``AESOP_FAKE_LLM_HOST``, ``AESOP_FAKE_LLM_PORT`` too).
 """
 

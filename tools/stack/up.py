@@ -1,10 +1,10 @@
 """``aesop up``: the whole stack on this machine as child processes.
 
-A Zenoh hub (:mod:`services.stack.hub`, router mode on loopback), then the
+A Zenoh hub (:mod:`tools.stack.hub`, router mode on loopback), then the
 fake LLM (unless ``AESOP_REASONER_LLM_BASE_URL`` names a real backend), the vector-cache
 (embedding), the slow reasoner, the control loop, the simulated quadrotor it flies
 (``serve sim``, as the robot's user: a vehicle like any other) and the dashboard, all
-as ``python -m services.cli serve ...`` clients of the hub.
+as ``python -m tools.cli serve ...`` clients of the hub.
 Every Zenoh session authenticates to the hub with its own user and a password
 generated per start (:mod:`.acl`; kept in ``<data-dir>/zenoh``, 0600), and the hub's
 access-control list lets each publish only its own keys.
@@ -37,7 +37,6 @@ from services.control.scenario import bundled_path, load_scenario, resolve_scena
 from services.control.settings import ControlSettings
 from services.dashboard.settings import DashboardSettings
 from services.embedding.settings import EmbeddingSettings
-from services.fakes.llm import FakeLLMServiceSettings, FakeLLMSettings
 from services.reasoner.settings import ReasonerSettings
 from services.sim.settings import SimSettings
 from shared.process import (
@@ -50,6 +49,7 @@ from shared.process import (
     stderr_sink,
 )
 from shared.settings import BusSettings, ServiceSettings, read_settings, to_env
+from tools.fakes.llm import FakeLLMServiceSettings, FakeLLMSettings
 
 from .acl import new_passwords, robot_user, users_of, write_credentials, write_private
 
@@ -196,12 +196,12 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
         "profile": "fixed", "fixed_s": FAKE_LLM_LATENCY_S}))
 
     def child(name: str, service: ServiceSettings) -> ChildSpec:
-        argv = (py, "-m", "services.cli", "serve", name)
+        argv = (py, "-m", "tools.cli", "serve", name)
         env = {**inherited, **to_env(service), **(fake_llm if name == "fake-llm" else {})}
         return ChildSpec(name, argv, service.port, env)
 
     zenoh_dir = options.data_dir / "zenoh"
-    hub = ChildSpec("hub", (py, "-m", "services.stack.hub", "--users",
+    hub = ChildSpec("hub", (py, "-m", "tools.stack.hub", "--users",
                             str(zenoh_dir / "users.txt"), "--robot", robot, "--listen", endpoint),
                     ports.hub, inherited, ready="tcp")
     return StackPlan(hub, tuple(child(n, s) for n, s in settings), given or token, not given,

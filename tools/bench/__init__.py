@@ -1,4 +1,4 @@
-"""``aesop bench ...`` and ``aesop detector eval``: the benchmarks and offline evaluations.
+"""``aesop bench ...``: the benchmarks.
 
 Nothing here runs in a service. The modules import the services' pure parts
 (scoring, eq. 3, the planner) in process, or drive a running stack over Zenoh

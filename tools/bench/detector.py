@@ -26,7 +26,7 @@ returned dict holds no NaN. Timings on the 2-core machines are noisy: every
 number is a median or p99 and comparisons are ratios measured in one run
 (``meta.load_average`` records how busy the machine was).
 
-``python -m services.bench.detector --memory-probe`` is the memory part's
+``python -m tools.bench.detector --memory-probe`` is the memory part's
 subprocess; it prints one JSON line.
 """
 
@@ -62,9 +62,9 @@ from shared.process import ServiceProcess, free_port
 from shared.tables import table
 
 if TYPE_CHECKING:
-    from services.bench.evaluate import EvalScore
+    from services.embedding.evaluation import EvalScore
     from services.embedding.service import CacheService
-    from services.scenes import Dataset
+    from tools.scenes import Dataset
 
 log = logging.getLogger(__name__)
 
@@ -214,7 +214,7 @@ class _Bench:
 
     @cached_property
     def embedder(self) -> Embedder:
-        from services.embedding.embedders import load_embedder
+        from services.embedding.loading import load_embedder
         from services.embedding.settings import DEFAULT_MODEL
 
         log.info("loading %s", DEFAULT_MODEL)
@@ -225,7 +225,7 @@ class _Bench:
     def dataset(self, name: str, *, kinds: bool = False) -> Dataset:
         """Domain ``name`` at the quality part's sizes, or the kinds part's."""
         if (name, kinds) not in self._datasets:
-            from services.scenes import generate
+            from tools.scenes import generate
 
             sizes = self.sizes.kind_domains if kinds else self.sizes.domains
             n_nominal, n_anomaly = sizes.get(name, (None, None))
@@ -351,7 +351,7 @@ def bench_quality(bench: _Bench, plot: Path | None) -> dict[str, Any]:
 
 
 def _quality_domain(bench: _Bench, name: str) -> dict[str, Any]:
-    from services.scenes import concept_subset
+    from tools.scenes import concept_subset
 
     ds = bench.dataset(name)
     nominal, anomalies = bench.vectors(name)
@@ -395,8 +395,7 @@ def _detect(cache_x: np.ndarray, test_x: np.ndarray, test_y: np.ndarray,
             alphas: Sequence[float] = (ALPHA,)) -> dict[str, Any]:
     """Detector built on ``cache_x`` with tau from eq. (2), evaluated on the test set."""
     from services.embedding.calibration import auroc, binary_metrics, loo_quantile
-
-    from .evaluate import EvalConfig, build_cache
+    from services.embedding.evaluation import EvalConfig, build_cache
 
     cache = build_cache(cache_x, EvalConfig(k=K), None)
     loo = cache.loo_scores(K)
@@ -518,8 +517,8 @@ def bench_kinds(bench: _Bench) -> dict[str, Any]:
     at alpha 0.95, k 5; then ``combined`` (with and without pairs) calibrated
     split-conformal (the cache's nominal set halved: cache and calibration) at each alpha:
     its FPR on the held-out nominal test samples against the ``1 - alpha`` it promises."""
-    from services.bench.evaluate import EvalConfig, evaluate
     from services.embedding.errors import InvalidInput
+    from services.embedding.evaluation import EvalConfig, evaluate
 
     memo = _Memo(bench.embedder)
     domains = {}
@@ -556,7 +555,7 @@ def _kind_quantiles(bench: _Bench, memo: Embedder) -> dict[str, Any]:
     nominal samples (brief form, with detections), loo-quantile at alpha = each quantile,
     accuracy on the rest and every anomaly, averaged over ``threshold_seeds`` splits
     (the same splits as the top-k table of the quality part)."""
-    from services.bench.evaluate import EvalConfig, evaluate
+    from services.embedding.evaluation import EvalConfig, evaluate
 
     ds = bench.dataset("vtol", kinds=True)
     nominal, anomalies = _labelled(ds.nominal), _labelled(ds.anomalies)
@@ -639,9 +638,9 @@ async def _latency(n: int, size: int, seed: int, model: str = DEFAULT_MODEL,
     paper's full prompt is timed too, to show what its fixed preamble costs."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from services.embedding.embedders import load_embedder
+    from services.embedding.loading import load_embedder
     from services.embedding.service import on_fresh_thread
-    from services.scenes import generate
+    from tools.scenes import generate
 
     embedder = await on_fresh_thread(partial(load_embedder, model, threads=threads))
     ds = generate("vtol", seed=seed, n_nominal=max(n, 200), n_anomaly=n)
@@ -697,7 +696,7 @@ async def _latency(n: int, size: int, seed: int, model: str = DEFAULT_MODEL,
 async def _service(embedder: Embedder, data_dir: Path, *, microbatch: bool = True,
                    fsync: bool = False) -> CacheService:
     """A started ``CacheService`` on ``data_dir`` that shares the already-loaded model."""
-    from services.embedding.embedders import EmbedderPool
+    from services.embedding.loading import EmbedderPool
     from services.embedding.service import CacheService
     from services.embedding.settings import EmbeddingSettings
 
@@ -728,7 +727,7 @@ async def _score_one(service: CacheService, text: str) -> float:
 
 
 def _cache_of(vectors: np.ndarray) -> Any:
-    from .evaluate import EvalConfig, build_cache
+    from services.embedding.evaluation import EvalConfig, build_cache
 
     return build_cache(vectors, EvalConfig(k=K), None)
 
@@ -855,7 +854,7 @@ def bench_build(bench: _Bench) -> dict[str, Any]:
 async def _build(bench: _Bench) -> dict[str, Any]:
     from services.embedding.service import Item
     from services.embedding.settings import DEFAULT_MODEL
-    from services.scenes import generate
+    from tools.scenes import generate
 
     n = bench.sizes.build_texts
     texts = [s.brief for s in generate("vtol", seed=bench.seed + 1, n_nominal=n,
@@ -886,8 +885,8 @@ async def _build(bench: _Bench) -> dict[str, Any]:
 
 
 def _probe(args: list[str]) -> dict[str, Any]:
-    """Run ``python -m services.bench.detector <args>`` and read its one JSON line."""
-    cmd = [sys.executable, "-m", "services.bench.detector", *args]
+    """Run ``python -m tools.bench.detector <args>`` and read its one JSON line."""
+    cmd = [sys.executable, "-m", "tools.bench.detector", *args]
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1"}
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900,
                           check=False)
@@ -911,7 +910,7 @@ def memory_probe(size: int, seed: int = 0) -> dict[str, Any]:
     import torch  # noqa: F401
 
     from services.embedding.cache import Cache, CacheConfig
-    from services.embedding.embedders import load_embedder
+    from services.embedding.loading import load_embedder
     from services.embedding.settings import DEFAULT_MODEL
 
     process = psutil.Process()
@@ -932,7 +931,7 @@ def memory_probe(size: int, seed: int = 0) -> dict[str, Any]:
         cache.apply(cache.plan_add(clusters.sample(m, rng), ids=ids, texts=[None] * m,
                                    metadata=[{}] * m))
     stages["after_cache"] = rss()
-    from services.scenes import generate
+    from tools.scenes import generate
 
     texts = [s.text for s in generate("vtol", seed=seed, n_nominal=8, n_anomaly=8).samples]
     cache.score(embedder.embed(texts), K)

@@ -53,23 +53,23 @@ from services.control.client import ControlClient
 from services.embedding.client import EmbeddingClient
 from services.embedding.schemas import CacheInfo
 from services.embedding.settings import SERVICE_MODEL
-from services.scenes import (
-    QUADROTOR_SCENARIOS,
-)
-from services.scenes.hardware import (
-    build_scene_cache,
-    camera_observation,
-    detections_of,
-    observation_text,
-)
 from services.sim.client import SimClient
-from services.stack.up import DETECTOR_CACHE
 from shared import topics
 from shared.bus import Bus, Received, Subscription
 from shared.messages import AnomalyVerdict, ControlState
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
 from shared.tables import table
+from tools.scenes import (
+    QUADROTOR_SCENARIOS,
+)
+from tools.scenes.hardware import (
+    build_scene_cache,
+    camera_observation,
+    detections_of,
+    observation_text,
+)
+from tools.stack.up import DETECTOR_CACHE
 
 CACHE = DETECTOR_CACHE
 ROBOT = "robot0"

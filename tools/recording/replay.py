@@ -10,7 +10,7 @@ starts it over when it ends.
 Replay publishes as whoever its session is: a Zenoh router that checks users lets
 ``robot-<id>`` put only its observations and events (``aesop up``'s ACL), and drops
 the rest without a word, so a whole flight is replayed into a dashboard that is not
-behind that router (see the README).
+behind that router (docs/recordings.md).
 """
 
 from __future__ import annotations

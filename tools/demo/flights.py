@@ -1,10 +1,10 @@
 """``aesop demo``: the paper's hardware scenarios flown by the whole stack.
 
-It brings the stack up (:mod:`services.stack.up`, logs under ``<out>/logs``),
+It brings the stack up (:mod:`tools.stack.up`, logs under ``<out>/logs``),
 builds the nominal cache of the hardware scene over REST (every combination of
 up to 4 nominal detections, each with its detections), calibrates it split-conformal
 (top-1 scores; observations with detections judged by the combined p-value), then
-flies each scenario of :data:`services.scenes.hardware.SCENARIOS`: move the simulated
+flies each scenario of :data:`tools.scenes.hardware.SCENARIOS`: move the simulated
 vehicle (its own process, ``aesop serve sim``) to the start, reset the control loop
 there, publish the scripted ``Observation``s at the loop rate, and record what comes
 back over Zenoh (states, requests, decisions, events) until the flight's time is up.
@@ -31,28 +31,11 @@ from typing import Any
 
 import numpy as np
 
-from services.bench.sim import count_violations
 from services.control.client import ControlClient
 from services.control.scenario import Scenario, load_scenario
 from services.embedding.client import EmbeddingClient
-from services.recording.record import Background, Totals
-from services.scenes.hardware import (
-    SCENARIOS,
-    DemoScenario,
-    build_scene_cache,
-    camera_observation,
-    observation_text,
-)
 from services.sim.client import SimClient
-from services.stack.acl import MONITOR, robot_user
-from services.stack.up import (
-    DETECTOR_CACHE,
-    FAKE_LLM_LATENCY_S,
-    Stack,
-    StackOptions,
-    StackPlan,
-    plan_stack,
-)
+from services.sim.judge import count_violations
 from shared import topics
 from shared.bus import Bus, Subscription
 from shared.messages import (
@@ -64,6 +47,23 @@ from shared.messages import (
 )
 from shared.process import file_sink
 from shared.settings import BusSettings
+from tools.recording.record import Background, Totals
+from tools.scenes.hardware import (
+    SCENARIOS,
+    DemoScenario,
+    build_scene_cache,
+    camera_observation,
+    observation_text,
+)
+from tools.stack.acl import MONITOR, robot_user
+from tools.stack.up import (
+    DETECTOR_CACHE,
+    FAKE_LLM_LATENCY_S,
+    Stack,
+    StackOptions,
+    StackPlan,
+    plan_stack,
+)
 
 from .report import ended_in, flight_measures, judge, summary_table, write_report
 

@@ -1,6 +1,6 @@
 """The demo's judging and report: pure logic, plus the HTML/PNG writer.
 
-The scenarios themselves are :mod:`services.scenes.hardware`.
+The scenarios themselves are :mod:`tools.scenes.hardware`.
 
 * :func:`flight_measures` — what the paper's hardware appendix describes, per
   flight: the approach altitude, the speed before the detector fires, the
@@ -22,11 +22,11 @@ from typing import Any
 
 import numpy as np
 
-from services.bench.sim import TOLERANCE
 from services.control.regions import Tolerance
 from services.control.scenario import Scenario
-from services.scenes.hardware import GOAL, DemoScenario
-from services.scenes.quadrotor import TASK
+from services.sim.judge import TOLERANCE
+from tools.scenes.hardware import GOAL, DemoScenario
+from tools.scenes.quadrotor import TASK
 
 GOAL_REACH_M = 0.15  # within this of the goal, and at rest, counts as landed there
 AT_REST_M_S = 0.15

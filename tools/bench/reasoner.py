@@ -1,6 +1,6 @@
 """``aesop bench reasoner``: the slow reasoner's deadline against the fake LLM server.
 
-Real processes: the fake OpenAI-compatible server (:mod:`services.fakes.llm`) runs
+Real processes: the fake OpenAI-compatible server (:mod:`tools.fakes.llm`) runs
 as a child process with the paper's ``bimodal`` latency profile (mean 3.1 s, std 0.85 s,
 95th percentile 4.3 s) and ``K = 4.3 s``, both multiplied by ``scale`` (default 0.1, so
 ``K = 0.43 s``). One :class:`~services.reasoner.deciding.Decider` answers ``requests``

@@ -1,12 +1,14 @@
-"""What the ``aesop`` command's modules share (:mod:`services.cli` and the command
-modules it calls lazily, such as :mod:`services.recording.cli`): one error type for user
+"""What the ``aesop`` command's modules share (:mod:`tools.cli` and the command
+modules it calls lazily, such as :mod:`tools.recording.cli`): one error type for user
 errors and one way to print a result. A module of its own, so that the error raised by a
 command module is the class ``aesop`` catches even when the CLI runs as ``__main__``.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
+from pathlib import Path
 from typing import Any
 
 
@@ -30,3 +32,22 @@ def emit(result: dict[str, Any], as_json: bool) -> None:
     for key, value in result.items():
         shown = f"{value:.4f}" if isinstance(value, float) else value
         print(f"{key:<{width}}  {shown}")
+
+
+DEFAULT_EMBEDDING_URL = "http://127.0.0.1:8001"  # aesop up's embedding service
+
+
+def add_url_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--url", default=DEFAULT_EMBEDDING_URL,
+                        help=f"the embedding service (default {DEFAULT_EMBEDDING_URL}); the "
+                             "token from AESOP_ADMIN_TOKEN")
+
+
+def control_scenario(path: Path | str | None):  # -> services.control.scenario.Scenario
+    """The scene a command flies, or a usage error naming ``--scenario``."""
+    from services.control.scenario import ScenarioError, load_scenario
+
+    try:
+        return load_scenario(path)
+    except (ScenarioError, OSError) as exc:
+        raise CliError(f"--scenario: {exc}") from None

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from services.control.controllers import METHODS, make_controller, mpc_config, planning_model
+from services.control.controllers import METHODS, make_controller, mpc_config
 from services.control.mpc import SolveStatus, promised_step
-from services.control.scenario import Scenario, load_scenario
+from services.control.scenario import Scenario, load_scenario, planning_model
 from services.sim.plant import make_plant
 from services.sim.vehicle import Reporting
 

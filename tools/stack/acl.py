@@ -140,7 +140,7 @@ def _rule(rule_id: str, flow: str, messages: list[str], keys: list[str]) -> dict
 ROUTER_HEADER = """\
 // The Zenoh router of the compose stack (image eclipse/zenoh, same version as the
 // eclipse-zenoh wheel). Written by `aesop zenoh router-config --robot robot0`, from the
-// same code as the ACL of `aesop up`'s hub (services/stack/acl.py): regenerate it, do not
+// same code as the ACL of `aesop up`'s hub (tools/stack/acl.py): regenerate it, do not
 // edit it. Every session authenticates (user:password, the dictionary is the compose
 // secret zenoh-users, made by `aesop zenoh credentials deploy/secrets`); each service may
 // publish only its own keys, robot-<id> only its own observations, events and vehicle

@@ -1,7 +1,7 @@
 """The ``aesop`` commands on recordings: ``record``, ``replay``, ``cache import``,
-``cache calibrate`` and ``detector eval --recording`` (:mod:`services.cli` parses their
-flags and calls these). Each turns user errors into a
-:class:`~services.commands.CliError`.
+``cache calibrate`` (their flags and handlers), and ``detector eval --recording``
+(:mod:`tools.detector` calls it). Each turns user errors into a
+:class:`~tools.commands.CliError`.
 """
 
 from __future__ import annotations
@@ -13,7 +13,65 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from services.commands import CliError, emit, not_joined
+from tools.commands import CliError, add_url_argument, emit, not_joined
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    rec = sub.add_parser("record", help="the stack's Zenoh topics into an MCAP file "
+                         "(Foxglove opens it); Ctrl-C stops")
+    rec.add_argument("--out", type=Path, default=None,
+                     help="the file (default ./aesop-<robot or all>-<UTC time>.mcap)")
+    rec.add_argument("--robot", help="only this robot (default: every robot)")
+    rec.add_argument("--topics", nargs="+", metavar="TOPIC",
+                     help="only these: observation anomaly state plan reasoner/request "
+                          "reasoner/decision event regions vehicle/state vehicle/setpoint "
+                          "(default: all)")
+    rec.add_argument("--connect", action="append", metavar="ENDPOINT",
+                     help="Zenoh endpoint (repeatable; default: AESOP_ZENOH_CONNECT)")
+    rec.set_defaults(func=record_command)
+
+    rp = sub.add_parser("replay", help="publish a recording on Zenoh again with its timing "
+                        "(the dashboard and aesop watch show the flight); Ctrl-C stops")
+    rp.add_argument("file", type=Path, metavar="FILE.mcap")
+    rp.add_argument("--speed", type=float, default=1.0, help="time scale (2: twice as fast)")
+    rp.add_argument("--topics", nargs="+", metavar="TOPIC",
+                    help="only these (e.g. observation: a live stack's detector sees the "
+                         "recorded scenes; default: all)")
+    rp.add_argument("--loop", action="store_true", help="start over at the end")
+    rp.add_argument("--connect", action="append", metavar="ENDPOINT",
+                    help="Zenoh endpoint (repeatable; default: AESOP_ZENOH_CONNECT)")
+    rp.add_argument("--listen", action="append", metavar="ENDPOINT",
+                    help="listen here instead, for a dashboard to connect to (repeatable)")
+    rp.set_defaults(func=replay_command)
+
+    ca = sub.add_parser("cache", help="nominal experience caches of a running embedding service")
+    casub = ca.add_subparsers(dest="cache_command", required=True)
+    ci = casub.add_parser("import", help="add a recorded flight's distinct scenes as nominal "
+                          "experiences (then calibrate)")
+    ci.add_argument("--recording", type=Path, required=True, action="append",
+                    metavar="FILE.mcap", help="a recorded flight (repeatable)")
+    ci.add_argument("--cache", required=True, help="the cache (created if there is none)")
+    ci.add_argument("--since", help="from here: seconds from each recording's start (12.5) "
+                    "or an ISO 8601 time (UTC unless it says)")
+    ci.add_argument("--until", help="up to here, as --since")
+    ci.add_argument("--robot", help="only this robot's observations (default: all)")
+    ci.add_argument("--model", default=None, help="embedding model of a new cache")
+    ci.add_argument("--k", type=int, default=None,
+                    help="neighbours a new cache scores with (default 5; the paper's "
+                         "hardware cache: 1)")
+    add_url_argument(ci)
+    ci.add_argument("--json", action="store_true")
+    ci.set_defaults(func=cache_import_command)
+    cc = casub.add_parser("calibrate", help="tau of a cache from its own experiences (eq. 2: "
+                          "the alpha quantile of the leave-one-out scores)")
+    cc.add_argument("--cache", required=True)
+    cc.add_argument("--alpha", type=float, default=0.95)
+    cc.add_argument("--pairs", action="store_true",
+                    help="score pairs of detections too (two nominal objects never seen "
+                         "together)")
+    add_url_argument(cc)
+    cc.add_argument("--json", action="store_true")
+    cc.set_defaults(func=cache_calibrate_command)
 
 
 def record_command(args: argparse.Namespace) -> int:
@@ -23,8 +81,8 @@ def record_command(args: argparse.Namespace) -> int:
 
     import zenoh
 
-    from services.recording.record import key_exprs, record
     from shared.settings import BusSettings
+    from tools.recording.record import key_exprs, record
 
     try:
         key_exprs(args.robot, args.topics)
@@ -56,9 +114,9 @@ def replay_command(args: argparse.Namespace) -> int:
 
     import zenoh
 
-    from services.recording.recorded import RecordingError, check_recording
-    from services.recording.replay import replay, topic_filter
     from shared.settings import BusSettings
+    from tools.recording.recorded import RecordingError, check_recording
+    from tools.recording.replay import replay, topic_filter
 
     try:
         topic_filter(args.topics)
@@ -107,9 +165,9 @@ def cache_import_command(args: argparse.Namespace) -> int:
     import httpx
 
     from services.embedding.client import EmbeddingClient
-    from services.recording.importer import import_recording
-    from services.recording.recorded import RecordingError, check_recording
     from shared.client import ServiceError
+    from tools.recording.importer import import_recording
+    from tools.recording.recorded import RecordingError, check_recording
 
     def say(line: str) -> None:
         print(line, file=sys.stderr, flush=True)
@@ -167,14 +225,14 @@ def cache_calibrate_command(args: argparse.Namespace) -> int:
 
 
 def rescore_recording(args: argparse.Namespace) -> int:
-    """``aesop detector eval --recording``: see :mod:`services.recording.rescore`."""
-    from services.recording.recorded import (
+    """``aesop detector eval --recording``: see :mod:`tools.recording.rescore`."""
+    from tools.recording.recorded import (
         RecordingError,
         check_recording,
         observations,
         verdicts,
     )
-    from services.recording.rescore import compare, distinct_scenes, summary, table
+    from tools.recording.rescore import compare, distinct_scenes, summary, table
 
     if (args.nominal is None) == (args.cache is None):
         raise CliError("--recording needs either --nominal (a JSONL set to build a cache "
@@ -210,11 +268,12 @@ def rescore_recording(args: argparse.Namespace) -> int:
 
 def _scores_offline(args: argparse.Namespace, scenes: list[Any]
                     ) -> tuple[dict[Any, Any], float | None, str]:
-    from services.bench.evaluate import EvalConfig, read_jsonl
-    from services.embedding.embedders import EmbedderError, load_embedder
+    from services.embedding.embedders import EmbedderError
     from services.embedding.errors import DetectorError
+    from services.embedding.evaluation import EvalConfig, read_jsonl
+    from services.embedding.loading import load_embedder
     from services.embedding.settings import DEFAULT_MODEL
-    from services.recording.rescore import scores_offline
+    from tools.recording.rescore import scores_offline
 
     try:
         config = EvalConfig(k=args.k, alpha=args.alpha, method=args.method, score=args.score,
@@ -235,8 +294,8 @@ def _scores_over_rest(args: argparse.Namespace, scenes: list[Any]
     import httpx
 
     from services.embedding.client import EmbeddingClient
-    from services.recording.rescore import scores_from_cache
     from shared.client import ServiceError
+    from tools.recording.rescore import scores_from_cache
 
     async def run() -> tuple[dict[Any, Any], float | None, int]:
         async with EmbeddingClient(args.url, token=_admin_token(), timeout_s=120) as client:

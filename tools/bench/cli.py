@@ -1,0 +1,214 @@
+"""``aesop bench detector|reasoner|mpc|closed-loop|loop|bus``: the benchmarks, as tables or
+one JSON object (``--json``). They need the ``bench`` extra."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from tools.commands import CliError, control_scenario, emit
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    bench = sub.add_parser("bench", help="benchmarks (tables, or one JSON object with --json)")
+    bsub = bench.add_subparsers(dest="bench_command", required=True)
+    bd = bsub.add_parser("detector", help="detector quality, latency, memory and throughput")
+    bd.add_argument("--json", action="store_true")
+    bd.add_argument("--quick", action="store_true", help="small sizes, for a smoke run")
+    bd.add_argument("--only", action="append", help="run only these parts (repeatable)")
+    bd.add_argument("--plot", type=Path, default=None, help="write the quality figure (PNG)")
+    bd.add_argument("--seed", type=int, default=0)
+    bd.set_defaults(func=cmd_bench_detector)
+    br = bsub.add_parser("reasoner", help="deadline, fallbacks, overhead and hedging of the "
+                         "slow reasoner against the fake LLM (bimodal profile)")
+    br.add_argument("--requests", type=int, default=1000, help="decisions per run (default 1000)")
+    br.add_argument("--scale", type=float, default=0.1,
+                    help="time scale of the latencies and of K = 4.3 s (default 0.1)")
+    br.add_argument("--concurrency", type=int, default=8, help="decisions in flight (8)")
+    br.add_argument("--seed", type=int, default=0, help="fake LLM seed (second backend: +1)")
+    br.add_argument("--hedge-after", type=float, default=None,
+                    help="hedging delay in s (default: the single-backend p50 latency)")
+    br.add_argument("--json", action="store_true")
+    br.set_defaults(func=cmd_bench_reasoner)
+
+    bm = bsub.add_parser("mpc", help="per-tick AESOP control step vs a CVXPY reference of eq. 3")
+    bm.add_argument("--flights", type=int, default=3, help="nominal flights (default 3)")
+    bm.add_argument("--ticks", type=int, default=60, help="ticks per flight (default 60)")
+    bm.add_argument("--reference-every", type=int, default=10,
+                    help="solve the CVXPY reference every N ticks (default 10)")
+    bm.add_argument("--scenario", type=Path, default=None,
+                    help="a bundled scenario (paper, hardware) or a file (default: paper)")
+    bm.add_argument("--horizons", type=int, nargs="+", default=[],
+                    help="also re-grid the scene to these N at the same T (e.g. 40 100 200 400)")
+    bm.add_argument("--seed", type=int, default=0)
+    bm.add_argument("--json", action="store_true")
+    bm.set_defaults(func=cmd_bench_mpc)
+    bc = bsub.add_parser("closed-loop", help="the paper's ablation: naive, FS-MPC and AESOP")
+    bc.add_argument("--scenarios", type=int, default=500, help="cases (default 500)")
+    bc.add_argument("--seed", type=int, default=0)
+    bc.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+                    help="worker processes (default: every CPU)")
+    bc.add_argument("--inconsequential", type=int, default=5,
+                    help="cases flown again with y = 0 to measure the time lost (default 5)")
+    bc.add_argument("--scenario", type=Path, default=None,
+                    help="a bundled scenario (paper, hardware) or a file (default: paper)")
+    bc.add_argument("--plot", type=Path, default=None, help="write a figure of case 0 (PNG)")
+    bc.add_argument("--state-delay-ms", type=float, nargs="+", default=[0.0],
+                    help="the vehicle's state is published this long after the instant it is "
+                         "valid for (default 0); several: one condition each")
+    bc.add_argument("--state-rate-hz", type=float, nargs="+", default=[100.0],
+                    help="the vehicle's state rate (default 100); several: one condition each")
+    bc.add_argument("--methods", nargs="+", choices=["naive", "fsmpc", "aesop"],
+                    default=["naive", "fsmpc", "aesop"], help="(default: all three)")
+    bc.add_argument("--json", action="store_true")
+    bc.set_defaults(func=cmd_bench_closed_loop)
+    bl = bsub.add_parser("loop", help="the fixed-rate control loop's jitter and overruns over "
+                         "simulated flights (no Zenoh)")
+    bl.add_argument("--rates", type=float, nargs="+", default=[10.0, 20.0],
+                    help="loop rates in Hz, run one after the other (default 10 20)")
+    bl.add_argument("--minutes", type=float, default=10.0,
+                    help="simulated flight per rate, in minutes (default 10)")
+    bl.add_argument("--scenario", type=Path, default=None,
+                    help="a bundled scenario (paper, hardware) or a file (default: paper)")
+    bl.add_argument("--seed", type=int, default=0)
+    bl.add_argument("--json", action="store_true")
+    bl.set_defaults(func=cmd_bench_loop)
+    bb = bsub.add_parser("bus", help="observation -> verdict and -> control reaction latency "
+                         "over Zenoh (embedding and control as processes)")
+    bb.add_argument("--observations", type=int, default=500,
+                    help="observations timed for the verdict latency (default 500)")
+    bb.add_argument("--rate", type=float, default=20.0, help="observations per second (20)")
+    bb.add_argument("--anomalies", type=int, default=20,
+                    help="anomalies timed for the control reaction (default 20)")
+    bb.add_argument("--cache-detections", type=int, default=4, choices=[1, 2, 3, 4],
+                    help="cache every combination of up to N scene detections (default 4)")
+    bb.add_argument("--model", default=None,
+                    help="embedding model (default: onnx:all-MiniLM-L6-v2, the service's)")
+    bb.add_argument("--json", action="store_true")
+    bb.set_defaults(func=cmd_bench_bus)
+    bench.set_defaults(needs_bench_extra=True)
+
+
+def cmd_bench_detector(args: argparse.Namespace) -> int:
+    from tools.bench.detector import run_detector_bench
+
+    result = run_detector_bench(quick=args.quick, only=args.only, plot=args.plot,
+                                seed=args.seed, table=not args.json)
+    if args.json:
+        emit(result, True)
+    return 0
+
+
+def cmd_bench_reasoner(args: argparse.Namespace) -> int:
+    from services.reasoner.deciding import keep_deadlines
+    from tools.bench.reasoner import run_reasoner_bench
+
+    if args.requests < 1 or args.concurrency < 1 or not args.scale > 0:
+        raise CliError("--requests and --concurrency must be >= 1 and --scale > 0")
+    if args.hedge_after is not None and args.hedge_after < 0:
+        raise CliError("--hedge-after must be >= 0")
+    keep_deadlines()  # as `aesop serve reasoner` does
+    result = run_reasoner_bench(requests=args.requests, scale=args.scale,
+                                concurrency=args.concurrency, seed=args.seed,
+                                hedge_after_s=args.hedge_after, table=not args.json)
+    if args.json:
+        emit(result, True)
+    return 0
+
+
+def cmd_bench_mpc(args: argparse.Namespace) -> int:
+    from shared.tables import table
+    from tools.bench.control import bench_mpc
+
+    if args.flights < 1 or args.ticks < 2 or args.reference_every < 1:
+        raise CliError("--flights and --reference-every must be >= 1, --ticks >= 2")
+    if any(n < 10 or n > 2000 for n in args.horizons):
+        raise CliError("--horizons: each N must be in 10..2000")
+    result = bench_mpc(control_scenario(args.scenario), flights=args.flights, ticks=args.ticks,
+                       reference_every=args.reference_every, seed=args.seed,
+                       horizons=args.horizons)
+    if args.json:
+        emit(result, True)
+        return 0
+    rows = [_mpc_row(result)] + [_mpc_row(r) for r in result.get("horizons", [])]
+    print(table("per-tick AESOP control step (selection over every pair + solve) [ms], and the "
+                "CVXPY/Clarabel reference on the same states", rows))
+    if "growth_exponent_p50" in result:
+        print(f"growth of the step's p50 in N: N^{result['growth_exponent_p50']:.2f}")
+    return 0
+
+
+def _mpc_row(run: dict) -> dict:
+    step, ref = run["step_ms"], run["reference_step_ms"]
+    diff = run["objective_rel_diff_max"]
+    return {"N": run["problem"]["horizon"], "dt [s]": run["problem"]["dt_s"],
+            "p50": step["p50"], "p99": step["p99"], "max": step["max"],
+            "warm-up": run["warm_up_ms"]["p50"], "first tick": run["first_tick_ms"]["max"],
+            "iters p50": run["iterations"]["p50"] if run["iterations"] else None,
+            "refereed": run["refereed_chains"], "infeasible": run["infeasible_ticks"],
+            "undecided": run["undecided_ticks"], "ticks": run["ticks"],
+            "CVXPY p50": ref["p50"], "speed-up": f"{run['speedup_p50']:.0f}x",
+            "obj. diff": "-" if diff is None else f"{diff:.1e}"}
+
+
+def cmd_bench_closed_loop(args: argparse.Namespace) -> int:
+    from services.sim.vehicle import Reporting
+    from shared.tables import table
+    from tools.bench.control import bench_closed_loop
+
+    if args.scenarios < 1 or args.workers < 1 or args.inconsequential < 0:
+        raise CliError("--scenarios and --workers must be >= 1, --inconsequential >= 0")
+    if any(not 0 < r <= 10_000 for r in args.state_rate_hz):
+        raise CliError("--state-rate-hz: every rate must be in (0, 10000]")
+    if any(not 0 <= d <= 10_000 for d in args.state_delay_ms):
+        raise CliError("--state-delay-ms: every delay must be in [0, 10000]")
+    reportings = [Reporting(rate_hz=r, delay_s=d / 1000.0)
+                  for r in args.state_rate_hz for d in args.state_delay_ms]
+    result = bench_closed_loop(args.scenarios, args.seed, args.workers,
+                               control_scenario(args.scenario), args.inconsequential, args.plot,
+                               reportings, args.methods)
+    if args.json:
+        emit(result, True)
+        return 0
+    rows = [{"state": f"{c['state']['rate_hz']:g} Hz, {c['state']['delay_ms']:g} ms",
+             "method": m, **r} for c in result["conditions"] for m, r in c["methods"].items()]
+    print(table(f"closed loop, {result['scenario']}, {args.scenarios} cases, seed {args.seed}",
+                rows))
+    for c in result["conditions"]:
+        print(f"inconsequential case at {c['state']['rate_hz']:g} Hz, "
+              f"{c['state']['delay_ms']:g} ms: {c['inconsequential']}")
+    return 0
+
+
+def cmd_bench_loop(args: argparse.Namespace) -> int:
+    from tools.bench.loop import bench_loop, print_loop_table
+
+    if not args.minutes > 0 or any(not r > 0 for r in args.rates):
+        raise CliError("--minutes and every --rates value must be > 0")
+    control_scenario(args.scenario)  # a bad scene is a usage error, named here
+    result = bench_loop(args.rates, args.minutes, args.scenario, args.seed)
+    if args.json:
+        emit(result, True)
+    else:
+        print_loop_table(result)
+    return 0
+
+
+def cmd_bench_bus(args: argparse.Namespace) -> int:
+    from shared.process import ServiceFailed
+    from tools.bench.bus import BenchError, run_bus_bench
+
+    if args.observations < 1 or args.anomalies < 1 or not args.rate > 0:
+        raise CliError("--observations and --anomalies must be >= 1 and --rate > 0")
+    try:
+        result = run_bus_bench(observations=args.observations, rate_hz=args.rate,
+                               anomalies=args.anomalies, model=args.model,
+                               cache_detections=args.cache_detections, table_out=not args.json)
+    except (BenchError, ServiceFailed) as exc:
+        print(f"aesop: bench bus: {exc}", file=sys.stderr)
+        return 1
+    if args.json:
+        emit(result, True)
+    return 0

@@ -1,0 +1,149 @@
+"""``aesop serve SERVICE``: one service in this process, its settings from flags and
+``AESOP_*`` variables."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from tools.commands import CliError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    serve = sub.add_parser("serve", help="run one service (settings also from AESOP_* env vars)")
+    serve.add_argument("service",
+                       choices=["embedding", "reasoner", "control", "dashboard", "sim",
+                                "fake-llm"],
+                       help="sim: the simulated vehicle control flies; fake-llm: an "
+                            "OpenAI-compatible test server, see its --help")
+    serve.add_argument("--host")
+    serve.add_argument("--port", type=int)
+    serve.add_argument("--data-dir", type=Path)
+    serve.add_argument("--scenario", default=None,
+                       help="control and sim: a bundled scenario (paper, hardware) or a file "
+                            "(default: AESOP_CONTROL_SCENARIO or AESOP_SIM_SCENARIO, else "
+                            "paper)")
+    serve.set_defaults(func=cmd_serve)
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    if args.service == "fake-llm":
+        from tools.fakes.llm import main as fake_llm
+
+        given = [(flag, v) for flag, v in (("--host", args.host), ("--port", args.port))
+                 if v is not None]
+        return fake_llm([str(x) for pair in given for x in pair] + args.extra)
+
+    overrides = {k: v for k, v in (("host", args.host), ("port", args.port),
+                                   ("data_dir", args.data_dir)) if v is not None}
+    if args.scenario is not None and args.service not in ("control", "sim"):
+        raise CliError("--scenario: only `aesop serve control` and `aesop serve sim` take a "
+                       "scenario")
+    if args.service == "sim":
+        return serve_sim(overrides, args.scenario)
+    if args.service == "reasoner":
+        return serve_reasoner(overrides)
+    if args.service == "control":
+        return serve_control(overrides, args.scenario)
+    if args.service == "dashboard":
+        return serve_dashboard(overrides)
+
+    from services.embedding.api import create_app
+    from services.embedding.settings import EmbeddingSettings
+    from services.embedding.worker import DetectorWorker
+    from shared.http import serve
+
+    settings = EmbeddingSettings(**overrides)
+    try:
+        settings.check_exposure()
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    if settings.torch_threads:
+        import torch
+
+        torch.set_num_threads(settings.torch_threads)
+    factory = DetectorWorker.factory(settings) if settings.zenoh_worker else None
+    serve(create_app(settings, worker_factory=factory), settings)
+    return 0
+
+
+def serve_reasoner(overrides: dict[str, Any]) -> int:
+    from services.reasoner.api import create_app
+    from services.reasoner.deciding import keep_deadlines, settle
+    from services.reasoner.settings import ReasonerSettings
+    from services.reasoner.worker import ReasonerWorker
+    from shared.http import serve
+
+    settings = ReasonerSettings(**overrides)
+    try:
+        settings.check_exposure()
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    keep_deadlines()
+    serve(create_app(settings, worker_factory=ReasonerWorker.factory(settings),
+                     on_started=settle), settings)
+    return 0
+
+
+def serve_control(overrides: dict[str, Any], scenario: str | None = None) -> int:
+    from services.control.api import create_app
+    from services.control.loop import ControlRuntime
+    from services.control.scenario import ScenarioError, load_scenario
+    from services.control.service import SERVICE
+    from services.control.settings import ControlSettings
+    from shared.bus import Bus
+    from shared.http import serve
+
+    if scenario is not None:
+        overrides = {**overrides, "scenario": scenario}
+    settings = ControlSettings(**overrides)
+    try:
+        settings.check_exposure()
+        runtime = ControlRuntime(settings, load_scenario(settings.scenario))
+    except ScenarioError as exc:  # the message names the file and the field
+        raise CliError(f"--scenario: {exc}" if scenario is not None else str(exc)) from None
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    app = create_app(settings, runtime, bus_factory=lambda: Bus.open(settings, SERVICE))
+    serve(app, settings)
+    return 0
+
+
+def serve_sim(overrides: dict[str, Any], scenario: str | None = None) -> int:
+    from services.control.scenario import ScenarioError, load_scenario
+    from services.sim.api import create_app
+    from services.sim.service import SERVICE
+    from services.sim.settings import SimSettings
+    from shared.bus import Bus
+    from shared.http import serve
+
+    if scenario is not None:
+        overrides = {**overrides, "scenario": scenario}
+    settings = SimSettings(**overrides)
+    try:
+        settings.check_exposure()
+        app = create_app(settings, load_scenario(settings.scenario),
+                         bus_factory=lambda: Bus.open(settings, SERVICE))
+    except ScenarioError as exc:
+        raise CliError(f"--scenario: {exc}" if scenario is not None else str(exc)) from None
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    serve(app, settings)
+    return 0
+
+
+def serve_dashboard(overrides: dict[str, Any]) -> int:
+    from services.dashboard.api import create_app
+    from services.dashboard.service import SERVICE
+    from services.dashboard.settings import DashboardSettings
+    from shared.bus import Bus
+    from shared.http import serve
+
+    settings = DashboardSettings(**overrides)
+    try:
+        settings.check_exposure()
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    serve(create_app(settings, bus_factory=lambda: Bus.open(settings, SERVICE)), settings)
+    return 0

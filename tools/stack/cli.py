@@ -1,0 +1,88 @@
+"""``aesop up`` (the whole stack on this machine) and ``aesop zenoh`` (the router's access
+control for docker compose)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from tools.commands import CliError, control_scenario
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    zn = sub.add_parser("zenoh", help="the router's access control for docker compose")
+    zsub = zn.add_subparsers(dest="zenoh_command", required=True)
+    rc = zsub.add_parser("router-config", help="print the router config (the stack's ACL)")
+    rc.add_argument("--robot", action="append", default=None,
+                    help="a robot that may publish its observations (repeatable; robot0)")
+    rc.set_defaults(func=cmd_zenoh_router_config)
+    cr = zsub.add_parser("credentials", help="a fresh password for every Zenoh user: the "
+                         "router's users.txt and <user>.password files (0600)")
+    cr.add_argument("folder", type=Path, help="e.g. deploy/secrets (compose reads it)")
+    cr.add_argument("--robot", action="append", default=None,
+                    help="a robot to make a user for (repeatable; robot0)")
+    cr.set_defaults(func=cmd_zenoh_credentials)
+
+    up = sub.add_parser("up", help="the whole stack on this machine as processes (Ctrl-C stops)")
+    up.add_argument("--data-dir", type=Path, default=Path("aesop-data"),
+                    help="one subdirectory per service (default ./aesop-data)")
+    up.add_argument("--scenario", type=Path, default=None,
+                    help="control scenario: a bundled name (paper, hardware) or a file "
+                         "(default: AESOP_CONTROL_SCENARIO or the hardware scene)")
+    up.add_argument("--random-ports", action="store_true",
+                    help="free ports instead of 7447 (Zenoh) and 8001-8003, 8010, 8080")
+    up.add_argument("--no-dashboard", action="store_true")
+    up.set_defaults(func=cmd_up)
+
+
+def cmd_zenoh_router_config(args: argparse.Namespace) -> int:
+    from tools.stack.acl import router_config_text
+
+    print(router_config_text(args.robot or ["robot0"]), end="")
+    return 0
+
+
+def cmd_zenoh_credentials(args: argparse.Namespace) -> int:
+    from tools.stack.acl import new_passwords, users_of, write_credentials
+
+    users = users_of(args.robot or ["robot0"])
+    try:
+        write_credentials(args.folder, new_passwords(users))
+    except OSError as exc:
+        raise CliError(f"cannot write the credentials into {args.folder}: {exc}") from None
+    print(f"wrote {args.folder}/users.txt (the router's) and a password file for each of "
+          f"{', '.join(users)}", file=sys.stderr)
+    return 0
+
+
+def stack_options(args: argparse.Namespace, data_dir: Path):
+    import importlib.util
+
+    from services.control.scenario import resolve_scenario
+    from services.control.settings import ControlSettings
+    from tools.stack.up import Ports, StackOptions, hardware_scenario
+
+    control = ControlSettings()  # what the environment asks of the control loop
+    scenario_path = resolve_scenario(args.scenario or control.scenario or hardware_scenario())
+    scenario = control_scenario(scenario_path)
+    dashboard = not getattr(args, "no_dashboard", False)
+    if dashboard and importlib.util.find_spec("services.dashboard") is None:
+        print("aesop: the dashboard is not in this checkout (services/dashboard): starting "
+              "without it", file=sys.stderr)
+        dashboard = False
+    ports = Ports.free() if args.random_ports else Ports()
+    busy = ports.busy()
+    if busy:
+        raise CliError(f"ports already in use: {', '.join(busy)} (is `aesop up` running?); "
+                       "stop it or pass --random-ports")
+    rate = None if control.rate_hz is not None else 1.0 / scenario.dt
+    return StackOptions(data_dir=data_dir, ports=ports, scenario=scenario_path.resolve(),
+                        rate_hz=rate, dashboard=dashboard)
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    from tools.stack.up import run_up
+
+    return run_up(stack_options(args, args.data_dir.resolve()), os.environ)
