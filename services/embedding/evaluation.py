@@ -16,13 +16,15 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 
-from services.embedding.cache import (
+from shared.messages import Detection
+
+from .cache import (
     Cache,
     CacheConfig,
     CalibrationScores,
@@ -32,30 +34,23 @@ from services.embedding.cache import (
     ScoreKind,
     unit_vectors,
 )
-from services.embedding.calibration import (
-    Calibration,
-    auroc,
-    binary_metrics,
-    conformal,
-    loo_quantile,
-    tpr_target,
-)
-from services.embedding.detections import distinct, floats, p_values_sorted
-from services.embedding.embedders import Embedder
-from services.embedding.errors import InvalidInput
-from shared.messages import Detection
+from .calibration import Calibration, Method, auroc, binary_metrics
+from .detections import distinct, floats, p_values_sorted
+from .embedders import Embedder
+from .errors import InvalidInput
+from .policy import DEFAULT_ALPHA, DEFAULT_TPR, Components, Evidence, needs_loo, threshold
+from .policy import calibrate as calibrate_with
 
-Method = Literal["loo-quantile", "conformal", "tpr-target"]
 EvalScore = Literal["topk", "mahalanobis", "detections", "combined"]
 
 
 @dataclass(frozen=True)
 class EvalConfig:
     k: int = 5
-    alpha: float = 0.95
+    alpha: float = DEFAULT_ALPHA
     method: Method = "loo-quantile"
     score: EvalScore = "topk"
-    tpr: float = 0.9  # the target of "tpr-target" (the hardware appendix uses 0.9)
+    tpr: float = DEFAULT_TPR  # the target of "tpr-target" (the hardware appendix uses 0.9)
     pairs: bool = False  # "combined" with pairs of detections as a third component
 
 
@@ -114,13 +109,18 @@ def build_cache(vectors: np.ndarray, config: EvalConfig, model: str | None) -> C
 
 def calibrate(cache: Cache, config: EvalConfig, cal_scores: np.ndarray | None,
               cal_labels: np.ndarray | None) -> Calibration:
-    if config.method == "loo-quantile":
-        return loo_quantile(cache.loo_scores(config.k), config.alpha)
-    if cal_scores is None or cal_labels is None:
-        raise InvalidInput(f"--method {config.method} needs --calibration", field="calibration")
-    if config.method == "conformal":
-        return conformal(cal_scores[~cal_labels], config.alpha)
-    return tpr_target(cal_scores, cal_labels, config.tpr)
+    """Tau of a text-only cache by the service's policy (:mod:`.policy`)."""
+    loo = (Components(cache.loo_scores(config.k), np.zeros(0), None)
+           if needs_loo(config.method) else None)
+    labelled = None if cal_scores is None else Components(cal_scores, np.zeros(0), None)
+    try:
+        return threshold(config.method, Evidence(loo, labelled, cal_labels),
+                         alpha=config.alpha, tpr=config.tpr)
+    except InvalidInput as exc:
+        if exc.field == "calibration":
+            raise InvalidInput(f"--method {config.method} needs --calibration ({exc})",
+                               field="calibration") from None
+        raise
 
 
 def evaluate(
@@ -224,22 +224,25 @@ def fit_structured(embedder: Embedder, nominal: Sequence[Labelled],
     if pairs and not cache.pair_counts:
         raise InvalidInput("--pairs needs nominal lines with two or more detections",
                            field="pairs")
-    if config.method == "loo-quantile":
-        kept = CalibrationScores.of(cache.loo_scores(config.k), cache.loo_detection_scores(),
-                                    cache.loo_pair_scores() if pairs else None)
+    loo = labelled = labels = None
+    if needs_loo(config.method):
+        loo = Components(cache.loo_scores(config.k), cache.loo_detection_scores(),
+                         cache.loo_pair_scores() if pairs else None)
     else:
-        held = [x for x in calibration if not x.is_anomaly]
-        if not held:
+        if not any(not x.is_anomaly for x in calibration):
             raise InvalidInput("--method conformal needs nominal lines in --calibration",
                                field="calibration")
-        scored = score_structured(cache, embedder, held, pairs=pairs)
-        kept = CalibrationScores.of(
-            np.array([r.score for r in scored]), floats(r.detection_score for r in scored),
-            floats(r.pair_score for r in scored) if pairs else None)
-    kept.check_power(config.alpha, tests=1 if config.score == "detections" else None)
-    tau = (loo_quantile if config.method == "loo-quantile" else conformal)(
-        kept.observation, config.alpha)  # for observations without detections
-    cache.apply(cache.plan_calibration(replace(tau, pairs=pairs), kept))
+        scored = score_structured(cache, embedder, calibration, pairs=pairs)
+        labelled = Components(np.array([r.score for r in scored]),
+                              floats(r.detection_score for r in scored),
+                              floats(r.pair_score for r in scored) if pairs else None)
+        labels = np.array([x.is_anomaly for x in calibration], dtype=bool)
+    # the whole observation's tau serves observations without detections
+    cal, kept = calibrate_with(config.method, Evidence(loo, labelled, labels),
+                               alpha=config.alpha, pairs=pairs,
+                               tests=1 if config.score == "detections" else None)
+    assert kept is not None
+    cache.apply(cache.plan_calibration(cal, kept))
     return cache, kept
 
 

@@ -17,6 +17,7 @@ from shared.http import ApiError, errors, from_state, unless_client_leaves
 from shared.jobs import Job, JobAccepted, JobInfo, TooManyJobs, UnknownJob
 
 from .cache import Labelled
+from .entries import Item
 from .errors import DetectorError, InvalidInput, NotFound
 from .metrics import Metrics
 from .proposals import State
@@ -36,7 +37,8 @@ from .schemas import (
     ScoreResult,
     Scores,
 )
-from .service import CacheService, Item, ScoreBatch
+from .scorer import ScoreBatch
+from .service import CacheService
 from .settings import EmbeddingSettings
 
 ServiceDep = Annotated[CacheService, Depends(from_state("service"))]
@@ -126,14 +128,14 @@ async def score(name: str, body: Score, service: ServiceDep, settings: SettingsD
             _check_count(len(texts), field, settings, settings.max_score_items,
                          "AESOP_EMBEDDING_MAX_SCORE_ITEMS")
             _check_texts(texts, field, settings, key=None if body.texts else "text")
-            batch = await unless_client_leaves(request, service.score_texts(
+            batch = await unless_client_leaves(request, service.scorer.score_texts(
                 name, texts, body.k, detections=detections))
         else:
             vectors = body.vectors or []
             _check_count(len(vectors), "vectors", settings, settings.max_score_items,
                          "AESOP_EMBEDDING_MAX_SCORE_ITEMS")
             batch = await unless_client_leaves(request,
-                                               service.score_vectors(name, vectors, body.k))
+                                               service.scorer.score_vectors(name, vectors, body.k))
     return _score_response(batch)
 
 
@@ -142,20 +144,20 @@ async def list_proposals(name: str, service: ServiceDep,
                          state: Annotated[State | None, Query()] = None) -> ProposalList:
     """Scenes the slow reasoner answered "continue" for, oldest first."""
     return ProposalList(cache=name, policy=service.entry(name).cache.config.proposals,
-                        proposals=[ProposalInfo.of(p) for p in service.proposals(name, state)])
+                        proposals=[ProposalInfo.of(p) for p in service.review.list(name, state)])
 
 
 @router.post("/v1/caches/{name}/proposals/{ident}/accept",
              responses=errors(401, 404, 409, 502, 503, 507))
 async def accept_proposal(name: str, ident: str, service: ServiceDep) -> ProposalInfo:
     """Add the scene as a nominal experience (its id is the scene's)."""
-    return ProposalInfo.of(await service.accept(name, ident, now=time.time()))
+    return ProposalInfo.of(await service.review.accept(name, ident, now=time.time()))
 
 
 @router.post("/v1/caches/{name}/proposals/{ident}/reject",
              responses=errors(401, 404, 409, 503, 507))
 async def reject_proposal(name: str, ident: str, service: ServiceDep) -> ProposalInfo:
-    return ProposalInfo.of(await service.reject(name, ident, now=time.time()))
+    return ProposalInfo.of(await service.review.reject(name, ident, now=time.time()))
 
 
 @router.get("/v1/jobs/{job_id}", responses=errors(404))

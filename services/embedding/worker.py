@@ -35,7 +35,8 @@ from shared.pump import MessagePump
 
 from .errors import DetectorError
 from .proposals import Proposal
-from .service import CacheService, ScoreBatch
+from .scorer import ScoreBatch
+from .service import CacheService
 from .settings import EmbeddingSettings
 
 log = logging.getLogger(__name__)
@@ -86,7 +87,7 @@ class DetectorWorker:
             MessagePump(bus, topics.reasoner_decision(topics.ANY_ROBOT), ReasonerDecision,
                         self._learn, max_in_flight=8, maxsize=256),
         ]
-        service.proposal_listeners.append(self._proposal_event)
+        service.review.listeners.append(self._proposal_event)
 
     @classmethod
     def factory(cls, settings: EmbeddingSettings) -> Callable[[CacheService, Any], DetectorWorker]:
@@ -105,8 +106,8 @@ class DetectorWorker:
     async def stop(self) -> None:
         for pump in (self._pump, *self._learning):
             await pump.stop()
-        if self._proposal_event in self.service.proposal_listeners:
-            self.service.proposal_listeners.remove(self._proposal_event)
+        if self._proposal_event in self.service.review.listeners:
+            self.service.review.listeners.remove(self._proposal_event)
         if self.owns_bus:
             self.bus.close()
 
@@ -122,7 +123,7 @@ class DetectorWorker:
                         "not scored")
             return
         try:
-            batch = await self.service.score_texts(self.cache, [obs.text], urgent=True,
+            batch = await self.service.scorer.score_texts(self.cache, [obs.text], urgent=True,
                                                    detections=[obs.detections])
         except DetectorError as exc:
             self._alarm(robot, f"cannot score observation {obs.seq}: {exc.message}")
@@ -155,7 +156,7 @@ class DetectorWorker:
             return  # not an observation this detector flagged (e.g. silence)
         obs, verdict = flagged
         try:
-            await self.service.propose(
+            await self.service.review.propose(
                 self.cache, obs.model_copy(update={"robot": robot}),
                 request_id=decision.request_id, model=decision.model,
                 rationale=decision.rationale, score=verdict.score, p_value=verdict.p_value,

@@ -475,7 +475,7 @@ def propose(client: TestClient, label: str, seq: int = 1) -> str:
         Detection(label="a pallet", where="on the belt"),
         Detection(label=label, where="on the belt")))
     made = client.portal.call(partial(  # type: ignore[union-attr]
-        service.propose, "wm", obs, request_id=f"r{seq}", model="llm", rationale="harmless",
+        service.review.propose, "wm", obs, request_id=f"r{seq}", model="llm", rationale="harmless",
         score=-0.5, p_value=0.01, now=100.0 + seq))
     assert made is not None
     return str(made.id)

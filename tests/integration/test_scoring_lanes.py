@@ -18,9 +18,10 @@ import pytest
 from fastapi.testclient import TestClient
 
 from services.embedding.api import create_app
+from services.embedding.entries import Item
 from services.embedding.errors import Busy
 from services.embedding.loading import EmbedderPool
-from services.embedding.service import CacheService, Item
+from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingSettings
 from tests.fakes.hash_embedder import HashEmbedder
 
@@ -71,7 +72,7 @@ async def gated(tmp_path: Path) -> AsyncIterator[tuple[CacheService, GatedEmbedd
 async def hold_compute(embedder: GatedEmbedder, svc: CacheService) -> asyncio.Task[object]:
     """A REST request whose first chunk holds the compute thread until the gate opens."""
     embedder.gate.clear()
-    task = asyncio.create_task(svc.score_texts("scene", ["holder one", "holder two"]))
+    task = asyncio.create_task(svc.scorer.score_texts("scene", ["holder one", "holder two"]))
     await asyncio.to_thread(embedder.waiting.wait, 10)
     return task
 
@@ -80,10 +81,10 @@ async def test_bus_verdicts_go_before_queued_rest_work(
         gated: tuple[CacheService, GatedEmbedder]) -> None:
     svc, embedder = gated
     holder = await hold_compute(embedder, svc)
-    rest = [asyncio.create_task(svc.score_texts("scene", [f"rest {i} a", f"rest {i} b"]))
+    rest = [asyncio.create_task(svc.scorer.score_texts("scene", [f"rest {i} a", f"rest {i} b"]))
             for i in range(3)]
     await asyncio.sleep(0.05)  # the REST chunks are queued on the compute thread
-    bus = asyncio.create_task(svc.score_texts("scene", ["bus observation"], urgent=True))
+    bus = asyncio.create_task(svc.scorer.score_texts("scene", ["bus observation"], urgent=True))
     await asyncio.sleep(0.05)
     embedder.gate.set()
     await asyncio.gather(holder, bus, *rest)
@@ -95,9 +96,9 @@ async def test_a_long_rest_request_is_cut_into_chunks_the_bus_can_pass(
         gated: tuple[CacheService, GatedEmbedder]) -> None:
     svc, embedder = gated
     holder = await hold_compute(embedder, svc)
-    long = asyncio.create_task(svc.score_texts("scene", [f"long {i}" for i in range(10)]))
+    long = asyncio.create_task(svc.scorer.score_texts("scene", [f"long {i}" for i in range(10)]))
     await asyncio.sleep(0.05)
-    bus = asyncio.create_task(svc.score_texts("scene", ["bus observation"], urgent=True))
+    bus = asyncio.create_task(svc.scorer.score_texts("scene", ["bus observation"], urgent=True))
     await asyncio.sleep(0.05)
     embedder.gate.set()
     results = await long
@@ -116,15 +117,15 @@ async def test_pending_rest_work_past_the_cap_is_refused(tmp_path: Path) -> None
         await svc.add("scene", [Item(text=t) for t in NOMINAL])
         holder = await hold_compute(embedder, svc)  # 2 pending
         with pytest.raises(Busy) as busy:
-            await svc.score_texts("scene", ["one", "two", "three"])  # 5 > 4
+            await svc.scorer.score_texts("scene", ["one", "two", "three"])  # 5 > 4
         assert busy.value.field == "texts"
         assert "AESOP_EMBEDDING_MAX_PENDING_TEXTS" in busy.value.message
         bus = await asyncio.wait_for(
             asyncio.gather(asyncio.to_thread(embedder.gate.set),
-                           svc.score_texts("scene", ["bus"], urgent=True)), 10)
+                           svc.scorer.score_texts("scene", ["bus"], urgent=True)), 10)
         assert len(bus[1].results) == 1  # the bus is never refused for REST's load
         await holder
-        assert len((await svc.score_texts("scene", ["one", "two", "three"])).results) == 3
+        assert len((await svc.scorer.score_texts("scene", ["one", "two", "three"])).results) == 3
     finally:
         embedder.gate.set()
         await svc.close()
@@ -134,12 +135,12 @@ async def test_work_of_a_caller_that_left_is_dropped(
         gated: tuple[CacheService, GatedEmbedder]) -> None:
     svc, embedder = gated
     holder = await hold_compute(embedder, svc)
-    gone = asyncio.create_task(svc.score_texts("scene", [f"gone {i}" for i in range(6)]))
+    gone = asyncio.create_task(svc.scorer.score_texts("scene", [f"gone {i}" for i in range(6)]))
     await asyncio.sleep(0.05)
     gone.cancel()
     embedder.gate.set()
     await holder
-    await svc.score_texts("scene", ["after"])  # the compute thread has drained
+    await svc.scorer.score_texts("scene", ["after"])  # the compute thread has drained
     assert not [t for t in embedder.seen if t.startswith("gone")], embedder.seen
 
 

@@ -10,10 +10,11 @@ from pathlib import Path
 import pytest
 from prometheus_client import CollectorRegistry
 
+from services.embedding.entries import Item
 from services.embedding.errors import Conflict
 from services.embedding.loading import EmbedderPool
 from services.embedding.metrics import Metrics
-from services.embedding.service import CacheService, Item
+from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingSettings
 from services.embedding.worker import DetectorWorker
 from shared import topics
@@ -213,7 +214,7 @@ async def test_an_odd_detection_is_embedded_once_however_often_it_is_seen(
     text, odd = flagged_scene("a keyboard")
     embedder.calls.clear()
     for _ in range(3):
-        await svc.score_texts("scene", [text], urgent=True, detections=[odd])
+        await svc.scorer.score_texts("scene", [text], urgent=True, detections=[odd])
     # the text and the keyboard, then the text alone (the red box is the cache's own)
     assert embedder.calls == [2, 1, 1]
     await svc.close()
@@ -260,12 +261,12 @@ async def test_a_continue_for_a_flagged_scene_is_proposed_once_with_a_count(
     keyboard = flagged_scene("a keyboard")
     async with serving(svc, listener, connector) as sub:
         assert (await ask(connector, sub, 1, *keyboard)).is_anomaly
-        (proposal,) = svc.proposals("scene")
+        (proposal,) = svc.review.list("scene")
         assert proposal.state == "pending" and proposal.count == 1 and proposal.text == keyboard[0]
         assert proposal.detections == keyboard[1] and proposal.model == "llm-x"
         assert proposal.robot == "drone7" and proposal.seq == 1 and proposal.request_id == "req-1"
         await ask(connector, sub, 2, *keyboard)  # the same scene again: one proposal, counted
-        assert [(p.id, p.count) for p in svc.proposals("scene")] == [(proposal.id, 2)]
+        assert [(p.id, p.count) for p in svc.review.list("scene")] == [(proposal.id, 2)]
         event = await proposal_event(events)
         assert event.kind == "proposal_proposed" and event.data["id"] == proposal.id
 
@@ -277,11 +278,11 @@ async def test_a_continue_for_a_flagged_scene_is_proposed_once_with_a_count(
         await ask(connector, sub, 5, *backpack, offer_continue=False)
         nominal = (scene_text(seen(1)), seen(1))
         assert not (await ask(connector, sub, 6, *nominal)).is_anomaly
-        assert [p.id for p in svc.proposals("scene")] == [proposal.id]
+        assert [p.id for p in svc.review.list("scene")] == [proposal.id]
 
         # accepted: the scene is nominal now, the calibration stale
         version = svc.entry("scene").cache.version
-        accepted = await svc.accept("scene", proposal.id, now=123.0)
+        accepted = await svc.review.accept("scene", proposal.id, now=123.0)
         assert accepted.state == "accepted" and accepted.decided_at == 123.0
         cache = svc.entry("scene").cache
         assert cache.version == version + 1 and cache.stale and proposal.id in cache.labels_by_id
@@ -291,7 +292,7 @@ async def test_a_continue_for_a_flagged_scene_is_proposed_once_with_a_count(
         kinds = [(await proposal_event(events)).kind for _ in range(2)]
         assert kinds == ["proposal_proposed", "proposal_accepted"]  # the count of 2, then this
         with pytest.raises(Conflict, match="already accepted"):
-            await svc.accept("scene", proposal.id, now=124.0)
+            await svc.review.accept("scene", proposal.id, now=124.0)
 
 
 async def test_under_the_auto_policy_a_proposal_is_accepted_at_once_and_kept(
@@ -301,13 +302,13 @@ async def test_under_the_auto_policy_a_proposal_is_accepted_at_once_and_kept(
     keyboard = flagged_scene("a keyboard")
     async with serving(svc, listener, connector) as sub:
         assert (await ask(connector, sub, 1, *keyboard)).is_anomaly
-        (proposal,) = svc.proposals("scene")
+        (proposal,) = svc.review.list("scene")
         assert proposal.state == "accepted"
         assert not (await ask(connector, sub, 2, *keyboard)).is_anomaly
     await svc.close()
     restarted = CacheService(svc.settings,
                              embedders=EmbedderPool(loader=lambda _: HashEmbedder()))
     await restarted.start()
-    assert [(p.id, p.state) for p in restarted.proposals("scene")] == [(proposal.id, "accepted")]
+    assert [(p.id, p.state) for p in restarted.review.list("scene")] == [(proposal.id, "accepted")]
     assert restarted.entry("scene").cache.config.proposals == "auto"
     await restarted.close()

@@ -638,8 +638,8 @@ async def _latency(n: int, size: int, seed: int, model: str = DEFAULT_MODEL,
     paper's full prompt is timed too, to show what its fixed preamble costs."""
     from concurrent.futures import ThreadPoolExecutor
 
+    from services.embedding.entries import on_fresh_thread
     from services.embedding.loading import load_embedder
-    from services.embedding.service import on_fresh_thread
     from tools.scenes import generate
 
     embedder = await on_fresh_thread(partial(load_embedder, model, threads=threads))
@@ -658,7 +658,7 @@ async def _latency(n: int, size: int, seed: int, model: str = DEFAULT_MODEL,
                 for form in ("brief", "prompt") if microbatch else ("brief",):
                     batch = texts[form]
                     for text in batch[:10]:  # warm-up
-                        await service.score_texts("latency", [text])
+                        await service.scorer.score_texts("latency", [text])
                     end_to_end[form, microbatch] = _stats(
                         [await _score_one(service, batch[i]) for i in range(len(batch))])
             finally:
@@ -709,7 +709,7 @@ async def _service(embedder: Embedder, data_dir: Path, *, microbatch: bool = Tru
 
 async def _fill(service: CacheService, name: str, vectors: np.ndarray) -> None:
     """Create cache ``name`` pinned to the default model and add ``vectors`` as experiences."""
-    from services.embedding.service import Item
+    from services.embedding.entries import Item
     from services.embedding.settings import DEFAULT_MODEL
 
     await service.create(name, model=DEFAULT_MODEL, k=K)
@@ -720,7 +720,7 @@ async def _fill(service: CacheService, name: str, vectors: np.ndarray) -> None:
 
 async def _score_one(service: CacheService, text: str) -> float:
     t0 = time.perf_counter()
-    batch = await service.score_texts("latency", [text])
+    batch = await service.scorer.score_texts("latency", [text])
     assert batch.threshold is not None
     _ = batch.results[0].score > batch.threshold  # the verdict
     return time.perf_counter() - t0
@@ -852,7 +852,7 @@ def bench_build(bench: _Bench) -> dict[str, Any]:
 
 
 async def _build(bench: _Bench) -> dict[str, Any]:
-    from services.embedding.service import Item
+    from services.embedding.entries import Item
     from services.embedding.settings import DEFAULT_MODEL
     from tools.scenes import generate
 

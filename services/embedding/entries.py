@@ -1,0 +1,120 @@
+"""One cache as the service holds it, the locks and threads its work runs under, and an
+experience to add.
+
+Per cache, writers are serialised by an asyncio lock and the database commit happens
+before the in-memory apply; readers (scoring, leave-one-out) run in worker threads under
+the shared side of a readers-writer lock, so they see a cache either before or after a
+write.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, TypeVar
+
+from shared.messages import Detection
+
+from .cache import Cache
+from .proposals import Proposal
+
+if TYPE_CHECKING:
+    from .batching import MicroBatcher
+    from .cache import Scored
+    from .scorer import Query
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class Item:
+    """An experience to add: text (embedded by the cache's model) or a raw vector."""
+
+    text: str | None = None
+    vector: Sequence[float] | None = None
+    id: str | None = None
+    metadata: Mapping[str, Any] = field(default_factory=dict)
+    detections: tuple[Detection, ...] = ()
+
+
+class RWLock:
+    """Many readers or one writer; a waiting writer blocks new readers."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._readers = 0
+        self._writer = False
+        self._waiting = 0
+
+    @contextmanager
+    def read(self) -> Iterator[None]:
+        with self._cond:
+            self._cond.wait_for(lambda: not self._writer and not self._waiting)
+            self._readers += 1
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._readers -= 1
+                self._cond.notify_all()
+
+    @contextmanager
+    def write(self) -> Iterator[None]:
+        with self._cond:
+            self._waiting += 1
+            self._cond.wait_for(lambda: not self._writer and not self._readers)
+            self._waiting -= 1
+            self._writer = True
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._writer = False
+                self._cond.notify_all()
+
+
+@dataclass
+class Entry:
+    cache: Cache
+    saved: tuple[int, bool] | None = None  # the index file's (version, has HNSW graph)
+    changed: int = 0  # experiences added or deleted since the index file was saved
+    writer: asyncio.Lock = field(default_factory=asyncio.Lock)
+    rw: RWLock = field(default_factory=RWLock)
+    batchers: dict[tuple[int, bool], MicroBatcher[Query, Scored]] = field(default_factory=dict)
+    proposals: dict[str, Proposal] = field(default_factory=dict)  # by id, oldest first
+
+    def index_outdated(self) -> bool:
+        """The saved index file is missing, older than the cache, or lacks a built graph."""
+        return (self.saved is None or self.saved[0] != self.cache.version
+                or (self.cache.index.graph_ready and not self.saved[1]))
+
+
+async def on_fresh_thread(fn: Callable[..., T], *args: Any) -> T:
+    """Run ``fn`` on a new thread that ends with it. Heavy admin work that uses OpenMP
+    (leave-one-out, loading a model) runs so: libgomp keeps a team of threads per calling
+    thread for as long as that thread lives, and a second long-lived team doubled the
+    compute thread's embedding time; a short-lived thread takes its team with it."""
+    loop = asyncio.get_running_loop()
+    future: asyncio.Future[T] = loop.create_future()
+
+    def settle(result: Any, error: BaseException | None) -> None:
+        if future.done():
+            return
+        if error is not None:
+            future.set_exception(error)
+        else:
+            future.set_result(result)
+
+    def run() -> None:
+        try:
+            result = fn(*args)
+        except BaseException as exc:  # handed to the awaiting coroutine
+            loop.call_soon_threadsafe(settle, None, exc)
+        else:
+            loop.call_soon_threadsafe(settle, result, None)
+
+    threading.Thread(target=run, name="aesop-oneoff", daemon=True).start()
+    return await future
