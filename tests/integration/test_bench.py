@@ -19,7 +19,7 @@ import pytest
 
 from services.embedding.embedders import pool_key
 from shared.tables import table
-from tools.bench.detector import BACKENDS, QUICK, _jsonable
+from tools.bench.detector.common import BACKENDS, QUICK, jsonable
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -124,7 +124,7 @@ def test_results_become_strict_json() -> None:
     import numpy as np
 
     raw = {"a": np.float32(1.5), "b": float("nan"), "c": (np.int64(3), np.inf), 4: [np.True_]}
-    clean = _jsonable(raw)
+    clean = jsonable(raw)
     assert clean == {"a": 1.5, "b": None, "c": [3, None], "4": [True]}
     json.dumps(clean, allow_nan=False)
 
