@@ -60,8 +60,8 @@ import numpy as np
 from shared.messages import Mode
 
 from .dynamics import N_STATE
-from .models import PlanningModel
 from .mpc import BranchProblem, MPCConfig, Plan, SolveStatus, promised_step, tightened_inputs
+from .planning import PlanningModel
 from .regions import Region
 from .selection import SubsetSelector
 

@@ -21,8 +21,8 @@ from .aesop import (
     Route,
     _Controller,
 )
-from .models import PlanningModel
 from .mpc import MPCConfig
+from .planning import PlanningModel
 from .scenario import Scenario, planning_model
 
 Method = Literal["naive", "fsmpc", "aesop"]

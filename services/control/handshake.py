@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 from shared.messages import AnomalyVerdict, Mode, ReasonerDecision, Severity
 
-from .detector import UNMONITORED, Cause, directive
+from .verdicts import UNMONITORED, Cause, directive
 
 NoteData = dict[str, str | int | float | bool | None]
 

@@ -58,7 +58,6 @@ from shared.messages import (
 
 from .aesop import ControlOutput
 from .controllers import Controller, make_controller, mpc_config
-from .detector import Cause, Sightings, verdict_age
 from .dynamics import N_STATE, POS
 from .handshake import Handshake
 from .mpc import SolveStatus
@@ -66,6 +65,7 @@ from .regions import Region
 from .scenario import Scenario, ScenarioError
 from .settings import ControlSettings
 from .vehicle import StateInput, StateReading, setpoint
+from .verdicts import Cause, Sightings, verdict_age
 
 log = logging.getLogger(__name__)
 

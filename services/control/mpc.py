@@ -92,7 +92,7 @@ import osqp
 import piqp
 import scipy.sparse as sp
 
-from .models import PlanningModel
+from .planning import PlanningModel
 from .regions import Region
 
 

@@ -29,7 +29,7 @@ import numpy as np
 import yaml
 
 from .dynamics import N_STATE, POS, RATE, VEL, QuadrotorParams
-from .models import MODEL_NAMES, PlanningModel, point_mass_model, quadrotor_model
+from .planning import MODEL_NAMES, PlanningModel, point_mass_model, quadrotor_model
 from .regions import Region, check_regions
 
 BUNDLED = ("paper", "hardware")  # scenario names that load the packaged files

@@ -29,8 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .models import PlanningModel
 from .mpc import BranchProblem, ChainCache, MPCConfig, Plan, SolveStatus, promised_step
+from .planning import PlanningModel
 from .regions import Region
 
 

@@ -39,7 +39,7 @@ from shared.messages import Mode, VehicleSetpoint, VehicleState
 from .aesop import ControlOutput
 from .dynamics import N_STATE
 from .handshake import Note
-from .models import PlanningModel
+from .planning import PlanningModel
 
 ClockSource = Literal["sync", "arrival"]
 QUATERNION_SLACK = 0.05  # |q| may differ from 1 by this much before the state is refused

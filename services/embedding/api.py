@@ -17,7 +17,7 @@ from shared.http import error_response, service_app
 
 from .embedders import EmbedderError
 from .errors import Busy, Conflict, DetectorError, InvalidInput, NotCalibrated, NotFound
-from .metrics import Metrics
+from .metrics import EmbeddingMetrics
 from .routes import router
 from .scoring import ScoringError
 from .service import CacheService
@@ -32,7 +32,7 @@ STATUS = {InvalidInput: 422, NotFound: 404, Conflict: 409, NotCalibrated: 409, B
 def create_app(
     settings: EmbeddingSettings,
     service: CacheService | None = None,
-    worker_factory: Callable[[CacheService, Metrics], Any] | None = None,
+    worker_factory: Callable[[CacheService, EmbeddingMetrics], Any] | None = None,
 ) -> FastAPI:
     """The service's FastAPI app. ``worker_factory`` starts the Zenoh worker in the
     lifespan (``aesop serve embedding`` passes one; tests may not)."""
@@ -65,7 +65,7 @@ def create_app(
                 await asyncio.gather(task, return_exceptions=True)
             await svc.close()
 
-    metrics = Metrics(registry, service)  # type: ignore[arg-type]
+    metrics = EmbeddingMetrics(registry, service)  # type: ignore[arg-type]
 
     def ready() -> dict[str, Any] | None:
         return None if state["started"] else {"reason": "starting"}

@@ -36,7 +36,7 @@ __all__ = [
     "Calibration",
     "CalibrationError",
     "Method",
-    "Metrics",
+    "Rates",
     "auroc",
     "binary_metrics",
     "conformal",
@@ -115,7 +115,7 @@ class Calibration:
 
 
 @dataclass(frozen=True)
-class Metrics:
+class Rates:
     """Detector quality at one threshold on a labelled set (anomaly = positive).
 
     Attributes:
@@ -410,7 +410,7 @@ def auroc(scores: np.ndarray, is_anomaly: np.ndarray) -> float:
     return (rank_sum - n_a * (n_a + 1) / 2.0) / (n_a * n_nom)
 
 
-def binary_metrics(scores: np.ndarray, is_anomaly: np.ndarray, threshold: float) -> Metrics:
+def binary_metrics(scores: np.ndarray, is_anomaly: np.ndarray, threshold: float) -> Rates:
     """TPR, FPR and accuracies of ``scores > threshold`` against labels.
 
     A class that is absent gives None for its rate (tpr without anomalies, fpr
@@ -438,7 +438,7 @@ def binary_metrics(scores: np.ndarray, is_anomaly: np.ndarray, threshold: float)
     tpr = tp / n_a if n_a else None
     fpr = fp / n_nom if n_nom else None
     terms = [r for r in (tpr, None if fpr is None else 1.0 - fpr) if r is not None]
-    return Metrics(
+    return Rates(
         tpr=tpr,
         fpr=fpr,
         accuracy=(tp + n_nom - fp) / s.size,

@@ -7,7 +7,7 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 from .service import CacheService
 
 
-class Metrics:
+class EmbeddingMetrics:
     def __init__(self, registry: CollectorRegistry, service: CacheService) -> None:
         self.score_seconds = Histogram(
             "aesop_embedding_score_seconds", "Score request latency (embed + search + threshold)",

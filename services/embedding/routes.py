@@ -19,7 +19,7 @@ from shared.jobs import Job, JobAccepted, JobInfo, TooManyJobs, UnknownJob
 from .cache import Labelled
 from .entries import Item
 from .errors import DetectorError, InvalidInput, NotFound
-from .metrics import Metrics
+from .metrics import EmbeddingMetrics
 from .proposals import State
 from .schemas import (
     Added,
@@ -43,7 +43,7 @@ from .settings import EmbeddingSettings
 
 ServiceDep = Annotated[CacheService, Depends(from_state("service"))]
 SettingsDep = Annotated[EmbeddingSettings, Depends(from_state("settings"))]
-MetricsDep = Annotated[Metrics, Depends(from_state("metrics"))]
+MetricsDep = Annotated[EmbeddingMetrics, Depends(from_state("metrics"))]
 
 router = APIRouter()
 

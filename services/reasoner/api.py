@@ -16,7 +16,7 @@ from shared.jobs import Jobs
 
 from .backends import ChatBackend, Completion, OpenAIChatBackend
 from .deciding import Decider, DeciderConfig, FallbackPolicy
-from .metrics import Metrics
+from .metrics import ReasonerMetrics
 from .routes import Work, router
 from .settings import ReasonerSettings
 
@@ -53,11 +53,11 @@ def build_decider(settings: ReasonerSettings,
 def create_app(
     settings: ReasonerSettings,
     decider: Decider | None = None,
-    worker_factory: Callable[[Decider, Metrics], Any] | None = None,
+    worker_factory: Callable[[Decider, ReasonerMetrics], Any] | None = None,
     on_started: Callable[[], None] | None = None,
 ) -> FastAPI:
     registry = CollectorRegistry()
-    metrics = Metrics(registry)
+    metrics = ReasonerMetrics(registry)
     state = {"started": False}
     work = Work(Jobs(max_running=settings.max_calibration_jobs,
                      setting="AESOP_REASONER_MAX_CALIBRATION_JOBS"))

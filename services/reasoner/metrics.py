@@ -9,7 +9,7 @@ from shared.messages import ReasonerDecision
 from .backends import Completion
 
 
-class Metrics:
+class ReasonerMetrics:
     def __init__(self, registry: CollectorRegistry) -> None:
         self.latency = Histogram(
             "aesop_reasoner_decision_seconds", "Time from request to decision",

@@ -21,7 +21,7 @@ from . import limits
 from .calibrating import CalibrationPlan, measure
 from .deciding import Decider
 from .latency import LatencyError, min_samples
-from .metrics import Metrics
+from .metrics import ReasonerMetrics
 from .prompts import PromptError, build_messages, load_template
 from .schemas import BackendInfo, Backends, CalibrateBody, ReasonBody
 from .settings import ReasonerSettings
@@ -46,7 +46,7 @@ class Work:
 
 DeciderDep = Annotated[Decider, Depends(from_state("decider"))]
 SettingsDep = Annotated[ReasonerSettings, Depends(from_state("settings"))]
-MetricsDep = Annotated[Metrics, Depends(from_state("metrics"))]
+MetricsDep = Annotated[ReasonerMetrics, Depends(from_state("metrics"))]
 WorkDep = Annotated[Work, Depends(from_state("work"))]
 
 router = APIRouter()

@@ -2,7 +2,7 @@
 
 The truth is always the nonlinear 12-state quadrotor of
 :mod:`services.control.dynamics`, integrated with RK4. What a set-point's command
-means depends on the scenario's planning model (:mod:`services.control.models`):
+means depends on the scenario's planning model (:mod:`services.control.planning`):
 
 * ``quadrotor``: thrust and torques, applied to the motors
   (:class:`SimulatedQuadrotor`), clipped to what the rotors can produce;

@@ -10,7 +10,7 @@ import pytest
 from prometheus_client import CollectorRegistry
 
 from services.reasoner.deciding import Decider, DeciderConfig
-from services.reasoner.metrics import Metrics
+from services.reasoner.metrics import ReasonerMetrics
 from services.reasoner.settings import ReasonerSettings
 from services.reasoner.worker import ReasonerWorker
 from shared import topics
@@ -39,7 +39,7 @@ async def test_requests_over_the_limits_are_dropped(
         listener: Bus, connector: Bus, caplog: pytest.LogCaptureFixture) -> None:
     backend, registry = Recording(), CollectorRegistry()
     worker = ReasonerWorker(Decider([backend], DeciderConfig()), listener, settings=LIMITS,
-                            metrics=Metrics(registry))
+                            metrics=ReasonerMetrics(registry))
     task = asyncio.create_task(worker.run())
     decisions = connector.subscribe(topics.reasoner_decision(topics.ANY_ROBOT),
                                     ReasonerDecision)

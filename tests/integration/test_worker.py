@@ -13,7 +13,7 @@ from prometheus_client import CollectorRegistry
 from services.embedding.entries import Item
 from services.embedding.errors import Conflict
 from services.embedding.loading import EmbedderPool
-from services.embedding.metrics import Metrics
+from services.embedding.metrics import EmbeddingMetrics
 from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingSettings
 from services.embedding.worker import DetectorWorker
@@ -114,7 +114,7 @@ async def test_an_observation_past_the_text_limit_is_not_scored(
     svc, embedder = service
     await svc.calibrate("scene", "loo-quantile", alpha=0.9)
     registry = CollectorRegistry()
-    metrics = Metrics(registry, svc)
+    metrics = EmbeddingMetrics(registry, svc)
     worker = DetectorWorker(svc, listener, cache="scene", metrics=metrics, max_text_chars=100)
     task = asyncio.create_task(worker.run())
     verdict_sub = connector.subscribe(topics.anomaly("robot0"), AnomalyVerdict)

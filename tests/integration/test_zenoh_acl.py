@@ -40,7 +40,7 @@ class Hub:
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.passwords = new_passwords(users_of(ROBOTS))
         write_credentials(folder, self.passwords)
-        argv = [sys.executable, "-m", "tools.stack.hub", "--listen", self.endpoint,
+        argv = [sys.executable, "-m", "tools.stack.router", "--listen", self.endpoint,
                 "--users", str(folder / "users.txt"), "--max-message-bytes", "100000"]
         for robot in ROBOTS:
             argv += ["--robot", robot]

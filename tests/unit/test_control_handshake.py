@@ -8,8 +8,8 @@ from typing import Any
 
 import pytest
 
-from services.control.detector import Cause
 from services.control.handshake import Handshake
+from services.control.verdicts import Cause
 from shared.messages import AnomalyVerdict, Mode, ReasonerDecision
 
 LIMIT = 0.5  # s: verdict freshness

@@ -9,8 +9,8 @@ import pytest
 
 from services.control.aesop import AesopController, NaiveController, Route
 from services.control.dynamics import QuadrotorParams, simulate_step
-from services.control.models import quadrotor_model
 from services.control.mpc import BranchProblem, MPCConfig
+from services.control.planning import quadrotor_model
 from services.control.regions import Region
 from services.control.scenario import Limits
 from shared.messages import Mode

@@ -26,8 +26,8 @@ import numpy as np
 import pytest
 
 from services.control.dynamics import QuadrotorParams
-from services.control.models import quadrotor_model
 from services.control.mpc import BranchProblem, MPCConfig, Plan
+from services.control.planning import quadrotor_model
 from services.control.scenario import load_scenario
 from tools.bench.reference import reference_solve
 

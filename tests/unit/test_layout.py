@@ -18,7 +18,7 @@ PACKAGES = ("shared", "services", "tools")
 SERVICES = ("embedding", "reasoner", "control", "dashboard", "sim")
 # what one service may read of another: the scene and the truth it flies
 BORROWED = {("sim", "services.control.scenario"), ("sim", "services.control.dynamics"),
-            ("sim", "services.control.regions"), ("sim", "services.control.models")}
+            ("sim", "services.control.regions"), ("sim", "services.control.planning")}
 MAX_FUNCTION_LINES = 100
 MAX_CLASS_LINES = 400
 

@@ -17,7 +17,7 @@ from prometheus_client import CollectorRegistry
 
 from services.reasoner.deciding import Decider, DeciderConfig
 from services.reasoner.limits import LimitError, check_request
-from services.reasoner.metrics import Metrics
+from services.reasoner.metrics import ReasonerMetrics
 from services.reasoner.parsing import _FINAL_LINE, ParseError, parse_decision
 from services.reasoner.prompts import (
     _INJECTION_PATTERNS,
@@ -207,7 +207,7 @@ async def test_the_worker_drops_a_request_over_the_limits(
     published, the LLM is not asked, and the drop is counted and logged."""
     backend, bus, registry, clock = Recording(), FakeBus(), CollectorRegistry(), Clock()
     worker = ReasonerWorker(Decider([backend], DeciderConfig()), cast(Bus, bus),
-                            settings=LIMITS, metrics=Metrics(registry), clock=clock)
+                            settings=LIMITS, metrics=ReasonerMetrics(registry), clock=clock)
     with caplog.at_level(logging.WARNING, logger="services.reasoner.worker"):
         await worker._answer(received(unchecked(deadline_s=math.inf)))
     assert bus.published == [] and backend.calls == 0

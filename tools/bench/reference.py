@@ -47,8 +47,8 @@ from dataclasses import dataclass
 import cvxpy as cp
 import numpy as np
 
-from services.control.models import PlanningModel
 from services.control.mpc import MPCConfig, planning_box, tightened_inputs, tightened_states
+from services.control.planning import PlanningModel
 from services.control.regions import Region
 
 SLACK_QUADRATIC = 1e-6  # the small quadratic price on the slacks that mpc.py uses

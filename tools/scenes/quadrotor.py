@@ -185,7 +185,7 @@ def quadrotor_calibration(
 
 
 @dataclass(frozen=True)
-class Scenario:
+class QuadrotorScenario:
     """A hardware test scenario: what the detector sees and what should happen."""
 
     name: str
@@ -212,13 +212,13 @@ class Scenario:
         return quadrotor_sample(self.detections, "anomaly" if self.expected_anomaly else "nominal")
 
 
-def _scenarios(items: Sequence[Scenario]) -> Mapping[str, Scenario]:
+def _scenarios(items: Sequence[QuadrotorScenario]) -> Mapping[str, QuadrotorScenario]:
     return MappingProxyType({s.name: s for s in items})
 
 
-QUADROTOR_SCENARIOS: Mapping[str, Scenario] = _scenarios(
+QUADROTOR_SCENARIOS: Mapping[str, QuadrotorScenario] = _scenarios(
     (
-        Scenario(
+        QuadrotorScenario(
             name="nominal",
             detections=(
                 detection("a red box"),
@@ -230,7 +230,7 @@ QUADROTOR_SCENARIOS: Mapping[str, Scenario] = _scenarios(
             expected_choice="continue",
             description="Clutter on the ground only; the red box is free. Land normally.",
         ),
-        Scenario(
+        QuadrotorScenario(
             name="quadrotor_on_red_box",
             detections=(
                 detection("a red box"),
@@ -245,7 +245,7 @@ QUADROTOR_SCENARIOS: Mapping[str, Scenario] = _scenarios(
                 "nominal clutter, one on the landing site is not); divert to the blue box."
             ),
         ),
-        Scenario(
+        QuadrotorScenario(
             name="both_boxes_occupied",
             detections=(
                 detection("a red box"),
@@ -257,7 +257,7 @@ QUADROTOR_SCENARIOS: Mapping[str, Scenario] = _scenarios(
             expected_choice="holding zone",
             description="Quadrotors occupy both boxes; divert to the holding zone.",
         ),
-        Scenario(
+        QuadrotorScenario(
             name="keyboard_on_ground",
             detections=(
                 detection("a red box"),

@@ -1,6 +1,6 @@
 """``aesop up``: the whole stack on this machine as child processes.
 
-A Zenoh hub (:mod:`tools.stack.hub`, router mode on loopback), then the
+A Zenoh hub (:mod:`tools.stack.router`, router mode on loopback), then the
 fake LLM (unless ``AESOP_REASONER_LLM_BASE_URL`` names a real backend), the vector-cache
 (embedding), the slow reasoner, the control loop, the simulated quadrotor it flies
 (``serve sim``, as the robot's user: a vehicle like any other) and the dashboard, all
@@ -201,7 +201,7 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
         return ChildSpec(name, argv, service.port, env)
 
     zenoh_dir = options.data_dir / "zenoh"
-    hub = ChildSpec("hub", (py, "-m", "tools.stack.hub", "--users",
+    hub = ChildSpec("hub", (py, "-m", "tools.stack.router", "--users",
                             str(zenoh_dir / "users.txt"), "--robot", robot, "--listen", endpoint),
                     ports.hub, inherited, ready="tcp")
     return StackPlan(hub, tuple(child(n, s) for n, s in settings), given or token, not given,

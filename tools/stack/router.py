@@ -7,7 +7,7 @@ authenticate (a ``user:password`` dictionary) and the access-control list of
 :mod:`.acl` applies (``--robot`` names the robots it lets publish observations);
 a message past ``--max-message-bytes`` is dropped. It serves until SIGINT/SIGTERM.
 
-    python -m tools.stack.hub --listen tcp/127.0.0.1:7447 \
+    python -m tools.stack.router --listen tcp/127.0.0.1:7447 \
         --users aesop-data/zenoh/users.txt --robot robot0
 """
 

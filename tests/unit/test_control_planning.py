@@ -12,8 +12,8 @@ from scipy.linalg import expm
 from services.control.aesop import Route
 from services.control.controllers import mpc_config
 from services.control.dynamics import QuadrotorParams
-from services.control.models import point_mass_model
 from services.control.mpc import BranchProblem, decouple, promised_step
+from services.control.planning import point_mass_model
 from services.control.scenario import load_scenario, planning_model
 from services.sim.plant import TrackedQuadrotor
 from tools.bench.reference import reference_solve
