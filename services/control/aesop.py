@@ -22,7 +22,7 @@ The horizon to the region never shrinks below ``MPCConfig.min_region_step``
 so that the nonlinear plant's small model errors never pin a region to the
 very next step (documented deviation from ``max(0, T - k)``). While
 recovering, a region out of reach by that step is planned to be reached
-later (``_Controller._late``): the nonlinear truth arrives a little after
+later (``Controller._late``): the nonlinear truth arrives a little after
 Theorem 1's ``t_anom + T`` rather than not at all.
 
 Holding (beyond the paper). In nominal operation nothing guarantees that
@@ -39,9 +39,13 @@ discarded for it either; the hold continues and the next tick resumes the
 solve from where it stopped.
 
 The measured state is the plant's 12-state ``x``; the controller plans in
-its model's coordinates (:mod:`.models`). A non-finite measurement never
+its model's coordinates (:mod:`.planning`). A non-finite measurement never
 reaches a solver and a non-finite input never leaves a step: the step flies
 the last feasible plan's recovery branch (or hovers) and says so.
+
+The three methods are one :class:`Controller` configured by a :class:`Policy`
+(:data:`AESOP`, :data:`FSMPC`, :data:`NAIVE`): what each keeps while flying nominally,
+what it flies while the reasoner thinks, and whether it commits a fallback at K.
 
 The nominal task is a :class:`Route`: the approach waypoint above the goal,
 then the goal (the paper's hardware: "toward a waypoint a foot above the
@@ -66,6 +70,44 @@ from .regions import Region
 from .selection import SubsetSelector
 
 SENT_KEPT = 64  # inputs remembered for delay compensation (3.2 s at 20 Hz)
+
+
+def carry_forward(model: PlanningModel, x: np.ndarray, age: float,
+                  sent: Sequence[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """Delay compensation: ``x``, measured ``age`` seconds (model time) before this step,
+    carried forward under the inputs ``sent`` since ((input, lag states before it), newest
+    last): the step it was measured in for the rest of that step, then each later one (as
+    far back as ``sent`` reaches)."""
+    dt = model.dt
+    back = min(math.ceil(age / dt - 1e-9), len(sent))
+    if back <= 0:
+        return x
+    first_s = min(age - (back - 1) * dt, dt)  # of the oldest step, what the state missed
+    u_first, lag_first = sent[-back]
+    lag = model.advance_by(lag_first, u_first, dt - first_s) if model.n_lag else lag_first
+    inputs = [u for u, _ in list(sent)[len(sent) - back:]]
+    return model.predict(x, lag, inputs, first_s)
+
+
+@dataclass(frozen=True)
+class Policy:
+    """How a method flies: Algorithm 1 and the paper's two baselines differ only here."""
+
+    name: str
+    keeps_tree: bool  # nominal flight keeps recovery plans for a subset of the regions
+    shares_k: bool  # and their first K inputs are shared (eq. 3); else K = 0 (FS-MPC)
+    waits_on_tree: bool  # while the reasoner thinks, fly J(Y, K - k, T - k); else fly on
+    commits_at_k: bool  # no decision by K: commit to the fallback region
+    soft_recovery: bool  # accept a least-violating recovery plan
+
+
+AESOP = Policy("aesop", keeps_tree=True, shares_k=True, waits_on_tree=True, commits_at_k=True,
+               soft_recovery=False)
+FSMPC = Policy("fsmpc", keeps_tree=True, shares_k=False, waits_on_tree=False,
+               commits_at_k=False, soft_recovery=True)  # recovery plans kept, flies on
+NAIVE = Policy("naive", keeps_tree=False, shares_k=False, waits_on_tree=False,
+               commits_at_k=False, soft_recovery=True)  # plans a recovery once told
+POLICIES = {p.name: p for p in (NAIVE, FSMPC, AESOP)}
 
 
 class Route:
@@ -137,17 +179,26 @@ class _Memory:
     events: list[str] = field(default_factory=list)
 
 
-class _Controller:
-    """What all three methods share: the recovering phase and the fallback input."""
-
-    name = "base"
-    soft_recovery = False  # baselines accept a least-violating recovery plan
-    commits_at_k = False  # AESOP commits its fallback when no decision has come by K
+class Controller:
+    """Algorithm 1's loop body, one ``make_step`` per tick, as its :class:`Policy` says."""
 
     def __init__(self, model: PlanningModel, config: MPCConfig, regions: Sequence[Region],
-                 route: Route) -> None:
-        self.model, self.config, self.route = model, config, route
+                 route: Route, policy: Policy = AESOP, fallback: str | int = "cheapest",
+                 min_size: int = 2, selector: SubsetSelector | None = None) -> None:
+        self.model, self.config, self.route, self.policy = model, config, route, policy
+        self.name = policy.name
         self.regions = {r.index: r for r in regions}
+        if not (fallback in ("cheapest", "first") or (isinstance(fallback, int)
+                                                      and fallback in self.regions)):
+            raise ValueError("fallback must be 'cheapest', 'first' or a region index")
+        self.fallback = fallback
+        self.selector: SubsetSelector | None = None
+        self._nominal: BranchProblem | None = None  # without a tree: the nominal branch
+        if policy.keeps_tree:
+            tree = config if policy.shares_k else replace(config, consensus=0)
+            self.selector = selector or SubsetSelector(model, tree, regions, min_size=min_size)
+        else:
+            self._nominal = BranchProblem(model, config, 0)
         self._recover: dict[bool, BranchProblem] = {}  # the recovering problem, hard/soft
         self._active: tuple[int, ...] = ()  # the subset whose recovery plans are kept
         self.memory = _Memory()
@@ -173,7 +224,7 @@ class _Controller:
         """The model's lag states: what the vehicle has yet to realize of the commands sent."""
         return self._lag
 
-    def carry_on(self, other: _Controller) -> None:
+    def carry_on(self, other: Controller) -> None:
         """Take over the flight ``other`` was flying (same route, new regions): where it is
         on the route and the lag states of the commands it sent."""
         self.route.index = other.route.index
@@ -307,14 +358,14 @@ class _Controller:
         if mem.chosen is None:  # RECOVERING is always entered with a region chosen
             raise RuntimeError("recovering with no region chosen")
         region = [self.regions[mem.chosen]]
-        if self.soft_recovery:
+        if self.policy.soft_recovery:
             plan = self._recovery_problem(True).solve(x, self.goal, region, 0,
                                                       self._region_step(k))
         else:
             plan = self._late(lambda s: self._recovery_problem(False).solve(
                 x, self.goal, region, 0, s), self._region_step(k), "recovering")
         status = plan.status
-        if not plan.feasible and not self.soft_recovery:
+        if not plan.feasible and not self.policy.soft_recovery:
             if not status.decided:  # no verdict within the budget: the last verified plan
                 u, used = self._follow(None, False)
                 return u, used, status
@@ -336,12 +387,19 @@ class _Controller:
         not begun: nothing else changes (the route moves on only if ``x`` is already at
         its waypoint, as the first tick would).
         """
+        xm = self.model.measure(x, self._lag)
+        goal = self.route.target(xm, self.model)
+        if self.selector is not None:
+            self.selector.select(xm, goal)
+        elif self._nominal is not None:
+            self._nominal.solve(xm, goal, [])
+        self._warm_recovery(xm, goal)
 
     def _warm_recovery(self, x: np.ndarray, goal: np.ndarray) -> None:
         """Cold-solve the recovering problems (the hard one, and the least-violating one it
         falls back to) toward each region from ``x``, so that the first recovering tick
         starts warm: a cold solve at 200 steps is a few hundred ms."""
-        kinds = (True,) if self.soft_recovery else (False, True)
+        kinds = (True,) if self.policy.soft_recovery else (False, True)
         for soft in kinds:
             for region in self.regions.values():
                 self._recovery_problem(soft).solve(x, goal, [region], 0, self.config.horizon)
@@ -359,26 +417,11 @@ class _Controller:
         if not np.all(np.isfinite(self._x)):
             return self._measurement_lost(decision, anomaly)
         if age > 0.0:
-            self._x = self._predict(self._x, age)
+            self._x = carry_forward(self.model, self._x, age, self._sent)
         xm = self.model.measure(self._x, self._lag)
         self.measured = xm
         self.goal = self.route.target(xm, self.model)
         return self._step(xm, anomaly, decision)
-
-    def _predict(self, x: np.ndarray, age: float) -> np.ndarray:
-        """``x``, measured ``age`` seconds before this step, carried forward under the
-        inputs sent since: the step it was measured in for the rest of that step, then
-        each later one (as far back as :data:`SENT_KEPT` steps reach)."""
-        dt = self.model.dt
-        back = min(math.ceil(age / dt - 1e-9), len(self._sent))
-        if back <= 0:
-            return x
-        first_s = min(age - (back - 1) * dt, dt)  # of the oldest step, what the state missed
-        u_first, lag_first = self._sent[-back]
-        lag = self.model.advance_by(lag_first, u_first, dt - first_s) if self.model.n_lag \
-            else lag_first
-        inputs = [u for u, _ in list(self._sent)[len(self._sent) - back:]]
-        return self.model.predict(x, lag, inputs, first_s)
 
     def _measurement_lost(self, decision: int | None, anomaly: bool = False, *,
                           alarm: bool = True) -> ControlOutput:
@@ -388,7 +431,8 @@ class _Controller:
         alarm (``alarm``). The next usable state resumes the loop."""
         self._take_decision(decision)
         mem = self.memory
-        if self.commits_at_k and mem.mode is Mode.PENDING and self._k() >= self.config.consensus:
+        if self.policy.commits_at_k and mem.mode is Mode.PENDING \
+                and self._k() >= self.config.consensus:
             self._commit_fallback(None)
         if alarm:
             self._alarms.append("non-finite state measured: flying the last plan's recovery "
@@ -411,10 +455,58 @@ class _Controller:
         return 0 if mem.t_anom is None else mem.t - mem.t_anom + mem.spent
 
     def _step(self, x: np.ndarray, anomaly: bool, decision: int | None) -> ControlOutput:
-        raise NotImplementedError
+        mem, policy = self.memory, self.policy
+        self._take_decision(decision)
+        if policy.commits_at_k and mem.mode is Mode.PENDING \
+                and self._k() >= self.config.consensus:
+            self._commit_fallback(x)
+        if mem.mode is Mode.RECOVERING:
+            u, plan, status = self._recovering(x)
+            return self._output(u, status, plan, (mem.chosen,))
+        if mem.mode is Mode.PENDING and policy.waits_on_tree:
+            assert self.selector is not None
+            k = self._k()
+            plan = self.selector.solve(mem.options, x, self.goal, self.config.consensus - k,
+                                       self._promise(k))
+            u, used = self._follow(plan, plan.feasible)
+            return self._output(u, plan.status, used, mem.options)
+        if self.selector is not None:
+            u, used, status = self._select(self.selector, x)
+            active = self._active
+        else:
+            assert self._nominal is not None
+            nominal = self._nominal.solve(x, self.goal, [])
+            (u, used), status, active = self._follow(nominal, nominal.feasible), \
+                nominal.status, ()
+        request = None
+        # AESOP asks among the subset its tree keeps (none kept: it cannot offer any);
+        # a baseline among every region when it keeps none
+        options = active if policy.waits_on_tree else (active or tuple(sorted(self.regions)))
+        if anomaly and mem.mode is Mode.NOMINAL and options:
+            mem.mode, mem.t_anom, mem.options = Mode.PENDING, mem.t, options
+            mem.chosen, mem.fallback = None, False
+            if policy.waits_on_tree:
+                mem.spent = mem.held  # a hold's ticks come off the consensus budget
+            mem.events.append(f"anomaly: asking the reasoner among regions {options}")
+            request = options
+        return self._output(u, status, used, active, request)
 
     def _commit_fallback(self, x: np.ndarray | None) -> None:
-        raise NotImplementedError
+        """Commit to the fallback region: the configured one, or the cheapest feasible
+        recovery from ``x`` (the first offered when ``x`` is unknown or none is)."""
+        mem = self.memory
+        choice = self.fallback if isinstance(self.fallback, int) else mem.options[0]
+        if self.fallback == "cheapest" and x is not None:
+            k = self._k()
+            costs = {}
+            for y in mem.options:
+                plan = self._recovery_problem(False).solve(x, self.goal, [self.regions[y]], 0,
+                                                           self._region_step(k))
+                if plan.feasible:
+                    costs[y] = plan.cost
+            choice = min(costs, key=costs.__getitem__) if costs else mem.options[0]
+        mem.mode, mem.chosen, mem.fallback = Mode.RECOVERING, choice, True
+        mem.events.append(f"no decision by K: fallback to region {choice}")
 
     def _command(self, u: np.ndarray) -> np.ndarray:
         """What the plant is sent. For the hover model, the collective thrust scaled by
@@ -474,127 +566,3 @@ class _Controller:
             mem.events.append(f"reasoner chose region {decision}; recovering")
         else:
             mem.events.append(f"decision {decision} was not offered {mem.options}; ignored")
-
-
-class AesopController(_Controller):
-    """Algorithm 1 with subset selection and a fallback at ``k = K``."""
-
-    name = "aesop"
-    commits_at_k = True
-
-    def __init__(self, model: PlanningModel, config: MPCConfig, regions: Sequence[Region],
-                 route: Route, fallback: str | int = "cheapest", min_size: int = 2,
-                 selector: SubsetSelector | None = None) -> None:
-        super().__init__(model, config, regions, route)
-        if not (fallback in ("cheapest", "first") or (isinstance(fallback, int)
-                                                      and fallback in self.regions)):
-            raise ValueError("fallback must be 'cheapest', 'first' or a region index")
-        self.fallback = fallback
-        self.selector = selector or SubsetSelector(model, config, regions, min_size=min_size)
-
-    def warm_up(self, x: np.ndarray) -> None:
-        xm = self.model.measure(x, self._lag)
-        goal = self.route.target(xm, self.model)
-        self.selector.select(xm, goal)
-        self._warm_recovery(xm, goal)
-
-    def _step(self, x: np.ndarray, anomaly: bool, decision: int | None) -> ControlOutput:
-        mem = self.memory
-        self._take_decision(decision)
-        if mem.mode is Mode.PENDING and self._k() >= self.config.consensus:
-            self._commit_fallback(x)
-        if mem.mode is Mode.RECOVERING:
-            u, plan, status = self._recovering(x)
-            return self._output(u, status, plan, (mem.chosen,))
-        if mem.mode is Mode.PENDING:
-            k = self._k()
-            plan = self.selector.solve(mem.options, x, self.goal, self.config.consensus - k,
-                                       self._promise(k))
-            u, used = self._follow(plan, plan.feasible)
-            return self._output(u, plan.status, used, mem.options)
-        u, used, status = self._select(self.selector, x)
-        request = None
-        if anomaly and self._active:
-            mem.mode, mem.t_anom, mem.options = Mode.PENDING, mem.t, self._active
-            mem.chosen, mem.fallback, mem.spent = None, False, mem.held
-            mem.events.append(f"anomaly: asking the reasoner among regions {self._active}")
-            request = self._active
-        return self._output(u, status, used, self._active, request)
-
-    def _commit_fallback(self, x: np.ndarray | None) -> None:
-        """Commit to the fallback region: the configured one, or the cheapest feasible
-        recovery from ``x`` (the first offered when ``x`` is unknown or none is)."""
-        mem = self.memory
-        choice = self.fallback if isinstance(self.fallback, int) else mem.options[0]
-        if self.fallback == "cheapest" and x is not None:
-            k = self._k()
-            costs = {}
-            for y in mem.options:
-                plan = self._recovery_problem(False).solve(x, self.goal, [self.regions[y]], 0,
-                                                           self._region_step(k))
-                if plan.feasible:
-                    costs[y] = plan.cost
-            choice = min(costs, key=costs.__getitem__) if costs else mem.options[0]
-        mem.mode, mem.chosen, mem.fallback = Mode.RECOVERING, choice, True
-        mem.events.append(f"no decision by K: fallback to region {choice}")
-
-
-class NaiveController(_Controller):
-    """Plans the nominal trajectory only; plans a recovery once the decision arrives."""
-
-    name = "naive"
-    soft_recovery = True
-
-    def __init__(self, model: PlanningModel, config: MPCConfig, regions: Sequence[Region],
-                 route: Route) -> None:
-        super().__init__(model, config, regions, route)
-        self._nominal = BranchProblem(self.model, self.config, 0)
-
-    def warm_up(self, x: np.ndarray) -> None:
-        xm = self.model.measure(x, self._lag)
-        goal = self.route.target(xm, self.model)
-        self._nominal.solve(xm, goal, [])
-        self._warm_recovery(xm, goal)
-
-    def _nominal_step(self, x: np.ndarray) -> tuple[np.ndarray, Plan | None, SolveStatus,
-                                                     tuple[int, ...]]:
-        plan = self._nominal.solve(x, self.goal, [])
-        u, used = self._follow(plan, plan.feasible)
-        return u, used, plan.status, ()
-
-    def _step(self, x: np.ndarray, anomaly: bool, decision: int | None) -> ControlOutput:
-        mem = self.memory
-        self._take_decision(decision)
-        if mem.mode is Mode.RECOVERING:
-            u, plan, status = self._recovering(x)
-            return self._output(u, status, plan, (mem.chosen,))
-        u, plan, status, active = self._nominal_step(x)
-        request = None
-        if anomaly and mem.mode is Mode.NOMINAL:
-            options = active or tuple(sorted(self.regions))
-            mem.mode, mem.t_anom, mem.options = Mode.PENDING, mem.t, options
-            mem.chosen = None
-            mem.events.append(f"anomaly: asking the reasoner among regions {options}")
-            request = options
-        return self._output(u, status, plan, active, request)
-
-
-class FallbackSafeController(NaiveController):
-    """FS-MPC: keeps recovery plans (K = 0) and flies nominally until the decision."""
-
-    name = "fsmpc"
-
-    def __init__(self, model: PlanningModel, config: MPCConfig, regions: Sequence[Region],
-                 route: Route, min_size: int = 2) -> None:
-        super().__init__(model, config, regions, route)
-        no_consensus = replace(config, consensus=0)
-        self.selector = SubsetSelector(model, no_consensus, regions, min_size=min_size)
-
-    def warm_up(self, x: np.ndarray) -> None:
-        xm = self.model.measure(x, self._lag)
-        goal = self.route.target(xm, self.model)
-        self.selector.select(xm, goal)
-        self._warm_recovery(xm, goal)
-
-    def _nominal_step(self, x):
-        return (*self._select(self.selector, x), self._active)

@@ -56,10 +56,11 @@ from shared.messages import (
     VehicleState,
 )
 
+from . import handshake
 from .aesop import ControlOutput
 from .controllers import Controller, make_controller, mpc_config
 from .dynamics import N_STATE, POS
-from .handshake import Handshake
+from .handshake import Asked, Handshake
 from .mpc import SolveStatus
 from .regions import Region
 from .scenario import Scenario, ScenarioError
@@ -425,11 +426,11 @@ class ControlRuntime:
         now = self.clock()
         age = None if verdict is None else verdict_age(
             self._sightings, verdict.message.seq, verdict.received_at, now)
-        reading = self.handshake.read(
+        self.handshake, reading = handshake.step(self.handshake, handshake.Inputs(
             mode=self.mode, age=age, limit=self.settings.verdict_stale_s,
             verdict=None if verdict is None else verdict.message,
             scene=self._scene_of(verdict) if verdict and verdict.message.is_anomaly else None,
-            decision=decision, vehicle=vehicle.fresh and ready)
+            decision=decision, vehicle=vehicle.fresh and ready))
         events.extend(self._event(n.kind, n.severity, n.message, **n.data)
                       for n in reading.notes)
         return _Inputs(reading.anomaly, reading.decision, reading.stale, verdict, events,
@@ -453,12 +454,9 @@ class ControlRuntime:
         if output.request is not None:
             request = self._request(output.request, inputs, observation, deadline,
                                     output.consensus_left)
-            self.handshake.asked(
-                request.request_id, inputs.cause,
-                None if observation is None else observation.text,
-                None if inputs.verdict is None else inputs.verdict.message.seq)
-        else:
-            self.handshake.settle()
+        self.handshake = handshake.conclude(self.handshake, None if request is None else Asked(
+            request.request_id, inputs.cause, None if observation is None else observation.text,
+            None if inputs.verdict is None else inputs.verdict.message.seq))
         events.extend(self._event("non_finite", "alarm", alarm) for alarm in output.alarms)
         events.extend(self._output_events(output, request))
         self.mode = output.mode
@@ -572,7 +570,7 @@ class ControlRuntime:
             controller.carry_on(self.controller)
             self.scenario, self.controller, self._k0 = scenario, controller, self._k
             self._warming = None  # one being built has the old regions
-            self.handshake.forget_request()
+            self.handshake = handshake.forget_request(self.handshake)
             regions = scenario.regions
             self._queued.append(self._event(
                 "regions_updated", "info", f"{len(regions)} recovery regions: "

@@ -1,5 +1,6 @@
-"""The loop's handshake with the detector and the reasoner, as one table: the state before,
-one tick's inputs, what the controller is handed, what a person is told, the state after."""
+"""The loop's handshake with the detector and the reasoner, as one table of the pure
+transition ``step``: the state before, one tick's inputs, what the controller is handed,
+what a person is told, the state after; then ``conclude``, the end of a tick."""
 
 from __future__ import annotations
 
@@ -8,7 +9,15 @@ from typing import Any
 
 import pytest
 
-from services.control.handshake import Handshake
+from services.control.handshake import (
+    Asked,
+    Handshake,
+    Inputs,
+    Phase,
+    conclude,
+    forget_request,
+    step,
+)
 from services.control.verdicts import Cause
 from shared.messages import AnomalyVerdict, Mode, ReasonerDecision
 
@@ -47,12 +56,14 @@ class Handed:
     notes: tuple[str, ...] = ()
 
 
-SILENT = Handshake(stale=True, monitored=False, silence_asked=True, pending=REQ,
-                   cause=Cause.SILENCE)
-BLIND = Handshake(stale=False, monitored=False, silence_asked=True, pending=REQ,
-                  cause=Cause.VEHICLE)
-ASKED = Handshake(stale=False, pending=REQ, cause=Cause.ANOMALY, verdict_asked=7,
-                  asked_about=KEYBOARD)
+ASKING = {"phase": Phase.ASKED, "request_id": REQ}
+SILENT = Handshake(stale=True, monitored=False, silence_asked=True, cause=Cause.SILENCE,
+                   **ASKING)
+BLIND = Handshake(stale=False, monitored=False, silence_asked=True, cause=Cause.VEHICLE,
+                  **ASKING)
+ASKED = Handshake(stale=False, cause=Cause.ANOMALY, verdict_asked=7, asked_about=KEYBOARD,
+                  **ASKING)
+IDLE = {"phase": Phase.IDLE, "request_id": None, "cause": None}
 PENDING, FLAG = Mode.PENDING, verdict(8, True)
 
 # (name, state before, tick, handed, fields of the state after)
@@ -66,23 +77,23 @@ TABLE: list[tuple[str, Handshake, Tick, Handed, dict[str, Any]]] = [
     ("a fresh nominal verdict", Handshake(stale=False), Tick(), Handed(), {}),
     ("a new flagged verdict asks", Handshake(stale=False), Tick(verdict=FLAG),
      Handed(anomaly=True, cause=Cause.ANOMALY), {}),
-    ("a verdict asks once", replace(ASKED, pending=None, cause=None),
+    ("a verdict asks once", replace(ASKED, **IDLE),
      Tick(verdict=verdict(7, True)), Handed(), {}),
     ("silence is an anomaly: alarm once, ask about the silence", Handshake(stale=False),
      Tick(age=OLD), Handed(anomaly=True, cause=Cause.SILENCE, stale=True,
                            notes=("verdict_stale",)), {"stale": True, "silence_asked": False}),
     ("no verdict at all is silence", Handshake(stale=False), Tick(age=None, verdict=None),
      Handed(anomaly=True, cause=Cause.SILENCE, stale=True, notes=("verdict_stale",)), {}),
-    ("a silent spell asks once", replace(SILENT, pending=None, cause=None), Tick(age=OLD),
+    ("a silent spell asks once", replace(SILENT, **IDLE), Tick(age=OLD),
      Handed(stale=True), {}),
     ("continue is refused while silent, said once", SILENT,
      Tick(PENDING, OLD, decision=answer(0)),
-     Handed(stale=True, notes=("continue_refused",)), {"delivered": False, "refused": REQ}),
+     Handed(stale=True, notes=("continue_refused",)), {"phase": Phase.ASKED, "refused": REQ}),
     ("the refusal is not said again", replace(SILENT, refused=REQ),
-     Tick(PENDING, OLD, decision=answer(0)), Handed(stale=True), {"delivered": False}),
+     Tick(PENDING, OLD, decision=answer(0)), Handed(stale=True), {"phase": Phase.ASKED}),
     ("a region answer while silent is handed on", replace(SILENT, refused=REQ),
      Tick(PENDING, OLD, decision=answer(2)), Handed(decision=2, stale=True),
-     {"delivered": True}),
+     {"phase": Phase.ANSWERED}),
     ("fresh verdicts end the silence's episode", SILENT, Tick(PENDING),
      Handed(decision=0, notes=("verdict_fresh", "silence_ended")), {"stale": False}),
     ("fresh and flagged after silence: ask about the scene", SILENT,
@@ -91,21 +102,22 @@ TABLE: list[tuple[str, Handshake, Tick, Handed, dict[str, Any]]] = [
             notes=("verdict_fresh", "silence_ended")), {}),
     ("a region chosen during silence stands when the detector is back",
      replace(SILENT, refused=REQ), Tick(PENDING, decision=answer(3)),
-     Handed(decision=3, notes=("verdict_fresh",)), {"delivered": True}),
+     Handed(decision=3, notes=("verdict_fresh",)), {"phase": Phase.ANSWERED}),
     ("continue for a flagged scene clears it", ASKED, Tick(PENDING, decision=answer(0)),
-     Handed(decision=0), {"delivered": True, "cleared": {KEYBOARD}}),
+     Handed(decision=0), {"phase": Phase.ANSWERED, "cleared": {KEYBOARD}}),
     ("a cleared scene flagged again does not ask, said once",
-     Handshake(stale=False, cleared={KEYBOARD}), Tick(verdict=FLAG),
+     Handshake(stale=False, cleared=frozenset({KEYBOARD})), Tick(verdict=FLAG),
      Handed(notes=("anomaly_cleared",)), {"said_cleared": KEYBOARD}),
     ("and is not said again while it stays flagged",
-     Handshake(stale=False, cleared={KEYBOARD}, said_cleared=KEYBOARD), Tick(verdict=FLAG),
+     Handshake(stale=False, cleared=frozenset({KEYBOARD}), said_cleared=KEYBOARD),
+     Tick(verdict=FLAG),
      Handed(), {"said_cleared": KEYBOARD}),
-    ("another scene flagged still asks", Handshake(stale=False, cleared={KEYBOARD}),
+    ("another scene flagged still asks", Handshake(stale=False, cleared=frozenset({KEYBOARD})),
      Tick(verdict=FLAG, scene="a quadrotor on the red box"),
      Handed(anomaly=True, cause=Cause.ANOMALY), {"said_cleared": None}),
     ("an answer to another request is ignored", ASKED,
-     Tick(PENDING, decision=answer(2, "req-old")), Handed(), {"delivered": False}),
-    ("an answer is handed on once", replace(ASKED, delivered=True),
+     Tick(PENDING, decision=answer(2, "req-old")), Handed(), {"phase": Phase.ASKED}),
+    ("an answer is handed on once", replace(ASKED, phase=Phase.ANSWERED),
      Tick(PENDING, decision=answer(2)), Handed(), {}),
     ("waiting, a fresh verdict but no fresh state: hold", Handshake(),
      Tick(Mode.WAITING, vehicle=False), Handed(waiting=True), {"stale": None}),
@@ -117,14 +129,14 @@ TABLE: list[tuple[str, Handshake, Tick, Handed, dict[str, Any]]] = [
      Handed(anomaly=True, cause=Cause.VEHICLE), {}),
     ("continue is refused while the state is stale", BLIND,
      Tick(PENDING, decision=answer(0), vehicle=False), Handed(notes=("continue_refused",)),
-     {"delivered": False, "refused": REQ}),
+     {"phase": Phase.ASKED, "refused": REQ}),
     ("the detector falling silent in the same spell does not ask again",
-     replace(BLIND, pending=None, cause=None), Tick(age=OLD, vehicle=False),
+     replace(BLIND, **IDLE), Tick(age=OLD, vehicle=False),
      Handed(stale=True, notes=("verdict_stale",)), {}),
     ("a fresh state ends the vehicle's episode", BLIND, Tick(PENDING),
      Handed(decision=0, notes=("silence_ended",)), {"monitored": True}),
     ("a region chosen while the state was stale stands", replace(BLIND, refused=REQ),
-     Tick(PENDING, decision=answer(1)), Handed(decision=1), {"delivered": True}),
+     Tick(PENDING, decision=answer(1)), Handed(decision=1), {"phase": Phase.ANSWERED}),
     ("a verdict older than anything remembered is silence", Handshake(stale=False),
      Tick(age=None), Handed(anomaly=True, cause=Cause.SILENCE, stale=True,
                             notes=("verdict_stale",)), {}),
@@ -135,9 +147,8 @@ TABLE: list[tuple[str, Handshake, Tick, Handed, dict[str, Any]]] = [
                          [row[1:] for row in TABLE], ids=[row[0] for row in TABLE])
 def test_one_tick_of_the_handshake(before: Handshake, tick: Tick, handed: Handed,
                                    after: dict[str, Any]) -> None:
-    state = replace(before, cleared=set(before.cleared))
-    reading = state.read(mode=tick.mode, age=tick.age, limit=LIMIT, verdict=tick.verdict,
-                         scene=tick.scene, decision=tick.decision, vehicle=tick.vehicle)
+    state, reading = step(before, Inputs(tick.mode, tick.age, LIMIT, tick.verdict, tick.scene,
+                                         tick.decision, tick.vehicle))
     got = Handed(reading.anomaly, reading.decision, reading.cause, reading.stale,
                  reading.waiting, tuple(n.kind for n in reading.notes))
     assert got == handed
@@ -148,8 +159,7 @@ def test_one_tick_of_the_handshake(before: Handshake, tick: Tick, handed: Handed
 def test_a_stale_alarm_says_why() -> None:
     told = {}
     for age, v in ((None, None), (None, verdict(1, False)), (OLD, verdict(1, False))):
-        (note,) = Handshake(stale=False).read(mode=Mode.NOMINAL, age=age, limit=LIMIT,
-                                              verdict=v, scene=None, decision=None).notes
+        (note,) = step(Handshake(stale=False), Inputs(Mode.NOMINAL, age, LIMIT, v))[1].notes
         told[(age, v is None)] = note.message
     assert told[(None, True)].startswith("no anomaly verdict has arrived")
     assert "older than anything remembered" in told[(None, False)]
@@ -157,25 +167,33 @@ def test_a_stale_alarm_says_why() -> None:
 
 
 def test_a_request_remembers_what_it_asked_and_an_answer_closes_it() -> None:
-    state = Handshake(stale=False)
-    state.asked(REQ, Cause.ANOMALY, KEYBOARD, 8)
-    assert (state.pending, state.cause, state.asked_about, state.verdict_asked) == (
-        REQ, Cause.ANOMALY, KEYBOARD, 8)
-    state.settle()
+    state = conclude(Handshake(stale=False), Asked(REQ, Cause.ANOMALY, KEYBOARD, 8))
+    assert (state.phase, state.pending, state.cause, state.asked_about,
+            state.verdict_asked) == (Phase.ASKED, REQ, Cause.ANOMALY, KEYBOARD, 8)
+    state = conclude(state, None)
     assert state.pending == REQ  # not answered yet: still waited on
-    state.read(mode=Mode.PENDING, age=FRESH, limit=LIMIT, verdict=verdict(9, True),
-               scene=KEYBOARD, decision=answer(2))
-    state.settle()
-    assert state.pending is None and state.delivered
+    state, reading = step(state, Inputs(Mode.PENDING, FRESH, LIMIT, verdict(9, True),
+                                        KEYBOARD, answer(2)))
+    assert reading.decision == 2 and state.phase is Phase.ANSWERED
+    state = conclude(state, None)
+    assert state.pending is None and state.phase is Phase.IDLE
+    state, reading = step(state, Inputs(Mode.RECOVERING, FRESH, LIMIT, verdict(10, False),
+                                        None, answer(2)))
+    assert reading.decision is None  # a late duplicate of the answer is ignored
 
 
 def test_a_silence_request_asks_once_and_names_no_scene() -> None:
-    state = Handshake(stale=True, asked_about="old scene")
-    state.asked(REQ, Cause.SILENCE, KEYBOARD, 3)
+    state = conclude(Handshake(stale=True, asked_about="old scene"),
+                     Asked(REQ, Cause.SILENCE, KEYBOARD, 3))
     assert state.silence_asked and state.asked_about is None and state.verdict_asked is None
 
 
 def test_new_regions_drop_the_request() -> None:
-    state = replace(ASKED)
-    state.forget_request()
-    assert state.pending is None
+    assert forget_request(ASKED).pending is None
+
+
+def test_a_transition_never_changes_the_state_it_was_given() -> None:
+    before = replace(ASKED, cleared=frozenset({"a mop"}))
+    after, _ = step(before, Inputs(Mode.PENDING, FRESH, LIMIT, decision=answer(0)))
+    assert before.phase is Phase.ASKED and before.cleared == {"a mop"}
+    assert after.phase is Phase.ANSWERED and after.cleared == {"a mop", KEYBOARD}

@@ -7,7 +7,7 @@ few tens of centimetres away and a 3 s horizon keep every solve small.
 import numpy as np
 import pytest
 
-from services.control.aesop import AesopController, NaiveController, Route
+from services.control.aesop import AESOP, NAIVE, Controller, Route
 from services.control.dynamics import QuadrotorParams, simulate_step
 from services.control.mpc import BranchProblem, MPCConfig
 from services.control.planning import quadrotor_model
@@ -95,8 +95,8 @@ def fly(controller, script, ticks):
     return x, outputs
 
 
-def aesop(**kwargs) -> AesopController:
-    return AesopController(MODEL, CONFIG, REGIONS, Route([GOAL]), **kwargs)
+def aesop(**kwargs) -> Controller:
+    return Controller(MODEL, CONFIG, REGIONS, Route([GOAL]), policy=AESOP, **kwargs)
 
 
 def test_decision_zero_returns_to_nominal():
@@ -148,7 +148,7 @@ def test_bad_fallback_is_refused():
 
 
 def test_naive_flies_on_while_waiting_and_plans_the_recovery_afterwards():
-    naive = NaiveController(MODEL, CONFIG, REGIONS, Route([GOAL]))
+    naive = Controller(MODEL, CONFIG, REGIONS, Route([GOAL]), policy=NAIVE)
     _, outs = fly(naive, lambda t: (t == 1, 2 if t == 4 else None), 8)
     assert outs[1].request == (1, 2, 3)
     assert all(o.active_regions == () for o in outs[:4])  # it keeps no recovery plan
@@ -198,15 +198,15 @@ def test_recovery_whose_region_is_out_of_reach_by_its_step_is_planned_to_reach_i
 
 @pytest.mark.parametrize("kind", ["aesop", "naive"])
 def test_warm_up_leaves_the_first_tick_nothing_to_solve(kind: str):
-    controller = aesop() if kind == "aesop" else NaiveController(
-        MODEL, CONFIG, REGIONS, Route([GOAL]))
+    controller = aesop() if kind == "aesop" else Controller(
+        MODEL, CONFIG, REGIONS, Route([GOAL]), policy=NAIVE)
     x0 = state()
     controller.warm_up(x0)
     assert controller.memory.t == 0 and controller.mode is Mode.NOMINAL
     first = controller.make_step(x0, False)
     assert first.plan is not None and first.plan.iterations == 0  # answered by the memo
-    cold = aesop() if kind == "aesop" else NaiveController(
-        MODEL, CONFIG, REGIONS, Route([GOAL]))
+    cold = aesop() if kind == "aesop" else Controller(
+        MODEL, CONFIG, REGIONS, Route([GOAL]), policy=NAIVE)
     same = cold.make_step(x0, False)
     assert same.plan.iterations > 0
     np.testing.assert_allclose(first.u, same.u, atol=1e-9)

@@ -13,7 +13,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from services.control.aesop import AesopController, Route
+from services.control.aesop import AESOP, Controller, Route
 from services.control.dynamics import QuadrotorParams, simulate_step
 from services.control.mpc import BranchProblem, MPCConfig, SolveStatus
 from services.control.planning import quadrotor_model
@@ -51,12 +51,13 @@ class PoisonedSelector(SubsetSelector):
         return replace(plan, u0=np.full(MODEL.m, np.nan)) if self.poisoned else plan
 
 
-def controller() -> tuple[AesopController, PoisonedSelector]:
+def controller() -> tuple[Controller, PoisonedSelector]:
     selector = PoisonedSelector(MODEL, CONFIG, REGIONS)
-    return AesopController(MODEL, CONFIG, REGIONS, Route([GOAL]), selector=selector), selector
+    return Controller(MODEL, CONFIG, REGIONS, Route([GOAL]), policy=AESOP,
+                      selector=selector), selector
 
 
-def fly(ctrl: AesopController, ticks: int, x: np.ndarray, anomaly_at: int | None = None,
+def fly(ctrl: Controller, ticks: int, x: np.ndarray, anomaly_at: int | None = None,
         decision_at: int | None = None) -> np.ndarray:
     offered = ()
     for t in range(ticks):

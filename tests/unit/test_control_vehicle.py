@@ -8,8 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from services.control.aesop import ControlOutput
-from services.control.controllers import make_controller
+from services.control.aesop import ControlOutput, carry_forward
 from services.control.mpc import SolveStatus
 from services.control.scenario import load_scenario, planning_model
 from services.control.vehicle import ClockMap, StateInput, setpoint, state_vector
@@ -162,7 +161,6 @@ def test_delay_compensation_carries_the_state_forward_with_the_inputs_sent(name:
     part of one."""
     scenario = load_scenario(name)
     model = planning_model(scenario)
-    controller = make_controller("aesop", scenario)
     rng = np.random.default_rng(0)
     hover = model.linear.u_hover
     z = model.measure(np.r_[-4.0, 0.0, 1.2, np.zeros(9)], np.zeros(model.n_lag))
@@ -172,22 +170,21 @@ def test_delay_compensation_carries_the_state_forward_with_the_inputs_sent(name:
         sent.append((u, z[model.n - model.n_lag:].copy()))
         z = model.linear.a @ z + model.linear.b @ (u - hover)
         path.append(z)
-    controller._sent.extend(sent)
 
     def plant(z: np.ndarray) -> np.ndarray:  # the 12-state the vehicle reports
         return np.r_[z[0:6], np.zeros(6)] if model.n != 12 else z.copy()
 
     now = path[-1]
     for back in (1, 2, 4):  # whole steps old
-        carried = controller._predict(plant(path[4 - back]), back * scenario.dt)
+        carried = carry_forward(model, plant(path[4 - back]), back * scenario.dt, sent)
         assert carried[0:6] == pytest.approx(now[0:6], abs=1e-9)
     for j, f in ((1, 0.3), (3, 0.8)):  # valid a fraction f into step j
         a, b = model.linear.over(f * scenario.dt)
         mid = a @ path[j] + b @ (sent[j][0] - hover)
         age = (4 - j - f) * scenario.dt
-        carried = controller._predict(plant(mid), age)
+        carried = carry_forward(model, plant(mid), age, sent)
         assert carried[0:6] == pytest.approx(now[0:6], abs=1e-9)
-    assert controller._predict(plant(now), 0.0)[0:6] == pytest.approx(now[0:6])
+    assert carry_forward(model, plant(now), 0.0, sent)[0:6] == pytest.approx(now[0:6])
 
 
 def test_the_set_point_is_on_the_vehicles_clock_and_none_when_the_branch_is_spent() -> None:
