@@ -29,7 +29,6 @@ from .detections import floats
 from .entries import Entry, Item, on_fresh_thread
 from .errors import Conflict, InvalidInput, NotFound
 from .index import IndexKind
-from .legacy import legacy_caches, read_legacy
 from .loading import EmbedderPool
 from .policy import Components, Evidence
 from .proposals import Policy, Proposal
@@ -85,30 +84,15 @@ class CacheService:
     # -- lifecycle --------------------------------------------------------------
 
     async def start(self) -> None:
-        """Open the database, import a legacy data directory once, load every cache
-        (raises StorageCorrupt naming a file)."""
+        """Open the database and load every cache (raises StorageCorrupt naming a file)."""
         self._store = await asyncio.to_thread(
             partial(Store, Path(self.settings.data_dir), fsync=self.settings.fsync,
                     max_bytes=self.settings.max_db_bytes))
-        await asyncio.to_thread(self._import_legacy)
         for name in self.store.names():
             cache = await asyncio.to_thread(self.store.load, name)
             self._entries[name] = Entry(cache, saved=self.store.saved_index(name), proposals={
                 p.id: p for p in await asyncio.to_thread(self.store.proposals, name)})
             log.info("cache %s: %d experiences, version %d", name, cache.size, cache.version)
-
-    def _import_legacy(self) -> None:
-        for directory in legacy_caches(Path(self.settings.data_dir)):
-            source = str(directory.relative_to(self.settings.data_dir))
-            if self.store.imported(source):
-                continue
-            cache = read_legacy(directory)
-            if cache.name in self.store.names():
-                log.warning("not importing %s: a cache named %r exists", directory, cache.name)
-                continue
-            self.store.import_cache(source, cache)
-            log.info("imported cache %s (%d experiences, version %d) from %s; the old files "
-                     "stay where they are", cache.name, cache.size, cache.version, directory)
 
     async def close(self) -> None:
         for entry in self._entries.values():

@@ -15,24 +15,24 @@ million vectors is not rebuilt); an older one is loaded and caught up from the
 database; with none, or one that does not fit, the index is built from the
 stored vectors. A failed index save loses nothing.
 
-Schema (``PRAGMA user_version`` = 3; an older database is migrated on open)::
+Schema (``PRAGMA user_version`` = 3; a database of another version is refused, naming
+it)::
 
     caches(name PK, config JSON, version, next_label, calibration JSON|NULL, stale)
     experiences(cache, label, id, text|NULL, metadata JSON, vector BLOB <f4, version,
                 detections JSON)
         PK (cache, label), UNIQUE (cache, id); ``version``: the one that added it;
-        ``detections``: [{"label", "where"?, "confidence"?}] (version 2)
+        ``detections``: [{"label", "where"?, "confidence"?}]
     detection_vectors(cache, phrase, vector BLOB <f4)   PK (cache, phrase): every
-        detection phrase the cache's experiences brought, written with them (version 2)
+        detection phrase the cache's experiences brought, written with them
     calibration_scores(cache PK, observation BLOB <f8, detection BLOB <f8, pair BLOB <f8
         |NULL): the sorted nominal scores behind the current calibration's p-values
-        (version 2; ``pair`` version 3, NULL when the calibration did not ask for pairs)
+        (``pair`` NULL when the calibration did not ask for pairs)
     proposals(cache, id, state, count, first_at, last_at, decided_at|NULL, detail JSON)
-        PK (cache, id): scenes the slow reasoner answered "continue" for (version 2);
-        accepting one is written with its experience, in one transaction
+        PK (cache, id): scenes the slow reasoner answered "continue" for; accepting one
+        is written with its experience, in one transaction
     changes(cache, version, op, detail JSON, at)   one row per version of each cache:
-        op is create | add | delete | calibrate | configure | import
-    imports(source PK, cache, version, at)   legacy data directories imported once
+        op is create | add | delete | calibrate | configure
 
 One process per data directory: an flock on ``<data_dir>/embedding.lock``.
 """
@@ -80,21 +80,6 @@ LOCK_NAME = "embedding.lock"
 INDEX_DIR = "indexes"
 SCHEMA_VERSION = 3
 
-_V2_TABLES = """
-CREATE TABLE detection_vectors (
-    cache TEXT NOT NULL REFERENCES caches(name), phrase TEXT NOT NULL, vector BLOB NOT NULL,
-    PRIMARY KEY (cache, phrase)
-) STRICT;
-CREATE TABLE calibration_scores (
-    cache TEXT PRIMARY KEY REFERENCES caches(name), observation BLOB NOT NULL,
-    detection BLOB NOT NULL
-) STRICT;
-CREATE TABLE proposals (
-    cache TEXT NOT NULL REFERENCES caches(name), id TEXT NOT NULL, state TEXT NOT NULL,
-    count INTEGER NOT NULL, first_at REAL NOT NULL, last_at REAL NOT NULL, decided_at REAL,
-    detail TEXT NOT NULL, PRIMARY KEY (cache, id)
-) STRICT;
-"""
 _SCHEMA = """
 CREATE TABLE caches (
     name TEXT PRIMARY KEY, config TEXT NOT NULL, version INTEGER NOT NULL,
@@ -111,18 +96,20 @@ CREATE TABLE changes (
     cache TEXT NOT NULL REFERENCES caches(name), version INTEGER NOT NULL, op TEXT NOT NULL,
     detail TEXT NOT NULL, at REAL NOT NULL, PRIMARY KEY (cache, version)
 ) STRICT;
-CREATE TABLE imports (
-    source TEXT PRIMARY KEY, cache TEXT NOT NULL, version INTEGER NOT NULL, at REAL NOT NULL
+CREATE TABLE detection_vectors (
+    cache TEXT NOT NULL REFERENCES caches(name), phrase TEXT NOT NULL, vector BLOB NOT NULL,
+    PRIMARY KEY (cache, phrase)
 ) STRICT;
-""" + _V2_TABLES
-# version 2 -> 3: calibrations may keep pair scores
-_V3_COLUMNS = "ALTER TABLE calibration_scores ADD COLUMN pair BLOB;"
-_SCHEMA += _V3_COLUMNS
-# from version n to n + 1: 1 -> 2: experiences get their detections, caches their
-# detection vectors and calibration scores
-_MIGRATIONS = {1: "ALTER TABLE experiences ADD COLUMN detections TEXT NOT NULL DEFAULT '[]';"
-                  + _V2_TABLES,
-               2: _V3_COLUMNS}
+CREATE TABLE calibration_scores (
+    cache TEXT PRIMARY KEY REFERENCES caches(name), observation BLOB NOT NULL,
+    detection BLOB NOT NULL, pair BLOB
+) STRICT;
+CREATE TABLE proposals (
+    cache TEXT NOT NULL REFERENCES caches(name), id TEXT NOT NULL, state TEXT NOT NULL,
+    count INTEGER NOT NULL, first_at REAL NOT NULL, last_at REAL NOT NULL, decided_at REAL,
+    detail TEXT NOT NULL, PRIMARY KEY (cache, id)
+) STRICT;
+"""
 
 
 class StorageError(Exception):
@@ -181,15 +168,11 @@ class Store:
             schema = db.execute("PRAGMA user_version").fetchone()[0]
             if schema == 0:
                 db.executescript(f"BEGIN; {_SCHEMA} PRAGMA user_version={SCHEMA_VERSION}; COMMIT;")
-            elif schema in _MIGRATIONS:
-                steps = "".join(_MIGRATIONS[n] for n in range(schema, SCHEMA_VERSION))
-                db.executescript(f"BEGIN; {steps} PRAGMA user_version={SCHEMA_VERSION}; "
-                                 "COMMIT;")
-                log.info("%s: migrated from schema version %d to %d", self.path, schema,
-                         SCHEMA_VERSION)
             elif schema != SCHEMA_VERSION:
                 raise StorageCorrupt(self.path, f"schema version {schema}; this build reads "
-                                                f"{SCHEMA_VERSION}")
+                                                f"{SCHEMA_VERSION} (start a new data directory "
+                                                "and build the caches again, e.g. with aesop "
+                                                "cache import)")
         except sqlite3.DatabaseError as exc:
             db.close()
             raise StorageCorrupt(self.path, str(exc)) from exc
@@ -203,11 +186,6 @@ class Store:
     def names(self) -> list[str]:
         with self._mutex:
             return [r[0] for r in self._db.execute("SELECT name FROM caches ORDER BY name")]
-
-    def imported(self, source: str) -> bool:
-        with self._mutex:
-            row = self._db.execute("SELECT 1 FROM imports WHERE source = ?", (source,))
-            return row.fetchone() is not None
 
     def history(self, name: str) -> list[tuple[int, str, dict[str, Any]]]:
         """(version, op, detail) of every version of cache ``name``, oldest first."""
@@ -318,20 +296,6 @@ class Store:
                 "WHERE cache = ? ORDER BY first_at", (name,)).fetchall()
         return [Proposal.stored(ident, state, count, first, last, decided, json.loads(detail))
                 for ident, state, count, first, last, decided, detail in rows]
-
-    def import_cache(self, source: str, cache: Cache) -> None:
-        """Store ``cache`` (read from a legacy ``source``) whole, and remember the source."""
-        header, name = cache.header, cache.name
-        with self._transaction(f"importing {source}") as db:
-            db.execute("INSERT INTO caches VALUES (?, ?, ?, ?, ?, ?)",
-                       (name, *_header_row(header)))
-            labels = cache.index.labels()
-            _insert_experiences(db, name, labels.tolist(),
-                                [cache.experiences[int(x)] for x in labels],
-                                cache.index.vectors(), header.version)
-            _change(db, name, header.version, "import", {"source": source})
-            db.execute("INSERT INTO imports VALUES (?, ?, ?, ?)",
-                       (source, name, header.version, time.time()))
 
     @contextlib.contextmanager
     def _transaction(self, what: str) -> Iterator[sqlite3.Connection]:

@@ -1,4 +1,4 @@
-"""The vector-cache store under faults: a full disk, a size limit, a legacy data directory.
+"""The vector-cache store under faults: a full disk, a size limit.
 
 A 2xx means durable; a write that cannot be stored is answered 507 and leaves nothing
 behind, in memory or on disk; a failed index save never fails the write it follows.
@@ -15,11 +15,9 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from services.embedding.store import Store
 from tests.integration.test_api import AUTH, make_client
 
 FULL_DISK = Path(__file__).with_name("full_disk.py")
-LEGACY = Path(__file__).parents[1] / "data" / "legacy-store"
 
 
 def user_namespaces() -> bool:
@@ -81,27 +79,6 @@ def test_a_write_past_the_database_limit_is_507_and_changes_nothing(tmp_path: Pa
     with make_client(tmp_path) as client:  # no limit now: all acknowledged, nothing else
         assert client.get("/v1/caches/lim").json()["size"] == size
         assert post(client, 1000) == 200
-
-
-def test_a_legacy_data_directory_is_imported_once_and_left_in_place(tmp_path: Path) -> None:
-    data = tmp_path / "data"
-    shutil.copytree(LEGACY, data)
-    before = {p: p.read_bytes() for p in (data / "caches").rglob("*") if p.is_file()}
-    for version in (4, 6):  # the second start finds the import and the two writes after it
-        with make_client(data) as client:
-            desc = client.get("/v1/caches/legacy").json()
-            assert desc["size"] == 6 and desc["version"] == version
-            assert desc["threshold"] is not None
-            assert client.get("/v1/caches/legacy/experiences/e2").status_code == 404
-            assert client.get("/v1/caches/legacy/experiences/e6").json()["text"] == "scene 6"
-            r = client.post("/v1/caches/legacy/experiences", headers=AUTH,
-                            json={"vectors": [[0.5, 0.5, 0.5, 0.5]], "ids": ["new"]})
-            assert r.status_code == 200
-            client.delete("/v1/caches/legacy/experiences/new", headers=AUTH)
-    with Store(data) as store:
-        ops = [op for _, op, _ in store.history("legacy")]
-    assert ops.count("import") == 1 and ops[0] == "import"
-    assert {p: p.read_bytes() for p in before} == before  # the old files, untouched
 
 
 @pytest.mark.parametrize("name", ["abc%0A", "a" * 65, ".hidden", "a%2Fb"])

@@ -1,10 +1,8 @@
-"""The SQLite store: round trips, version history, index files, limits, corruption, import."""
+"""The SQLite store: round trips, version history, index files, limits, corruption, schema."""
 
 from __future__ import annotations
 
-import json
 import logging
-import shutil
 import sqlite3
 from pathlib import Path
 
@@ -13,12 +11,10 @@ import pytest
 
 from services.embedding.cache import Cache, CacheConfig, CalibrationScores, Op
 from services.embedding.calibration import loo_quantile
-from services.embedding.legacy import legacy_caches, read_legacy
 from services.embedding.schemas import CacheInfo
 from services.embedding.store import DB_NAME, StorageCorrupt, StorageError, StorageFull, Store
 from shared.messages import Detection
 
-LEGACY = Path(__file__).parents[1] / "data" / "legacy-store"
 LOGGER = "services.embedding.store"
 
 
@@ -204,88 +200,12 @@ def test_detections_and_calibration_scores_round_trip(tmp_path: Path) -> None:
                                   cache.nominal_detections().vectors)
 
 
-V1_SCHEMA = """
-CREATE TABLE caches (name TEXT PRIMARY KEY, config TEXT NOT NULL, version INTEGER NOT NULL,
-    next_label INTEGER NOT NULL, calibration TEXT, stale INTEGER NOT NULL) STRICT;
-CREATE TABLE experiences (cache TEXT NOT NULL REFERENCES caches(name),
-    label INTEGER NOT NULL, id TEXT NOT NULL, text TEXT, metadata TEXT NOT NULL,
-    vector BLOB NOT NULL, version INTEGER NOT NULL, PRIMARY KEY (cache, label),
-    UNIQUE (cache, id)) STRICT;
-CREATE INDEX experiences_by_version ON experiences (cache, version);
-CREATE TABLE changes (cache TEXT NOT NULL REFERENCES caches(name), version INTEGER NOT NULL,
-    op TEXT NOT NULL, detail TEXT NOT NULL, at REAL NOT NULL,
-    PRIMARY KEY (cache, version)) STRICT;
-CREATE TABLE imports (source TEXT PRIMARY KEY, cache TEXT NOT NULL, version INTEGER NOT NULL,
-    at REAL NOT NULL) STRICT;
-"""
-
-
-def test_a_version_1_database_is_migrated_keeping_everything(tmp_path: Path) -> None:
-    config = {"name": "old", "model": None, "dim": 4, "k": 1, "score": "topk",
-              "index": "flat", "shrinkage": 0.1}
-    rows = vectors(3, 4, 5)
+def test_a_database_of_an_older_schema_is_refused_naming_the_way_out(tmp_path: Path) -> None:
+    Store(tmp_path).close()
     with sqlite3.connect(tmp_path / DB_NAME) as db:
-        db.executescript(V1_SCHEMA + "PRAGMA user_version=1;")
-        db.execute("INSERT INTO caches VALUES ('old', ?, 1, 3, NULL, 0)", (json.dumps(config),))
-        db.executemany("INSERT INTO experiences VALUES ('old', ?, ?, ?, '{}', ?, 1)",
-                       [(i, f"e{i}", f"text {i}", rows[i].astype("<f4").tobytes())
-                        for i in range(3)])
-    with Store(tmp_path) as store:
-        loaded = store.load("old")
-        assert loaded.size == 3 and loaded.version == 1
-        assert [e.text for e in loaded.experiences.values()] == ["text 0", "text 1", "text 2"]
-        assert all(e.detections == () for e in loaded.experiences.values())
-        commit_add(store, loaded, 1, seed=9)  # and it takes new writes
-    with sqlite3.connect(tmp_path / DB_NAME) as db:
-        assert db.execute("PRAGMA user_version").fetchone()[0] == 3
-
-
-def test_a_version_2_calibration_is_kept_without_pairs(tmp_path: Path) -> None:
-    with Store(tmp_path) as store:
-        cache = Cache(CacheConfig("c", None, 4, k=1))
-        store.create(cache.config)
-        commit_add(store, cache, 6, seed=2)
-        obs = cache.loo_scores()
-        commit(store, cache, cache.plan_calibration(loo_quantile(obs, 0.9),
-                                                    CalibrationScores.of(obs, obs[:0])))
-    with sqlite3.connect(tmp_path / DB_NAME) as db:  # as a version-2 build left it
-        db.executescript("BEGIN; ALTER TABLE calibration_scores DROP COLUMN pair; "
-                         "PRAGMA user_version=2; COMMIT;")
-    with Store(tmp_path) as store:
-        kept = store.load("c").calibration_scores
-        assert kept is not None and kept.pair is None
-        assert kept.observation.tolist() == np.sort(obs).tolist()
-    with sqlite3.connect(tmp_path / DB_NAME) as db:
-        assert db.execute("PRAGMA user_version").fetchone()[0] == 3
-
-
-# -- the format before SQLite --------------------------------------------------
-
-
-def legacy_copy(tmp_path: Path) -> Path:
-    shutil.copytree(LEGACY, tmp_path / "data")
-    return tmp_path / "data"
-
-
-def test_a_legacy_cache_reads_as_its_snapshot_then_its_wal(tmp_path: Path) -> None:
-    (directory,) = legacy_caches(legacy_copy(tmp_path))
-    cache = read_legacy(directory)
-    # the fixture: e0..e5 in the snapshot; e6 added, e2 deleted, calibrated in the WAL
-    assert sorted(cache.labels_by_id) == ["e0", "e1", "e3", "e4", "e5", "e6"]
-    assert cache.version == 4 and cache.calibration is not None and not cache.stale
-    assert cache.experiences[cache.labels_by_id["e3"]].metadata == {"i": 3}
-
-
-def test_a_torn_wal_tail_is_ignored_but_a_bad_record_before_good_ones_is_corrupt(
-        tmp_path: Path) -> None:
-    (directory,) = legacy_caches(legacy_copy(tmp_path))
-    wal = directory / "wal.log"
-    intact = wal.read_bytes()
-    wal.write_bytes(intact + intact[:30])  # a record cut short by a crash
-    assert read_legacy(directory).version == 4
-    damaged = bytearray(intact)
-    damaged[40] ^= 0xFF  # inside the first record's payload
-    wal.write_bytes(bytes(damaged))
-    with pytest.raises(StorageCorrupt) as info:
-        read_legacy(directory)
-    assert info.value.path == wal
+        db.execute("PRAGMA user_version=1")
+    with pytest.raises(StorageCorrupt, match="schema version 1; this build reads 3") as info:
+        Store(tmp_path)
+    assert "new data directory" in str(info.value)
+    with sqlite3.connect(tmp_path / DB_NAME) as db:  # left as it was
+        assert db.execute("PRAGMA user_version").fetchone()[0] == 1
