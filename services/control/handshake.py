@@ -137,7 +137,8 @@ def step(state: Handshake, tick: Inputs) -> tuple[Handshake, Reading]:
         notes.append(Note("verdict_fresh", "info", "anomaly verdicts are answering fresh "
                           "observations again", {"age_s": round(age or 0.0, 3)}))
     monitored = fresh and tick.vehicle
-    silence_asked = state.silence_asked and not (not monitored and state.monitored is not False)
+    new_spell = not monitored and state.monitored is not False  # an unmonitored spell begins
+    silence_asked = False if new_spell else state.silence_asked
     phase, routed = state.phase, None
     decision = tick.decision
     if decision is not None and phase is Phase.ASKED and decision.request_id == state.request_id:

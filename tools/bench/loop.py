@@ -165,21 +165,24 @@ async def time_loop(scenario: Scenario, rate_hz: float, ticks: int, bus: Bus, si
         await asyncio.wrap_future(reset)
     summary = scheduler.stats.summary()
     flights.append((await sim.state()).setpoints)
-
-    def worst(key: str, pick: Any) -> float | None:
-        values = [f[key] for f in flights if f.get(key) is not None]
-        return round(float(pick(values)), 3) if values else None
-
     return {"rate_hz": rate_hz, "wall_s": round(time.monotonic() - started, 1),
             "simulated_s": round(ticks * scenario.dt, 1), **counts, **summary,
             "overruns_by_mode": overruns,
             "state_age_p50_ms": _pct(ages, 50), "state_age_p99_ms": _pct(ages, 99),
             "state_age_max_ms": round(max(ages), 3) if ages else None,
-            # per flight at the vehicle (its ages start again with each reset): the median
-            # flight's p50, the worst flight's p99 and max
-            "setpoint_age_p50_ms": worst("age_p50_ms", np.median),
-            "setpoint_age_p99_ms": worst("age_p99_ms", max),
-            "setpoint_age_max_ms": worst("age_max_ms", max)}
+            **setpoint_ages(flights)}
+
+
+def setpoint_ages(flights: Sequence[dict[str, Any]]) -> dict[str, float | None]:
+    """The set-points' ages at the vehicle, from its per-flight figures (its ages start
+    again with each reset): the median flight's p50, the worst flight's p99 and max."""
+    def pick(key: str, how: Any) -> float | None:
+        values = [f[key] for f in flights if f.get(key) is not None]
+        return round(float(how(values)), 3) if values else None
+
+    return {"setpoint_age_p50_ms": pick("age_p50_ms", np.median),
+            "setpoint_age_p99_ms": pick("age_p99_ms", max),
+            "setpoint_age_max_ms": pick("age_max_ms", max)}
 
 
 def _pct(values: Sequence[float], q: float) -> float | None:
