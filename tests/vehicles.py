@@ -10,19 +10,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.control.dynamics import N_STATE
-from services.control.loop import ControlRuntime, TickResult
+from services.control.loop import ControlRuntime, TickResult, rest_at
 from services.control.scenario import Scenario
 from services.control.settings import ControlSettings
 from services.sim.vehicle import Reporting, SimVehicle
 from shared.bus import Received
 from shared.messages import AnomalyVerdict, Observation, ReasonerDecision, VehicleState
-
-
-def rest(position: Sequence[float]) -> np.ndarray:
-    x = np.zeros(N_STATE)
-    x[0:3] = position
-    return x
 
 
 class Vehicle:
@@ -32,7 +25,7 @@ class Vehicle:
     def __init__(self, scenario: Scenario, start: Sequence[float], now: float,
                  reporting: Reporting | None = None, latency_s: float = 0.0,
                  robot: str = "drone1") -> None:
-        self.sim = SimVehicle(scenario, rest(start), reporting or Reporting(), now=now,
+        self.sim = SimVehicle(scenario, rest_at(start), reporting or Reporting(), now=now,
                               robot=robot)
         self.latency_s = latency_s
         self.slot: Received[VehicleState] | None = None  # the bus's Latest slot
@@ -54,7 +47,7 @@ class Vehicle:
             self.sim.receive(result.setpoint, now)
 
     def teleport(self, position: Sequence[float], now: float) -> None:
-        self.sim.reset(rest(position), now)
+        self.sim.reset(rest_at(position), now)
 
 
 def fly_tick(rt: ControlRuntime, vehicle: Vehicle, now: float, **inputs: object) -> TickResult:

@@ -43,11 +43,12 @@ def add_url_argument(parser: argparse.ArgumentParser) -> None:
                              "token from AESOP_ADMIN_TOKEN")
 
 
-def control_scenario(path: Path | str | None):  # -> services.control.scenario.Scenario
-    """The scene a command flies, or a usage error naming ``--scenario``."""
+def control_scenario(path: Path | str | None, *, flag: bool = True):  # -> control's Scenario
+    """The scene a command flies, or a usage error naming the file and field (and
+    ``--scenario`` when the flag gave it, ``flag``)."""
     from services.control.scenario import ScenarioError, load_scenario
 
     try:
         return load_scenario(path)
     except (ScenarioError, OSError) as exc:
-        raise CliError(f"--scenario: {exc}") from None
+        raise CliError(f"--scenario: {exc}" if flag else str(exc)) from None

@@ -5,9 +5,14 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
-from tools.commands import CliError
+from tools.commands import CliError, control_scenario
+
+if TYPE_CHECKING:
+    from shared.settings import ServiceSettings
+
+ExposedSettings = TypeVar("ExposedSettings", bound="ServiceSettings")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -54,11 +59,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from services.embedding.worker import DetectorWorker
     from shared.http import serve
 
-    settings = EmbeddingSettings(**overrides)
-    try:
-        settings.check_exposure()
-    except ValueError as exc:
-        raise CliError(str(exc)) from None
+    settings = _exposed(EmbeddingSettings(**overrides))
     if settings.torch_threads:
         import torch
 
@@ -75,11 +76,7 @@ def serve_reasoner(overrides: dict[str, Any]) -> int:
     from services.reasoner.worker import ReasonerWorker
     from shared.http import serve
 
-    settings = ReasonerSettings(**overrides)
-    try:
-        settings.check_exposure()
-    except ValueError as exc:
-        raise CliError(str(exc)) from None
+    settings = _exposed(ReasonerSettings(**overrides))
     keep_deadlines()
     serve(create_app(settings, worker_factory=ReasonerWorker.factory(settings),
                      on_started=settle), settings)
@@ -89,7 +86,6 @@ def serve_reasoner(overrides: dict[str, Any]) -> int:
 def serve_control(overrides: dict[str, Any], scenario: str | None = None) -> int:
     from services.control.api import create_app
     from services.control.loop import ControlRuntime
-    from services.control.scenario import ScenarioError, load_scenario
     from services.control.service import SERVICE
     from services.control.settings import ControlSettings
     from shared.bus import Bus
@@ -97,13 +93,11 @@ def serve_control(overrides: dict[str, Any], scenario: str | None = None) -> int
 
     if scenario is not None:
         overrides = {**overrides, "scenario": scenario}
-    settings = ControlSettings(**overrides)
+    settings = _exposed(ControlSettings(**overrides))
+    scene = control_scenario(settings.scenario, flag=scenario is not None)
     try:
-        settings.check_exposure()
-        runtime = ControlRuntime(settings, load_scenario(settings.scenario))
-    except ScenarioError as exc:  # the message names the file and the field
-        raise CliError(f"--scenario: {exc}" if scenario is not None else str(exc)) from None
-    except ValueError as exc:
+        runtime = ControlRuntime(settings, scene)
+    except ValueError as exc:  # a fallback region the scene does not have
         raise CliError(str(exc)) from None
     app = create_app(settings, runtime, bus_factory=lambda: Bus.open(settings, SERVICE))
     serve(app, settings)
@@ -111,7 +105,6 @@ def serve_control(overrides: dict[str, Any], scenario: str | None = None) -> int
 
 
 def serve_sim(overrides: dict[str, Any], scenario: str | None = None) -> int:
-    from services.control.scenario import ScenarioError, load_scenario
     from services.sim.api import create_app
     from services.sim.service import SERVICE
     from services.sim.settings import SimSettings
@@ -120,13 +113,10 @@ def serve_sim(overrides: dict[str, Any], scenario: str | None = None) -> int:
 
     if scenario is not None:
         overrides = {**overrides, "scenario": scenario}
-    settings = SimSettings(**overrides)
+    settings = _exposed(SimSettings(**overrides))
+    scene = control_scenario(settings.scenario, flag=scenario is not None)
     try:
-        settings.check_exposure()
-        app = create_app(settings, load_scenario(settings.scenario),
-                         bus_factory=lambda: Bus.open(settings, SERVICE))
-    except ScenarioError as exc:
-        raise CliError(f"--scenario: {exc}" if scenario is not None else str(exc)) from None
+        app = create_app(settings, scene, bus_factory=lambda: Bus.open(settings, SERVICE))
     except ValueError as exc:
         raise CliError(str(exc)) from None
     serve(app, settings)
@@ -140,10 +130,16 @@ def serve_dashboard(overrides: dict[str, Any]) -> int:
     from shared.bus import Bus
     from shared.http import serve
 
-    settings = DashboardSettings(**overrides)
+    settings = _exposed(DashboardSettings(**overrides))
+    serve(create_app(settings, bus_factory=lambda: Bus.open(settings, SERVICE)), settings)
+    return 0
+
+
+def _exposed(settings: ExposedSettings) -> ExposedSettings:
+    """``settings``, unless they would listen off loopback without a token (a usage error
+    naming the setting)."""
     try:
         settings.check_exposure()
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    serve(create_app(settings, bus_factory=lambda: Bus.open(settings, SERVICE)), settings)
-    return 0
+    return settings

@@ -20,7 +20,6 @@ import threading
 import time
 from collections import deque
 
-import numpy as np
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
 from shared import topics
@@ -35,6 +34,7 @@ from shared.messages import (
     VehicleClock,
     VehicleState,
 )
+from shared.stats import spread
 
 from .loop import ControlRuntime, FixedRateScheduler, TickResult, TickTiming
 from .scenario import Scenario
@@ -165,14 +165,8 @@ class VehicleAges:
             self.stale_ticks += 1
 
     def summary(self) -> dict[str, float | int | None]:
-        ages = np.asarray(self.ages_ms)
-
-        def pct(q: float) -> float | None:
-            return round(float(np.percentile(ages, q)), 3) if len(ages) else None
-
-        return {"age_p50_ms": pct(50), "age_p99_ms": pct(99),
-                "age_max_ms": round(float(ages.max()), 3) if len(ages) else None,
-                "stale_ticks": self.stale_ticks, "setpoints": self.setpoints}
+        return {**spread(self.ages_ms, "age"), "stale_ticks": self.stale_ticks,
+                "setpoints": self.setpoints}
 
 
 class ControlService:

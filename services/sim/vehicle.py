@@ -34,6 +34,7 @@ from services.control.dynamics import N_STATE, QuadrotorParams
 from services.control.scenario import Scenario
 from shared.frames import quaternion_from_euler
 from shared.messages import VehicleSetpoint, VehicleState
+from shared.stats import spread
 
 from .plant import FlightController, FlightControllerGains, Plant, make_plant
 
@@ -111,14 +112,8 @@ class SetpointAges:
             self.ages_s.popleft()
 
     def summary(self) -> dict[str, float | int | None]:
-        ages = np.asarray(self.ages_s) * 1000.0
-
-        def pct(q: float) -> float | None:
-            return round(float(np.percentile(ages, q)), 3) if len(ages) else None
-
         return {"received": self.received, "refused": self.refused,
-                "age_p50_ms": pct(50), "age_p99_ms": pct(99),
-                "age_max_ms": round(float(ages.max()), 3) if len(ages) else None}
+                **spread((age * 1000.0 for age in self.ages_s), "age")}
 
 
 class SimVehicle:

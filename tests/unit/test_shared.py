@@ -126,3 +126,11 @@ def test_a_free_port_is_outside_the_range_outgoing_connections_take_theirs_from(
     ports = [free_port() for _ in range(50)]
     assert not [p for p in ports if low <= p <= high]
     assert len(set(vars(Ports.free()).values())) == 7  # a stack's ports are distinct
+
+
+def test_a_spread_is_its_median_p99_and_max_or_none_without_values() -> None:
+    from shared.stats import spread
+
+    got = spread([1.0, 2.0, 3.0, 4.0, 100.0], "age")
+    assert got == {"age_p50_ms": 3.0, "age_p99_ms": pytest.approx(96.16), "age_max_ms": 100.0}
+    assert spread([], "tick") == {"tick_p50_ms": None, "tick_p99_ms": None, "tick_max_ms": None}

@@ -35,7 +35,7 @@ import numpy as np
 
 from services.control.loop import ControlRuntime, FixedRateScheduler, TickTiming
 from services.control.scenario import Scenario, load_scenario, resolve_scenario
-from services.control.service import sync_clock
+from services.control.service import VehicleAges, sync_clock
 from services.control.settings import ControlSettings
 from services.sim.client import SimClient
 from shared import topics
@@ -43,6 +43,7 @@ from shared.bus import Bus, Received
 from shared.messages import AnomalyVerdict, ReasonerDecision, VehicleState
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
+from shared.stats import spread
 
 ROBOT = "bench"
 
@@ -92,8 +93,8 @@ async def time_loop(scenario: Scenario, rate_hz: float, ticks: int, bus: Bus, si
     runtime = ControlRuntime(settings, scenario)
     scheduler = FixedRateScheduler(runtime.period_s, window=max(ticks, 10))
     script = script or FlightScript(scenario.dt, **_timeline(scenario))
-    counts = {"requests": 0, "resets": 0, "setpoints": 0, "stale_state_ticks": 0}
-    ages: list[float] = []
+    counts = {"requests": 0, "resets": 0}
+    ages = VehicleAges(window=max(ticks, 10))  # the state's age at the ticks, as the service
     overruns: dict[str, int] = {}  # by the mode the tick flew in ("reset": during one)
     flights: list[dict[str, Any]] = []  # the set-points' ages at the vehicle, per flight
     resets: list[Future] = []
@@ -134,12 +135,7 @@ async def time_loop(scenario: Scenario, rate_hz: float, ticks: int, bus: Bus, si
                               state=states.get())
         if result.setpoint is not None:
             bus.publish(setpoints, result.setpoint)
-            counts["setpoints"] += 1
-        if result.output.mode.value != "waiting":
-            if result.vehicle.fresh and result.vehicle.age is not None:
-                ages.append(result.vehicle.age * 1000.0)
-            else:
-                counts["stale_state_ticks"] += 1
+        ages.record(result)
         if result.request is not None:
             counts["requests"] += 1
             script.answered(k, result.request.request_id, result.request.options[1].index)
@@ -167,9 +163,8 @@ async def time_loop(scenario: Scenario, rate_hz: float, ticks: int, bus: Bus, si
     flights.append((await sim.state()).setpoints)
     return {"rate_hz": rate_hz, "wall_s": round(time.monotonic() - started, 1),
             "simulated_s": round(ticks * scenario.dt, 1), **counts, **summary,
-            "overruns_by_mode": overruns,
-            "state_age_p50_ms": _pct(ages, 50), "state_age_p99_ms": _pct(ages, 99),
-            "state_age_max_ms": round(max(ages), 3) if ages else None,
+            "setpoints": ages.setpoints, "stale_state_ticks": ages.stale_ticks,
+            "overruns_by_mode": overruns, **spread(ages.ages_ms, "state_age"),
             **setpoint_ages(flights)}
 
 
@@ -183,10 +178,6 @@ def setpoint_ages(flights: Sequence[dict[str, Any]]) -> dict[str, float | None]:
     return {"setpoint_age_p50_ms": pick("age_p50_ms", np.median),
             "setpoint_age_p99_ms": pick("age_p99_ms", max),
             "setpoint_age_max_ms": pick("age_max_ms", max)}
-
-
-def _pct(values: Sequence[float], q: float) -> float | None:
-    return round(float(np.percentile(values, q)), 3) if values else None
 
 
 async def fly_rate(scenario: Scenario, path: Path, rate_hz: float, ticks: int,
