@@ -14,6 +14,11 @@ environment a child process reads it from (``aesop up``), so a bad value fails
 where the plan is made, naming the field. Lists (Zenoh endpoints) are
 comma-separated, e.g. ``AESOP_ZENOH_CONNECT=tcp/127.0.0.1:7447,tcp/10.0.0.2:7447``;
 tuples and mappings are JSON.
+
+A service's tuning knobs are grouped in nested settings (:class:`Group`), one variable
+each: ``AESOP_EMBEDDING_LIMITS='{"max_jobs": 4}'`` as JSON, or one field at a time with
+``__``, ``AESOP_EMBEDDING_LIMITS__MAX_JOBS=4``. A field the group does not have is an
+error naming it.
 """
 
 from __future__ import annotations
@@ -25,7 +30,15 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar
 
-from pydantic import AliasChoices, Field, SecretStr, field_validator, model_validator
+from pydantic import (
+    AliasChoices,
+    BaseModel,
+    ConfigDict,
+    Field,
+    SecretStr,
+    field_validator,
+    model_validator,
+)
 from pydantic_settings import BaseSettings, EnvSettingsSource, NoDecode, SettingsConfigDict
 
 Endpoints = Annotated[list[str], NoDecode]
@@ -43,10 +56,17 @@ def shared(name: str) -> str:
     return f"AESOP_{name.upper()}"
 
 
+class Group(BaseModel):
+    """A group of a service's tuning knobs, read from one variable (see the module)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
 class BusSettings(BaseSettings):
     """How a process joins the Zenoh network (defaults: a peer on loopback, no multicast)."""
 
-    model_config = SettingsConfigDict(env_prefix="AESOP_", extra="ignore", validate_by_name=True)
+    model_config = SettingsConfigDict(env_prefix="AESOP_", extra="ignore", validate_by_name=True,
+                                      env_nested_delimiter="__")
 
     robot: str = Field(default="robot0", pattern=r"^[A-Za-z0-9_\-]+$",
                        validation_alias=shared("robot"))
@@ -147,6 +167,19 @@ def env_names(cls: type[BaseSettings], name: str) -> tuple[str, ...]:
     return (f"{cls.model_config.get('env_prefix', '')}{name}".upper(),)
 
 
+def knob(cls: type[BaseSettings], group: str, name: str) -> str:
+    """The variable that sets field ``name`` of ``cls``'s group ``group`` on its own
+    (``AESOP_EMBEDDING_LIMITS__MAX_JOBS``), for messages that name a limit."""
+    return f"{env_names(cls, group)[0]}__{name.upper()}"
+
+
+def _group_names(cls: type[BaseSettings], name: str) -> tuple[str, ...]:
+    annotation = cls.model_fields[name].annotation
+    if isinstance(annotation, type) and issubclass(annotation, Group):
+        return tuple(knob(cls, name, sub) for sub in annotation.model_fields)
+    return ()
+
+
 def to_env(settings: BaseSettings) -> dict[str, str]:
     """``settings`` as the environment its class reads it back from (fields that are None
     are left out: their default is None)."""
@@ -167,6 +200,8 @@ def _env_value(value: Any) -> str:
         return str(value)
     if isinstance(value, list):  # endpoint lists: comma-separated (NoDecode)
         return ",".join(str(v) for v in value)
+    if isinstance(value, BaseModel):  # a group of knobs
+        return value.model_dump_json()
     return json.dumps(value)  # tuples and mappings
 
 
@@ -202,7 +237,9 @@ def unknown_names(environ: Mapping[str, str], classes: Sequence[type[BaseSetting
                   ) -> dict[str, str | None]:
     """The ``AESOP_*`` variables of ``environ`` that none of ``classes`` reads, each with
     the name it most likely meant (``AESOP_LLM_MODEL`` -> ``AESOP_REASONER_LLM_MODEL``)."""
+    knobs = [n for cls in classes for name in cls.model_fields for n in _group_names(cls, name)]
     known = {n for cls in classes for name in cls.model_fields for n in env_names(cls, name)}
+    known.update(knobs)
     out: dict[str, str | None] = {}
     for name in sorted(environ):
         if not name.startswith("AESOP_") or name in known:
@@ -210,5 +247,18 @@ def unknown_names(environ: Mapping[str, str], classes: Sequence[type[BaseSetting
         tail = name.removeprefix("AESOP_")
         same = sorted(k for k in known if k.endswith(f"_{tail}"))
         close = difflib.get_close_matches(name, sorted(known), n=1)
-        out[name] = same[0] if len(same) == 1 else (close[0] if close else None)
+        out[name] = _moved(name, knobs) or (
+            same[0] if len(same) == 1 else (close[0] if close else None))
     return out
+
+
+def _moved(name: str, knobs: Sequence[str]) -> str | None:
+    """The group knob a flat name of the same service meant: ``AESOP_EMBEDDING_MAX_JOBS``
+    (or ``AESOP_SIM_STATE_RATE_HZ``) -> ``AESOP_EMBEDDING_LIMITS__MAX_JOBS`` (the
+    knob whose own name ends ``name`` the longest way)."""
+    if "__" in name:
+        return None
+    fits = [(len(sub), knob) for knob in knobs
+            for group, _, sub in (knob.rpartition("__"),)
+            if name.endswith(f"_{sub}") and name.startswith(group.rsplit("_", 1)[0] + "_")]
+    return max(fits)[1] if fits else None

@@ -60,10 +60,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from shared.http import serve
 
     settings = _exposed(EmbeddingSettings(**overrides))
-    if settings.torch_threads:
+    if settings.tuning.torch_threads:
         import torch
 
-        torch.set_num_threads(settings.torch_threads)
+        torch.set_num_threads(settings.tuning.torch_threads)
     factory = DetectorWorker.factory(settings) if settings.zenoh_worker else None
     serve(create_app(settings, worker_factory=factory), settings)
     return 0

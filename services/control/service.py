@@ -191,8 +191,8 @@ class ControlService:
             self.decisions = bus.latest(topics.reasoner_decision(robot), ReasonerDecision)
             self.observations = bus.latest(topics.observation(robot), Observation)
             self.states = bus.latest(topics.vehicle_state(robot), VehicleState)
-        self.scheduler = FixedRateScheduler(runtime.period_s, window=settings.stats_window)
-        self.ages = VehicleAges(settings.stats_window)
+        self.scheduler = FixedRateScheduler(runtime.period_s, window=settings.tuning.stats_window)
+        self.ages = VehicleAges(settings.tuning.stats_window)
         self._sync_stop = threading.Event()
         self._sync_thread: threading.Thread | None = None
         self._last_error_log: float | None = None
@@ -206,12 +206,12 @@ class ControlService:
         GIL within ``switch_interval_s`` of its wake-up (the default, 5 ms, is a tenth of a
         20 Hz period)."""
         self._switch = sys.getswitchinterval()
-        sys.setswitchinterval(self.settings.switch_interval_s)
+        sys.setswitchinterval(self.settings.tuning.switch_interval_s)
         self._thread = threading.Thread(target=self.scheduler.run, args=(self._tick,),
                                         kwargs={"on_tick": self.metrics.timing},
                                         name="control-tick", daemon=True)
         self._thread.start()
-        if self.bus is not None and self.settings.clock_sync_s > 0:
+        if self.bus is not None and self.settings.vehicle.clock_sync_s > 0:
             self._sync_stop.clear()
             self._sync_thread = threading.Thread(target=self._sync_clock, name="control-clock",
                                                  daemon=True)
@@ -220,7 +220,7 @@ class ControlService:
     def _sync_clock(self) -> None:
         assert self.bus is not None
         sync_clock(self.bus, self.settings.robot, self.runtime.vehicle.clock,
-                   self.settings.clock_sync_s, self._sync_stop)
+                   self.settings.vehicle.clock_sync_s, self._sync_stop)
 
     def _tick(self, deadline: float) -> None:
         try:

@@ -8,7 +8,36 @@ from typing import Literal
 from pydantic import Field, field_validator
 from pydantic_settings import SettingsConfigDict
 
-from shared.settings import ServiceSettings
+from shared.settings import Group, ServiceSettings
+
+
+class VehicleLink(Group):
+    """How states from the vehicle are trusted and set-points sent back
+    (``AESOP_CONTROL_VEHICLE``; docs/architecture.md, "The vehicle contract")."""
+
+    # a state that arrived more than this many ticks ago is stale (an anomaly, flown blind
+    # on the recovery branch)
+    state_stale_ticks: float = Field(default=3.0, gt=0.0, le=100.0)
+    # a set-point is valid this many ticks past the instant it is for; then the vehicle holds
+    setpoint_valid_ticks: float = Field(default=3.0, gt=0.0, le=100.0)
+    frame: str = Field(default="world", min_length=1, max_length=64)  # a state must name it
+    # a state farther than this (m), plus what 5 m/s^2 adds over the time between stamps,
+    # from where the last accepted one was heading is a jump: refused until it has held
+    # state_reset_s
+    state_jump_m: float = Field(default=0.5, gt=0.0)
+    state_reset_s: float = Field(default=0.5, ge=0.0)
+    # s between queries of the vehicle's clock (aesop/{robot}/vehicle/clock); 0: never ask
+    clock_sync_s: float = Field(default=1.0, ge=0.0)
+
+
+class ControlTuning(Group):
+    """The solver and the tick thread (``AESOP_CONTROL_TUNING``)."""
+
+    mpc_max_iter: int | None = Field(default=None, ge=1)  # OSQP iterations per warm solve
+    mpc_max_iter_cold: int | None = Field(default=None, ge=1)  # none: the scene's
+    stats_window: int = Field(default=1000, ge=10)  # ticks behind the jitter percentiles
+    # s: how soon Python hands the GIL to the tick thread once it wakes (sys.setswitchinterval)
+    switch_interval_s: float = Field(default=0.0002, gt=0.0, le=0.01)
 
 
 class ControlSettings(ServiceSettings):
@@ -27,27 +56,10 @@ class ControlSettings(ServiceSettings):
     verdict_stale_s: float = Field(default=0.5, gt=0.0)
     # time kept back from the reasoner's deadline for the trip back over Zenoh (s)
     decision_margin_s: float = Field(default=0.02, ge=0.0)
-    # the vehicle (docs/architecture.md, "The vehicle contract"): a state that arrived more
-    # than this many ticks ago is stale (an anomaly, flown blind on the recovery branch)
-    state_stale_ticks: float = Field(default=3.0, gt=0.0, le=100.0)
-    # a set-point is valid this many ticks past the instant it is for; then the vehicle holds
-    setpoint_valid_ticks: float = Field(default=3.0, gt=0.0, le=100.0)
-    vehicle_frame: str = Field(default="world", min_length=1, max_length=64)
-    # a state farther than this (m), plus what 5 m/s^2 adds over the time between stamps,
-    # from where the last accepted one was heading is a jump: refused until it has held
-    # state_reset_s
-    state_jump_m: float = Field(default=0.5, gt=0.0)
-    state_reset_s: float = Field(default=0.5, ge=0.0)
-    # s between queries of the vehicle's clock (aesop/{robot}/vehicle/clock); 0: never ask
-    clock_sync_s: float = Field(default=1.0, ge=0.0)
-    mpc_max_iter: int | None = Field(default=None, ge=1)  # OSQP iterations per warm solve
-    mpc_max_iter_cold: int | None = Field(default=None, ge=1)
-    stats_window: int = Field(default=1000, ge=10)  # ticks behind the jitter percentiles
-    # s: how soon Python hands the GIL to the tick thread once it wakes (sys.setswitchinterval)
-    switch_interval_s: float = Field(default=0.0002, gt=0.0, le=0.01)
+    vehicle: VehicleLink = VehicleLink()
+    tuning: ControlTuning = ControlTuning()
 
-    @field_validator("scenario", "mpc_max_iter", "mpc_max_iter_cold", "rate_hz",
-                     mode="before")
+    @field_validator("scenario", "rate_hz", mode="before")
     @classmethod
     def _empty_is_none(cls, v: object) -> object:
         return None if v == "" else v
@@ -73,8 +85,8 @@ class ControlSettings(ServiceSettings):
     def mpc_overrides(self) -> dict[str, int]:
         """``MPCConfig`` fields the settings override (for ``controllers.mpc_config``)."""
         out = {}
-        if self.mpc_max_iter is not None:
-            out["max_iter"] = self.mpc_max_iter
-        if self.mpc_max_iter_cold is not None:
-            out["max_iter_cold"] = self.mpc_max_iter_cold
+        if self.tuning.mpc_max_iter is not None:
+            out["max_iter"] = self.tuning.mpc_max_iter
+        if self.tuning.mpc_max_iter_cold is not None:
+            out["max_iter_cold"] = self.tuning.mpc_max_iter_cold
         return out

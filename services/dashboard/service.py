@@ -41,10 +41,10 @@ class DashboardService:
     def __init__(self, settings: DashboardSettings, session: zenoh.Session,
                  metrics: DashboardMetrics, *, clock: Callable[[], float] = time.time) -> None:
         self.settings, self.session, self.metrics, self.clock = settings, session, metrics, clock
-        limits = Limits(settings.trail, settings.scores,
-                        settings.log)
+        kept = settings.limits
+        limits = Limits(kept.trail, kept.scores, kept.log)
         self.model = FlightModel(settings.robot, limits)
-        self.hub = Hub(settings.client_queue)
+        self.hub = Hub(kept.client_queue)
 
     def on_update(self, update: Update) -> None:
         item = self.model.apply(update)

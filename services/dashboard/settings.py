@@ -9,7 +9,16 @@ from __future__ import annotations
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
-from shared.settings import ServiceSettings
+from shared.settings import Group, ServiceSettings
+
+
+class DashboardLimits(Group):
+    """What it keeps (``AESOP_DASHBOARD_LIMITS``)."""
+
+    trail: int = Field(default=3000, ge=10)  # states kept for the flown path
+    scores: int = Field(default=600, ge=10)  # verdicts kept for the timeline
+    log: int = Field(default=50, ge=1)  # requests, decisions and events kept, each
+    client_queue: int = Field(default=256, ge=1)  # per page; the oldest is dropped
 
 
 class DashboardSettings(ServiceSettings):
@@ -17,7 +26,4 @@ class DashboardSettings(ServiceSettings):
                                       validate_by_name=True)
 
     port: int = Field(default=8080, ge=0, le=65535)
-    trail: int = Field(default=3000, ge=10)  # states kept for the flown path
-    scores: int = Field(default=600, ge=10)  # verdicts kept for the timeline
-    log: int = Field(default=50, ge=1)  # requests, decisions and events kept, each
-    client_queue: int = Field(default=256, ge=1)  # per page; the oldest is dropped
+    limits: DashboardLimits = DashboardLimits()

@@ -74,7 +74,8 @@ def create_app(
         if state["started"]:
             metrics.refresh()
 
-    most, chars = {"maxItems": settings.max_items}, {"maxLength": settings.max_text_chars}
+    limits = settings.limits
+    most, chars = {"maxItems": limits.max_items}, {"maxLength": limits.max_text_chars}
     app = service_app(
         "AESOP vector-cache service", service="embedding", lifespan=lifespan,
         registry=registry, ready=ready, refresh=refresh, admin_token=settings.admin_token,

@@ -52,9 +52,9 @@ class Review:
                 known = None  # its experience was deleted since: propose it afresh
             if known is None:
                 pending = sum(p.state == "pending" for p in entry.proposals.values())
-                if pending >= self.settings.max_pending_proposals:
+                if pending >= self.settings.limits.max_pending_proposals:
                     log.warning("cache %s: %d proposals pending "
-                                "(AESOP_EMBEDDING_MAX_PENDING_PROPOSALS): %s not proposed",
+                                "(AESOP_EMBEDDING_LIMITS__MAX_PENDING_PROPOSALS): %s not proposed",
                                 name, pending, ident)
                     return None
             proposal = known.again(now) if known is not None else Proposal.first(

@@ -125,15 +125,15 @@ async def score(name: str, body: Score, service: ServiceDep, settings: SettingsD
             field = "texts" if body.texts is not None else "queries"
             texts = body.texts or [q.text for q in body.queries or ()]
             detections = [q.detections for q in body.queries or ()]
-            _check_count(len(texts), field, settings, settings.max_score_items,
-                         "AESOP_EMBEDDING_MAX_SCORE_ITEMS")
+            _check_count(len(texts), field, settings, settings.limits.max_score_items,
+                         "AESOP_EMBEDDING_LIMITS__MAX_SCORE_ITEMS")
             _check_texts(texts, field, settings, key=None if body.texts else "text")
             batch = await unless_client_leaves(request, service.scorer.score_texts(
                 name, texts, body.k, detections=detections))
         else:
             vectors = body.vectors or []
-            _check_count(len(vectors), "vectors", settings, settings.max_score_items,
-                         "AESOP_EMBEDDING_MAX_SCORE_ITEMS")
+            _check_count(len(vectors), "vectors", settings, settings.limits.max_score_items,
+                         "AESOP_EMBEDDING_LIMITS__MAX_SCORE_ITEMS")
             batch = await unless_client_leaves(request,
                                                service.scorer.score_vectors(name, vectors, body.k))
     return _score_response(batch)
@@ -194,8 +194,8 @@ def _items(body: AddExperiences, settings: EmbeddingSettings) -> list[Item]:
 
 
 def _check_count(n: int, field: str, settings: EmbeddingSettings, limit: int | None = None,
-                 variable: str = "AESOP_EMBEDDING_MAX_ITEMS") -> None:
-    limit = settings.max_items if limit is None else limit
+                 variable: str = "AESOP_EMBEDDING_LIMITS__MAX_ITEMS") -> None:
+    limit = settings.limits.max_items if limit is None else limit
     if n == 0:
         raise InvalidInput(f"'{field}' is empty", field=field)
     if n > limit:
@@ -207,9 +207,9 @@ def _check_texts(texts: list[str], field: str, settings: EmbeddingSettings,
                  key: str | None = None) -> None:
     for i, text in enumerate(texts):  # blank texts are refused by the schema (Text)
         where = f"{field}[{i}]" + (f".{key}" if key else "")
-        if len(text) > settings.max_text_chars:
+        if len(text) > settings.limits.max_text_chars:
             raise InvalidInput(f"text has {len(text)} characters; the limit is "
-                               f"{settings.max_text_chars}", field=where)
+                               f"{settings.limits.max_text_chars}", field=where)
 
 
 def _score_response(batch: ScoreBatch) -> Scores:

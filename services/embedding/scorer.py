@@ -28,7 +28,7 @@ from .embedders import Embedder, ModelNotFound
 from .entries import Entry, on_fresh_thread
 from .errors import Busy, Conflict, InvalidInput
 from .loading import EmbedderPool
-from .settings import EmbeddingSettings
+from .settings import VERDICT_NEIGHBORS, EmbeddingSettings
 
 T = TypeVar("T")
 
@@ -127,15 +127,15 @@ class Scorer:
                            field="texts")
         if urgent:
             return self._batch(entry, await self._score_on(entry, k, queries, True), k)
-        limit = self.settings.max_pending_texts
+        limit = self.settings.limits.max_pending_texts
         if self._rest_pending + len(texts) > limit:
             raise Busy(f"{self._rest_pending} texts are already waiting to be scored; with "
                        f"these {len(texts)} that is past the limit of {limit} "
-                       "(AESOP_EMBEDDING_MAX_PENDING_TEXTS): retry later", field="texts")
+                       "(AESOP_EMBEDDING_LIMITS__MAX_PENDING_TEXTS): retry later", field="texts")
         self._rest_pending += len(texts)
         try:
             results: list[Scored] = []
-            step = self.settings.score_chunk
+            step = self.settings.tuning.score_chunk
             for start in range(0, len(texts), step):
                 results += await self._score_on(entry, k, queries[start:start + step], False)
         finally:
@@ -144,7 +144,7 @@ class Scorer:
 
     async def _score_on(self, entry: Entry, k: int, queries: list[Query], urgent: bool
                         ) -> list[Scored]:
-        if self.settings.microbatch:
+        if self.settings.tuning.microbatch:
             return await self._batcher(entry, k, urgent).submit(queries)
         return await asyncio.get_running_loop().run_in_executor(
             self._urgent if urgent else self._compute,
@@ -165,11 +165,12 @@ class Scorer:
     def _batcher(self, entry: Entry, k: int, urgent: bool) -> MicroBatcher[Query, Scored]:
         """One batcher per (k, lane): the bus's observations are batched together and
         apart from REST chunks, which are batched up to one chunk's size."""
+        tuning = self.settings.tuning
         if (k, urgent) not in entry.batchers:
             entry.batchers[k, urgent] = MicroBatcher(
                 lambda queries: self._embed_and_score(entry, k, queries),
-                max_items=self.settings.microbatch_max if urgent else self.settings.score_chunk,
-                window_s=self.settings.microbatch_window_ms / 1000,
+                max_items=tuning.microbatch_max if urgent else tuning.score_chunk,
+                window_s=tuning.microbatch_window_ms / 1000,
                 on_batch=self._on_batch, executor=self._urgent if urgent else self._compute)
         return entry.batchers[k, urgent]
 
@@ -186,7 +187,7 @@ class Scorer:
         known |= self._phrases.recall(config.model, [p for p in phrases if p not in known])
         unknown = [p for p in phrases if p not in known]
         rows = self.embedders.get(config.model).embed(
-            [q.text for q in queries] + unknown, batch_size=self.settings.embed_batch_size)
+            [q.text for q in queries] + unknown, batch_size=self.settings.tuning.embed_batch_size)
         vectors = rows[:len(queries)]
         if unknown:
             new = dict(zip(unknown, unit_vectors(rows[len(queries):]), strict=True))
@@ -195,14 +196,14 @@ class Scorer:
         found = [Detections(q.phrases, np.stack([known[p] for p in q.phrases]))
                  if q.phrases else None for q in queries]
         with entry.rw.read():
-            return entry.cache.score(vectors, k, self.settings.verdict_neighbors, found,
+            return entry.cache.score(vectors, k, VERDICT_NEIGHBORS, found,
                                      pairs=pairs)
 
     async def _score_vectors(self, entry: Entry, vectors: np.ndarray, k: int | None = None
                              ) -> list[Scored]:
         def run() -> list[Scored]:
             with entry.rw.read():
-                return entry.cache.score(vectors, k, self.settings.verdict_neighbors)
+                return entry.cache.score(vectors, k, VERDICT_NEIGHBORS)
 
         return await self.on_compute(run)
 

@@ -35,7 +35,7 @@ from .proposals import Policy, Proposal
 from .review import Review
 from .schemas import Added, CacheInfo, Calibrated, Deleted, Experience, Roc
 from .scorer import Scorer, check_dims
-from .settings import EmbeddingSettings
+from .settings import DEFAULT_K, EmbeddingSettings
 from .store import StorageError, Store
 
 log = logging.getLogger(__name__)
@@ -65,8 +65,9 @@ class CacheService:
                             if settings.openai_api_key else None),
             model_dir=settings.model_dir or settings.data_dir / "models",
             max_loaded=settings.max_models, export_dir=Path(settings.data_dir) / "onnx",
-            threads=settings.onnx_threads)
-        self.jobs = Jobs(max_running=settings.max_jobs, setting="AESOP_EMBEDDING_MAX_JOBS")
+            threads=settings.tuning.onnx_threads)
+        self.jobs = Jobs(max_running=settings.limits.max_jobs,
+                         setting="AESOP_EMBEDDING_LIMITS__MAX_JOBS")
         self._entries: dict[str, Entry] = {}
         self._create_lock = asyncio.Lock()
         self._thread = ComputeThread()
@@ -161,7 +162,7 @@ class CacheService:
         """Create cache ``name`` or reconcile an existing one; returns (description, created)."""
         if not CACHE_NAME.fullmatch(name):
             raise InvalidInput("cache names are 1-64 letters, digits, '_', '.', '-'", field="name")
-        k = k or self.settings.default_k
+        k = k or DEFAULT_K
         async with self._create_lock:
             if name in self._entries:
                 return await self._reconcile(name, model=model, k=k, score=score,
@@ -232,7 +233,8 @@ class CacheService:
             embedder = await self.scorer.embedder(config.model)
             progress = job.progress if job is not None else None
             embedded = await self.scorer.on_compute(
-                embedder.embed, [t for _, t in texts], batch_size=self.settings.embed_batch_size,
+                embedder.embed, [t for _, t in texts],
+                batch_size=self.settings.tuning.embed_batch_size,
                 progress=progress, show_progress_bar=len(texts) >= 1000)
             vectors[[i for i, _ in texts]] = embedded
         return vectors
@@ -252,7 +254,7 @@ class CacheService:
                            "detections with", field="items")
         embedder = await self.scorer.embedder(config.model)
         rows = await self.scorer.on_compute(embedder.embed, list(phrases),
-                                      batch_size=self.settings.embed_batch_size)
+                                      batch_size=self.settings.tuning.embed_batch_size)
         return dict(zip(phrases, unit_vectors(rows), strict=True))
 
     async def delete(self, name: str, ident: str) -> Deleted:
@@ -320,6 +322,6 @@ class CacheService:
             cache.apply(op)
         if isinstance(op, Add | Delete):
             entry.changed += len(op.labels) if isinstance(op, Add) else 1
-        limit = self.settings.index_save_changes
+        limit = self.settings.tuning.index_save_changes
         if limit and entry.changed >= limit:
             await asyncio.to_thread(self._save_index, entry)

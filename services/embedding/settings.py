@@ -7,13 +7,57 @@ from pathlib import Path
 from pydantic import AliasChoices, Field, SecretStr
 from pydantic_settings import SettingsConfigDict
 
-from shared.settings import ServiceSettings
+from shared.settings import Group, ServiceSettings
 
 DEFAULT_MODEL = "sentence-transformers/all-MiniLM-L6-v2"
 # the service's default: the same model run by ONNX Runtime in float32, exported once into
 # <data_dir>/onnx: the torch vectors (cosine > 0.9999, the same AUROCs on every domain)
 # and about twice as fast on the bus (docs/benchmarks.md)
 SERVICE_MODEL = "onnx:" + DEFAULT_MODEL
+DEFAULT_K = 5  # k of a cache created without one (1..1000)
+VERDICT_NEIGHBORS = 3  # nearest experiences a verdict or a score names
+
+
+class EmbeddingLimits(Group):
+    """What one caller may ask for (``AESOP_EMBEDDING_LIMITS``); past a limit, a 4xx that
+    names it."""
+
+    max_items: int = Field(default=10_000, ge=1)  # per request that adds or calibrates
+    max_score_items: int = Field(default=256, ge=1)  # texts or vectors per score request
+    max_text_chars: int = Field(default=4_000, ge=1)
+    # REST texts being scored or waiting, over all requests: past it, 429 (the bus's
+    # observations are never refused, and go first: see batching.ComputeThread)
+    max_pending_texts: int = Field(default=1024, ge=1)
+    max_jobs: int = Field(default=8, ge=1)  # add jobs running at once (429 past it)
+    # pending proposals (scenes the reasoner answered "continue" for) a cache keeps; past
+    # it a new scene is not proposed (logged), a known one is still counted
+    max_pending_proposals: int = Field(default=1_000, ge=0)
+
+
+class EmbeddingTuning(Group):
+    """How the work is cut and run (``AESOP_EMBEDDING_TUNING``): the defaults are the
+    measured ones (docs/benchmarks.md)."""
+
+    embed_batch_size: int = Field(default=64, ge=1)
+    # a REST score request runs as chunks of this many texts, so a bus verdict waits for
+    # at most one chunk, and a caller that leaves stops its request at the next chunk
+    score_chunk: int = Field(default=16, ge=1)
+    microbatch: bool = True  # coalesce concurrent score requests into one embedding call
+    # how long a lone request waits for company; 0: none, yet requests that arrive while
+    # a batch is being embedded still form the next batch
+    microbatch_window_ms: float = Field(default=0.0, ge=0.0)
+    microbatch_max: int = Field(default=64, ge=1)
+    # save a cache's index file once this many experiences were added or deleted since
+    # the last save (0: only on close); a restart loads it and catches up from the database
+    index_save_changes: int = Field(default=50_000, ge=0)
+    # torch intra-op threads; 0 keeps torch's default (one per core). One thread keeps a
+    # single observation's embedding at ~15 ms on a busy machine, where a pool of
+    # spinning threads stalled verdicts for 1-2 s (measured with `aesop bench bus`)
+    torch_threads: int = Field(default=1, ge=0, le=256)
+    # ONNX Runtime threads per inference (onnx: and onnx-int8: models). Its pool is told
+    # not to spin, so a second thread costs nothing while idle; measured with
+    # `aesop bench detector --only latency` and `aesop bench bus` (docs/benchmarks.md)
+    onnx_threads: int = Field(default=1, ge=1, le=256)
 
 
 class EmbeddingSettings(ServiceSettings):
@@ -30,41 +74,11 @@ class EmbeddingSettings(ServiceSettings):
     openai_api_key: SecretStr | None = Field(default=None, validation_alias=AliasChoices(
         "AESOP_EMBEDDING_OPENAI_API_KEY", "OPENAI_API_KEY"))
     detector_cache: str = "default"  # the cache the Zenoh worker scores observations against
-    default_k: int = Field(default=5, ge=1, le=1000)
-    verdict_neighbors: int = Field(default=3, ge=0, le=100)
-    max_items: int = Field(default=10_000, ge=1)  # per request that adds or calibrates
-    max_score_items: int = Field(default=256, ge=1)  # texts or vectors per score request
-    # REST texts being scored or waiting, over all requests: past it, 429 (the bus's
-    # observations are never refused, and go first: see batching.ComputeThread)
-    max_pending_texts: int = Field(default=1024, ge=1)
-    # a REST score request runs as chunks of this many texts, so a bus verdict waits for
-    # at most one chunk, and a caller that leaves stops its request at the next chunk
-    score_chunk: int = Field(default=16, ge=1)
-    max_jobs: int = Field(default=8, ge=1)  # add jobs running at once (429 past it)
-    max_text_chars: int = Field(default=4_000, ge=1)
+    zenoh_worker: bool = True
     max_body_bytes: int = Field(default=64 * 1024 * 1024, ge=1024)
-    embed_batch_size: int = Field(default=64, ge=1)
-    microbatch: bool = True  # coalesce concurrent score requests into one embedding call
-    # how long a lone request waits for company; 0: none, yet requests that arrive while
-    # a batch is being embedded still form the next batch
-    microbatch_window_ms: float = Field(default=0.0, ge=0.0)
-    microbatch_max: int = Field(default=64, ge=1)
-    # save a cache's index file once this many experiences were added or deleted since
-    # the last save (0: only on close); a restart loads it and catches up from the database
-    index_save_changes: int = Field(default=50_000, ge=0)
     # the most the database file may grow to (0: no limit but the disk's); a write past
     # it is answered 507 and nothing of it is stored, as on a full disk
     max_db_bytes: int = Field(default=0, ge=0)
-    zenoh_worker: bool = True
-    # pending proposals (scenes the reasoner answered "continue" for) a cache keeps; past
-    # it a new scene is not proposed (logged), a known one is still counted
-    max_pending_proposals: int = Field(default=1_000, ge=0)
-    # torch intra-op threads; 0 keeps torch's default (one per core). One thread keeps a
-    # single observation's embedding at ~15 ms on a busy machine, where a pool of
-    # spinning threads stalled verdicts for 1-2 s (measured with `aesop bench bus`)
-    torch_threads: int = Field(default=1, ge=0, le=256)
-    # ONNX Runtime threads per inference (onnx: and onnx-int8: models). Its pool is told
-    # not to spin, so a second thread costs nothing while idle; measured with
-    # `aesop bench detector --only latency` and `aesop bench bus` (docs/benchmarks.md)
-    onnx_threads: int = Field(default=1, ge=1, le=256)
     fsync: bool = True
+    limits: EmbeddingLimits = EmbeddingLimits()
+    tuning: EmbeddingTuning = EmbeddingTuning()

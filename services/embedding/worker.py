@@ -68,7 +68,8 @@ class DetectorWorker:
                  max_in_flight: int = 256, metrics: Any = None, owns_bus: bool = False,
                  max_text_chars: int = 4000) -> None:
         self.service = service
-        self.max_text_chars = max_text_chars  # as over HTTP (AESOP_EMBEDDING_MAX_TEXT_CHARS)
+        # as over HTTP (AESOP_EMBEDDING_LIMITS__MAX_TEXT_CHARS)
+        self.max_text_chars = max_text_chars
         self.bus = bus
         self.owns_bus = owns_bus
         self.cache = cache
@@ -96,7 +97,7 @@ class DetectorWorker:
         def make(service: CacheService, metrics: Any) -> DetectorWorker:
             bus = Bus.open(settings, "embedding")
             return cls(service, bus, cache=settings.detector_cache, metrics=metrics,
-                       owns_bus=True, max_text_chars=settings.max_text_chars)
+                       owns_bus=True, max_text_chars=settings.limits.max_text_chars)
 
         return make
 
@@ -119,8 +120,8 @@ class DetectorWorker:
             if self.metrics is not None:
                 self.metrics.bus_rejected.labels("text").inc()
             self._alarm(robot, f"observation {obs.seq} has {len(obs.text)} characters; the "
-                        f"limit is {self.max_text_chars} (AESOP_EMBEDDING_MAX_TEXT_CHARS): "
-                        "not scored")
+                        f"limit is {self.max_text_chars} "
+                        "(AESOP_EMBEDDING_LIMITS__MAX_TEXT_CHARS): not scored")
             return
         try:
             batch = await self.service.scorer.score_texts(self.cache, [obs.text], urgent=True,

@@ -45,7 +45,7 @@ def build_decider(settings: ReasonerSettings,
     if on_completion is not None:
         backends = [MeteredBackend(b, on_completion) for b in backends]
     config = DeciderConfig(domain=settings.domain, variant=settings.variant,
-                           hedge_after_s=settings.hedge_after_s)
+                           hedge_after_s=settings.hedge.after_s)
     policy = FallbackPolicy(kind=settings.fallback, ranks=settings.fallback_ranks)
     return Decider(backends, config, policy)
 
@@ -59,8 +59,8 @@ def create_app(
     registry = CollectorRegistry()
     metrics = ReasonerMetrics(registry)
     state = {"started": False}
-    work = Work(Jobs(max_running=settings.max_calibration_jobs,
-                     setting="AESOP_REASONER_MAX_CALIBRATION_JOBS"))
+    work = Work(Jobs(max_running=settings.limits.max_calibration_jobs,
+                     setting="AESOP_REASONER_LIMITS__MAX_CALIBRATION_JOBS"))
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -88,10 +88,10 @@ def create_app(
         ready=lambda: None if state["started"] else {"reason": "starting"},
         admin_token=settings.admin_token,
         max_body_bytes=settings.max_body_bytes,
-        limits={"ReasonBody": {"options": {"maxItems": settings.max_options},
-                               "deadline_s": {"maximum": settings.max_deadline_s}},
-                "CalibrateBody": {"options": {"maxItems": settings.max_options}},
-                "Observation": {"text": {"maxLength": settings.max_observation_chars}}})
+        limits={"ReasonBody": {"options": {"maxItems": settings.limits.max_options},
+                               "deadline_s": {"maximum": settings.limits.max_deadline_s}},
+                "CalibrateBody": {"options": {"maxItems": settings.limits.max_options}},
+                "Observation": {"text": {"maxLength": settings.limits.max_observation_chars}}})
     app.state.settings, app.state.metrics, app.state.work = settings, metrics, work
     app.include_router(router)
 

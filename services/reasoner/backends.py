@@ -306,16 +306,16 @@ class OpenAIChatBackend:
 def _hint(body: str) -> str:
     """The setting to change when a server refuses a parameter we sent."""
     if "should be 'text' or 'json_object'" in body:  # llama-cpp-python, on json_schema
-        return " (set AESOP_REASONER_LLM_RESPONSE_FORMAT=json_object)"
+        return " (set AESOP_REASONER_REQUEST__RESPONSE_FORMAT=json_object)"
     refused = re.search(r"unsupported (?:parameter|value): '(\w+)'", body, re.IGNORECASE)
     if refused is None:
         return ""
     if refused.group(1) == "max_tokens":
-        return " (set AESOP_REASONER_LLM_TOKEN_FIELD=max_completion_tokens)"
+        return " (set AESOP_REASONER_REQUEST__TOKEN_FIELD=max_completion_tokens)"
     if refused.group(1) == "max_completion_tokens":
-        return " (set AESOP_REASONER_LLM_TOKEN_FIELD=max_tokens)"
+        return " (set AESOP_REASONER_REQUEST__TOKEN_FIELD=max_tokens)"
     if refused.group(1) == "temperature":
-        return " (set AESOP_REASONER_LLM_TEMPERATURE=omit)"
+        return " (set AESOP_REASONER_REQUEST__TEMPERATURE=omit)"
     return ""
 
 

@@ -31,12 +31,12 @@ def check_request(settings: ReasonerSettings, *, observation: Observation | None
     A deadline must be a positive, finite number of seconds: an infinite one would let
     the backends run with no timeout, and NaN compares false with every limit.
     """
-    if observation is not None and len(observation.text) > settings.max_observation_chars:
+    if observation is not None and len(observation.text) > settings.limits.max_observation_chars:
         raise LimitError("observation.text", f"observation has {len(observation.text)} "
-                         f"characters; the limit is {settings.max_observation_chars}")
-    if options is not None and len(options) > settings.max_options:
+                         f"characters; the limit is {settings.limits.max_observation_chars}")
+    if options is not None and len(options) > settings.limits.max_options:
         raise LimitError("options", f"{len(options)} options; the limit is "
-                         f"{settings.max_options}")
+                         f"{settings.limits.max_options}")
     if deadline_s is None:
         return
     if not math.isfinite(deadline_s):
@@ -44,6 +44,6 @@ def check_request(settings: ReasonerSettings, *, observation: Observation | None
                          f"got {deadline_s}")
     if deadline_s <= 0:
         raise LimitError("deadline_s", f"deadline_s must be positive, got {deadline_s:g}")
-    if deadline_s > settings.max_deadline_s:
+    if deadline_s > settings.limits.max_deadline_s:
         raise LimitError("deadline_s", f"deadline_s {deadline_s} is over the limit "
-                         f"{settings.max_deadline_s}")
+                         f"{settings.limits.max_deadline_s}")

@@ -116,7 +116,7 @@ async def backends(settings: SettingsDep) -> Backends:
                               stream=c.stream, json_schema=c.json_schema,
                               response_format=c.response_format)
                   for c in settings.backends()],
-        hedge_after_s=settings.hedge_after_s, domain=settings.domain,
+        hedge_after_s=settings.hedge.after_s, domain=settings.domain,
         variant=settings.variant, fallback=settings.fallback)
 
 

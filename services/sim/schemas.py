@@ -72,7 +72,7 @@ class SimState(Answer):
 
 
 class TraceAnswer(Answer):
-    """``GET /v1/trace``: the truth since the last reset, at ``trace_hz``."""
+    """``GET /v1/trace``: the truth since the last reset, at ``AESOP_SIM_TRACE__HZ``."""
 
     t: list[Float]  # simulated s since the reset
     x: list[list[Float]]  # 12-state truth

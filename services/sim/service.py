@@ -73,7 +73,7 @@ class SimService:
         self._thread: threading.Thread | None = None
         self.setpoints: Latest[VehicleSetpoint] | None = None
         self._taken: Received[VehicleSetpoint] | None = None
-        self.trace: deque[TracePoint] = deque(maxlen=settings.trace_points)
+        self.trace: deque[TracePoint] = deque(maxlen=settings.trace.points)
         self._traced_at = -np.inf
         self.reset_at = vehicle.now  # when the current flight began (the clock's time)
         self.published = 0
@@ -120,7 +120,7 @@ class SimService:
             now = self.clock()
             reports = self.vehicle.advance(now)
             self.metrics.holding.set(1.0 if self.vehicle.holding else 0.0)
-            if now - self._traced_at >= 1.0 / self.settings.trace_hz:
+            if now - self._traced_at >= 1.0 / self.settings.trace.hz:
                 self._traced_at = now
                 self.trace.append(TracePoint(
                     round((now - self.reset_at) * self.vehicle.time_scale, 4),

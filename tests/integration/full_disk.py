@@ -18,7 +18,7 @@ from fastapi.testclient import TestClient
 
 from services.embedding.api import create_app
 from services.embedding.service import CacheService
-from services.embedding.settings import EmbeddingSettings
+from services.embedding.settings import EmbeddingSettings, EmbeddingTuning
 
 TOKEN = "full-disk-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -38,7 +38,7 @@ class Warnings(logging.Handler):
 def client(data: Path) -> TestClient:
     # every commit also saves the index file, so saves meet the full disk too
     settings = EmbeddingSettings(data_dir=data, admin_token=TOKEN, zenoh_worker=False,
-                                 fsync=True, index_save_changes=1)
+                                 fsync=True, tuning=EmbeddingTuning(index_save_changes=1))
     return TestClient(create_app(settings, service=CacheService(settings)), headers=AUTH)
 
 

@@ -14,7 +14,7 @@ from services.embedding.api import create_app
 from services.embedding.embedders import ModelNotFound
 from services.embedding.loading import EmbedderPool
 from services.embedding.service import CacheService
-from services.embedding.settings import EmbeddingSettings
+from services.embedding.settings import EmbeddingLimits, EmbeddingSettings
 from shared.messages import Detection, Observation
 from tests.fakes.hash_embedder import HashEmbedder
 
@@ -168,7 +168,7 @@ BAD_REQUESTS = [
 def test_bad_input_names_the_field_and_changes_nothing(
     tmp_path: Path, method: str, path: str, body: dict, status: int, field: str
 ) -> None:
-    with make_client(tmp_path, max_items=100) as client:
+    with make_client(tmp_path, limits=EmbeddingLimits(max_items=100)) as client:
         create(client, k=3)
         add_texts(client, "wm", NOMINAL[:10])
         client.post("/v1/caches/wm/experiences", headers=AUTH,

@@ -26,7 +26,7 @@ DIM = 8
 
 def server(data_dir: Path, port: int) -> ServiceProcess:
     env = {"AESOP_ADMIN_TOKEN": TOKEN, "AESOP_EMBEDDING_ZENOH_WORKER": "false",
-           "AESOP_EMBEDDING_INDEX_SAVE_CHANGES": "200"}  # small: index saves mid-run too
+           "AESOP_EMBEDDING_TUNING__INDEX_SAVE_CHANGES": "200"}  # small: index saves mid-run too
     return ServiceProcess(["serve", "embedding", "--port", str(port), "--data-dir", str(data_dir)],
                           port=port, env=env, log_path=data_dir / f"server-{port}.log")
 

@@ -46,7 +46,7 @@ def dashboard(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Dashboard]:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     port = free_port()
     env = {"AESOP_ZENOH_LISTEN": endpoint, "AESOP_ROBOT": ROBOT,
-           "AESOP_DASHBOARD_CLIENT_QUEUE": "1000"}
+           "AESOP_DASHBOARD_LIMITS__CLIENT_QUEUE": "1000"}
     proc = ServiceProcess(["serve", "dashboard", "--port", str(port)], port=port, env=env,
                           log_path=tmp / "dashboard.log", ready_timeout_s=60,
                           unset=["AESOP_ADMIN_TOKEN"])

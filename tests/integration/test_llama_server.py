@@ -145,7 +145,7 @@ async def test_openais_shape_is_refused_naming_the_setting(llama: LlamaServer) -
     finally:
         await chat.aclose()
     assert refused.value.kind == "http"
-    assert "AESOP_REASONER_LLM_RESPONSE_FORMAT=json_object" in str(refused.value)
+    assert "AESOP_REASONER_REQUEST__RESPONSE_FORMAT=json_object" in str(refused.value)
 
 
 async def test_streaming_early_exit_stops_the_generation(llama: LlamaServer) -> None:

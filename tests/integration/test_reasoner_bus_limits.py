@@ -11,7 +11,7 @@ from prometheus_client import CollectorRegistry
 
 from services.reasoner.deciding import Decider, DeciderConfig
 from services.reasoner.metrics import ReasonerMetrics
-from services.reasoner.settings import ReasonerSettings
+from services.reasoner.settings import ReasonerLimits, ReasonerSettings
 from services.reasoner.worker import ReasonerWorker
 from shared import topics
 from shared.bus import Bus
@@ -21,7 +21,8 @@ from tests.zenoh_peers import DEADLINE_S, routed
 
 pytestmark = pytest.mark.timeout(60)
 
-LIMITS = ReasonerSettings(max_observation_chars=100, max_options=3, max_deadline_s=10.0)
+LIMITS = ReasonerSettings(limits=ReasonerLimits(max_observation_chars=100, max_options=3,
+                                                max_deadline_s=10.0))
 OPTIONS = (Option(index=0, label="continue"),
            Option(index=1, label="alternative landing site", description="the blue box"),
            Option(index=2, label="holding zone", description="hover and wait"))

@@ -24,7 +24,7 @@ import pytest
 from services.reasoner.backends import BackendConfig, BackendError, OpenAIChatBackend
 from services.reasoner.deciding import Decider, DeciderConfig
 from services.reasoner.prompts import build_messages, load_template
-from services.reasoner.settings import ReasonerSettings
+from services.reasoner.settings import LLMRequest, ReasonerSettings
 from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
 from shared.process import ServiceProcess, free_port
 
@@ -225,12 +225,12 @@ async def test_a_reasoning_model_refuses_the_old_parameters_naming_the_setting(
     with pytest.raises(BackendError) as refused:
         await old.complete([{"role": "user", "content": "hi"}])
     assert refused.value.status == 400
-    assert "AESOP_REASONER_LLM_TOKEN_FIELD=max_completion_tokens" in str(refused.value)
+    assert "AESOP_REASONER_REQUEST__TOKEN_FIELD=max_completion_tokens" in str(refused.value)
     no_temp = backend(fake_llm, "fake-reasoning", stream=stream,
                       token_field="max_completion_tokens")
     with pytest.raises(BackendError) as refused:
         await no_temp.complete([{"role": "user", "content": "hi"}])
-    assert "AESOP_REASONER_LLM_TEMPERATURE=omit" in str(refused.value)
+    assert "AESOP_REASONER_REQUEST__TEMPERATURE=omit" in str(refused.value)
     await old.aclose()
     await no_temp.aclose()
 
@@ -264,10 +264,10 @@ def test_the_settings_pick_the_parameters_a_server_takes() -> None:
     local = ReasonerSettings(llm_base_url="http://127.0.0.1:8080/v1", llm_model="qwen2.5")
     (config,) = local.backends()
     assert config.token_field == "max_tokens" and config.temperature == 0.0
-    forced = ReasonerSettings(llm_token_field="max_completion_tokens", llm_temperature="omit",
-                              llm_model="gpt-4o-mini")
+    forced = ReasonerSettings(request=LLMRequest(token_field="max_completion_tokens",
+                                                 temperature="omit"), llm_model="gpt-4o-mini")
     (config,) = forced.backends()
     assert config.token_field == "max_completion_tokens" and config.temperature is None
-    assert ReasonerSettings(llm_temperature=0.7).backends()[0].temperature == 0.7
+    assert ReasonerSettings(request=LLMRequest(temperature=0.7)).backends()[0].temperature == 0.7
     with pytest.raises(ValueError, match="temperature"):
-        ReasonerSettings(llm_temperature=3.0)
+        LLMRequest(temperature=3.0)

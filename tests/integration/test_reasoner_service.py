@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from services.reasoner.api import build_decider, create_app
-from services.reasoner.settings import ReasonerSettings
+from services.reasoner.settings import LLMRequest, ReasonerLimits, ReasonerSettings
 from services.reasoner.worker import ReasonerWorker
 from shared import topics
 from shared.bus import Bus
@@ -60,7 +60,8 @@ def test_reason_answers_with_the_llm_choice(client: TestClient) -> None:
 
 
 def test_tokens_are_counted(llm_url: str) -> None:
-    with TestClient(create_app(settings_for(llm_url, llm_stream=False)), headers=AUTH) as c:
+    settings = settings_for(llm_url, request=LLMRequest(stream=False))
+    with TestClient(create_app(settings), headers=AUTH) as c:
         c.post("/v1/reason", headers=AUTH, json={
             "observation": RED_BOX, "options": OPTIONS, "deadline_s": 5.0})
         text = c.get("/metrics").text
@@ -169,10 +170,11 @@ def test_latency_calibration_of_a_backend_not_configured_is_a_conflict(
 def test_latency_calibrations_running_at_once_are_capped(llm_url: str) -> None:
     """Issue 14: each query of a calibration is a (paid) LLM call, and any number ran at
     once (past the job registry's own cap it was a 500)."""
-    settings = settings_for(llm_url, llm_model="fake-stall", max_calibration_jobs=1)
+    settings = settings_for(llm_url, llm_model="fake-stall",
+                            limits=ReasonerLimits(max_calibration_jobs=1))
     with TestClient(create_app(settings), headers=AUTH) as client:
         plan = {"n": 60, "warmup": 0, "timeout_s": 30}
         assert client.post("/v1/latency/calibrate", json=plan).status_code == 202
         r = client.post("/v1/latency/calibrate", json=plan)
     assert r.status_code == 429, r.text
-    assert "AESOP_REASONER_MAX_CALIBRATION_JOBS" in r.json()["error"]["message"]
+    assert "AESOP_REASONER_LIMITS__MAX_CALIBRATION_JOBS" in r.json()["error"]["message"]

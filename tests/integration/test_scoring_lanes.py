@@ -22,7 +22,7 @@ from services.embedding.entries import Item
 from services.embedding.errors import Busy
 from services.embedding.loading import EmbedderPool
 from services.embedding.service import CacheService
-from services.embedding.settings import EmbeddingSettings
+from services.embedding.settings import EmbeddingLimits, EmbeddingSettings, EmbeddingTuning
 from tests.fakes.hash_embedder import HashEmbedder
 
 pytestmark = pytest.mark.timeout(60)
@@ -58,7 +58,8 @@ def settings_for(tmp_path: Path, **kw: object) -> EmbeddingSettings:
 @pytest.fixture
 async def gated(tmp_path: Path) -> AsyncIterator[tuple[CacheService, GatedEmbedder]]:
     embedder = GatedEmbedder()
-    svc = CacheService(settings_for(tmp_path, score_chunk=2, max_pending_texts=64),
+    svc = CacheService(settings_for(tmp_path, tuning=EmbeddingTuning(score_chunk=2),
+                                    limits=EmbeddingLimits(max_pending_texts=64)),
                        embedders=EmbedderPool(loader=lambda _: embedder))
     await svc.start()
     await svc.create("scene", model="hash", k=1)
@@ -109,7 +110,8 @@ async def test_a_long_rest_request_is_cut_into_chunks_the_bus_can_pass(
 
 async def test_pending_rest_work_past_the_cap_is_refused(tmp_path: Path) -> None:
     embedder = GatedEmbedder()
-    svc = CacheService(settings_for(tmp_path, score_chunk=2, max_pending_texts=4),
+    svc = CacheService(settings_for(tmp_path, tuning=EmbeddingTuning(score_chunk=2),
+                                    limits=EmbeddingLimits(max_pending_texts=4)),
                        embedders=EmbedderPool(loader=lambda _: embedder))
     await svc.start()
     try:
@@ -119,7 +121,7 @@ async def test_pending_rest_work_past_the_cap_is_refused(tmp_path: Path) -> None
         with pytest.raises(Busy) as busy:
             await svc.scorer.score_texts("scene", ["one", "two", "three"])  # 5 > 4
         assert busy.value.field == "texts"
-        assert "AESOP_EMBEDDING_MAX_PENDING_TEXTS" in busy.value.message
+        assert "AESOP_EMBEDDING_LIMITS__MAX_PENDING_TEXTS" in busy.value.message
         bus = await asyncio.wait_for(
             asyncio.gather(asyncio.to_thread(embedder.gate.set),
                            svc.scorer.score_texts("scene", ["bus"], urgent=True)), 10)
@@ -147,9 +149,9 @@ async def test_work_of_a_caller_that_left_is_dropped(
 async def test_a_client_that_disconnects_stops_its_scoring(tmp_path: Path) -> None:
     """Over the app's own ASGI interface: the body arrives, then the client leaves."""
     embedder = GatedEmbedder()
-    svc = CacheService(settings_for(tmp_path, score_chunk=2),
+    svc = CacheService(settings_for(tmp_path, tuning=EmbeddingTuning(score_chunk=2)),
                        embedders=EmbedderPool(loader=lambda _: embedder))
-    app = create_app(settings_for(tmp_path, score_chunk=2), service=svc)
+    app = create_app(settings_for(tmp_path, tuning=EmbeddingTuning(score_chunk=2)), service=svc)
     with TestClient(app, headers={"Authorization": f"Bearer {TOKEN}"}) as client:
         assert client.put("/v1/caches/scene", json={"model": "hash", "k": 1}).status_code == 201
         client.post("/v1/caches/scene/experiences",
@@ -207,7 +209,7 @@ def test_texts_per_score_request_are_capped(tmp_path: Path) -> None:
 
 def test_background_add_jobs_are_capped(tmp_path: Path) -> None:
     embedder = GatedEmbedder()
-    settings = settings_for(tmp_path, max_jobs=1)
+    settings = settings_for(tmp_path, limits=EmbeddingLimits(max_jobs=1))
     svc = CacheService(settings, embedders=EmbedderPool(loader=lambda _: embedder))
     with TestClient(create_app(settings, service=svc),
                     headers={"Authorization": f"Bearer {TOKEN}"}) as client:
@@ -218,5 +220,5 @@ def test_background_add_jobs_are_capped(tmp_path: Path) -> None:
         assert first.status_code == 202
         second = client.post("/v1/caches/scene/experiences?wait=false", json=items)
         assert second.status_code == 429, second.text
-        assert "AESOP_EMBEDDING_MAX_JOBS" in second.json()["error"]["message"]
+        assert "AESOP_EMBEDDING_LIMITS__MAX_JOBS" in second.json()["error"]["message"]
         embedder.gate.set()

@@ -15,7 +15,7 @@ from services.embedding.errors import Conflict
 from services.embedding.loading import EmbedderPool
 from services.embedding.metrics import EmbeddingMetrics
 from services.embedding.service import CacheService
-from services.embedding.settings import EmbeddingSettings
+from services.embedding.settings import EmbeddingSettings, EmbeddingTuning
 from services.embedding.worker import DetectorWorker
 from shared import topics
 from shared.bus import Bus, Subscription
@@ -40,7 +40,8 @@ NOMINAL = [f"a {c} box on the ground near a {t}" for c in ("red", "blue", "green
 @pytest.fixture
 async def service(tmp_path: Path) -> AsyncIterator[tuple[CacheService, HashEmbedder]]:
     embedder = HashEmbedder()
-    settings = EmbeddingSettings(data_dir=tmp_path, fsync=False, microbatch_window_ms=200,
+    settings = EmbeddingSettings(data_dir=tmp_path, fsync=False,
+                                 tuning=EmbeddingTuning(microbatch_window_ms=200),
                                  zenoh_worker=False)
     svc = CacheService(settings, embedders=EmbedderPool(loader=lambda _: embedder))
     await svc.start()

@@ -25,7 +25,7 @@ from services.reasoner.prompts import (
     load_template,
     suspicious_observation,
 )
-from services.reasoner.settings import ReasonerSettings
+from services.reasoner.settings import ReasonerLimits, ReasonerSettings
 from services.reasoner.worker import ReasonerWorker
 from shared import topics
 from shared.bus import Bus, Received
@@ -146,7 +146,8 @@ async def test_an_injected_task_gets_the_injected_observations_fallback() -> Non
 
 # --------------------------------------------------------------------------- the limits
 
-LIMITS = ReasonerSettings(max_observation_chars=100, max_options=3, max_deadline_s=10.0)
+LIMITS = ReasonerSettings(limits=ReasonerLimits(max_observation_chars=100, max_options=3,
+                                                max_deadline_s=10.0))
 
 
 def check(req: ReasonerRequest) -> None:

@@ -11,14 +11,15 @@ from pydantic import ValidationError
 from pydantic_settings import BaseSettings
 
 from services.control.settings import ControlSettings
-from services.dashboard.settings import DashboardSettings
-from services.embedding.settings import EmbeddingSettings
-from services.reasoner.settings import ReasonerSettings
-from shared.settings import env_names, to_env
+from services.dashboard.settings import DashboardLimits, DashboardSettings
+from services.embedding.settings import EmbeddingLimits, EmbeddingSettings, EmbeddingTuning
+from services.reasoner.settings import Hedge, ReasonerSettings
+from services.sim.settings import SimSettings
+from shared.settings import env_names, read_settings, to_env
 from tools.fakes.llm import FakeLLMServiceSettings
 
 SERVICES: list[type[BaseSettings]] = [EmbeddingSettings, ReasonerSettings, ControlSettings,
-                                      DashboardSettings, FakeLLMServiceSettings]
+                                      SimSettings, DashboardSettings, FakeLLMServiceSettings]
 
 
 @pytest.fixture(autouse=True)
@@ -37,7 +38,7 @@ def test_shared_names_reach_every_service_and_the_rest_is_each_services_own(
     monkeypatch.setenv("AESOP_EMBEDDING_PORT", "9200")
     monkeypatch.setenv("AESOP_REASONER_FALLBACK", "rank")
     monkeypatch.setenv("AESOP_CONTROL_FALLBACK", "2")
-    monkeypatch.setenv("AESOP_DASHBOARD_TRAIL", "500")
+    monkeypatch.setenv("AESOP_DASHBOARD_LIMITS__TRAIL", "500")
     control, embedding = ControlSettings(), EmbeddingSettings()
     reasoner, dashboard = ReasonerSettings(), DashboardSettings()
     for s in (control, embedding, reasoner, dashboard):
@@ -45,7 +46,7 @@ def test_shared_names_reach_every_service_and_the_rest_is_each_services_own(
         assert s.admin_token is not None and s.admin_token.get_secret_value() == "t" * 20
     assert (control.port, embedding.port, reasoner.port, dashboard.port) == (9100, 9200, 8002,
                                                                             8080)
-    assert reasoner.fallback == "rank" and control.fallback == 2 and dashboard.trail == 500
+    assert reasoner.fallback == "rank" and control.fallback == 2 and dashboard.limits.trail == 500
 
 
 def test_a_name_of_another_service_is_not_read(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -78,9 +79,11 @@ def test_what_aesop_up_writes_is_read_back_the_same() -> None:
                         start_position=(0.0, 1.0, 1.5), robot="r2", admin_token="k" * 16,
                         zenoh_connect=["tcp/127.0.0.1:7447", "tcp/127.0.0.1:7448"]),
         ReasonerSettings(llm_base_url="http://llm:1/v1", fallback="rank",
-                         fallback_ranks={"holding zone": 1, "blue box": 2}, hedge_after_s=1.5),
-        EmbeddingSettings(detector_cache="quadrotor", microbatch=False, data_dir=Path("/d")),
-        DashboardSettings(trail=100, zenoh_multicast=True),
+                         fallback_ranks={"holding zone": 1, "blue box": 2},
+                         hedge=Hedge(model="m", after_s=1.5)),
+        EmbeddingSettings(detector_cache="quadrotor", tuning=EmbeddingTuning(microbatch=False),
+                          data_dir=Path("/d")),
+        DashboardSettings(limits=DashboardLimits(trail=100), zenoh_multicast=True),
     ]
     for settings in given:
         environ = to_env(settings)
@@ -110,3 +113,47 @@ def test_an_old_or_misspelt_name_is_pointed_out() -> None:
                        "(did you mean AESOP_REASONER_LLM_BASE_URL?)")
     assert said[2] == "aesop: AESOP_NOTHING_LIKE_IT_AT_ALL_XYZ is not a setting of any service"
     assert len(said) == 3
+
+
+def test_a_knob_moved_into_a_group_is_pointed_to_its_new_name() -> None:
+    from tools.cli import warn_unknown_settings
+
+    said = warn_unknown_settings({"AESOP_EMBEDDING_MAX_JOBS": "2",
+                                  "AESOP_REASONER_LLM_STREAM": "false",
+                                  "AESOP_SIM_STATE_RATE_HZ": "50", "AESOP_SIM_TRACE_HZ": "5",
+                                  "AESOP_EMBEDDING_LIMITS__MAX_JOB": "2",
+                                  "AESOP_EMBEDDING_LIMITS__MAX_JOBS": "2"})
+    assert said == [
+        "aesop: AESOP_EMBEDDING_LIMITS__MAX_JOB is not a setting of any service "
+        "(did you mean AESOP_EMBEDDING_LIMITS__MAX_JOBS?)",
+        "aesop: AESOP_EMBEDDING_MAX_JOBS is not a setting of any service "
+        "(did you mean AESOP_EMBEDDING_LIMITS__MAX_JOBS?)",
+        "aesop: AESOP_REASONER_LLM_STREAM is not a setting of any service "
+        "(did you mean AESOP_REASONER_REQUEST__STREAM?)",
+        "aesop: AESOP_SIM_STATE_RATE_HZ is not a setting of any service "
+        "(did you mean AESOP_SIM_REPORTS__RATE_HZ?)",
+        "aesop: AESOP_SIM_TRACE_HZ is not a setting of any service "
+        "(did you mean AESOP_SIM_TRACE__HZ?)"]
+
+
+def test_a_group_is_set_as_json_or_one_knob_at_a_time() -> None:
+    environ = {"AESOP_EMBEDDING_LIMITS": '{"max_items": 7, "max_jobs": 3}',
+               "AESOP_EMBEDDING_LIMITS__MAX_JOBS": "2", "AESOP_EMBEDDING_TUNING__MICROBATCH": "no"}
+    settings = read_settings(EmbeddingSettings, environ)
+    assert (settings.limits.max_items, settings.limits.max_jobs) == (7, 2)  # the knob wins
+    assert settings.limits.max_text_chars == EmbeddingLimits().max_text_chars  # the rest kept
+    assert settings.tuning.microbatch is False
+    with pytest.raises(ValidationError, match=r"limits\.max_job\b"):  # no such knob
+        read_settings(EmbeddingSettings, {"AESOP_EMBEDDING_LIMITS": '{"max_job": 3}'})
+    with pytest.raises(ValidationError, match=r"reports\.drop_rate"):
+        read_settings(SimSettings, {"AESOP_SIM_REPORTS__DROP_RATE": "1.5"})
+
+
+@pytest.mark.parametrize(("cls", "most"), [(EmbeddingSettings, 14), (ReasonerSettings, 13),
+                                           (ControlSettings, 11), (SimSettings, 10),
+                                           (DashboardSettings, 4)], ids=lambda c: str(c))
+def test_each_service_reads_few_variables_of_its_own(cls: type[BaseSettings], most: int) -> None:
+    """Operators set what is theirs; tuning knobs live in groups of one variable each."""
+    prefix = str(cls.model_config["env_prefix"])
+    own = {env_names(cls, name)[0] for name in cls.model_fields}
+    assert len({n for n in own if n.startswith(prefix)}) <= most

@@ -3,6 +3,7 @@ where a flight ended, the judge and the summary table."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -147,7 +148,7 @@ def test_plan_starts_the_fake_llm_without_a_backend_and_generates_the_token(
     assert float(sim["AESOP_SIM_TIME_SCALE"]) == pytest.approx(5.0 * 0.05)  # hardware dt
     assert sim["AESOP_SIM_PORT"] == "7" and sim["AESOP_ZENOH_USER"] == "robot-robot0"
     assert control["AESOP_CONTROL_VERDICT_STALE_S"] == "0.5"  # every setting, defaults too
-    assert "AESOP_CONTROL_MPC_MAX_ITER" not in control  # None: the MPC's own
+    assert json.loads(control["AESOP_CONTROL_TUNING"])["mpc_max_iter"] is None  # the MPC's own
     assert "AESOP_REASONER_LLM_BASE_URL" not in control  # only its own and the shared ones
     assert plan.hub.ready == "tcp" and plan.hub.argv[-1] == "tcp/127.0.0.1:1"
     assert not any(k.startswith("AESOP_") for k in plan.hub.env)
@@ -179,9 +180,9 @@ def test_plan_uses_a_configured_backend_and_token(tmp_path: Path) -> None:
 @pytest.mark.parametrize(("name", "value", "field"), [
     ("AESOP_CONTROL_VERDICT_STALE_S", "-1", "verdict_stale_s"),
     ("AESOP_SIM_START_POSITION", "[0, 1]", "start_position"),
-    ("AESOP_SIM_STATE_RATE_HZ", "0", "state_rate_hz"),
+    ("AESOP_SIM_REPORTS__RATE_HZ", "0", "rate_hz"),
     ("AESOP_REASONER_FALLBACK", "panic", "fallback"),
-    ("AESOP_EMBEDDING_MAX_ITEMS", "lots", "max_items"),
+    ("AESOP_EMBEDDING_LIMITS__MAX_ITEMS", "lots", "max_items"),
     ("AESOP_ROBOT", "no spaces", "robot"),
 ])
 def test_a_bad_setting_fails_the_plan_naming_the_field(tmp_path: Path, name: str, value: str,

@@ -36,7 +36,7 @@ import numpy as np
 from services.control.loop import ControlRuntime, FixedRateScheduler, TickTiming
 from services.control.scenario import Scenario, load_scenario, resolve_scenario
 from services.control.service import VehicleAges, sync_clock
-from services.control.settings import ControlSettings
+from services.control.settings import ControlSettings, ControlTuning
 from services.sim.client import SimClient
 from shared import topics
 from shared.bus import Bus, Received
@@ -88,7 +88,8 @@ async def time_loop(scenario: Scenario, rate_hz: float, ticks: int, bus: Bus, si
     As in the service, the ticks run on their own thread, the clock queries on another,
     and the resets (as ``POST /v1/reset`` would) on this event loop, beside them.
     """
-    settings = ControlSettings(rate_hz=rate_hz, robot=ROBOT, stats_window=max(ticks, 10),
+    settings = ControlSettings(rate_hz=rate_hz, robot=ROBOT,
+                               tuning=ControlTuning(stats_window=max(ticks, 10)),
                                verdict_stale_s=max(0.5, 5.0 / rate_hz))
     runtime = ControlRuntime(settings, scenario)
     scheduler = FixedRateScheduler(runtime.period_s, window=max(ticks, 10))
@@ -148,7 +149,7 @@ async def time_loop(scenario: Scenario, rate_hz: float, ticks: int, bus: Bus, si
     await sim.reset([float(v) for v in scenario.start_center])  # where the loop warmed up
     syncing.start()
     switch = sys.getswitchinterval()
-    sys.setswitchinterval(settings.switch_interval_s)
+    sys.setswitchinterval(settings.tuning.switch_interval_s)
     started = time.monotonic()
     try:
         await asyncio.to_thread(scheduler.run, tick, on_tick=note, max_ticks=ticks)

@@ -288,10 +288,10 @@ async def open_service(embedder: Embedder, data_dir: Path, *, microbatch: bool =
     """A started ``CacheService`` on ``data_dir`` that shares the already-loaded model."""
     from services.embedding.loading import EmbedderPool
     from services.embedding.service import CacheService
-    from services.embedding.settings import EmbeddingSettings
+    from services.embedding.settings import EmbeddingSettings, EmbeddingTuning
 
-    settings = EmbeddingSettings(data_dir=data_dir, microbatch=microbatch, fsync=fsync,
-                                 zenoh_worker=False)
+    settings = EmbeddingSettings(data_dir=data_dir, tuning=EmbeddingTuning(microbatch=microbatch),
+                                 fsync=fsync, zenoh_worker=False)
     service = CacheService(settings, embedders=EmbedderPool(loader=lambda _: embedder))
     await service.start()
     return service

@@ -56,8 +56,8 @@ def bench_rest(bench: Bench) -> dict[str, Any]:
 def _server(data_dir: Path, *, microbatch: bool) -> Iterator[str]:
     """``aesop serve embedding`` on a free loopback port; stopped on exit, whatever happens."""
     port = free_port()
-    env = {"AESOP_EMBEDDING_ZENOH_WORKER": "false",
-           "AESOP_EMBEDDING_MICROBATCH": str(microbatch).lower(), "AESOP_LOG_LEVEL": "warning"}
+    env = {"AESOP_EMBEDDING_ZENOH_WORKER": "false", "AESOP_LOG_LEVEL": "warning",
+           "AESOP_EMBEDDING_TUNING__MICROBATCH": str(microbatch).lower()}
     with ServiceProcess(["serve", "embedding", "--port", str(port), "--data-dir",
                          str(data_dir / "data")], port=port, env=env,
                         log_path=data_dir / "server.log", unset=["AESOP_ADMIN_TOKEN"]) as proc:
