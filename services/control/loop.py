@@ -47,7 +47,6 @@ from shared.messages import (
     Event,
     Mode,
     Observation,
-    Option,
     PlanSnapshot,
     ReasonerDecision,
     ReasonerRequest,
@@ -56,7 +55,7 @@ from shared.messages import (
     VehicleState,
 )
 
-from . import handshake
+from . import handshake, outbox
 from .aesop import ControlOutput
 from .controllers import Controller, make_controller, mpc_config
 from .dynamics import N_STATE, POS
@@ -70,13 +69,8 @@ from .verdicts import Cause, Sightings, verdict_age
 
 log = logging.getLogger(__name__)
 
-SOURCE = "control"
 SPIN_S = 0.0005  # s: the scheduler spins, rather than sleeps, this close to a deadline
 WARM_M = 0.05  # m: a waiting flight's controller is warmed up again if the vehicle is farther
-SILENT = ("the anomaly detector has gone silent: no verdict answers a recent observation, "
-          "so the scene is unmonitored and continuing is not an option")
-BLIND = ("the vehicle's state has stopped arriving (or was refused): the robot flies blind on "
-         "its last verified recovery branch, so continuing is not an option")
 Clock = Callable[[], float]
 Sleep = Callable[[float], Any]
 
@@ -229,28 +223,6 @@ class _Inputs:
     waiting: bool = False  # the flight has not started: nothing is stepped
 
 
-def options_for(regions: Sequence[Region], offered: Sequence[int], *,
-                continue_: bool = True) -> tuple[Option, ...]:
-    """Option 0 (continue, unless ``continue_`` is false) plus one option per offered
-    region, for the reasoner."""
-    by_index = {r.index: r for r in regions}
-    options = [Option(index=0, label="continue", description="keep flying the nominal task")
-               ] if continue_ else []
-    for index in offered:
-        region = by_index[index]
-        center = (np.asarray(region.position_lo) + np.asarray(region.position_hi)) / 2
-        where = ", ".join(f"{v:.1f}" for v in center)
-        what = "land" if region.kind == "landing" else "hover"
-        options.append(Option(index=index, label=region.label,
-                              description=f"{what} at {region.name} ({where}) m"))
-    return tuple(options)
-
-
-def points(states: np.ndarray) -> tuple[tuple[float, float, float], ...]:
-    """The x, y, z of each row of a ``(T+1, 12)`` trajectory."""
-    return tuple((float(x), float(y), float(z)) for x, y, z in np.asarray(states)[:, POS])
-
-
 def rest_at(position: Sequence[float]) -> np.ndarray:
     """The 12-state at rest at ``position`` (m)."""
     x = np.zeros(N_STATE)
@@ -290,8 +262,9 @@ class ControlRuntime:
         x0 = rest_at(scenario.start_center)  # warm-up only: the vehicle says where it is
         self.controller = self.build_controller(scenario, x0)
         self.vehicle = StateInput(
-            limit_s=settings.state_stale_ticks * self.period_s, frame=settings.vehicle_frame,
-            jump_m=settings.state_jump_m, reset_s=settings.state_reset_s)
+            limit_s=settings.vehicle.state_stale_ticks * self.period_s,
+            frame=settings.vehicle.frame, jump_m=settings.vehicle.state_jump_m,
+            reset_s=settings.vehicle.state_reset_s)
         self._last_x = x0  # the newest state the loop planned from
         self._warm_at = x0[POS].copy()  # where the controller was warmed up
         self._warming: Future[tuple[Controller, np.ndarray]] | None = None
@@ -447,18 +420,22 @@ class ControlRuntime:
     def _finish(self, output: ControlOutput, inputs: _Inputs, step_ms: float,
                 deadline: float, observation: Observation | None,
                 reading: StateReading) -> TickResult:
-        dt = self.scenario.dt
+        robot, dt = self.settings.robot, self.scenario.dt
         t = self._k * dt
         events = inputs.events
+        verdict = None if inputs.verdict is None else inputs.verdict.message
         request = None
         if output.request is not None:
-            request = self._request(output.request, inputs, observation, deadline,
-                                    output.consensus_left)
+            request = outbox.request(
+                robot=robot, request_id=uuid.uuid4().hex, cause=inputs.cause, verdict=verdict,
+                observation=observation, regions=self.scenario.regions,
+                offered=output.request, deadline_s=self._seconds_left(deadline, output))
         self.handshake = handshake.conclude(self.handshake, None if request is None else Asked(
             request.request_id, inputs.cause, None if observation is None else observation.text,
-            None if inputs.verdict is None else inputs.verdict.message.seq))
+            None if verdict is None else verdict.seq))
         events.extend(self._event("non_finite", "alarm", alarm) for alarm in output.alarms)
-        events.extend(self._output_events(output, request))
+        events.extend(outbox.mode_events(robot, self.mode, output, request.request_id
+                                         if request is not None else self.handshake.pending))
         self.mode = output.mode
         t_anom = None if output.t_anom is None else (self._k0 + output.t_anom) * dt
         if inputs.waiting:
@@ -468,75 +445,28 @@ class ControlRuntime:
             self._last_x = self.controller.state  # carried forward to this tick
         sent = None
         if not inputs.waiting:
-            sent = setpoint(robot=self.settings.robot, seq=self._setpoints, output=output,
+            sent = setpoint(robot=robot, seq=self._setpoints, output=output,
                             model=self.controller.model, reading=reading,
-                            valid_s=self.settings.setpoint_valid_ticks * self.period_s,
+                            valid_s=self.settings.vehicle.setpoint_valid_ticks * self.period_s,
                             mode=output.mode)
             self._setpoints += sent is not None
-        state = ControlState(  # no fresh state is not news: the last one planned from
-            robot=self.settings.robot, t=t, x=tuple(float(v) for v in self._last_x),
-            u=tuple(float(v) for v in output.u), mode=output.mode.value, t_anom=t_anom,
-            chosen=output.chosen, active_regions=tuple(int(i) for i in output.active_regions),
-            state_age_s=None if inputs.waiting or not reading.fresh or reading.age is None
-            else round(reading.age, 6))
-        plan = None
-        if output.plan is not None:
-            p = output.plan
-            plan = PlanSnapshot(
-                robot=self.settings.robot, t=t,
-                nominal=() if p.nominal is None else points(p.nominal),
-                recovery={int(i): points(s) for i, s in p.recovery.items()},
-                consensus_steps=int(p.consensus), solve_ms=max(0.0, float(p.solve_ms)),
-                status=str(p.status.value))
-        if not inputs.waiting:
             self._k += 1
-        return TickResult(state, plan, request, tuple(events), output, step_ms,
-                          inputs.anomaly, inputs.stale, reading, sent)
+        fresh = not inputs.waiting and reading.fresh
+        state = outbox.control_state(robot=robot, t=t, x=self._last_x, output=output,
+                                     t_anom=t_anom, state_age_s=reading.age if fresh else None)
+        return TickResult(state, outbox.plan_snapshot(robot, t, output.plan), request,
+                          tuple(events), output, step_ms, inputs.anomaly, inputs.stale,
+                          reading, sent)
 
-    def _request(self, offered: tuple[int, ...], inputs: _Inputs,
-                 observation: Observation | None, deadline: float,
-                 consensus_left: int | None) -> ReasonerRequest:
-        robot = self.settings.robot
-        silent = inputs.cause in (Cause.SILENCE, Cause.VEHICLE)
-        if silent:  # the reasoner is told, and may not answer "continue"
-            last = "" if observation is None else f"; the last observation:\n{observation.text}"
-            seq = observation.seq if observation is not None else (
-                0 if inputs.verdict is None else inputs.verdict.message.seq)
-            why = SILENT if inputs.cause is Cause.SILENCE else BLIND
-            observation = Observation(robot=robot, seq=seq, text=why + last)
-        elif observation is None:
-            text = "the anomaly detector flagged the scene; no observation text was received"
-            seq = 0 if inputs.verdict is None else inputs.verdict.message.seq
-            observation = Observation(robot=robot, seq=seq, text=text)
-        # The decision must be here by the tick at k = K: the controller says how many
-        # ticks are left (fewer than K when a hold had already spent some).
-        left = max(self.scenario.consensus if consensus_left is None else consensus_left, 0)
+    def _seconds_left(self, deadline: float, output: ControlOutput) -> float:
+        """The reasoner's deadline (s from now) for a request raised at the tick whose
+        deadline was ``deadline``: the decision must be here by the tick at k = K, and the
+        controller says how many ticks are left (fewer than K when a hold had already spent
+        some), less the margin for the trip back."""
+        left = output.consensus_left
+        left = max(self.scenario.consensus if left is None else left, 0)
         due = deadline + left * self.period_s
-        deadline_s = max(due - self.clock() - self.settings.decision_margin_s, 1e-3)
-        verdict = None if inputs.verdict is None else inputs.verdict.message
-        named = verdict if verdict is not None and verdict.is_anomaly and not silent else None
-        unusual = named.detections if named is not None else ()
-        pair = named.pair if named is not None else None
-        return ReasonerRequest(robot=robot, request_id=uuid.uuid4().hex,
-                               observation=observation,
-                               options=options_for(self.scenario.regions, offered,
-                                                   continue_=not silent),
-                               deadline_s=deadline_s, unusual=unusual, unusual_pair=pair)
-
-    def _output_events(self, output: ControlOutput, request: ReasonerRequest | None
-                       ) -> list[Event]:
-        said = "; ".join(output.events)
-        if output.mode is self.mode:
-            return [self._event("controller", "info", text) for text in output.events]
-        fallback = output.mode is Mode.RECOVERING and output.fallback
-        kind = "fallback" if fallback else "mode_change"
-        severity: Severity = "alarm" if fallback else \
-            ("info" if output.mode is Mode.NOMINAL else "warning")
-        return [self._event(kind, severity, said or f"{self.mode.value} -> {output.mode.value}",
-                            **{"from": self.mode.value, "to": output.mode.value,
-                               "chosen": output.chosen, "fallback": output.fallback,
-                               "request_id": (request.request_id if request
-                                              else self.handshake.pending)})]
+        return max(due - self.clock() - self.settings.decision_margin_s, 1e-3)
 
     def _waiting_event(self) -> Event:
         return self._event("waiting", "info", "sending nothing (the vehicle holds itself) "
@@ -545,8 +475,7 @@ class ControlRuntime:
 
     def _event(self, kind: str, severity: Severity, message: str,
                **data: str | int | float | bool | None) -> Event:
-        return Event(robot=self.settings.robot, source=SOURCE, kind=kind, severity=severity,
-                     message=message, data=data)
+        return outbox.event(self.settings.robot, kind, severity, message, **data)
 
     # ----------------------------------------------------------------- changes between ticks
 
