@@ -104,10 +104,12 @@ class _Decoder(Generic[M]):
     (``on_error`` is told of each, e.g. to count it in a service's metrics)."""
 
     def __init__(self, key_expr: str, model: type[M],
-                 on_error: Callable[[], None] | None = None) -> None:
+                 on_error: Callable[[], None] | None = None,
+                 admit: Callable[[str], bool] | None = None) -> None:
         self.key_expr = key_expr
         self.model = model
         self.on_error = on_error
+        self.admit = admit
         self.received = 0
         self.decode_errors = 0
         self._lock = threading.Lock()
@@ -119,6 +121,8 @@ class _Decoder(Generic[M]):
             return None
         received_at = time.monotonic()
         key = str(sample.key_expr)
+        if self.admit is not None and not self.admit(key):
+            return None  # refused before it costs a decode (the caller counted it)
         try:
             message = self.model.decode(sample.payload.to_bytes())
         except Exception as exc:  # a bad payload must never reach the loop
@@ -291,10 +295,10 @@ class Subscription(_Stream[Received[M]], _Decoding[M]):
 
     def __init__(
         self, session: zenoh.Session, key_expr: str, model: type[M], *, maxsize: int = 64,
-        on_error: Callable[[], None] | None = None,
+        on_error: Callable[[], None] | None = None, admit: Callable[[str], bool] | None = None,
     ) -> None:
         self._queue: _LoopQueue[Received[M]] = _LoopQueue(maxsize)
-        self._decoder = _Decoder(key_expr, model, on_error)
+        self._decoder = _Decoder(key_expr, model, on_error, admit)
         self._subscriber = session.declare_subscriber(key_expr, self._on_sample)
         self._undeclare = _once(self._subscriber.undeclare)
 
@@ -458,11 +462,14 @@ class Bus:
         publisher.put(msg.encode())
 
     def subscribe(self, key_expr: str, model: type[M], *, maxsize: int = 64,
-                  on_error: Callable[[], None] | None = None) -> Subscription[M]:
+                  on_error: Callable[[], None] | None = None,
+                  admit: Callable[[str], bool] | None = None) -> Subscription[M]:
         """An async iterator of ``model`` messages; call from inside the running loop.
-        ``on_error`` is called (on a Zenoh thread) for each sample that does not decode."""
+        ``on_error`` is called (on a Zenoh thread) for each sample that does not decode;
+        ``admit(key)`` (on a Zenoh thread, quick) is asked first, and a sample it refuses
+        is neither decoded nor queued."""
         return self._adopt(Subscription(self._open_session(), key_expr, model, maxsize=maxsize,
-                                        on_error=on_error))
+                                        on_error=on_error, admit=admit))
 
     def latest(self, key_expr: str, model: type[M],
                on_update: Callable[[], None] | None = None) -> Latest[M]:

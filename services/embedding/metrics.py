@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator, Mapping
+
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+from prometheus_client.core import CounterMetricFamily
+from prometheus_client.registry import Collector
 
 from .service import CacheService
 
@@ -21,6 +25,8 @@ class EmbeddingMetrics:
             "aesop_embedding_bus_rejected", "Observations on the bus not scored: a field over "
             "its HTTP limit (no verdict answers them; the control loop sees silence)",
             ["field"], registry=registry)
+        self.dropped = Dropped()
+        registry.register(self.dropped)
         size = Gauge("aesop_embedding_cache_size", "Experiences per cache", ["cache"],
                      registry=registry)
         self.size = size
@@ -29,3 +35,20 @@ class EmbeddingMetrics:
     def refresh(self) -> None:
         for name in self.service.names():
             self.size.labels(name).set(self.service.entry(name).cache.size)
+
+
+class Dropped(Collector):
+    """``aesop_embedding_observations_dropped_total{robot, reason}``, read at scrape time
+    from the bus worker's inbox (its robots are bounded, so are the labels)."""
+
+    def __init__(self) -> None:
+        self.source: Callable[[], Mapping[tuple[str, str], int]] | None = None
+
+    def collect(self) -> Iterator[CounterMetricFamily]:
+        family = CounterMetricFamily(
+            "aesop_embedding_observations_dropped", "Observations on the bus not scored, "
+            "per robot: over its rate, superseded in its full queue, or past the robots "
+            "tracked", labels=["robot", "reason"])
+        for (robot, reason), n in sorted((self.source() if self.source else {}).items()):
+            family.add_metric([robot, reason], n)
+        yield family

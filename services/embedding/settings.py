@@ -32,6 +32,10 @@ class EmbeddingLimits(Group):
     # pending proposals (scenes the reasoner answered "continue" for) a cache keeps; past
     # it a new scene is not proposed (logged), a known one is still counted
     max_pending_proposals: int = Field(default=1_000, ge=0)
+    # observations per second scored per robot (a burst of one second's worth); past it
+    # refused before decoding, counted, and said in an alarm on the robot's event key
+    robot_hz: float = Field(default=25.0, gt=0.0, le=10_000.0)
+    max_robots: int = Field(default=256, ge=1)  # robots tracked at once by the bus worker
 
 
 class EmbeddingTuning(Group):

@@ -4,6 +4,11 @@ Subscribes ``aesop/*/observation``; every observation is scored against the
 detector cache through the service's micro-batcher (concurrent observations
 share one embedding call) and answered with an ``AnomalyVerdict`` on
 ``aesop/{robot}/anomaly``. An uncalibrated cache answers "anomaly" (fail-safe).
+Observations wait per robot and are scored in turn (:mod:`.fairness`): a robot past
+its rate is refused before its message is decoded, so one robot's flood neither
+delays nor drops another's verdicts; refusals are counted per robot
+(``aesop_embedding_observations_dropped_total``) and said, at most every 10 s, in an
+``observations_dropped`` alarm on that robot's event key.
 
 It also learns from the slow reasoner (:mod:`.proposals`): it remembers the
 observations it flagged and the reasoner requests it sees, and when an LLM's decision
@@ -16,6 +21,7 @@ made, counted, accepted or rejected is published as an ``Event`` (kind
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import time
 from collections import OrderedDict
@@ -23,7 +29,7 @@ from collections.abc import Callable
 from typing import Any
 
 from shared import topics
-from shared.bus import Bus, Received
+from shared.bus import Bus, Received, Subscription
 from shared.messages import (
     AnomalyVerdict,
     Event,
@@ -34,6 +40,7 @@ from shared.messages import (
 from shared.pump import MessagePump
 
 from .errors import DetectorError
+from .fairness import OTHER, FairInbox, Reason
 from .proposals import Proposal
 from .scorer import ScoreBatch
 from .service import CacheService
@@ -42,6 +49,7 @@ from .settings import EmbeddingSettings
 log = logging.getLogger(__name__)
 
 REMEMBERED = 1024  # flagged observations and reasoner requests kept to match decisions
+DROPS_EVERY_S = 10.0  # at most one observations_dropped alarm per robot this often
 
 
 def make_verdict(obs: Observation, robot: str, batch: ScoreBatch, cache: str,
@@ -66,7 +74,8 @@ def make_verdict(obs: Observation, robot: str, batch: ScoreBatch, cache: str,
 class DetectorWorker:
     def __init__(self, service: CacheService, bus: Bus, *, cache: str,
                  max_in_flight: int = 256, metrics: Any = None, owns_bus: bool = False,
-                 max_text_chars: int = 4000) -> None:
+                 max_text_chars: int = 4000, robot_hz: float = 25.0,
+                 max_robots: int = 256) -> None:
         self.service = service
         # as over HTTP (AESOP_EMBEDDING_LIMITS__MAX_TEXT_CHARS)
         self.max_text_chars = max_text_chars
@@ -74,9 +83,15 @@ class DetectorWorker:
         self.owns_bus = owns_bus
         self.cache = cache
         self.metrics = metrics
-        self._pump = MessagePump(bus, topics.observation(topics.ANY_ROBOT), Observation,
-                                 self._handle, max_in_flight=max_in_flight, maxsize=1024,
-                                 on_undecodable=self._undecodable)
+        self.max_in_flight = max_in_flight
+        self.inbox: FairInbox[Received[Observation]] = FairInbox(rate_hz=robot_hz,
+                                                                 max_robots=max_robots)
+        if metrics is not None:
+            metrics.dropped.source = self.inbox.counts
+        self._scoring: set[asyncio.Task[None]] = set()
+        self._observations: Subscription[Observation] | None = None
+        self._reported: dict[tuple[str, Reason], int] = {}  # drops said in an alarm so far
+        self._reported_at: dict[str, float] = {}
         self._last_alarm = 0.0
         # (robot, seq) -> the flagged observation and its verdict; request id -> request
         self._flagged: OrderedDict[tuple[str, int], tuple[Observation, AnomalyVerdict]] = \
@@ -96,21 +111,99 @@ class DetectorWorker:
 
         def make(service: CacheService, metrics: Any) -> DetectorWorker:
             bus = Bus.open(settings, "embedding")
+            limits = settings.limits
             return cls(service, bus, cache=settings.detector_cache, metrics=metrics,
-                       owns_bus=True, max_text_chars=settings.limits.max_text_chars)
+                       owns_bus=True, max_text_chars=limits.max_text_chars,
+                       robot_hz=limits.robot_hz, max_robots=limits.max_robots)
 
         return make
 
     async def run(self) -> None:
-        await asyncio.gather(self._pump.run(), *(pump.run() for pump in self._learning))
+        reporting = asyncio.create_task(self._report_drops())
+        try:
+            await asyncio.gather(self._receive(), *(pump.run() for pump in self._learning))
+        finally:
+            reporting.cancel()
 
     async def stop(self) -> None:
-        for pump in (self._pump, *self._learning):
+        if self._observations is not None:
+            self._observations.close()
+        if self._scoring:
+            await asyncio.gather(*self._scoring, return_exceptions=True)
+        for pump in self._learning:
             await pump.stop()
         if self._proposal_event in self.service.review.listeners:
             self.service.review.listeners.remove(self._proposal_event)
         if self.owns_bus:
             self.bus.close()
+
+    def _admit(self, key: str) -> bool:
+        """On a Zenoh thread, before decoding: within the robot's rate?"""
+        try:
+            robot = topics.robot_of(key)
+        except ValueError:
+            return False
+        return self.inbox.admit(robot) is None
+
+    async def _receive(self) -> None:
+        """Observations into the per-robot inbox as they arrive (this never waits for
+        scoring, so the subscription's own queue never backs up), scored in turn."""
+        self._observations = self.bus.subscribe(
+            topics.observation(topics.ANY_ROBOT), Observation, maxsize=1024,
+            on_error=self._undecodable, admit=self._admit)
+        async for received in self._observations:
+            self.inbox.put(topics.robot_of(received.key), received)
+            self._dispatch()
+
+    def _dispatch(self) -> None:
+        while len(self._scoring) < self.max_in_flight:
+            nxt = self.inbox.take()
+            if nxt is None:
+                return
+            robot, received = nxt
+            task = asyncio.create_task(self._handle(received))
+            self._scoring.add(task)
+            task.add_done_callback(functools.partial(self._scored, robot=robot))
+
+    def _scored(self, task: asyncio.Task[None], *, robot: str) -> None:
+        self._scoring.discard(task)
+        self.inbox.done(robot)
+        if not task.cancelled() and task.exception() is not None:
+            log.error("scoring an observation of %s failed", robot, exc_info=task.exception())
+        if self._observations is not None and not self._observations.closed:
+            self._dispatch()
+
+    async def _report_drops(self) -> None:
+        """Each robot whose observations were refused since its last alarm gets one more,
+        at most every :data:`DROPS_EVERY_S`."""
+        while True:
+            await asyncio.sleep(1.0)
+            counts = self.inbox.counts()
+            self._reported = {k: v for k, v in self._reported.items() if k in counts}
+            now = time.monotonic()
+            new: dict[str, dict[Reason, int]] = {}
+            for (robot, reason), n in counts.items():
+                if n > self._reported.get((robot, reason), 0):
+                    new.setdefault(robot, {})[reason] = n - self._reported.get((robot, reason), 0)
+            for robot, reasons in new.items():
+                if now - self._reported_at.get(robot, -DROPS_EVERY_S) < DROPS_EVERY_S:
+                    continue
+                self._reported_at[robot] = now
+                for reason in reasons:
+                    self._reported[robot, reason] = counts[robot, reason]
+                self._say_dropped(robot, reasons)
+            self._reported_at = {r: t for r, t in self._reported_at.items()
+                                 if now - t < DROPS_EVERY_S}
+
+    def _say_dropped(self, robot: str, reasons: dict[Reason, int]) -> None:
+        said = ", ".join(f"{n} {WHY[reason]}" for reason, n in sorted(reasons.items()))
+        message = f"observations of {robot} not scored: {said}"
+        log.warning("%s", message)
+        if robot == OTHER:  # no robot to tell: the log and the metric say it
+            return
+        self.bus.publish(topics.event(robot), Event(
+            robot=robot, source="embedding", kind="observations_dropped", severity="alarm",
+            message=message, data=dict(reasons)))
 
     async def _handle(self, received: Received[Observation]) -> None:
         start = time.perf_counter()
@@ -190,6 +283,11 @@ class DetectorWorker:
         self.bus.publish(topics.event(robot), Event(
             robot=robot, source="embedding", kind="detector_unavailable", severity="alarm",
             message=message))
+
+
+WHY = {"rate": "over its rate (AESOP_EMBEDDING_LIMITS__ROBOT_HZ)",
+       "full": "superseded while its queue was full",
+       "robots": "from robots past AESOP_EMBEDDING_LIMITS__MAX_ROBOTS"}
 
 
 def remember(kept: OrderedDict[Any, Any], key: Any, value: Any) -> None:

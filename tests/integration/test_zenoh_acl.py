@@ -28,7 +28,13 @@ from shared.messages import (
 )
 from shared.process import free_port
 from shared.settings import BusSettings
-from tools.stack.acl import new_passwords, robot_user, users_of, write_credentials
+from tools.stack.acl import (
+    MAX_OBSERVATION_HZ,
+    new_passwords,
+    robot_user,
+    users_of,
+    write_credentials,
+)
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -215,3 +221,29 @@ def test_control_asks_a_robot_its_clock_and_no_one_else_may_answer_or_ask(hub: H
             time.sleep(0.1)
         assert set(got) == {1000.0}
         assert ask_clock(dashboard, "robot-a") == []
+
+
+def test_a_robot_flooding_its_observations_is_cut_to_its_rate_at_the_hub(hub: Hub) -> None:
+    """Issue 26, finding 1, at the router: robot-a's flood at about 2 kHz reaches the
+    subscribers at the hub's per-session observation rate; robot-b, on its own session,
+    loses nothing."""
+    with hub.session("monitor") as monitor, hub.session(robot_user("robot-a")) as robot_a, \
+            hub.session(robot_user("robot-b")) as robot_b:
+        heard = Heard(monitor, "aesop/*/observation")
+        a, b = "aesop/robot-a/observation", "aesop/robot-b/observation"
+        routed(lambda: robot_b.publish(b, observation("robot-b", 0)), heard, "robot-b")
+        time.sleep(1.0)  # a second of quiet: the hub's window for robot-a starts afresh
+        heard.keys.clear()
+        stop = time.monotonic() + 2.0
+        flood, sent_b = 0, 0
+        while time.monotonic() < stop:
+            robot_a.publish(a, observation("robot-a", flood))
+            flood += 1
+            if flood % 200 == 0:  # robot-b at about 10 Hz meanwhile
+                sent_b += 1
+                robot_b.publish(b, observation("robot-b", sent_b))
+            time.sleep(0.0005)
+        time.sleep(0.5)
+    assert flood > 1000 and sent_b >= 5
+    assert heard.keys.count(b) == sent_b
+    assert heard.keys.count(a) <= 2.5 * MAX_OBSERVATION_HZ  # 2 s at the rate, and slack

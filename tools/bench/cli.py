@@ -1,4 +1,4 @@
-"""``aesop bench detector|reasoner|mpc|closed-loop|loop|bus``: the benchmarks, as tables or
+"""``aesop bench detector|reasoner|mpc|closed-loop|loop|bus|fairness``: the benchmarks, as tables or
 one JSON object (``--json``). They need the ``bench`` extra."""
 
 from __future__ import annotations
@@ -88,6 +88,19 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="embedding model (default: onnx:all-MiniLM-L6-v2, the service's)")
     bb.add_argument("--json", action="store_true")
     bb.set_defaults(func=cmd_bench_bus)
+    bf = bsub.add_parser("fairness", help="one robot floods its observations: another robot's "
+                         "verdict latency and losses, through the hub (or --direct)")
+    bf.add_argument("--flood-hz", type=float, default=2000.0,
+                    help="robot1's observations per second (default 2000)")
+    bf.add_argument("--rate", type=float, default=10.0, help="robot0's per second (10)")
+    bf.add_argument("--seconds", type=float, default=15.0,
+                    help="each phase, alone and flooded (default 15)")
+    bf.add_argument("--direct", action="store_true",
+                    help="no hub: the robots reach the service as peers (its own defence only)")
+    bf.add_argument("--model", default=None,
+                    help="embedding model (default: onnx:all-MiniLM-L6-v2, the service's)")
+    bf.add_argument("--json", action="store_true")
+    bf.set_defaults(func=cmd_bench_fairness)
     bench.set_defaults(needs_bench_extra=True)
 
 
@@ -208,6 +221,25 @@ def cmd_bench_bus(args: argparse.Namespace) -> int:
                                cache_detections=args.cache_detections, table_out=not args.json)
     except (BenchError, ServiceFailed) as exc:
         print(f"aesop: bench bus: {exc}", file=sys.stderr)
+        return 1
+    if args.json:
+        emit(result, True)
+    return 0
+
+
+def cmd_bench_fairness(args: argparse.Namespace) -> int:
+    from shared.process import ServiceFailed
+    from tools.bench.bus import BenchError
+    from tools.bench.fairness import run_fairness_bench
+
+    if not (args.flood_hz > 0 and args.rate > 0 and args.seconds > 0):
+        raise CliError("--flood-hz, --rate and --seconds must be positive")
+    try:
+        result = run_fairness_bench(seconds=args.seconds, rate_hz=args.rate,
+                                    flood_hz=args.flood_hz, direct=args.direct,
+                                    model=args.model, table_out=not args.json)
+    except (BenchError, ServiceFailed) as exc:
+        print(f"aesop: bench fairness: {exc}", file=sys.stderr)
         return 1
     if args.json:
         emit(result, True)

@@ -13,6 +13,10 @@ router's ACL then allows, per user, only what that part of the stack does
   publishes set-points and asks the clock;
 - ``monitor`` (``aesop watch``, a recorder) only reads.
 
+The router also passes on at most ``max_observation_hz`` observations per second
+from each session (its ``downsampling``), so a robot flooding its own key loads the
+network and the detector no more than a robot at that rate.
+
 An ACL is enforced on what passes through the router, so sessions must be clients
 of it (``AESOP_ZENOH_MODE=client``): peers would open direct links around it. A
 message larger than ``max_message_bytes`` is dropped by the router.
@@ -38,6 +42,11 @@ SERVICE_PUTS: Mapping[str, tuple[str, ...]] = {
 CLOCK = "aesop/*/vehicle/clock"  # the vehicle answers, control asks
 MONITOR = "monitor"
 MAX_MESSAGE_BYTES = 1024 * 1024  # the largest message the router passes on
+# observations per second the router passes on from one session (a robot): a floor of
+# 20 ms between two, twice the detector's own per-robot rate (AESOP_EMBEDDING_LIMITS__
+# ROBOT_HZ, 25, a token bucket that lets a second's burst through), so a flood is cut
+# before it crosses the network and a camera's jitter is not
+MAX_OBSERVATION_HZ = 50.0
 
 
 def robot_user(robot: str) -> str:
@@ -103,6 +112,13 @@ def size_cap(max_message_bytes: int = MAX_MESSAGE_BYTES) -> list[dict[str, Any]]
              "size_limit": max_message_bytes}]
 
 
+def rate_cap(max_observation_hz: float = MAX_OBSERVATION_HZ) -> list[dict[str, Any]]:
+    """The router's ``downsampling``: observations from each session (it keeps a
+    window per session and rule) at most this often; the rest are dropped."""
+    return [{"id": "observation-rate", "flows": ["ingress"], "messages": ["put"],
+             "rules": [{"key_expr": "aesop/*/observation", "freq": max_observation_hz}]}]
+
+
 def new_passwords(users: Iterable[str]) -> dict[str, str]:
     return {user: secrets.token_urlsafe(24) for user in users}
 
@@ -145,13 +161,14 @@ ROUTER_HEADER = """\
 // secret zenoh-users, made by `aesop zenoh credentials deploy/secrets`); each service may
 // publish only its own keys, robot-<id> only its own observations, events and vehicle
 // state (and answer its clock), monitor only reads; a message past the size limit is
-// dropped. See deploy/README.md.
+// dropped, and observations past the rate per session. See deploy/README.md.
 """
 
 
 def router_config_text(robots: Sequence[str], *, listen: str = "tcp/[::]:7447",
                        users_file: str = "/run/secrets/zenoh-users",
-                       max_message_bytes: int = MAX_MESSAGE_BYTES) -> str:
+                       max_message_bytes: int = MAX_MESSAGE_BYTES,
+                       max_observation_hz: float = MAX_OBSERVATION_HZ) -> str:
     """A router config file (JSON5: a comment, then JSON) with the stack's ACL."""
     config = {
         "mode": "router",
@@ -160,5 +177,6 @@ def router_config_text(robots: Sequence[str], *, listen: str = "tcp/[::]:7447",
         "transport": {"auth": {"usrpwd": {"dictionary_file": users_file}}},
         "access_control": stack_acl(robots),
         "low_pass_filter": size_cap(max_message_bytes),
+        "downsampling": rate_cap(max_observation_hz),
     }
     return ROUTER_HEADER + json.dumps(config, indent=2) + "\n"

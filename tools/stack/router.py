@@ -5,7 +5,8 @@ Every service of the stack is a client that connects here, with multicast
 scouting off, so nothing leaves the machine. With ``--users`` every session must
 authenticate (a ``user:password`` dictionary) and the access-control list of
 :mod:`.acl` applies (``--robot`` names the robots it lets publish observations);
-a message past ``--max-message-bytes`` is dropped. It serves until SIGINT/SIGTERM.
+a message past ``--max-message-bytes`` is dropped, and observations past
+``--max-observation-hz`` per session. It serves until SIGINT/SIGTERM.
 
     python -m tools.stack.router --listen tcp/127.0.0.1:7447 \
         --users aesop-data/zenoh/users.txt --robot robot0
@@ -23,16 +24,18 @@ from pathlib import Path
 
 import zenoh
 
-from .acl import MAX_MESSAGE_BYTES, size_cap, stack_acl
+from .acl import MAX_MESSAGE_BYTES, MAX_OBSERVATION_HZ, rate_cap, size_cap, stack_acl
 
 
 def hub_config(listen: str, *, users: Path | None = None, robots: Sequence[str] = (),
-               max_message_bytes: int = MAX_MESSAGE_BYTES) -> zenoh.Config:
+               max_message_bytes: int = MAX_MESSAGE_BYTES,
+               max_observation_hz: float = MAX_OBSERVATION_HZ) -> zenoh.Config:
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps("router"))
     conf.insert_json5("listen/endpoints", json.dumps([listen]))
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("low_pass_filter", json.dumps(size_cap(max_message_bytes)))
+    conf.insert_json5("downsampling", json.dumps(rate_cap(max_observation_hz)))
     if users is not None:
         conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(users)))
         conf.insert_json5("access_control", json.dumps(stack_acl(robots)))
@@ -48,13 +51,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--robot", action="append", default=[],
                         help="a robot whose user may publish its observations (repeat)")
     parser.add_argument("--max-message-bytes", type=int, default=MAX_MESSAGE_BYTES)
+    parser.add_argument("--max-observation-hz", type=float, default=MAX_OBSERVATION_HZ,
+                        help="observations per second passed on from each session")
     args = parser.parse_args(argv)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     try:
         session = zenoh.open(hub_config(args.listen, users=args.users, robots=args.robot,
-                                        max_message_bytes=args.max_message_bytes))
+                                        max_message_bytes=args.max_message_bytes,
+                                        max_observation_hz=args.max_observation_hz))
     except zenoh.ZError as exc:
         print(f"hub: cannot listen on {args.listen}: {exc}", file=sys.stderr)
         return 2

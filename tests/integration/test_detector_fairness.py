@@ -1,0 +1,120 @@
+"""Issue 26, finding 1: one robot's flood starves no other robot's verdicts.
+
+A detector that scores about 500 texts per second (2 ms a text, as a real model on a
+busy machine is slower still) and two robots on a real Zenoh bus: robot1 floods its
+own observation key at about 2 kHz while robot0 publishes at 10 Hz. Every one of
+robot0's observations gets its verdict; robot1's surplus is refused at its own
+rate, counted per robot in /metrics and said in an alarm event on robot1's key.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from prometheus_client import CollectorRegistry, generate_latest
+
+from services.embedding.entries import Item
+from services.embedding.loading import EmbedderPool
+from services.embedding.metrics import EmbeddingMetrics
+from services.embedding.service import CacheService
+from services.embedding.settings import EmbeddingSettings
+from services.embedding.worker import DetectorWorker
+from shared import topics
+from shared.bus import Bus
+from shared.messages import AnomalyVerdict, Event, Observation
+from tests.fakes.hash_embedder import HashEmbedder
+from tests.zenoh_peers import async_wait_until, routed
+
+pytestmark = pytest.mark.timeout(120)
+
+NOMINAL = [f"a {c} box on the ground near a {t}" for c in ("red", "blue", "green", "white")
+           for t in ("drill", "chair")]
+FLOOD_S = 3.0
+
+
+class SlowEmbedder(HashEmbedder):
+    """2 ms per text: about 500 texts a second, a quarter of the flood."""
+
+    def _encode(self, batch: list[str]) -> np.ndarray:
+        time.sleep(0.002 * len(batch))
+        return super()._encode(batch)
+
+
+@pytest.fixture
+async def service(tmp_path: Path) -> AsyncIterator[CacheService]:
+    embedder = SlowEmbedder()
+    settings = EmbeddingSettings(data_dir=tmp_path, fsync=False, zenoh_worker=False)
+    svc = CacheService(settings, embedders=EmbedderPool(loader=lambda _: embedder))
+    await svc.start()
+    await svc.create("scene", model="hash", k=1)
+    await svc.add("scene", [Item(text=t) for t in NOMINAL])
+    await svc.calibrate("scene", "loo-quantile", alpha=0.9)
+    yield svc
+    await svc.close()
+
+
+def flood(bus: Bus, stop: threading.Event) -> int:
+    sent = 0
+    while not stop.is_set():
+        bus.publish(topics.observation("robot1"),
+                    Observation(robot="robot1", seq=sent, text=NOMINAL[sent % len(NOMINAL)]))
+        sent += 1
+        time.sleep(0.0005)
+    return sent
+
+
+async def test_a_flooding_robot_does_not_starve_another(service: CacheService, listener: Bus,
+                                                        connector: Bus) -> None:
+    registry = CollectorRegistry()
+    metrics = EmbeddingMetrics(registry, service)
+    worker = DetectorWorker(service, listener, cache="scene", metrics=metrics)
+    task = asyncio.create_task(worker.run())
+    got: dict[int, float] = {}
+    events: list[Event] = []
+    verdicts = connector.subscribe(topics.anomaly("robot0"), AnomalyVerdict, maxsize=1024)
+    alarms = connector.subscribe(topics.event("robot1"), Event, maxsize=1024)
+
+    async def collect() -> None:
+        async for v in verdicts:
+            got.setdefault(v.message.seq, v.received_at)
+
+    async def listen() -> None:
+        async for e in alarms:
+            events.append(e.message)
+
+    collectors = [asyncio.create_task(collect()), asyncio.create_task(listen())]
+    await routed(connector, listener)
+    await routed(listener, connector)
+
+    stop = threading.Event()
+    flooding = asyncio.create_task(asyncio.to_thread(flood, connector, stop))
+    await asyncio.sleep(0.5)  # the flood is on
+    sent: dict[int, float] = {}
+    for seq in range(1, 21):
+        sent[seq] = time.monotonic()
+        connector.publish(topics.observation("robot0"),
+                          Observation(robot="robot0", seq=seq, text=NOMINAL[seq % 8]))
+        await asyncio.sleep(0.1)
+    stop.set()
+    flooded = await flooding
+    await async_wait_until(lambda: set(sent) <= set(got), "robot0's verdicts", timeout=15.0)
+    late = max(got[s] - sent[s] for s in sent)
+    assert late < 2.0, f"robot0's slowest verdict took {late:.2f} s under robot1's flood"
+
+    dropped = "aesop_embedding_observations_dropped_total"
+    assert (registry.get_sample_value(dropped, {"robot": "robot1", "reason": "rate"}) or 0) > 0
+    assert 'robot="robot0"' not in generate_latest(registry).decode()
+    await async_wait_until(lambda: any(e.kind == "observations_dropped" for e in events),
+                           "robot1's alarm")
+    alarm = next(e for e in events if e.kind == "observations_dropped")
+    assert alarm.severity == "alarm" and alarm.robot == "robot1" and flooded > 1000
+    for t in collectors:
+        t.cancel()
+    await worker.stop()
+    await asyncio.wait_for(task, 10)
