@@ -4,9 +4,11 @@
   status, documented in ``/openapi.json`` with ``errors(...)``;
 - ``Guard``: with ``AESOP_ADMIN_TOKEN`` set, every route but the ops ones needs
   ``Authorization: Bearer <token>``, checked before the body is read; without it, only
-  loopback ``Host`` names; no cross-site requests; bodies counted as they stream in;
-- ``ops_router``: ``/healthz``, ``/readyz`` and ``/metrics`` (Prometheus, per-app registry);
-- ``serve``: run an app with uvicorn, refusing off-loopback exposure without a token.
+  loopback ``Host`` names; no cross-site requests; bodies counted as they stream in, each
+  part due within ``BODY_IDLE_S``, at most twice the body limit being read at once;
+- ``ops_router``: ``/healthz``, ``/readyz`` and ``/metrics`` (Prometheus, per-app registry).
+
+Running an app (connection limits, the header timeout) is :mod:`shared.serving`.
 """
 
 from __future__ import annotations
@@ -35,8 +37,6 @@ from starlette.datastructures import Headers
 from starlette.exceptions import HTTPException
 from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
-
-from .settings import ServiceSettings
 
 Next = Callable[[Request], Awaitable[Response]]
 T = TypeVar("T")
@@ -246,8 +246,19 @@ async def _client_left(request: Request) -> None:
         pass
 
 
+METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
+
+
+def method_label(method: str) -> str:
+    """A request's method as a metrics label: any other is ``other``, so made-up methods
+    cannot grow the label set."""
+    return method if method in METHODS else "other"
+
+
 class HttpMetrics:
-    """Request counters and latencies, in a registry owned by the app (no globals)."""
+    """Request counters and latencies, in a registry owned by the app (no globals). Every
+    label is bounded: the method (:func:`method_label`), the route's template (or
+    ``unmatched``) and the status."""
 
     def __init__(self, registry: CollectorRegistry, service: str) -> None:
         self.requests = Counter("aesop_http_requests", "HTTP requests",
@@ -263,10 +274,9 @@ class HttpMetrics:
             response = await call_next(request)
             route = request.scope.get("route")
             path = getattr(route, "path", "unmatched")
-            self.latency.labels(self.service, request.method, path).observe(
-                time.perf_counter() - start)
-            status = str(response.status_code)
-            self.requests.labels(self.service, request.method, path, status).inc()
+            method = method_label(request.method)
+            self.latency.labels(self.service, method, path).observe(time.perf_counter() - start)
+            self.requests.labels(self.service, method, path, str(response.status_code)).inc()
             return response
 
 
@@ -277,7 +287,8 @@ def ops_router(
 ) -> APIRouter:
     """``/healthz`` (the process answers), ``/readyz`` (``ready()`` returns None when ready,
     or a dict saying what is missing), ``/metrics`` (Prometheus text; ``refresh`` updates
-    gauges first)."""
+    gauges first, on the loop; the text is rendered on a worker thread, so a scrape does
+    not hold up the loop that also serves the bus)."""
     router = APIRouter()
 
     @router.get("/healthz")
@@ -297,7 +308,8 @@ def ops_router(
     async def metrics() -> Response:
         if refresh is not None:
             refresh()
-        return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)
+        text = await asyncio.to_thread(generate_latest, registry)
+        return Response(text, media_type=CONTENT_TYPE_LATEST)
 
     return router
 
@@ -357,6 +369,8 @@ def check_request(headers: Headers, path: str, method: str, *, token: SecretStr 
       page (a browser always sends it there): 403;
     - with a token, every path but the :func:`is_public` ones needs it (the bearer
       header, or a browser's ``aesop_token`` cookie): 401;
+    - a body where none belongs (a GET or HEAD, or any request to a public path) is
+      refused before a byte of it is read: 400;
     - a POST/PUT/PATCH body must be declared as JSON: 415.
     """
     host = headers.get("host", "")
@@ -372,6 +386,9 @@ def check_request(headers: Headers, path: str, method: str, *, token: SecretStr 
         raise Refusal(401, "unauthorized", "a valid 'Authorization: Bearer <token>' "
                       "header is required", "Authorization")
     has_body = headers.get("content-length", "0") != "0" or "transfer-encoding" in headers
+    if has_body and (method in ("GET", "HEAD") or is_public(path, public)):
+        raise Refusal(400, "body_not_allowed", f"a {method} to {path} carries no body",
+                      "body")
     kind = headers.get("content-type", "")
     if method in ("POST", "PUT", "PATCH") and has_body and "json" not in kind:
         raise Refusal(415, "unsupported_media_type", "send the body as JSON with "
@@ -379,16 +396,24 @@ def check_request(headers: Headers, path: str, method: str, *, token: SecretStr 
                       "Content-Type")
 
 
+BODY_IDLE_S = 10.0  # s a client may leave between two parts of a body (408 past it)
+
+
 class Guard:
     """ASGI middleware in front of every route: :func:`check_request` on the headers,
     then the body read as it streams in and refused (413) once past ``max_body_bytes``
-    whatever ``Content-Length`` said or did not say. The route then reads the body from
-    memory; later ``receive`` calls go to the client (so a disconnect is still seen).
-    A refused WebSocket is closed with 1008 (policy violation) before it is accepted."""
+    whatever ``Content-Length`` said or did not say, (408) when no part of it came for
+    ``body_idle_s``, or (503) when the bodies being read at once would hold more than
+    twice ``max_body_bytes``. A refused body closes its connection. The route then reads
+    the body from memory; later ``receive`` calls go to the client (so a disconnect is
+    still seen). A refused WebSocket is closed with 1008 (policy violation) before it is
+    accepted."""
 
     def __init__(self, app: ASGIApp, *, token: SecretStr | None, max_body_bytes: int,
-                 public: tuple[str, ...] = ()) -> None:
+                 public: tuple[str, ...] = (), body_idle_s: float = BODY_IDLE_S) -> None:
         self.app, self.token, self.max_body_bytes, self.public = app, token, max_body_bytes, public
+        self.body_idle_s = body_idle_s
+        self.reading = 0  # bytes of bodies being read now, over all requests
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] not in ("http", "websocket"):
@@ -405,26 +430,41 @@ class Guard:
             else:
                 response = error_response(refused.status, refused.code, refused.message,
                                           refused.field)
+                if refused.field == "body":  # the rest of it is not read: end there
+                    response.headers["Connection"] = "close"
                 await response(scope, receive, send)
             return
         await self.app(scope, receive, send)
 
     async def _read_body(self, receive: Receive) -> Receive:
         parts: list[bytes] = []
-        size = 0
-        while True:
-            message = await receive()
-            if message["type"] != "http.request":  # the client left before sending it all
-                first: Message = message
-                break
-            parts.append(message.get("body", b""))
-            size += len(parts[-1])
-            if size > self.max_body_bytes:
-                raise Refusal(413, "too_large", "request body is over the limit of "
-                              f"{self.max_body_bytes} bytes", "body")
-            if not message.get("more_body", False):
-                first = {"type": "http.request", "body": b"".join(parts), "more_body": False}
-                break
+        counted = 0  # what this body adds to self.reading
+        try:
+            while True:
+                try:
+                    message = await asyncio.wait_for(receive(), self.body_idle_s)
+                except TimeoutError:
+                    raise Refusal(408, "body_timeout", "no part of the request body came for "
+                                  f"{self.body_idle_s:g} s", "body") from None
+                if message["type"] != "http.request":  # the client left before sending it all
+                    first: Message = message
+                    break
+                part = message.get("body", b"")
+                if counted + len(part) > self.max_body_bytes:
+                    raise Refusal(413, "too_large", "request body is over the limit of "
+                                  f"{self.max_body_bytes} bytes", "body")
+                if self.reading + len(part) > 2 * self.max_body_bytes:
+                    raise Refusal(503, "busy", "the service is reading other large bodies "
+                                  "now: retry later", "body")
+                parts.append(part)
+                self.reading += len(part)
+                counted += len(part)
+                if not message.get("more_body", False):
+                    first = {"type": "http.request", "body": b"".join(parts),
+                             "more_body": False}
+                    break
+        finally:
+            self.reading -= counted
         sent = False
 
         async def replay() -> Message:
@@ -449,6 +489,7 @@ def service_app(
     limits: dict[str, dict[str, dict[str, Any]]] | None = None,
     max_body_bytes: int,
     public: tuple[str, ...] = (),
+    body_idle_s: float = BODY_IDLE_S,
 ) -> FastAPI:
     """A service's app with what every service has: the :class:`Guard` (host, origin,
     ``admin_token`` on every path but the ops ones and ``public``, JSON bodies of at most
@@ -460,17 +501,8 @@ def service_app(
     if limits:
         document_limits(app, limits)
     document_security(app, public)
-    app.add_middleware(Guard, token=admin_token, max_body_bytes=max_body_bytes, public=public)
+    app.add_middleware(Guard, token=admin_token, max_body_bytes=max_body_bytes, public=public,
+                       body_idle_s=body_idle_s)
     HttpMetrics(registry, service).install(app)  # outside the guard: refusals are counted
     app.include_router(ops_router(registry, ready, refresh))
     return app
-
-
-def serve(app: FastAPI, settings: ServiceSettings) -> None:
-    """Run ``app`` with uvicorn until SIGINT/SIGTERM."""
-    import uvicorn
-
-    settings.check_exposure()
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level=settings.log_level,
-                access_log=False)
-

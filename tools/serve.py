@@ -57,7 +57,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from services.embedding.api import create_app
     from services.embedding.settings import EmbeddingSettings
     from services.embedding.worker import DetectorWorker
-    from shared.http import serve
+    from shared.serving import serve
 
     settings = _exposed(EmbeddingSettings(**overrides))
     if settings.tuning.torch_threads:
@@ -74,7 +74,7 @@ def serve_reasoner(overrides: dict[str, Any]) -> int:
     from services.reasoner.deciding import keep_deadlines, settle
     from services.reasoner.settings import ReasonerSettings
     from services.reasoner.worker import ReasonerWorker
-    from shared.http import serve
+    from shared.serving import serve
 
     settings = _exposed(ReasonerSettings(**overrides))
     keep_deadlines()
@@ -89,7 +89,7 @@ def serve_control(overrides: dict[str, Any], scenario: str | None = None) -> int
     from services.control.service import SERVICE
     from services.control.settings import ControlSettings
     from shared.bus import Bus
-    from shared.http import serve
+    from shared.serving import serve
 
     if scenario is not None:
         overrides = {**overrides, "scenario": scenario}
@@ -109,7 +109,7 @@ def serve_sim(overrides: dict[str, Any], scenario: str | None = None) -> int:
     from services.sim.service import SERVICE
     from services.sim.settings import SimSettings
     from shared.bus import Bus
-    from shared.http import serve
+    from shared.serving import serve
 
     if scenario is not None:
         overrides = {**overrides, "scenario": scenario}
@@ -128,7 +128,7 @@ def serve_dashboard(overrides: dict[str, Any]) -> int:
     from services.dashboard.service import SERVICE
     from services.dashboard.settings import DashboardSettings
     from shared.bus import Bus
-    from shared.http import serve
+    from shared.serving import serve
 
     settings = _exposed(DashboardSettings(**overrides))
     serve(create_app(settings, bus_factory=lambda: Bus.open(settings, SERVICE)), settings)
