@@ -34,10 +34,32 @@ reasoner_decision = _robot_key("reasoner/decision")
 state = _robot_key("state")
 plan = _robot_key("plan")
 regions = _robot_key("regions")
-event = _robot_key("event")
 vehicle_state = _robot_key("vehicle/state")
 vehicle_setpoint = _robot_key("vehicle/setpoint")
 vehicle_clock = _robot_key("vehicle/clock")
+
+
+ROBOT_SOURCE = "robot"  # the source of the events a robot (its own software) publishes
+
+
+def event(robot: str, source: str) -> str:
+    """``aesop/<robot>/event/<source>``: each publisher of events has a key of its own
+    (``embedding``, ``reasoner``, ``control``, ``dashboard``, the robot's ``robot``), which
+    the router lets only that user put, so the key says who sent an event."""
+    return f"{PREFIX}/{_check(robot)}/event/{_check(source)}"
+
+
+def events(robot: str) -> str:
+    """Every source's events of ``robot``."""
+    return f"{PREFIX}/{_check(robot)}/event/*"
+
+
+def source_of(key: str) -> str:
+    """The source in a concrete event key such as ``aesop/robot0/event/control``."""
+    parts = key.split("/")
+    if len(parts) != 4 or parts[0] != PREFIX or parts[2] != "event":
+        raise ValueError(f"not an event key: {key!r}")
+    return parts[3]
 
 
 def health(service: str) -> str:

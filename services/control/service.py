@@ -36,6 +36,7 @@ from shared.messages import (
 )
 from shared.stats import spread
 
+from . import outbox
 from .loop import ControlRuntime, FixedRateScheduler, TickResult, TickTiming
 from .scenario import Scenario
 from .settings import ControlSettings
@@ -254,7 +255,7 @@ class ControlService:
         if result.plan is not None:
             self.bus.publish(topics.plan(robot), result.plan)
         for event in result.events:
-            self.bus.publish(topics.event(robot), event)
+            self.bus.publish(topics.event(robot, outbox.SOURCE), event)
         scenario, now = self.runtime.scenario, time.monotonic()
         if scenario is not self._regions_of or now - self._regions_at >= REGIONS_EVERY_S:
             self.bus.publish(topics.regions(robot), regions_message(scenario, robot))

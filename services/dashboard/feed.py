@@ -40,7 +40,7 @@ SOURCES: dict[str, tuple[Callable[[str], str], type[Message]]] = {
     "anomaly": (topics.anomaly, AnomalyVerdict),
     "request": (topics.reasoner_request, ReasonerRequest),
     "decision": (topics.reasoner_decision, ReasonerDecision),
-    "event": (topics.event, Event),
+    "event": (topics.events, Event),
     "regions": (topics.regions, Regions),
 }
 
@@ -60,8 +60,13 @@ Sink = Callable[[Update], None]
 
 
 def message_update(kind: str, got: Received[Message], now: float) -> Update:
-    # through pydantic's JSON encoder: a NaN or infinity becomes null, never invalid JSON
-    return Update(kind, got.key, json.loads(got.message.model_dump_json()), now)
+    """The message as JSON-ready data (through pydantic's JSON encoder: a NaN or infinity
+    becomes null, never invalid JSON). An event's ``source`` is the key it came on, which
+    only that source may put, whatever the event itself claims."""
+    message = json.loads(got.message.model_dump_json())
+    if kind == "event":
+        message["source"] = topics.source_of(got.key)
+    return Update(kind, got.key, message, now)
 
 
 async def follow(session: zenoh.Session, robot: str, sink: Sink, *,

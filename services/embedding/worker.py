@@ -15,7 +15,7 @@ observations it flagged and the reasoner requests it sees, and when an LLM's dec
 (never a fallback) answers "continue" to a request that offered it, for an observation
 this worker flagged, the observation is proposed to the detector cache. Each proposal
 made, counted, accepted or rejected is published as an ``Event`` (kind
-``proposal_<what>``) on ``aesop/{robot}/event``.
+``proposal_<what>``) on ``aesop/{robot}/event/embedding``.
 """
 
 from __future__ import annotations
@@ -48,6 +48,7 @@ from .settings import EmbeddingSettings
 
 log = logging.getLogger(__name__)
 
+SOURCE = "embedding"  # its events' source, and the last part of their key
 REMEMBERED = 1024  # flagged observations and reasoner requests kept to match decisions
 DROPS_EVERY_S = 10.0  # at most one observations_dropped alarm per robot this often
 
@@ -201,8 +202,8 @@ class DetectorWorker:
         log.warning("%s", message)
         if robot == OTHER:  # no robot to tell: the log and the metric say it
             return
-        self.bus.publish(topics.event(robot), Event(
-            robot=robot, source="embedding", kind="observations_dropped", severity="alarm",
+        self.bus.publish(topics.event(robot, SOURCE), Event(
+            robot=robot, source=SOURCE, kind="observations_dropped", severity="alarm",
             message=message, data=dict(reasons)))
 
     async def _handle(self, received: Received[Observation]) -> None:
@@ -261,8 +262,8 @@ class DetectorWorker:
     def _proposal_event(self, what: str, proposal: Proposal) -> None:
         """``proposal_proposed|accepted|rejected`` on the proposing robot's event key."""
         named = proposal.text if len(proposal.text) <= 200 else proposal.text[:199] + "…"
-        self.bus.publish(topics.event(proposal.robot), Event(
-            robot=proposal.robot, source="embedding", kind=f"proposal_{what}",
+        self.bus.publish(topics.event(proposal.robot, SOURCE), Event(
+            robot=proposal.robot, source=SOURCE, kind=f"proposal_{what}",
             message=f"{self.cache}: a scene the reasoner let pass was {what} as nominal "
                     f"({proposal.count}×): {' / '.join(named.splitlines())}",
             data={"cache": self.cache, "id": proposal.id, "state": proposal.state,
@@ -280,8 +281,8 @@ class DetectorWorker:
             return
         self._last_alarm = now
         log.warning("%s", message)
-        self.bus.publish(topics.event(robot), Event(
-            robot=robot, source="embedding", kind="detector_unavailable", severity="alarm",
+        self.bus.publish(topics.event(robot, SOURCE), Event(
+            robot=robot, source=SOURCE, kind="detector_unavailable", severity="alarm",
             message=message))
 
 

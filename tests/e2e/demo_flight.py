@@ -112,7 +112,7 @@ def script(robot: str) -> Iterator[list[tuple[str, Message]]]:
             robot=robot, seq=tick, score=score, threshold=THRESHOLD, is_anomaly=flagged, k=5,
             model="all-MiniLM-L6-v2", cache="scene", cache_version=1, latency_ms=14.0)))
         if tick == REQUEST_AT:
-            out.append((topics.event(robot), Event(
+            out.append((topics.event(robot, "control"), Event(
                 robot=robot, source="control", kind="mode_change", severity="warning",
                 message="nominal -> anomaly_pending", data={"to": "anomaly_pending"})))
             out.append((topics.reasoner_request(robot), ReasonerRequest(
@@ -126,7 +126,7 @@ def script(robot: str) -> Iterator[list[tuple[str, Message]]]:
                 robot=robot, request_id=request_id, choice=CHOICE, source="llm",
                 rationale="a person on the pad: land on the rooftop instead",
                 latency_ms=870.0, model="fake-llm")))
-            out.append((topics.event(robot), Event(
+            out.append((topics.event(robot, "control"), Event(
                 robot=robot, source="control", kind="mode_change", severity="alarm",
                 message="anomaly_pending -> recovering (y=3)", data={"to": "recovering"})))
         x = (*p, -SPEED, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
@@ -164,7 +164,7 @@ def fly(bus: Bus, robot: str, period_s: float = 0.04) -> None:
 
 def wait_following(bus: Bus, robot: str, base_url: str) -> None:
     """Publish a greeting event until the dashboard at ``base_url`` has one."""
-    key = topics.event(robot)
+    key = topics.event(robot, "test")
 
     def seen() -> bool:
         bus.publish(key, Event(robot=robot, source="test", kind="hello",

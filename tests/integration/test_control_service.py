@@ -134,7 +134,7 @@ class Stack:
         self.states = Inbox(bus, topics.state(ROBOT), ControlState)
         self.plans = Inbox(bus, topics.plan(ROBOT), PlanSnapshot)
         self.requests = Inbox(bus, topics.reasoner_request(ROBOT), ReasonerRequest)
-        self.events = Inbox(bus, topics.event(ROBOT), Event)
+        self.events = Inbox(bus, topics.events(ROBOT), Event)
         self.regions = Inbox(bus, topics.regions(ROBOT), Regions)
 
     def nominal_flight(self) -> None:

@@ -64,7 +64,7 @@ def test_watch_prints_the_flight_and_exits_0_on_ctrl_c(
         lines = Lines(proc)
 
         def greeted() -> bool:
-            listener.publish(topics.event(ROBOT), Event(robot=ROBOT, source="test",
+            listener.publish(topics.event(ROBOT, "test"), Event(robot=ROBOT, source="test",
                                                         kind="hello"))
             return bool(lines.having("event", "[info] test/hello"))
 

@@ -78,7 +78,7 @@ async def test_a_flooding_robot_does_not_starve_another(service: CacheService, l
     got: dict[int, float] = {}
     events: list[Event] = []
     verdicts = connector.subscribe(topics.anomaly("robot0"), AnomalyVerdict, maxsize=1024)
-    alarms = connector.subscribe(topics.event("robot1"), Event, maxsize=1024)
+    alarms = connector.subscribe(topics.events("robot1"), Event, maxsize=1024)
 
     async def collect() -> None:
         async for v in verdicts:

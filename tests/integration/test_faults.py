@@ -131,7 +131,7 @@ class Stack:
         self.tmp, self.bus, self.endpoint, self.token = tmp, bus, endpoint, token
         self.auth = {"Authorization": f"Bearer {token}"}
         self.states = Inbox(bus, topics.state(ROBOT), ControlState)
-        self.events = Inbox(bus, topics.event(ROBOT), Event)
+        self.events = Inbox(bus, topics.events(ROBOT), Event)
         self.requests = Inbox(bus, topics.reasoner_request(ROBOT), ReasonerRequest)
         self.decisions = Inbox(bus, topics.reasoner_decision(ROBOT), ReasonerDecision)
         self.verdicts = Inbox(bus, topics.anomaly(ROBOT), AnomalyVerdict)

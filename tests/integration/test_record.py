@@ -19,8 +19,8 @@ from mcap.reader import make_reader
 
 from shared import topics
 from shared.bus import Bus
-from shared.messages import ControlState, Event, Message, Observation
-from tools.recording.mcapfile import MODELS, read_messages
+from shared.messages import ControlState, Event, Observation
+from tools.recording.mcapfile import model_of, read_messages
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -84,7 +84,7 @@ def test_a_recording_is_an_indexed_mcap_with_a_json_schema_per_type(
     out = tmp_path / "flight.mcap"
     recorder = Recorder(endpoint, out)
     wait_recorded(recorder, 50)
-    listener.publish(topics.event("robot0"), Event(source="test", kind="probe"))
+    listener.publish(topics.event("robot0", "test"), Event(source="test", kind="probe"))
     time.sleep(1.2)  # one more progress line, with the event in it
     recorder.proc.send_signal(signal.SIGINT)
     assert recorder.proc.wait(30) == 0, recorder.lines
@@ -95,14 +95,15 @@ def test_a_recording_is_an_indexed_mcap_with_a_json_schema_per_type(
         assert summary is not None and summary.statistics is not None  # finished, indexed
         channels = {c.topic: c for c in summary.channels.values()}
         assert {"aesop/robot0/observation", "aesop/robot0/state",
-                "aesop/robot0/event"} <= set(channels)
+                "aesop/robot0/event/test"} <= set(channels)
         assert all(c.message_encoding == "json" for c in channels.values())
         for schema in summary.schemas.values():
             assert schema.encoding == "jsonschema"
             assert json.loads(schema.data)["title"] == schema.name
         count = 0
         for schema, channel, message in reader.iter_messages():
-            model: type[Message] = MODELS[channel.topic.split("/", 2)[2]]
+            model = model_of(channel.topic)
+            assert model is not None, channel.topic
             assert model.__name__ == schema.name
             model.decode(message.data)
             count += 1

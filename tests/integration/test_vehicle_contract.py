@@ -83,7 +83,7 @@ def test_the_documented_vehicle_is_flown_and_its_silence_is_an_anomaly(
         events: list[Event] = []
         requests: list[ReasonerRequest] = []
         subscribers = [  # every one, in order (a Latest slot would keep only the newest)
-            bus.session.declare_subscriber(topics.event(ROBOT), lambda sample: events.append(
+            bus.session.declare_subscriber(topics.events(ROBOT), lambda sample: events.append(
                 Event.decode(sample.payload.to_bytes()))),
             bus.session.declare_subscriber(topics.reasoner_request(ROBOT),
                                            lambda sample: requests.append(

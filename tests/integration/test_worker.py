@@ -119,7 +119,7 @@ async def test_an_observation_past_the_text_limit_is_not_scored(
     worker = DetectorWorker(svc, listener, cache="scene", metrics=metrics, max_text_chars=100)
     task = asyncio.create_task(worker.run())
     verdict_sub = connector.subscribe(topics.anomaly("robot0"), AnomalyVerdict)
-    events = connector.subscribe(topics.event("robot0"), Event)
+    events = connector.subscribe(topics.events("robot0"), Event)
     await routed(connector, listener)
     await routed(listener, connector)
     embedder.calls.clear()
@@ -258,7 +258,7 @@ async def ask(connector: Bus, sub: object, seq: int, text: str,
 async def test_a_continue_for_a_flagged_scene_is_proposed_once_with_a_count(
         scene_cache: CacheService, listener: Bus, connector: Bus) -> None:
     svc = scene_cache
-    events = connector.subscribe(topics.event(topics.ANY_ROBOT), Event)
+    events = connector.subscribe(topics.events(topics.ANY_ROBOT), Event)
     keyboard = flagged_scene("a keyboard")
     async with serving(svc, listener, connector) as sub:
         assert (await ask(connector, sub, 1, *keyboard)).is_anomaly

@@ -20,6 +20,7 @@ from shared import topics
 from shared.bus import Bus
 from shared.messages import (
     AnomalyVerdict,
+    Event,
     Mode,
     Observation,
     VehicleClock,
@@ -247,3 +248,23 @@ def test_a_robot_flooding_its_observations_is_cut_to_its_rate_at_the_hub(hub: Hu
     assert flood > 1000 and sent_b >= 5
     assert heard.keys.count(b) == sent_b
     assert heard.keys.count(a) <= 2.5 * MAX_OBSERVATION_HZ  # 2 s at the rate, and slack
+
+
+def test_each_publisher_puts_events_on_its_own_key_only(hub: Hub) -> None:
+    """Issue 26, finding 5: robot-a could put ``aesop/robot-a/event``, the key embedding
+    and control publish their events on, and so forge theirs."""
+    with hub.session("monitor") as monitor, hub.session(robot_user("robot-a")) as robot_a, \
+            hub.session("embedding") as embedding:
+        heard = Heard(monitor, "aesop/*/event/**")
+        own = topics.event("robot-a", "robot")
+        detector = topics.event("robot-a", "embedding")
+        said = Event(robot="robot-a", source="embedding", kind="proposal_proposed")
+        routed(lambda: robot_a.publish(own, said), heard, "the robot's own events")
+        robot_a.publish(detector, said)  # the detector's key: refused
+        robot_a.publish(topics.event("robot-a", "control"), said)
+        robot_a.publish("aesop/robot-a/event", said)  # the old shared key: nobody's
+        routed(lambda: embedding.publish(detector, said), heard, "the detector's events")
+        embedding.publish(topics.event("robot-a", "control"), said)  # not its key either
+        routed(lambda: robot_a.publish(own, said), heard, "the robot's own events again")
+    assert set(heard.keys) == {own, detector}
+    assert heard.keys.count(detector) >= 1

@@ -31,9 +31,12 @@ REGION = {"index": 1, "name": "roof", "label": "rooftop", "kind": "landing",
 
 
 def update(kind: str, message: Message, received: float = 100.0) -> Update:
-    key = {"state": topics.state, "plan": topics.plan, "anomaly": topics.anomaly,
-           "request": topics.reasoner_request, "decision": topics.reasoner_decision,
-           "event": topics.event, "regions": topics.regions}[kind](ROBOT)
+    if kind == "event":
+        key = topics.event(ROBOT, str(getattr(message, "source", "control")))
+    else:
+        key = {"state": topics.state, "plan": topics.plan, "anomaly": topics.anomaly,
+               "request": topics.reasoner_request, "decision": topics.reasoner_decision,
+               "regions": topics.regions}[kind](ROBOT)
     return Update(kind, key, message.model_dump(mode="json"), received)
 
 
@@ -223,3 +226,24 @@ def test_a_state_with_a_non_finite_position_is_kept_but_not_drawn() -> None:
                                              "u": [0.0] * 4, "mode": "nominal"}, 1.0)
     model.apply(bad)
     assert len(model.snapshot()["trail"]) == 1 and model.snapshot()["state"]["t"] == 0.2
+
+
+def test_an_events_source_is_the_key_it_came_on_not_what_it_claims() -> None:
+    """Issue 26, finding 5: a robot could put on the key embedding publishes on and claim
+    to be the detector: the dashboard listed its forged proposal. Each publisher has a key
+    of its own now (``aesop/{robot}/event/{source}``, only that user may put it), and the
+    key says who sent the event."""
+    from services.dashboard.feed import message_update
+    from shared.bus import Received
+
+    forged = Event(robot=ROBOT, source="embedding", kind="proposal_proposed", data={
+        "cache": "scene", "id": "f", "state": "pending", "count": 1, "text": "benign",
+        "model": "llm"})
+    got = message_update("event", Received(topics.event(ROBOT, "robot"), forged, 0.0), 1.0)
+    assert got.message["source"] == "robot"
+    model = FlightModel(ROBOT)
+    model.apply(got)
+    assert model.snapshot()["proposals"] == []
+    real = message_update("event", Received(topics.event(ROBOT, "embedding"), forged, 0.0), 1.0)
+    model.apply(real)
+    assert [p["id"] for p in model.snapshot()["proposals"]] == ["f"]

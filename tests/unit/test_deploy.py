@@ -61,13 +61,17 @@ STACK = {"embedding", "reasoner", "control", "dashboard"}  # the Zenoh services
 VEHICLE = "sim"  # the simulated vehicle: the robot's user
 ROBOT = "robot0"
 # docs/architecture.md, "Zenoh key expressions": who publishes what.
+def events_of(source: str) -> Callable[[str], str]:
+    return lambda robot: topics.event(robot, source)
+
+
 PUBLISHES: dict[str, list[Callable[[str], str]]] = {
-    "embedding": [topics.anomaly, topics.event],
-    "reasoner": [topics.reasoner_decision, topics.event],
+    "embedding": [topics.anomaly, events_of("embedding")],
+    "reasoner": [topics.reasoner_decision, events_of("reasoner")],
     "control": [topics.state, topics.plan, topics.reasoner_request, topics.regions,
-                topics.event, topics.vehicle_setpoint],
-    "dashboard": [topics.event],
-    "robot": [topics.observation, topics.event, topics.vehicle_state],
+                events_of("control"), topics.vehicle_setpoint],
+    "dashboard": [events_of("dashboard")],
+    "robot": [topics.observation, events_of("robot"), topics.vehicle_state],
 }
 
 
@@ -520,7 +524,7 @@ def test_a_service_publishes_only_its_own_keys(
         publisher: str, stack: dict[str, tuple[Bus, Tap]]) -> None:
     bus = stack[publisher][0]
     tap = stack["robot" if publisher == "dashboard" else "dashboard"][1]  # another session
-    probe = topics.event(ROBOT)
+    probe = topics.event(ROBOT, publisher)
     wait_until(lambda: bus.publish(probe, Event(source=publisher, kind="probe"))
                or tap.has(probe, publisher, "probe"), f"a route from {publisher}")
     own = {key(ROBOT) for key in PUBLISHES[publisher]}

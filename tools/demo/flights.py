@@ -209,7 +209,7 @@ async def _demo(embedding_url: str | None, control_url: str | None, sim_url: str
                                                        ReasonerRequest), rec, _on_request)),
             asyncio.create_task(_collect(bus.subscribe(topics.reasoner_decision(robot),
                                                        ReasonerDecision), rec, _on_decision)),
-            asyncio.create_task(_collect(bus.subscribe(topics.event(robot), Event, maxsize=1024),
+            asyncio.create_task(_collect(bus.subscribe(topics.events(robot), Event, maxsize=1024),
                                          rec, _on_event)),
         ]
         camera = Camera(bus, robot, CAMERA_PERIOD_S, rec, scenario.start_center)

@@ -47,7 +47,7 @@ MODELS: dict[str, type[Message]] = {
     "plan": PlanSnapshot,
     "reasoner/request": ReasonerRequest,
     "reasoner/decision": ReasonerDecision,
-    "event": Event,
+    "event": Event,  # aesop/<robot>/event/<source>
     "regions": Regions,
     "vehicle/state": VehicleState,
     "vehicle/setpoint": VehicleSetpoint,
@@ -70,7 +70,16 @@ def model_of(key: str) -> type[Message] | None:
     parts = key.split("/", 2)
     if len(parts) < 3 or parts[0] != topics.PREFIX or parts[1] == "health":
         return None
-    return MODELS.get(parts[2])
+    name = parts[2]
+    if name.startswith("event/"):  # one key per source
+        name = "event"
+    return MODELS.get(name)
+
+
+def key_expr(who: str, name: str) -> str:
+    """What to subscribe for topic ``name`` of robot ``who`` (``*``: every robot)."""
+    suffix = "event/*" if name == "event" else name
+    return f"{topics.PREFIX}/{who}/{suffix}"
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,7 @@ from shared import topics
 from shared.bus import zenoh_config
 from shared.settings import BusSettings
 
-from .mcapfile import FlightWriter, check_topics
+from .mcapfile import FlightWriter, check_topics, key_expr
 
 Say = Callable[[str], None]
 
@@ -41,7 +41,7 @@ def key_exprs(robot: str | None, wanted: Sequence[str] | None) -> list[str]:
     """What to subscribe: every known topic of ``robot`` (``*``: any), or ``wanted``
     of them (names as in :data:`~.mcapfile.MODELS`)."""
     who = robot or topics.ANY_ROBOT
-    return [f"{topics.PREFIX}/{who}/{name}" for name in check_topics(wanted)]
+    return [key_expr(who, name) for name in check_topics(wanted)]
 
 
 def record(settings: BusSettings, out: Path, *, robot: str | None = None,

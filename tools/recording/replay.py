@@ -8,7 +8,7 @@ as a stream, so a recording of any length replays in constant memory; ``loop``
 starts it over when it ends.
 
 Replay publishes as whoever its session is: a Zenoh router that checks users lets
-``robot-<id>`` put only its observations and events (``aesop up``'s ACL), and drops
+``robot-<id>`` put only its observations and its own events (``aesop up``'s ACL), and drops
 the rest without a word, so a whole flight is replayed into a dashboard that is not
 behind that router (docs/recordings.md).
 """

@@ -5,9 +5,11 @@ router's ACL then allows, per user, only what that part of the stack does
 (docs/architecture.md, "Zenoh key expressions"). Everything else is denied:
 
 - everyone may subscribe to ``aesop/**`` (messages, liveliness) and receive it;
-- each service may publish only its own keys and declare only its own health token;
+- each service may publish only its own keys (its events on ``aesop/*/event/<service>``)
+  and declare only its own health token;
 - a robot ``robot-<id>`` may publish only its own observations, events and vehicle
-  state (``aesop/<id>/observation``, ``aesop/<id>/event``, ``aesop/<id>/vehicle/state``),
+  state (``aesop/<id>/observation``, ``aesop/<id>/event/robot``,
+  ``aesop/<id>/vehicle/state``),
   answer queries of its own clock (``aesop/<id>/vehicle/clock``) and declare a
   vehicle's health token (``aesop/health/sim`` or ``aesop/health/vehicle``); only control
   publishes set-points and asks the clock;
@@ -33,11 +35,11 @@ from typing import Any
 
 ALL = "aesop/**"
 SERVICE_PUTS: Mapping[str, tuple[str, ...]] = {
-    "embedding": ("aesop/*/anomaly", "aesop/*/event"),
-    "reasoner": ("aesop/*/reasoner/decision", "aesop/*/event"),
+    "embedding": ("aesop/*/anomaly", "aesop/*/event/embedding"),
+    "reasoner": ("aesop/*/reasoner/decision", "aesop/*/event/reasoner"),
     "control": ("aesop/*/state", "aesop/*/plan", "aesop/*/reasoner/request",
-                "aesop/*/regions", "aesop/*/event", "aesop/*/vehicle/setpoint"),
-    "dashboard": ("aesop/*/event",),
+                "aesop/*/regions", "aesop/*/event/control", "aesop/*/vehicle/setpoint"),
+    "dashboard": ("aesop/*/event/dashboard",),
 }
 CLOCK = "aesop/*/vehicle/clock"  # the vehicle answers, control asks
 MONITOR = "monitor"
@@ -87,7 +89,7 @@ def stack_acl(robots: Sequence[str]) -> dict[str, Any]:
         user = robot_user(robot)
         rules += [
             _rule(f"{user}-puts", "ingress", ["put", "delete"],
-                  [f"aesop/{robot}/observation", f"aesop/{robot}/event",
+                  [f"aesop/{robot}/observation", f"aesop/{robot}/event/robot",
                    f"aesop/{robot}/vehicle/state"]),
             _rule(f"{user}-clock", "ingress", ["declare_queryable", "reply"],
                   [f"aesop/{robot}/vehicle/clock"]),
