@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 import hmac
 import time
 from collections.abc import Awaitable, Callable
@@ -334,17 +335,32 @@ def host_name(authority: str) -> str:
     return authority.rsplit(":", 1)[0] if authority.count(":") == 1 else authority
 
 
-TOKEN_COOKIE = "aesop_token"  # a browser's token (the dashboard sets it, HttpOnly)
+# A browser's read-only session (the dashboard sets it, HttpOnly, SameSite=Strict): a
+# value derived from the admin token, never the token. The __Host- name is used over TLS.
+SESSION_COOKIE = "aesop_session"
+SECURE_SESSION_COOKIE = "__Host-aesop_session"
+_SESSION_CONTEXT = b"aesop read-only dashboard session v1"
+
+
+def session_value(token: SecretStr) -> str:
+    """The dashboard session a token gives: HMAC-SHA256 of a fixed context under the
+    token. It opens the dashboard's reads and nothing else, and tells nothing of the
+    token."""
+    return hmac.new(token.get_secret_value().encode(), _SESSION_CONTEXT,
+                    hashlib.sha256).hexdigest()
 
 
 def token_of(headers: Headers) -> str:
-    """The token a request carries: ``Authorization: Bearer <token>``, else the cookie."""
+    """The token a request carries: ``Authorization: Bearer <token>`` (never a cookie)."""
     scheme, _, credentials = headers.get("authorization", "").partition(" ")
-    if scheme.lower() == "bearer":
-        return credentials.strip()
+    return credentials.strip() if scheme.lower() == "bearer" else ""
+
+
+def session_of(headers: Headers) -> str:
+    """The read-only session cookie a request carries, if any."""
     for part in headers.get("cookie", "").split(";"):
         name, _, value = part.strip().partition("=")
-        if name == TOKEN_COOKIE:
+        if name in (SESSION_COOKIE, SECURE_SESSION_COOKIE):
             return value
     return ""
 
@@ -360,15 +376,16 @@ def same_token(given: str, token: SecretStr) -> bool:
 
 
 def check_request(headers: Headers, path: str, method: str, *, token: SecretStr | None,
-                  public: tuple[str, ...]) -> None:
+                  public: tuple[str, ...], session_reads: bool = False) -> None:
     """The checks made on the headers alone, in order; raises :class:`Refusal`.
 
     - without a token the service listens on loopback only (``check_exposure``), so a
       ``Host`` that is not a loopback name is DNS rebinding: 400;
     - an ``Origin`` that is not the service's own is a cross-site request from a web
       page (a browser always sends it there): 403;
-    - with a token, every path but the :func:`is_public` ones needs it (the bearer
-      header, or a browser's ``aesop_token`` cookie): 401;
+    - with a token, every path but the :func:`is_public` ones needs it in the bearer
+      header: 401; where ``session_reads`` (the dashboard), a GET, HEAD or WebSocket may
+      bring the read-only session cookie (:func:`session_value`) instead;
     - a body where none belongs (a GET or HEAD, or any request to a public path) is
       refused before a byte of it is read: 400;
     - a POST/PUT/PATCH body must be declared as JSON: 415.
@@ -382,7 +399,10 @@ def check_request(headers: Headers, path: str, method: str, *, token: SecretStr 
         raise Refusal(403, "cross_origin", f"a request from {origin!r} to {host!r} is "
                       "cross-site and refused", "Origin")
     if token is not None and not is_public(path, public) \
-            and not same_token(token_of(headers), token):
+            and not same_token(token_of(headers), token) \
+            and not (session_reads and method in ("GET", "HEAD")
+                     and hmac.compare_digest(session_of(headers).encode(),
+                                             session_value(token).encode())):
         raise Refusal(401, "unauthorized", "a valid 'Authorization: Bearer <token>' "
                       "header is required", "Authorization")
     has_body = headers.get("content-length", "0") != "0" or "transfer-encoding" in headers
@@ -410,9 +430,10 @@ class Guard:
     accepted."""
 
     def __init__(self, app: ASGIApp, *, token: SecretStr | None, max_body_bytes: int,
-                 public: tuple[str, ...] = (), body_idle_s: float = BODY_IDLE_S) -> None:
+                 public: tuple[str, ...] = (), body_idle_s: float = BODY_IDLE_S,
+                 session_reads: bool = False) -> None:
         self.app, self.token, self.max_body_bytes, self.public = app, token, max_body_bytes, public
-        self.body_idle_s = body_idle_s
+        self.body_idle_s, self.session_reads = body_idle_s, session_reads
         self.reading = 0  # bytes of bodies being read now, over all requests
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
@@ -421,7 +442,8 @@ class Guard:
             return
         try:
             check_request(Headers(scope=scope), scope["path"], scope.get("method", "GET"),
-                          token=self.token, public=self.public)
+                          token=self.token, public=self.public,
+                          session_reads=self.session_reads)
             if scope["type"] == "http":
                 receive = await self._read_body(receive)
         except Refusal as refused:
@@ -490,6 +512,7 @@ def service_app(
     max_body_bytes: int,
     public: tuple[str, ...] = (),
     body_idle_s: float = BODY_IDLE_S,
+    session_reads: bool = False,
 ) -> FastAPI:
     """A service's app with what every service has: the :class:`Guard` (host, origin,
     ``admin_token`` on every path but the ops ones and ``public``, JSON bodies of at most
@@ -502,7 +525,7 @@ def service_app(
         document_limits(app, limits)
     document_security(app, public)
     app.add_middleware(Guard, token=admin_token, max_body_bytes=max_body_bytes, public=public,
-                       body_idle_s=body_idle_s)
+                       body_idle_s=body_idle_s, session_reads=session_reads)
     HttpMetrics(registry, service).install(app)  # outside the guard: refusals are counted
     app.include_router(ops_router(registry, ready, refresh))
     return app

@@ -50,7 +50,7 @@ def create_app(settings: DashboardSettings, bus_factory: Callable[[], Bus]) -> F
         "AESOP dashboard", service=SERVICE, lifespan=lifespan, registry=registry,
         ready=lambda: _ready(app),
         refresh=refresh, admin_token=settings.admin_token,
-        max_body_bytes=settings.max_body_bytes, public=PUBLIC)
+        max_body_bytes=settings.max_body_bytes, public=PUBLIC, session_reads=True)
     app.state.service = None
     app.state.feed = None
     app.mount("/static", StaticFiles(directory=STATIC), name="static")

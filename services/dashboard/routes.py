@@ -1,6 +1,7 @@
 """The dashboard's routes, all read-only: ``GET /`` (the page), ``GET /ws`` (the live
 stream), ``GET /v1/snapshot`` (the aggregated state). With a token configured the page
-is public and the flight is not: a browser brings the token as a cookie (``/?token=``).
+is public and the flight is not: a browser opened with ``/?token=`` keeps a read-only
+session cookie derived from the token (never the token), good for these routes only.
 
 On ``/ws`` a page first receives ``{"kind": "snapshot", "message": <snapshot>}``,
 then one JSON item per update (``FlightModel.apply``).
@@ -19,7 +20,14 @@ from fastapi import APIRouter, Depends, Request, WebSocket, WebSocketDisconnect
 from fastapi.responses import FileResponse, RedirectResponse, Response
 from pydantic import SecretStr
 
-from shared.http import TOKEN_COOKIE, ApiError, errors, same_token
+from shared.http import (
+    SECURE_SESSION_COOKIE,
+    SESSION_COOKIE,
+    ApiError,
+    errors,
+    same_token,
+    session_value,
+)
 
 from .hub import ClientQueue
 from .model import Snapshot
@@ -45,16 +53,21 @@ PUBLIC = ("/", "/static/")  # the page itself; the flight (/ws, /v1/snapshot) ne
 
 @router.get("/", include_in_schema=False, response_model=None)
 async def page(request: Request, token: str | None = None) -> Response:
-    """The page. With a token configured, open it once as ``/?token=<token>``: the token
-    goes into an HttpOnly, SameSite=Strict cookie (the browser then sends it on ``/ws``)
-    and the address bar loses it."""
+    """The page. With a token configured, open it once as ``/?token=<token>``: the browser
+    gets an HttpOnly, SameSite=Strict cookie holding a read-only session derived from the
+    token (``__Host-`` and Secure over TLS), which it then sends on ``/ws`` and
+    ``/v1/snapshot``; the address bar loses the token. No other service and no other
+    route takes that cookie."""
     admin_token: SecretStr | None = request.app.state.admin_token
     if token is not None:
         if admin_token is None or not same_token(token, admin_token):
             raise ApiError(401, "unauthorized", "the token in the address is not this "
                            "dashboard's", "token")
         back = RedirectResponse("/", status_code=303)
-        back.set_cookie(TOKEN_COOKIE, token, httponly=True, samesite="strict")
+        secure = request.url.scheme == "https"
+        back.set_cookie(SECURE_SESSION_COOKIE if secure else SESSION_COOKIE,
+                        session_value(admin_token), httponly=True, samesite="strict",
+                        secure=secure, path="/")
         return back
     return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
 

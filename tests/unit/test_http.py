@@ -247,3 +247,40 @@ def test_metrics_are_rendered_off_the_event_loop() -> None:
     with TestClient(app, base_url="http://127.0.0.1:8001") as client:
         assert client.get("/metrics").status_code == 200
     assert seen == [False]
+
+
+def test_no_service_takes_the_admin_token_from_a_cookie() -> None:
+    """Issue 26, finding 4: the dashboard's cookie was the admin token, scoped to the host
+    (not the port), and every service accepted it: a browser that had opened the dashboard
+    sent it to the embedding service too, which created a cache on it alone."""
+    with TestClient(guarded()) as client:
+        r = client.post("/things", json={"names": []},
+                        headers={"Cookie": f"aesop_token={GUARD_TOKEN}"})
+        assert r.status_code == 401
+
+
+def test_the_read_only_session_cookie_opens_reads_only_where_allowed() -> None:
+    from shared.http import SESSION_COOKIE, session_value
+
+    session = session_value(SecretStr(GUARD_TOKEN))
+    assert session != GUARD_TOKEN and GUARD_TOKEN not in session
+    cookie = {"Cookie": f"{SESSION_COOKIE}={session}"}
+    reads = service_app("test", service="test", lifespan=None, registry=CollectorRegistry(),
+                        ready=lambda: None, admin_token=SecretStr(GUARD_TOKEN),
+                        max_body_bytes=1024, session_reads=True)
+
+    @reads.get("/things")
+    async def list_things() -> Body:
+        return Body(names=["a"])
+
+    @reads.post("/things")
+    async def post_things(body: Body) -> Body:
+        return body
+
+    with TestClient(reads) as client:
+        assert client.get("/things", headers=cookie).status_code == 200
+        assert client.post("/things", json={"names": []}, headers=cookie).status_code == 401
+        wrong = {"Cookie": f"{SESSION_COOKIE}={session[:-1]}0"}
+        assert client.get("/things", headers=wrong).status_code == 401
+    with TestClient(guarded()) as client:  # a service without session reads: none
+        assert client.get("/things", headers=cookie).status_code == 401
