@@ -75,7 +75,7 @@ class Handshake:
     monitored: bool | None = None  # verdicts and the vehicle's state were fresh last tick
     silence_asked: bool = False  # this unmonitored spell has raised its request
     verdict_asked: int | None = None  # seq of the verdict that asked
-    asked_about: str | None = None  # the scene text of the request
+    asked_about: str | None = None  # the scene of the request (its text and detections)
     cleared: frozenset[str] = frozenset()  # scenes answered "continue"
     said_cleared: str | None = None  # the cleared scene the last note was about
 

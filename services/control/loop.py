@@ -223,6 +223,13 @@ class _Inputs:
     waiting: bool = False  # the flight has not started: nothing is stepped
 
 
+def scene_key(observation: Observation) -> str:
+    """What makes two observations the same scene to the reasoner: the text and every
+    detection behind it (a scene it cleared is cleared only with the same detections)."""
+    phrases = sorted(d.phrase for d in observation.detections)
+    return "\n".join([observation.text, *phrases]) if phrases else observation.text
+
+
 def rest_at(position: Sequence[float]) -> np.ndarray:
     """The 12-state at rest at ``position`` (m)."""
     x = np.zeros(N_STATE)
@@ -410,12 +417,14 @@ class ControlRuntime:
                        cause=reading.cause, waiting=reading.waiting)
 
     def _scene_of(self, verdict: Received[AnomalyVerdict] | None) -> str | None:
-        """The text of the observation ``verdict`` judged; the newest one seen if that one
-        never reached a tick (a scene changes more slowly than the loop runs)."""
+        """The scene (:func:`scene_key`) of the observation ``verdict`` judged; the newest
+        one seen if that one never reached a tick (a scene changes more slowly than the
+        loop runs)."""
         if verdict is None or not self._seen:
             return None
         seq = verdict.message.seq
-        return next((o.text for o in reversed(self._seen) if o.seq == seq), self._seen[-1].text)
+        judged = next((o for o in reversed(self._seen) if o.seq == seq), self._seen[-1])
+        return scene_key(judged)
 
     def _finish(self, output: ControlOutput, inputs: _Inputs, step_ms: float,
                 deadline: float, observation: Observation | None,
@@ -430,9 +439,9 @@ class ControlRuntime:
                 robot=robot, request_id=uuid.uuid4().hex, cause=inputs.cause, verdict=verdict,
                 observation=observation, regions=self.scenario.regions,
                 offered=output.request, deadline_s=self._seconds_left(deadline, output))
+        scene = None if observation is None else scene_key(observation)
         self.handshake = handshake.conclude(self.handshake, None if request is None else Asked(
-            request.request_id, inputs.cause, None if observation is None else observation.text,
-            None if verdict is None else verdict.seq))
+            request.request_id, inputs.cause, scene, None if verdict is None else verdict.seq))
         events.extend(self._event("non_finite", "alarm", alarm) for alarm in output.alarms)
         events.extend(outbox.mode_events(robot, self.mode, output, request.request_id
                                          if request is not None else self.handshake.pending))

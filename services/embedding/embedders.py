@@ -63,6 +63,11 @@ class ModelNotFound(EmbedderError):
     """No local copy of the model; the message names every place looked in."""
 
 
+class NotFoundLocally(ModelNotFound):
+    """Looked for everywhere and not found (the message says where, and what was there:
+    fit for a user at the machine, not for a caller of the service's API)."""
+
+
 def normalize(v: np.ndarray) -> np.ndarray:
     """Rows of ``v`` scaled to unit L2 norm, as a new float32 C-contiguous array.
 
@@ -241,7 +246,7 @@ def resolve_model(model: str, *, hf_cache_dir: str | Path | None = None) -> Mode
     found = _from_hf_cache(model, hf_cache_dir, looked)
     if found is not None:
         return found
-    raise ModelNotFound(_not_found_message(model, looked))
+    raise NotFoundLocally(_not_found_message(model, looked))
 
 
 def is_dir(path: Path) -> bool:

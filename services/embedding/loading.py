@@ -8,6 +8,7 @@ neither imports the other's chooser.
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
@@ -15,17 +16,21 @@ from pathlib import Path
 
 from . import onnx_backend
 from .embedders import (
+    DEFAULT_MODEL,
     DEFAULT_OPENAI_BASE_URL,
     OPENAI_PREFIX,
     Closing,
     Embedder,
     ModelNotFound,
+    NotFoundLocally,
     OpenAIEmbedder,
     SentenceTransformerEmbedder,
     is_dir,
     pool_key,
     split_onnx,
 )
+
+log = logging.getLogger(__name__)
 
 
 def load_embedder(
@@ -102,6 +107,22 @@ class EmbedderPool(Closing):
 
     def get(self, model: str) -> Embedder:
         self._check_directory(model)
+        try:
+            return self._get(model)
+        except NotFoundLocally as exc:
+            if self._model_dir is None:
+                raise
+            log.info("model %r not loaded: %s", model, exc)  # the details stay here
+            raise ModelNotFound(self._refusal(model)) from None
+
+    def _refusal(self, model: str) -> str:
+        """The one answer for a model the service will not load, whether or not anything
+        is at the path it names (so the answer tells nothing of the machine's files)."""
+        return (f"{model!r} is not a model this service loads: name the bundled model "
+                f"({DEFAULT_MODEL}), one in its Hugging Face cache, 'openai:<model>', or a "
+                f"directory inside {self._model_dir} (AESOP_EMBEDDING_MODEL_DIR)")
+
+    def _get(self, model: str) -> Embedder:
         key = pool_key(model)
         with self._lock:
             if self._closed:
@@ -122,8 +143,7 @@ class EmbedderPool(Closing):
         path = Path(model if onnx is None else onnx[0]).expanduser()
         if (is_dir(path) or path.is_absolute()) and \
                 not path.resolve().is_relative_to(self._model_dir):
-            raise ModelNotFound(f"{model!r}: a model given as a directory must be inside "
-                                f"{self._model_dir} (AESOP_EMBEDDING_MODEL_DIR)")
+            raise ModelNotFound(self._refusal(model))
 
     def _evict(self) -> None:
         with self._lock:

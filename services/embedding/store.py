@@ -140,7 +140,8 @@ class Store:
         """``max_bytes``: the most the database may grow to (0: the disk's size); a write
         past it is refused with ``StorageFull``, as on a full disk."""
         self.root = Path(data_dir)
-        self.root.mkdir(parents=True, exist_ok=True)
+        self.root.mkdir(mode=0o700, parents=True, exist_ok=True)
+        self.root.chmod(0o700)  # the service's alone, an existing directory too
         self.path = self.root / DB_NAME
         self._fsync = fsync
         self._max_bytes = max_bytes
@@ -154,6 +155,12 @@ class Store:
         self._closed = False
 
     def _connect(self) -> sqlite3.Connection:
+        # SQLite gives its -wal and -shm files the database file's mode: made 0600 first
+        os.close(os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600))
+        for path in (self.path, *(self.path.with_name(self.path.name + s)
+                                  for s in ("-wal", "-shm"))):
+            with contextlib.suppress(FileNotFoundError):
+                path.chmod(0o600)
         db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
         try:
             db.execute("PRAGMA journal_mode=WAL")
@@ -327,9 +334,12 @@ class Store:
         vectors, graph = _index_paths(directory, version)
         tmp_vectors, tmp_graph = (p.with_name(p.name + ".tmp") for p in (vectors, graph))
         try:
-            directory.mkdir(parents=True, exist_ok=True)
+            directory.mkdir(mode=0o700, parents=True, exist_ok=True)
+            for folder in (directory.parent, directory):
+                folder.chmod(0o700)
             with_graph = cache.index.write(tmp_vectors, tmp_graph)
             for tmp, final in [(tmp_vectors, vectors)] + ([(tmp_graph, graph)] * with_graph):
+                tmp.chmod(0o600)
                 self._sync_file(tmp)
                 os.replace(tmp, final)
             self._sync_dir(directory)
@@ -471,7 +481,8 @@ def _from_blob(blob: bytes) -> np.ndarray:
 
 def _take_lock(path: Path) -> int:
     """An fd holding an exclusive flock on ``path``, or ``StorageError`` if it is held."""
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
+    os.fchmod(fd, 0o600)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:

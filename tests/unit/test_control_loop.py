@@ -526,6 +526,31 @@ async def test_a_scene_the_reasoner_cleared_does_not_ask_again_until_a_reset() -
     assert again.request is not None  # a new flight judges the scene afresh
 
 
+async def test_a_cleared_scene_is_its_text_and_its_detections() -> None:
+    """Issue 26, finding 7: cleared scenes were keyed by the text alone, so a scene the
+    reasoner let pass also cleared the same words with other detections behind them."""
+    from shared.messages import Detection
+
+    clock = FakeClock()
+    rt = runtime(clock)
+    text = "the landing pad"
+    clear = (Detection(label="a drill", where="on the ground"),)
+    person = (Detection(label="a person", where="on the pad"),)
+    await tick(rt, clock, verdict(clock, 0, False),
+               observation=Observation(robot="drone1", seq=0, text=text, detections=clear))
+    asked = await tick(rt, clock, verdict(clock, 1, True), observation=Observation(
+        robot="drone1", seq=1, text=text, detections=clear))
+    assert asked.request is not None
+    cont = ReasonerDecision(request_id=asked.request.request_id, choice=0, source="llm",
+                            latency_ms=1.0)
+    back = await tick(rt, clock, verdict(clock, 2, True), cont, observation=Observation(
+        robot="drone1", seq=2, text=text, detections=clear))
+    assert "anomaly_cleared" in kinds(back)
+    same_words = await tick(rt, clock, verdict(clock, 3, True), observation=Observation(
+        robot="drone1", seq=3, text=text, detections=person))
+    assert same_words.request is not None  # other detections: another scene, asked about
+
+
 async def test_a_non_finite_state_is_refused_with_an_alarm_and_the_loop_goes_on() -> None:
     clock = FakeClock()
     rt = await started(clock)

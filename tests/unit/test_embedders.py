@@ -466,3 +466,25 @@ def test_the_fake_server_process_is_gone_after_the_context() -> None:
     assert process.poll() is not None
     with pytest.raises(httpx.ConnectError):
         httpx.get(base_url.removesuffix("/v1") + "/healthz", timeout=2)
+
+
+def test_every_refused_model_path_gets_the_same_answer(tmp_path: Path) -> None:
+    """Issue 26, finding 7: the answer told a directory that exists from one that does not
+    ("exists but is not a directory", "does not exist"), an oracle over the machine's
+    files. Outside the model directory, or not found anywhere: one answer, whatever is
+    there."""
+    models = tmp_path / "models"
+    models.mkdir()
+    (tmp_path / "a-dir").mkdir()
+    (tmp_path / "a-file").write_text("x")
+    pool = EmbedderPool(model_dir=models, hf_cache_dir=tmp_path / "hf")
+    answers = set()
+    for name in ("a-dir", "a-file", "nothing"):
+        for given in (str(tmp_path / name), f"../{name}", f"{models}/../{name}",
+                      f"{models}/{name}"):
+            with pytest.raises(ModelNotFound) as refused:
+                pool.get(given)
+            answers.add(str(refused.value).replace(repr(given), "<model>"))
+    assert len(answers) == 1, answers
+    (answer,) = answers
+    assert "AESOP_EMBEDDING_MODEL_DIR" in answer and str(tmp_path / "a-") not in answer

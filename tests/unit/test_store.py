@@ -209,3 +209,26 @@ def test_a_database_of_an_older_schema_is_refused_naming_the_way_out(tmp_path: P
     assert "new data directory" in str(info.value)
     with sqlite3.connect(tmp_path / DB_NAME) as db:  # left as it was
         assert db.execute("PRAGMA user_version").fetchone()[0] == 1
+
+
+def test_the_data_is_the_services_alone(tmp_path: Path) -> None:
+    """Issue 26, finding 7: the database and index files were readable by every user of
+    the machine (0644, in a 0755 directory). Now the data directory is 0700 (an existing
+    one is tightened) and every file the store writes is 0600."""
+    import os
+    import stat
+
+    data = tmp_path / "data"
+    data.mkdir()
+    data.chmod(0o755)
+    with Store(data) as store:
+        cache = Cache(CacheConfig("c", None, 4, k=1))
+        store.create(cache.config)
+        commit_add(store, cache, 3, seed=1)
+        store.save_index(cache)
+        paths = [data, *data.rglob("*")]
+        modes = {str(p.relative_to(tmp_path)): stat.S_IMODE(os.stat(p).st_mode) for p in paths}
+    assert any(p.endswith(".faiss") for p in modes) and any(p.endswith("-wal") for p in modes)
+    loose = {p: oct(m) for p, m in modes.items()
+             if m != (0o700 if (tmp_path / p).is_dir() else 0o600)}
+    assert loose == {}
