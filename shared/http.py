@@ -67,12 +67,14 @@ class ErrorBody(BaseModel):
     error: ErrorDetail
 
 
+METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
 REASONS = {
     400: "the body is not valid JSON",
     401: "a valid 'Authorization: Bearer <token>' header is missing",
     403: "a cross-site request: its Origin is not the service's own",
     404: "no such resource (error.field names which)",
     405: "method not allowed (the Allow header lists those that are)",
+    408: "no part of the body came for a while: send it again",
     409: "the request conflicts with the stored state",
     413: "the body or one of its lists is larger than the limit",
     415: "the body is not declared as JSON",
@@ -83,7 +85,7 @@ REASONS = {
     507: "the disk (or the configured size limit) is full; nothing was stored",
 }
 REQUEST_ERRORS = (400, 413, 415, 422)  # what any route with a JSON body may answer
-GUARD_ERRORS = (400, 401, 403, 413, 415, 422)  # what any route of a service may answer
+GUARD_ERRORS = (400, 401, 403, 408, 413, 415, 422, 503)  # what any route of a service may answer
 
 
 def errors(*statuses: int) -> dict[int | str, dict[str, Any]]:
@@ -186,13 +188,11 @@ async def _api_error(_: Request, exc: Exception) -> JSONResponse:
 
 
 def allowed_methods(request: Request) -> list[str]:
-    """The methods some route of the app accepts at the request's path."""
-    methods: set[str] = set()
-    for route in request.app.router.routes:
-        match, _ = route.matches({**request.scope, "method": "GET"})
-        if match != Match.NONE:
-            methods |= set(getattr(route, "methods", None) or ())
-    return sorted(methods)
+    """The methods some route of the app accepts at the request's path (asked of each
+    route by matching, so routes of included routers count too)."""
+    routes = request.app.router.routes
+    return sorted(m for m in METHODS if any(
+        route.matches({**request.scope, "method": m})[0] == Match.FULL for route in routes))
 
 
 async def _http_error(request: Request, exc: Exception) -> Response:
@@ -245,9 +245,6 @@ async def unless_client_leaves(request: Request, work: Awaitable[T]) -> T:
 async def _client_left(request: Request) -> None:
     while (await request.receive())["type"] != "http.disconnect":
         pass
-
-
-METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
 
 
 def method_label(method: str) -> str:
@@ -322,9 +319,25 @@ LOOPBACK_HOSTS = frozenset({"localhost", "127.0.0.1", "::1"})
 class Refusal(Exception):
     """Why the guard turns a request away before any route runs."""
 
-    def __init__(self, status: int, code: str, message: str, field: str) -> None:
+    def __init__(self, status: int, code: str, message: str, field: str | None,
+                 headers: dict[str, str] | None = None) -> None:
         super().__init__(message)
         self.status, self.code, self.message, self.field = status, code, message, field
+        self.headers = headers or {}
+
+
+def _unrouted(scope: Scope) -> Refusal | None:
+    """404 or 405 (with ``Allow``) when no route takes the request's path and method, as
+    the router would say once the body was read; None when one does."""
+    if "app" not in scope:
+        return None
+    allowed = allowed_methods(Request(scope))
+    if not allowed:
+        return Refusal(404, "not_found", "Not Found", None)
+    if scope.get("method", "GET") not in allowed:
+        return Refusal(405, "method_not_allowed", "Method Not Allowed", None,
+                       {"Allow": ", ".join(allowed)})
+    return None
 
 
 def host_name(authority: str) -> str:
@@ -447,12 +460,15 @@ class Guard:
             if scope["type"] == "http":
                 receive = await self._read_body(receive)
         except Refusal as refused:
+            unread = refused.field == "body"  # a body, or the rest of it, is left unread
+            if refused.code == "body_not_allowed":  # a method the path has not: say that
+                refused = _unrouted(scope) or refused
             if scope["type"] == "websocket":
                 await send({"type": "websocket.close", "code": 1008, "reason": refused.message})
             else:
                 response = error_response(refused.status, refused.code, refused.message,
-                                          refused.field)
-                if refused.field == "body":  # the rest of it is not read: end there
+                                          refused.field, headers=refused.headers)
+                if unread:  # the connection cannot carry another request: end it
                     response.headers["Connection"] = "close"
                 await response(scope, receive, send)
             return

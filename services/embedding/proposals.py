@@ -5,7 +5,10 @@ flagged to be safe to continue through, that observation is evidence of nominal
 operation the cache did not hold. Here it becomes a *proposal* on the detector's cache,
 one per distinct scene (text and detections, :func:`scene_id`) with a count of how often
 it was proposed. Under the cache's policy ``review`` (the default) an operator accepts
-or rejects it; under ``auto`` it is accepted at once. Accepting adds the scene as a
+or rejects it; under ``auto`` it is accepted at once, unless its text, task or a detection
+trips or nearly trips the injection tripwire (``flag``: a sign in the camera's view can
+talk the LLM into "continue"; such a scene waits for a person under either policy).
+Accepting adds the scene as a
 nominal experience (a versioned add like any other, id = the scene's id, so accepting
 twice or importing the same scene from a recording adds it once).
 
@@ -28,6 +31,7 @@ import json
 from dataclasses import dataclass, replace
 from typing import Any, Literal
 
+from shared.injection import wary
 from shared.messages import Detection, Observation
 
 Policy = Literal["review", "auto"]
@@ -62,6 +66,9 @@ class Proposal:
     last_at: float
     state: State = "pending"
     decided_at: float | None = None
+    # why a person must decide it (the scene trips, or nearly trips, the injection
+    # tripwire: shared.injection.wary); never accepted on its own when set
+    flag: str | None = None
 
     @classmethod
     def first(cls, obs: Observation, *, request_id: str, model: str, rationale: str,
@@ -69,7 +76,8 @@ class Proposal:
         return cls(id=scene_id(obs), text=obs.text, detections=obs.detections, task=obs.task,
                    robot=obs.robot, seq=obs.seq, request_id=request_id, model=model,
                    rationale=rationale, score=score, p_value=p_value, count=1, first_at=now,
-                   last_at=now)
+                   last_at=now, flag=wary(obs.text, obs.task,
+                                          *(d.phrase for d in obs.detections)))
 
     def again(self, now: float) -> Proposal:
         """Proposed once more: counted, whatever its state."""
@@ -84,7 +92,8 @@ class Proposal:
                                                   for d in self.detections],
                 "task": self.task, "robot": self.robot, "seq": self.seq,
                 "request_id": self.request_id, "model": self.model,
-                "rationale": self.rationale, "score": self.score, "p_value": self.p_value}
+                "rationale": self.rationale, "score": self.score, "p_value": self.p_value,
+                "flag": self.flag}
 
     @classmethod
     def stored(cls, ident: str, state: State, count: int, first_at: float, last_at: float,

@@ -40,8 +40,9 @@ class Review:
                       now: float) -> Proposal | None:
         """The slow reasoner answered "continue" for ``obs``, which this detector flagged:
         propose the scene to cache ``name`` (counted if it was proposed before; accepted at
-        once under the policy ``auto``). None when the cache holds the scene already, or
-        has ``max_pending_proposals`` pending and this one is new."""
+        once under the policy ``auto``, unless its ``flag`` says a person must decide).
+        None when the cache holds the scene already, or has ``max_pending_proposals``
+        pending and this one is new."""
         entry = self.caches.entry(name)
         ident = scene_id(obs)
         async with entry.writer:
@@ -64,6 +65,10 @@ class Review:
             entry.proposals[ident] = proposal
         self._tell("proposed", proposal)
         if proposal.state == "pending" and entry.cache.config.proposals == "auto":
+            if proposal.flag is not None:  # a person decides, whatever the policy
+                log.warning("cache %s: %s not accepted on its own (%s): it waits for a "
+                            "person", name, ident, proposal.flag)
+                return proposal
             return await self.accept(name, ident, now=now)
         return proposal
 

@@ -322,6 +322,9 @@ class ProposalInfo(Answer):
     first_at: Float
     last_at: Float
     decided_at: Float | None
+    # why only a person may accept it (its text or detections trip, or nearly trip, the
+    # injection tripwire); None: nothing suspicious
+    flag: str | None = None
 
     @classmethod
     def of(cls, p: Proposal) -> ProposalInfo:
@@ -329,7 +332,7 @@ class ProposalInfo(Answer):
                    detections=list(p.detections), task=p.task, robot=p.robot, seq=p.seq,
                    request_id=p.request_id, model=p.model, rationale=p.rationale,
                    score=p.score, p_value=p.p_value, first_at=p.first_at, last_at=p.last_at,
-                   decided_at=p.decided_at)
+                   decided_at=p.decided_at, flag=p.flag)
 
 
 class ProposalList(Answer):

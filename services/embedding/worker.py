@@ -268,7 +268,7 @@ class DetectorWorker:
                     f"({proposal.count}×): {' / '.join(named.splitlines())}",
             data={"cache": self.cache, "id": proposal.id, "state": proposal.state,
                   "count": proposal.count, "text": proposal.text[:1000],
-                  "model": proposal.model}))
+                  "model": proposal.model, "flag": proposal.flag}))
 
     def _undecodable(self) -> None:  # on a Zenoh thread; the bus logs it, rate-limited
         if self.metrics is not None:

@@ -36,8 +36,6 @@ none can open its own ``Options:`` or ``FINAL ANSWER:`` line, and
 
 from __future__ import annotations
 
-import re
-import unicodedata
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
 from functools import lru_cache
@@ -46,6 +44,7 @@ from typing import Literal
 
 import yaml
 
+from shared.injection import tripwire
 from shared.messages import DetectionMatch, Option, PairMatch, ReasonerRequest
 
 Variant = Literal["cot", "single"]
@@ -242,50 +241,10 @@ def _single_line(text: str, field: str) -> str:
     return collapsed
 
 
-# Every pattern runs in time linear in the text (it runs on the event loop that holds
-# every deadline, on the scene before the LLM is asked and on what the LLM answers): no
-# two adjacent or nested quantifiers may match the same characters. A line-start
-# pattern therefore skips only the blanks and quote marks of its own line, never a line
-# break: ``^[\s>]*`` rescanned every blank line that follows from every line start
-# (8,000 newlines took 2.6 s). It flags the same texts: a run of blanks and line breaks
-# before a marker ends in the marker's own line. A bounded gap such as ``.{0,40}?`` costs
-# at most 41 steps per start, so it stays.
-_BLANK = r"[^\S\n]"  # whitespace other than "\n", which ends the line for ``^``
-_QUOTED = rf"(?:{_BLANK}|>)"
-_INJECTION_PATTERNS: tuple[tuple[str, re.Pattern[str]], ...] = tuple(
-    (reason, re.compile(pattern, re.IGNORECASE | re.MULTILINE))
-    for reason, pattern in (
-        ("final-answer marker", r"final\s*answer"),
-        (
-            "instruction override",
-            r"\b(?:ignore|disregard|forget|override)\b.{0,40}?"
-            r"\b(?:instructions?|prompts?|rules|directions|context)\b",
-        ),
-        ("role reassignment", r"\byou\s+are\s+now\b|\bpretend\s+(?:to\s+be|you)\b"),
-        ("chat role marker", rf"\b(?:system|assistant|developer)\s*:|^{_BLANK}*user\s*:"),
-        ("chat template token", r"<\|[a-z_]+\|>|\[/?inst\]|<</?sys>>"),
-        ("prompt section header",
-         rf"^{_QUOTED}*(?:options|task|observation|instructions?)\s*:"),
-        ("option line", rf"^{_QUOTED}*\d+\s*:\s*continue\s+nominal"),
-        ("new instructions", r"\bnew\s+instructions?\b|\bsystem\s+prompt\b"),
-        ("answer steering", r"\b(?:choose|select|pick|answer|respond\s+with|output)\s+option\s*\d"),
-    )
-)
-
-
 def suspicious_observation(text: str) -> str | None:
-    """A short reason when ``text`` tries to inject instructions, else None.
-
-    Matching is case-insensitive on the NFKC-normalised text with invisible
-    format characters removed, so full-width or zero-width tricks do not hide
-    a marker.
-    """
-    normalised = _normalise(text)
-    for reason, pattern in _INJECTION_PATTERNS:
-        match = pattern.search(normalised)
-        if match:
-            return f"{reason}: {match.group(0).strip()!r}"
-    return None
+    """A short reason when ``text`` tries to inject instructions, else None (the shared
+    tripwire, :func:`shared.injection.tripwire`: a tripwire, not the defence)."""
+    return tripwire(text)
 
 
 def suspicious_scene(*, task: str, observation: str,
@@ -299,8 +258,3 @@ def suspicious_scene(*, task: str, observation: str,
         if flagged:
             return f"{name} flagged ({flagged})"
     return None
-
-
-def _normalise(text: str) -> str:
-    text = unicodedata.normalize("NFKC", text)
-    return "".join(ch for ch in text if unicodedata.category(ch) != "Cf")

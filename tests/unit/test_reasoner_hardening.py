@@ -20,7 +20,6 @@ from services.reasoner.limits import LimitError, check_request
 from services.reasoner.metrics import ReasonerMetrics
 from services.reasoner.parsing import _FINAL_LINE, ParseError, parse_decision
 from services.reasoner.prompts import (
-    _INJECTION_PATTERNS,
     build_prompt,
     load_template,
     suspicious_observation,
@@ -29,6 +28,7 @@ from services.reasoner.settings import ReasonerLimits, ReasonerSettings
 from services.reasoner.worker import ReasonerWorker
 from shared import topics
 from shared.bus import Bus, Received
+from shared.injection import _PATTERNS
 from shared.messages import Message, Observation, Option, ReasonerDecision, ReasonerRequest
 from tests.fakes.chat_backends import Recording, Stalling
 
@@ -74,7 +74,7 @@ def test_line_start_patterns_flag_what_they_flagged(reason: str) -> None:
     """Exhaustively over short texts made of line breaks, blanks, quote marks and the
     markers: the linear patterns flag exactly what the old ones did."""
     old = re.compile(OLD_LINE_START[reason], re.IGNORECASE | re.MULTILINE)
-    new = dict(_INJECTION_PATTERNS)[reason]
+    new = dict(_PATTERNS)[reason]
     marker = {"chat role marker": "user:", "prompt section header": "options:",
               "option line": "1: continue nominal"}[reason]
     alphabet = ["\n", " ", ">", "\t", "\u2028", "\r", "x", marker]
