@@ -30,6 +30,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     br.add_argument("--seed", type=int, default=0, help="fake LLM seed (second backend: +1)")
     br.add_argument("--hedge-after", type=float, default=None,
                     help="hedging delay in s (default: the single-backend p50 latency)")
+    br.add_argument("--cpu-hog", type=int, default=0,
+                    help="this many other processes spin on the CPU throughout (default 0)")
     br.add_argument("--json", action="store_true")
     br.set_defaults(func=cmd_bench_reasoner)
 
@@ -122,10 +124,13 @@ def cmd_bench_reasoner(args: argparse.Namespace) -> int:
         raise CliError("--requests and --concurrency must be >= 1 and --scale > 0")
     if args.hedge_after is not None and args.hedge_after < 0:
         raise CliError("--hedge-after must be >= 0")
+    if not 0 <= args.cpu_hog <= 64:
+        raise CliError("--cpu-hog must be in 0..64")
     keep_deadlines()  # as `aesop serve reasoner` does
     result = run_reasoner_bench(requests=args.requests, scale=args.scale,
                                 concurrency=args.concurrency, seed=args.seed,
-                                hedge_after_s=args.hedge_after, table=not args.json)
+                                hedge_after_s=args.hedge_after, table=not args.json,
+                                cpu_hog=args.cpu_hog)
     if args.json:
         emit(result, True)
     return 0

@@ -25,6 +25,9 @@ Definitions (all times ``time.monotonic``):
 
 Each server draws latencies from one seeded RNG in arrival order, so with concurrency
 the draws are reproducible in distribution, not request by request.
+
+With ``cpu_hog`` = N, N other processes spin on the CPU through both phases (a busy
+robot computer: the deadline must hold when the cores are not the reasoner's alone).
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ import contextlib
 import contextvars
 import logging
 import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -153,9 +157,22 @@ class Sample:
 # --------------------------------------------------------------------------- the run
 
 
+@contextlib.contextmanager
+def cpu_hogs(n: int) -> Iterator[None]:
+    """``n`` processes spinning on the CPU until the block ends."""
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+    try:
+        yield
+    finally:
+        for hog in hogs:
+            hog.kill()
+        for hog in hogs:
+            hog.wait(10)
+
+
 def run_reasoner_bench(*, requests: int = 1000, scale: float = 0.1, concurrency: int = 8,
                        seed: int = 0, hedge_after_s: float | None = None,
-                       table: bool = True) -> dict[str, Any]:
+                       table: bool = True, cpu_hog: int = 0) -> dict[str, Any]:
     """Run the single-backend and the hedged phase; return one JSON-able dict.
 
     Tables go to stdout when ``table``; progress goes to stderr (stray prints too).
@@ -167,7 +184,7 @@ def run_reasoner_bench(*, requests: int = 1000, scale: float = 0.1, concurrency:
     load_start = list(os.getloadavg())
     deadline_s = PAPER_K_S * scale
     model = f"fake-bimodal-scale-{scale:g}"
-    with contextlib.redirect_stdout(sys.stderr), \
+    with contextlib.redirect_stdout(sys.stderr), cpu_hogs(cpu_hog), \
             tempfile.TemporaryDirectory(prefix="aesop-bench-reasoner-") as tmp:
         logs = Path(tmp)
         log.info("bench reasoner: %d requests, K = %.3f s (scale %g), concurrency %d, seed %d",
@@ -185,7 +202,7 @@ def run_reasoner_bench(*, requests: int = 1000, scale: float = 0.1, concurrency:
                         hedge_given=hedge_after_s is not None)
     result["meta"] = {
         "scale": scale, "paper_deadline_s": PAPER_K_S, "concurrency": concurrency,
-        "seed": seed, "model": model, "profile": "bimodal",
+        "seed": seed, "model": model, "profile": "bimodal", "cpu_hog": cpu_hog,
         "miss_tolerance_ms": MISS_TOLERANCE_S * 1e3, "margin_s": DeciderConfig().margin_s,
         "loop_lag_ms": {"single": loop_lag, "hedged": hedged_lag},
         "cpus": os.cpu_count(), "load_average_start": load_start,
@@ -380,7 +397,8 @@ def render(r: Mapping[str, Any]) -> str:
     parts = [
         f"reasoner bench: {r['requests']} requests per run, bimodal fake LLM x{meta['scale']:g}"
         f", K = {k_ms:.0f} ms (paper {meta['paper_deadline_s']} s x{meta['scale']:g}), "
-        f"concurrency {meta['concurrency']}, seed {meta['seed']}, decider margin "
+        f"concurrency {meta['concurrency']}, {meta.get('cpu_hog', 0)} CPU hog(s), seed "
+        f"{meta['seed']}, decider margin "
         f"{meta['margin_s'] * 1e3:g} ms, miss = answer > K + {meta['miss_tolerance_ms']:g} ms\n",
         table("deadline (overshoot = answer time - (start + K), ms; negative = early)", [
             {"run": name, "misses": x["deadline_misses"], "p50": x["overshoot_ms"]["p50"],
