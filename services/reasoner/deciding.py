@@ -38,6 +38,7 @@ from types import MappingProxyType
 from typing import Literal
 
 from shared.messages import DecisionSource, Option, ReasonerDecision, ReasonerRequest
+from shared.realtime import Priority, favoured, urgent
 
 from .backends import BackendError, ChatBackend, Completion
 from .parsing import Parsed, ParseError, parse_decision, parse_partial
@@ -325,10 +326,14 @@ SWITCH_INTERVAL_S = 0.001  # the GIL hand-over a deadline process asks for
 
 
 def keep_deadlines(process_switch_interval_s: float = SWITCH_INTERVAL_S) -> None:
-    """Tune this process for the deadline thread (call once, from the entry point): a
-    thread that wants the GIL waits at most ``process_switch_interval_s`` for it
-    (Python's default is 5 ms). See also :func:`settle`."""
+    """Tune this process for the deadline thread (call once, from the entry point, before
+    other threads start): a thread that wants the GIL waits at most
+    ``process_switch_interval_s`` for it (Python's default is 5 ms), and the process's
+    threads get a larger share of a busy machine's cores where allowed
+    (:func:`shared.realtime.favoured`), so the one holding the GIL is not kept from
+    handing it over. See also :func:`settle`."""
     sys.setswitchinterval(process_switch_interval_s)
+    favoured()
 
 
 def settle() -> None:
@@ -358,7 +363,9 @@ class _Once:
 class DeadlineTimer:
     """One thread that runs callbacks at ``time.monotonic()`` deadlines, earliest first,
     independent of any event loop (it needs only the GIL, which a busy thread hands over
-    every ``sys.getswitchinterval()``)."""
+    every ``sys.getswitchinterval()``). The thread asks the OS to run it ahead of other
+    processes (:func:`shared.realtime.urgent`; ``priority`` says what it got), so a busy
+    machine does not make it late."""
 
     def __init__(self) -> None:
         self._heap: list[tuple[float, int]] = []
@@ -367,6 +374,7 @@ class DeadlineTimer:
         self._order = itertools.count()
         self._thread: threading.Thread | None = None
         self._closed = False
+        self.priority: Priority | None = None  # once the thread runs
 
     def at(self, due: float, fn: Callable[[], None]) -> int:
         with self._ready:
@@ -390,6 +398,7 @@ class DeadlineTimer:
             self._ready.notify()
 
     def _serve(self) -> None:
+        self.priority = urgent()
         while True:
             with self._ready:
                 while not self._closed and (

@@ -1,0 +1,55 @@
+"""Asking the OS to run a deadline thread ahead of the rest of the machine.
+
+A thread that must act at a deadline (the reasoner's fallback at K) loses it when the
+cores are busy with other processes: the scheduler shares them fairly, and a thread
+that wakes at its deadline may wait its turn (tens of ms measured with two busy
+processes on two cores, ``aesop bench reasoner --cpu-hog 2``). :func:`urgent` asks,
+for the calling thread, for the real-time FIFO class at its lowest priority (it then runs
+before every ordinary thread of the machine the moment it wakes), else for a higher
+nice value, else leaves it as it is; it never raises. A real-time thread must sleep
+most of the time: give it only short work.
+
+Either needs the ``CAP_SYS_NICE`` capability (root has it; in a container,
+``cap_add: [SYS_NICE]``); without it the thread runs as any other and says so once.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from typing import Literal
+
+log = logging.getLogger(__name__)
+
+Priority = Literal["realtime", "nice", "normal"]
+NICE = -10
+
+
+def favoured() -> bool:
+    """Give the calling thread, and the threads it starts from now on, a higher nice
+    value (a larger share of a busy machine's cores), if allowed; whether it was. For a
+    process whose deadline thread needs the GIL from its other threads: they must not
+    wait behind other processes to hand it over."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), NICE)
+        return True
+    except (OSError, AttributeError):
+        return False
+
+
+def urgent() -> Priority:
+    """Raise the calling thread's scheduling priority as far as allowed; what it got."""
+    try:
+        policy = os.SCHED_FIFO
+        os.sched_setscheduler(0, policy, os.sched_param(os.sched_get_priority_min(policy)))
+        return "realtime"
+    except (OSError, AttributeError):
+        pass
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), NICE)
+        return "nice"
+    except (OSError, AttributeError):
+        log.warning("the %s thread runs at normal priority (no CAP_SYS_NICE): on a busy "
+                    "machine it may act late", threading.current_thread().name)
+        return "normal"
