@@ -146,3 +146,29 @@ class FairInbox(Generic[T]):
         for key in [k for k in self.dropped if k[0] == idle]:
             del self.dropped[key]
         return True
+
+
+class DropReports:
+    """Which refusals to say, and when: each robot whose observations were refused since
+    its last report gets one more, at most every ``every_s`` (pure; the clock is handed
+    in)."""
+
+    def __init__(self, every_s: float = 10.0) -> None:
+        self.every_s = every_s
+        self._said: dict[tuple[str, Reason], int] = {}  # counts as of each robot's report
+        self._at: dict[str, float] = {}  # when each robot was last reported
+
+    def due(self, counts: dict[tuple[str, Reason], int], now: float
+            ) -> dict[str, dict[Reason, int]]:
+        """The new refusals to report now, per robot and reason."""
+        self._said = {k: v for k, v in self._said.items() if k in counts}
+        self._at = {r: t for r, t in self._at.items() if now - t < self.every_s}
+        new: dict[str, dict[Reason, int]] = {}
+        for (robot, reason), n in counts.items():
+            if n > self._said.get((robot, reason), 0) and robot not in self._at:
+                new.setdefault(robot, {})[reason] = n - self._said.get((robot, reason), 0)
+        for robot, reasons in new.items():
+            self._at[robot] = now
+            for reason in reasons:
+                self._said[robot, reason] = counts[robot, reason]
+        return new

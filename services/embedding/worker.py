@@ -40,7 +40,7 @@ from shared.messages import (
 from shared.pump import MessagePump
 
 from .errors import DetectorError
-from .fairness import OTHER, FairInbox, Reason
+from .fairness import OTHER, DropReports, FairInbox, Reason
 from .proposals import Proposal
 from .scorer import ScoreBatch
 from .service import CacheService
@@ -51,6 +51,9 @@ log = logging.getLogger(__name__)
 SOURCE = "embedding"  # its events' source, and the last part of their key
 REMEMBERED = 1024  # flagged observations and reasoner requests kept to match decisions
 DROPS_EVERY_S = 10.0  # at most one observations_dropped alarm per robot this often
+WHY = {"rate": "over its rate (AESOP_EMBEDDING_LIMITS__ROBOT_HZ)",
+       "full": "superseded while its queue was full",
+       "robots": "from robots past AESOP_EMBEDDING_LIMITS__MAX_ROBOTS"}
 
 
 def make_verdict(obs: Observation, robot: str, batch: ScoreBatch, cache: str,
@@ -91,8 +94,7 @@ class DetectorWorker:
             metrics.dropped.source = self.inbox.counts
         self._scoring: set[asyncio.Task[None]] = set()
         self._observations: Subscription[Observation] | None = None
-        self._reported: dict[tuple[str, Reason], int] = {}  # drops said in an alarm so far
-        self._reported_at: dict[str, float] = {}
+        self._reports = DropReports(DROPS_EVERY_S)
         self._last_alarm = 0.0
         # (robot, seq) -> the flagged observation and its verdict; request id -> request
         self._flagged: OrderedDict[tuple[str, int], tuple[Observation, AnomalyVerdict]] = \
@@ -175,26 +177,12 @@ class DetectorWorker:
             self._dispatch()
 
     async def _report_drops(self) -> None:
-        """Each robot whose observations were refused since its last alarm gets one more,
-        at most every :data:`DROPS_EVERY_S`."""
+        """Say the refusals (:class:`.fairness.DropReports`), looking once a second."""
         while True:
             await asyncio.sleep(1.0)
-            counts = self.inbox.counts()
-            self._reported = {k: v for k, v in self._reported.items() if k in counts}
-            now = time.monotonic()
-            new: dict[str, dict[Reason, int]] = {}
-            for (robot, reason), n in counts.items():
-                if n > self._reported.get((robot, reason), 0):
-                    new.setdefault(robot, {})[reason] = n - self._reported.get((robot, reason), 0)
-            for robot, reasons in new.items():
-                if now - self._reported_at.get(robot, -DROPS_EVERY_S) < DROPS_EVERY_S:
-                    continue
-                self._reported_at[robot] = now
-                for reason in reasons:
-                    self._reported[robot, reason] = counts[robot, reason]
+            for robot, reasons in self._reports.due(self.inbox.counts(),
+                                                    time.monotonic()).items():
                 self._say_dropped(robot, reasons)
-            self._reported_at = {r: t for r, t in self._reported_at.items()
-                                 if now - t < DROPS_EVERY_S}
 
     def _say_dropped(self, robot: str, reasons: dict[Reason, int]) -> None:
         said = ", ".join(f"{n} {WHY[reason]}" for reason, n in sorted(reasons.items()))
@@ -284,11 +272,6 @@ class DetectorWorker:
         self.bus.publish(topics.event(robot, SOURCE), Event(
             robot=robot, source=SOURCE, kind="detector_unavailable", severity="alarm",
             message=message))
-
-
-WHY = {"rate": "over its rate (AESOP_EMBEDDING_LIMITS__ROBOT_HZ)",
-       "full": "superseded while its queue was full",
-       "robots": "from robots past AESOP_EMBEDDING_LIMITS__MAX_ROBOTS"}
 
 
 def remember(kept: OrderedDict[Any, Any], key: Any, value: Any) -> None:

@@ -72,3 +72,15 @@ def test_robots_past_the_limit_replace_idle_ones_or_are_refused() -> None:
 def test_bad_limits_are_refused() -> None:
     with pytest.raises(ValueError, match="positive"):
         FairInbox(rate_hz=0, max_robots=1)
+
+
+def test_refusals_are_reported_once_per_robot_per_window() -> None:
+    from services.embedding.fairness import DropReports
+
+    reports = DropReports(every_s=10.0)
+    assert reports.due({("r1", "rate"): 5}, now=0.0) == {"r1": {"rate": 5}}
+    assert reports.due({("r1", "rate"): 9, ("r2", "full"): 1}, now=3.0) == {"r2": {"full": 1}}
+    assert reports.due({("r1", "rate"): 9, ("r2", "full"): 1}, now=5.0) == {}
+    # r1's window ended: what came since its report, in one
+    assert reports.due({("r1", "rate"): 12, ("r2", "full"): 1}, now=10.5) == {"r1": {"rate": 7}}
+    assert reports.due({}, now=30.0) == {}  # forgotten robots leave nothing behind
