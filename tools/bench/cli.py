@@ -6,7 +6,9 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from tools.commands import CliError, control_scenario, emit
 
@@ -215,37 +217,37 @@ def cmd_bench_loop(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_bus(args: argparse.Namespace) -> int:
-    from shared.process import ServiceFailed
-    from tools.bench.bus import BenchError, run_bus_bench
+    from tools.bench.bus import run_bus_bench
 
     if args.observations < 1 or args.anomalies < 1 or not args.rate > 0:
         raise CliError("--observations and --anomalies must be >= 1 and --rate > 0")
-    try:
-        result = run_bus_bench(observations=args.observations, rate_hz=args.rate,
-                               anomalies=args.anomalies, model=args.model,
-                               cache_detections=args.cache_detections, table_out=not args.json)
-    except (BenchError, ServiceFailed) as exc:
-        print(f"aesop: bench bus: {exc}", file=sys.stderr)
-        return 1
-    if args.json:
-        emit(result, True)
-    return 0
+    return _with_processes("bus", lambda: run_bus_bench(
+        observations=args.observations, rate_hz=args.rate, anomalies=args.anomalies,
+        model=args.model, cache_detections=args.cache_detections, table_out=not args.json),
+        args.json)
 
 
 def cmd_bench_fairness(args: argparse.Namespace) -> int:
-    from shared.process import ServiceFailed
-    from tools.bench.bus import BenchError
     from tools.bench.fairness import run_fairness_bench
 
     if not (args.flood_hz > 0 and args.rate > 0 and args.seconds > 0):
         raise CliError("--flood-hz, --rate and --seconds must be positive")
+    return _with_processes("fairness", lambda: run_fairness_bench(
+        seconds=args.seconds, rate_hz=args.rate, flood_hz=args.flood_hz, direct=args.direct,
+        model=args.model, table_out=not args.json), args.json)
+
+
+def _with_processes(name: str, run: Callable[[], dict[str, Any]], as_json: bool) -> int:
+    """A bench of service processes: a service that fails, or a wait that runs out, is
+    said in one line and exit status 1."""
+    from shared.process import ServiceFailed
+    from tools.bench.bus import BenchError
+
     try:
-        result = run_fairness_bench(seconds=args.seconds, rate_hz=args.rate,
-                                    flood_hz=args.flood_hz, direct=args.direct,
-                                    model=args.model, table_out=not args.json)
+        result = run()
     except (BenchError, ServiceFailed) as exc:
-        print(f"aesop: bench fairness: {exc}", file=sys.stderr)
+        print(f"aesop: bench {name}: {exc}", file=sys.stderr)
         return 1
-    if args.json:
+    if as_json:
         emit(result, True)
     return 0
