@@ -58,13 +58,15 @@ def url() -> Iterator[tuple[str, int]]:
 
 
 def connect(addr: tuple[str, int]) -> socket.socket:
-    sock = socket.create_connection(addr, timeout=5)
-    sock.settimeout(5)
+    """A raw connection whose reads give up after 15 s (the server's timeouts here are
+    0.5 s: a read that gives up means the server held the connection)."""
+    sock = socket.create_connection(addr, timeout=15)
+    sock.settimeout(15)
     return sock
 
 
 def read_all(sock: socket.socket) -> bytes:
-    """Everything until the server closes (or 5 s pass: socket.timeout)."""
+    """Everything until the server closes (or the read gives up: socket.timeout)."""
     out = b""
     while chunk := sock.recv(65536):
         out += chunk
@@ -74,10 +76,9 @@ def read_all(sock: socket.socket) -> bytes:
 def test_a_connection_whose_headers_never_finish_is_closed(url: tuple[str, int]) -> None:
     with contextlib.closing(connect(url)) as slow, contextlib.closing(connect(url)) as idle:
         slow.sendall(b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n")  # and no end
-        started = time.monotonic()
-        assert read_all(slow) == b""  # closed without an answer
+        # closed without an answer (a server that held it would leave recv to time out)
+        assert read_all(slow) == b""
         assert read_all(idle) == b""  # one that sends nothing at all, too
-        assert time.monotonic() - started < 4.0
     assert httpx.get(f"http://{url[0]}:{url[1]}/healthz").status_code == 200
 
 
