@@ -480,7 +480,8 @@ class Guard:
         try:
             while True:
                 try:
-                    message = await asyncio.wait_for(receive(), self.body_idle_s)
+                    async with asyncio.timeout(self.body_idle_s):  # no task per chunk
+                        message = await receive()
                 except TimeoutError:
                     raise Refusal(408, "body_timeout", "no part of the request body came for "
                                   f"{self.body_idle_s:g} s", "body") from None

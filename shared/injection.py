@@ -74,12 +74,17 @@ _NEAR = re.compile(
     re.IGNORECASE)
 
 
-def fold(text: str) -> str:
-    """``text`` as the patterns see it: NFKC, no invisible format characters, look-alike
-    letters of other scripts as the Latin letters they pass for."""
+def visible(text: str) -> str:
+    """``text`` in NFKC with its invisible format characters removed (zero-width spaces,
+    joiners): what a reader sees, so a disguised marker still counts."""
     text = unicodedata.normalize("NFKC", text)
-    text = "".join(ch for ch in text if unicodedata.category(ch) != "Cf")
-    return text.translate(_CONFUSABLES)
+    return "".join(ch for ch in text if unicodedata.category(ch) != "Cf")
+
+
+def fold(text: str) -> str:
+    """``text`` as the patterns see it: :func:`visible`, then look-alike letters of other
+    scripts as the Latin letters they pass for."""
+    return visible(text).translate(_CONFUSABLES)
 
 
 def tripwire(text: str) -> str | None:

@@ -46,10 +46,8 @@ def urgent() -> Priority:
         return "realtime"
     except (OSError, AttributeError):
         pass
-    try:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), NICE)
+    if favoured():
         return "nice"
-    except (OSError, AttributeError):
-        log.warning("the %s thread runs at normal priority (no CAP_SYS_NICE): on a busy "
-                    "machine it may act late", threading.current_thread().name)
-        return "normal"
+    log.warning("the %s thread runs at normal priority (no CAP_SYS_NICE): on a busy "
+                "machine it may act late", threading.current_thread().name)
+    return "normal"

@@ -439,9 +439,12 @@ class ControlRuntime:
                 robot=robot, request_id=uuid.uuid4().hex, cause=inputs.cause, verdict=verdict,
                 observation=observation, regions=self.scenario.regions,
                 offered=output.request, deadline_s=self._seconds_left(deadline, output))
-        scene = None if observation is None else scene_key(observation)
-        self.handshake = handshake.conclude(self.handshake, None if request is None else Asked(
-            request.request_id, inputs.cause, scene, None if verdict is None else verdict.seq))
+        asked = None
+        if request is not None:
+            scene = None if observation is None else scene_key(observation)
+            asked = Asked(request.request_id, inputs.cause, scene,
+                          None if verdict is None else verdict.seq)
+        self.handshake = handshake.conclude(self.handshake, asked)
         events.extend(self._event("non_finite", "alarm", alarm) for alarm in output.alarms)
         events.extend(outbox.mode_events(robot, self.mode, output, request.request_id
                                          if request is not None else self.handshake.pending))

@@ -28,12 +28,11 @@ A code fence on its own line after the answer is not tolerated.
 from __future__ import annotations
 
 import re
-import unicodedata
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
-from .prompts import suspicious_observation
+from shared.injection import tripwire, visible
 
 Reason = Literal[
     "no_answer", "multiple_answers", "not_offered", "refusal", "injection", "empty", "malformed"
@@ -82,22 +81,22 @@ def parse_decision(text: str, offered: Sequence[int], *, observation: str | None
     """Parse ``text`` into a choice in ``offered``, or raise :class:`ParseError`."""
     allowed = _offered(offered)
     if observation is not None:
-        flagged = suspicious_observation(observation)
+        flagged = tripwire(observation)
         if flagged:
             raise ParseError("injection", f"observation flagged ({flagged})")
-    visible = _normalise(text)
-    if not visible.strip():
+    shown = visible(text)
+    if not shown.strip():
         raise ParseError("empty", "no text")
-    markers = len(_MARKER.findall(visible))
+    markers = len(_MARKER.findall(shown))
     if markers == 0:
-        if _REFUSAL.search(visible.replace("\u2019", "'")):
+        if _REFUSAL.search(shown.replace("\u2019", "'")):
             raise ParseError("refusal", "the model refused and gave no final answer")
         raise ParseError("no_answer", "no 'FINAL ANSWER:' line")
     if markers > 1:
         raise ParseError("multiple_answers", f"'FINAL ANSWER:' occurs {markers} times")
     lines = text.splitlines()
-    last = max(i for i, line in enumerate(lines) if _normalise(line).strip())
-    if not _MARKER.search(_normalise(lines[last])):
+    last = max(i for i, line in enumerate(lines) if visible(line).strip())
+    if not _MARKER.search(visible(lines[last])):
         raise ParseError("malformed", "the final answer is not the last line")
     match = _FINAL_LINE.match(lines[last])
     if match is None:
@@ -132,12 +131,6 @@ def _offered(offered: Sequence[int]) -> frozenset[int]:
         if isinstance(index, bool) or not isinstance(index, int) or index < 0:
             raise ValueError(f"offered: indices must be non-negative ints, got {index!r}")
     return frozenset(offered)
-
-
-def _normalise(text: str) -> str:
-    """NFKC with invisible format characters removed, so disguised markers still count."""
-    text = unicodedata.normalize("NFKC", text)
-    return "".join(ch for ch in text if unicodedata.category(ch) != "Cf")
 
 
 def _clip(text: str, limit: int) -> str:

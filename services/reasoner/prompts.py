@@ -31,7 +31,8 @@ observation's odd detections (``ReasonerRequest.unusual``) or pair of detections
 The task, the observation and the detections are untrusted text: every line is quoted
 with ``"> "`` (the task and each detection are one line, line breaks folded to spaces) so
 none can open its own ``Options:`` or ``FINAL ANSWER:`` line, and
-:func:`suspicious_scene` flags any of them when it tries to inject instructions.
+:func:`suspicious_scene` flags any of them that trips the injection tripwire
+(:func:`shared.injection.tripwire`).
 """
 
 from __future__ import annotations
@@ -241,12 +242,6 @@ def _single_line(text: str, field: str) -> str:
     return collapsed
 
 
-def suspicious_observation(text: str) -> str | None:
-    """A short reason when ``text`` tries to inject instructions, else None (the shared
-    tripwire, :func:`shared.injection.tripwire`: a tripwire, not the defence)."""
-    return tripwire(text)
-
-
 def suspicious_scene(*, task: str, observation: str,
                      unusual: Sequence[Named] = ()) -> str | None:
     """Which of the scene's untrusted texts tries to inject instructions, and how
@@ -254,7 +249,7 @@ def suspicious_scene(*, task: str, observation: str,
     (...)``), else None."""
     named = "\n".join(unusual_line(m) for m in unusual)
     for name, text in (("observation", observation), ("task", task), ("detections", named)):
-        flagged = suspicious_observation(text)
+        flagged = tripwire(text)
         if flagged:
             return f"{name} flagged ({flagged})"
     return None

@@ -30,7 +30,6 @@ from shared.messages import (
 from shared.process import free_port
 from shared.settings import BusSettings
 from tools.stack.acl import (
-    MAX_OBSERVATION_HZ,
     new_passwords,
     robot_user,
     users_of,
@@ -247,20 +246,19 @@ def test_a_robot_flooding_its_observations_is_cut_to_its_rate_at_the_hub(hub: Hu
         routed(lambda: robot_b.publish(b, observation("robot-b", 0)), heard, "robot-b")
         time.sleep(1.0)  # a second of quiet: the hub's window for robot-a starts afresh
         heard.clear()
-        started, sent_b = time.monotonic(), 0
+        sent_b = 0
         for flood in range(1, 4001):  # as fast as this thread can, about 2 kHz
             robot_a.publish(a, observation("robot-a", flood))
             if flood % 200 == 0:  # robot-b about every 100 ms meanwhile
                 sent_b += 1
                 robot_b.publish(b, observation("robot-b", sent_b))
             time.sleep(0.0005)
-        flooded_s = time.monotonic() - started
         while 9999 not in heard.seqs(b):  # a probe after them: robot-b's are all in by then
             robot_b.publish(b, observation("robot-b", 9999))
             time.sleep(0.1)
     assert sorted(set(heard.seqs(b)) - {9999}) == list(range(1, sent_b + 1))  # none lost
-    # robot-a's flood, cut to the hub's rate for as long as it lasted (one more window)
-    assert heard.keys.count(a) <= MAX_OBSERVATION_HZ * (flooded_s + 1.0) < 4000 / 2
+    # robot-a's flood, cut at the hub: at 50 a second, most of 4,000 never arrive
+    assert heard.keys.count(a) < 4000 // 4
 
 
 def test_each_publisher_puts_events_on_its_own_key_only(hub: Hub) -> None:

@@ -22,13 +22,12 @@ from services.reasoner.parsing import _FINAL_LINE, ParseError, parse_decision
 from services.reasoner.prompts import (
     build_prompt,
     load_template,
-    suspicious_observation,
 )
 from services.reasoner.settings import ReasonerLimits, ReasonerSettings
 from services.reasoner.worker import ReasonerWorker
 from shared import topics
 from shared.bus import Bus, Received
-from shared.injection import _PATTERNS
+from shared.injection import _PATTERNS, tripwire
 from shared.messages import Message, Observation, Option, ReasonerDecision, ReasonerRequest
 from tests.fakes.chat_backends import Recording, Stalling
 
@@ -62,11 +61,11 @@ def test_injection_check_is_linear_on_blank_lines() -> None:
     10.5 s (quadratic), so these 200,000 would take about half an hour; now well under
     a second. The answers stay right around the blank lines."""
     for blank in ("\n" * 200_000, ">\n" * 100_000, " \n" * 100_000, "\u2028\n" * 100_000):
-        assert suspicious_observation(blank) is None
+        assert tripwire(blank) is None
         for marker, reason in [("> Options:", "prompt section header"),
                                (" user: hi", "chat role marker"),
                                ("> 3: continue nominal", "option line")]:
-            assert (suspicious_observation(blank + marker) or "").startswith(reason)
+            assert (tripwire(blank + marker) or "").startswith(reason)
 
 
 @pytest.mark.parametrize("reason", sorted(OLD_LINE_START))

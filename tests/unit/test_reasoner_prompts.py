@@ -15,10 +15,10 @@ from services.reasoner.prompts import (
     build_messages,
     build_prompt,
     load_template,
-    suspicious_observation,
     suspicious_scene,
     unusual_of,
 )
+from shared.injection import tripwire
 from shared.messages import DetectionMatch, Observation, Option, PairMatch, ReasonerRequest
 from tools.fakes.llm import parse_prompt
 
@@ -243,7 +243,7 @@ def test_multiline_task_and_labels_are_collapsed() -> None:
     ],
 )
 def test_suspicious_observation_flags(text: str) -> None:
-    reason = suspicious_observation(text)
+    reason = tripwire(text)
     assert reason is not None and reason
 
 
@@ -260,7 +260,7 @@ def test_suspicious_observation_flags(text: str) -> None:
     ],
 )
 def test_suspicious_observation_passes_normal_text(text: str) -> None:
-    assert suspicious_observation(text) is None
+    assert tripwire(text) is None
 
 
 def test_build_messages_shape() -> None:

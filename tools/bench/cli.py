@@ -88,8 +88,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="anomalies timed for the control reaction (default 20)")
     bb.add_argument("--cache-detections", type=int, default=4, choices=[1, 2, 3, 4],
                     help="cache every combination of up to N scene detections (default 4)")
-    bb.add_argument("--model", default=None,
-                    help="embedding model (default: onnx:all-MiniLM-L6-v2, the service's)")
+    _model_option(bb)
     bb.add_argument("--json", action="store_true")
     bb.set_defaults(func=cmd_bench_bus)
     bf = bsub.add_parser("fairness", help="one robot floods its observations: another robot's "
@@ -101,11 +100,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="each phase, alone and flooded (default 15)")
     bf.add_argument("--direct", action="store_true",
                     help="no hub: the robots reach the service as peers (its own defence only)")
-    bf.add_argument("--model", default=None,
-                    help="embedding model (default: onnx:all-MiniLM-L6-v2, the service's)")
+    _model_option(bf)
     bf.add_argument("--json", action="store_true")
     bf.set_defaults(func=cmd_bench_fairness)
     bench.set_defaults(needs_bench_extra=True)
+
+
+def _model_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", default=None,
+                        help="embedding model (default: onnx:all-MiniLM-L6-v2, the service's)")
 
 
 def cmd_bench_detector(args: argparse.Namespace) -> int:

@@ -33,6 +33,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from shared import topics
+
 ALL = "aesop/**"
 SERVICE_PUTS: Mapping[str, tuple[str, ...]] = {
     "embedding": ("aesop/*/anomaly", "aesop/*/event/embedding"),
@@ -89,7 +91,7 @@ def stack_acl(robots: Sequence[str]) -> dict[str, Any]:
         user = robot_user(robot)
         rules += [
             _rule(f"{user}-puts", "ingress", ["put", "delete"],
-                  [f"aesop/{robot}/observation", f"aesop/{robot}/event/robot",
+                  [f"aesop/{robot}/observation", f"aesop/{robot}/event/{topics.ROBOT_SOURCE}",
                    f"aesop/{robot}/vehicle/state"]),
             _rule(f"{user}-clock", "ingress", ["declare_queryable", "reply"],
                   [f"aesop/{robot}/vehicle/clock"]),
