@@ -355,6 +355,31 @@ class Latest(_Declared, _Decoding[M]):
         return (time.monotonic() if now is None else now) - got.received_at
 
 
+class Each(_Declared, _Decoding[M]):
+    """Every decoded message on ``key_expr`` handed to ``handler`` on the Zenoh thread, no
+    loop and no queue: for a process whose work per message is short and must not wait
+    behind a loop (the reasoner's deadline keeper). ``handler`` must be quick, must not
+    block and must not call Zenoh back synchronously from a query; one that raises is
+    logged, never the Zenoh thread's problem."""
+
+    def __init__(self, session: zenoh.Session, key_expr: str, model: type[M],
+                 handler: Callable[[Received[M]], None],
+                 on_error: Callable[[], None] | None = None) -> None:
+        self._decoder = _Decoder(key_expr, model, on_error)
+        self._handler = handler
+        self._subscriber = session.declare_subscriber(key_expr, self._on_sample)
+        self._undeclare = _once(self._subscriber.undeclare)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        got = self._decoder(sample)
+        if got is None:
+            return
+        try:
+            self._handler(got)
+        except Exception:  # a callback must never break the Zenoh thread
+            log.exception("handling a sample on %s failed", self._decoder.key_expr)
+
+
 class Answering(_Declared):
     """A queryable on ``key``: each query is answered with ``reply()``, on a Zenoh thread
     (``reply`` must be quick and must not block; one that raises answers nothing)."""
@@ -413,28 +438,39 @@ def _once(undeclare: Callable[[], object]) -> Callable[[], None]:
 class Bus:
     """A Zenoh session for one service: typed pub/sub plus its liveliness token."""
 
-    def __init__(self, session: zenoh.Session, service: str) -> None:
+    def __init__(self, session: zenoh.Session, service: str, *, alive: bool = True) -> None:
         self._session = session
         self.service = service
         self._lock = threading.Lock()
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._children: weakref.WeakSet[_Closeable] = weakref.WeakSet()
-        self._token: zenoh.LivelinessToken | None = session.liveliness().declare_token(
-            topics.health(service)
-        )
+        self._token: zenoh.LivelinessToken | None = None
         self._closed = False
+        if alive:
+            self.announce()
 
     @classmethod
-    def open(cls, settings: BusSettings, service: str) -> Self:
-        """Open a session and declare the liveliness token ``aesop/health/{service}``."""
+    def open(cls, settings: BusSettings, service: str, *, alive: bool = True) -> Self:
+        """Open a session and declare the liveliness token ``aesop/health/{service}``
+        (``alive=False``: later, by :meth:`announce`)."""
         topics.health(service)  # validate before opening anything
         session = zenoh.open(zenoh_config(settings))
         try:
-            return cls(session, service)
+            return cls(session, service, alive=alive)
         except BaseException:
             # zenoh's stub leaves Session.close unannotated
             session.close()  # type: ignore[no-untyped-call]
             raise
+
+    def announce(self) -> None:
+        """Declare the liveliness token ``aesop/health/{service}`` (once). Declarations
+        travel in order on a link: a peer that sees the token has seen every subscriber
+        declared before it, so a service that announces after subscribing is heard as
+        soon as it is seen alive."""
+        with self._lock:
+            if self._token is None and not self._closed:
+                self._token = self._session.liveliness().declare_token(
+                    topics.health(self.service))
 
     @property
     def session(self) -> zenoh.Session:
@@ -480,6 +516,11 @@ class Bus:
     def watch_alive(self, prefix: str = HEALTH_ALL, *, history: bool = True) -> LivelinessWatch:
         """An async iterator of services appearing and vanishing; call inside the loop."""
         return self._adopt(LivelinessWatch(self._open_session(), prefix, history=history))
+
+    def each(self, key_expr: str, model: type[M], handler: Callable[[Received[M]], None], *,
+             on_error: Callable[[], None] | None = None) -> Each[M]:
+        """Hand every ``model`` message to ``handler`` on the Zenoh thread (see :class:`Each`)."""
+        return self._adopt(Each(self._open_session(), key_expr, model, handler, on_error))
 
     def answer(self, key: str, reply: Callable[[], Message]) -> Answering:
         """Answer every query on the concrete ``key`` with ``reply()`` (a queryable)."""

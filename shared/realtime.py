@@ -38,11 +38,14 @@ def favoured() -> bool:
         return False
 
 
-def urgent() -> Priority:
-    """Raise the calling thread's scheduling priority as far as allowed; what it got."""
+def urgent(above: int = 0) -> Priority:
+    """Raise the calling thread's scheduling priority as far as allowed; what it got.
+    ``above``: how many real-time levels over the lowest (a thread that must preempt
+    other real-time threads of its own process asks for 1)."""
     try:
         policy = os.SCHED_FIFO
-        os.sched_setscheduler(0, policy, os.sched_param(os.sched_get_priority_min(policy)))
+        level = os.sched_get_priority_min(policy) + above
+        os.sched_setscheduler(0, policy, os.sched_param(level))
         return "realtime"
     except (OSError, AttributeError):
         pass
