@@ -71,13 +71,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 def serve_reasoner(overrides: dict[str, Any]) -> int:
     from services.reasoner.api import create_app
-    from services.reasoner.deciding import keep_deadlines, settle
+    from services.reasoner.deciding import keep_up, settle
     from services.reasoner.settings import ReasonerSettings
     from services.reasoner.worker import ReasonerWorker
     from shared.serving import serve
 
     settings = _exposed(ReasonerSettings(**overrides))
-    keep_deadlines()
+    keep_up()
     serve(create_app(settings, worker_factory=ReasonerWorker.factory(settings),
                      on_started=settle), settings)
     return 0

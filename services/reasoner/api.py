@@ -50,6 +50,20 @@ def build_decider(settings: ReasonerSettings,
     return Decider(backends, config, policy)
 
 
+def ready(started: bool, worker: Any) -> dict[str, str] | None:
+    """Why the service is not ready (None: it is): starting, or no deadline keeper on the
+    bus (it is started again within a second of dying)."""
+    if not started:
+        return {"reason": "starting"}
+    if worker is not None and not getattr(worker, "listening", True):
+        return {"reason": "the deadline keeper is not listening on the bus yet"}
+    return None
+
+
+def worker_of(app: FastAPI) -> Any:
+    return getattr(app.state, "worker", None)
+
+
 def create_app(
     settings: ReasonerSettings,
     decider: Decider | None = None,
@@ -66,6 +80,7 @@ def create_app(
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         app.state.decider = decider or build_decider(settings, metrics.count)
         worker = worker_factory(app.state.decider, metrics) if worker_factory else None
+        app.state.worker = worker
         task = asyncio.create_task(worker.run()) if worker else None
         state["started"] = True
         if on_started is not None:  # the entry point's process tuning (deciding.settle)
@@ -85,7 +100,7 @@ def create_app(
 
     app = service_app(
         "AESOP slow-reasoner service", service="reasoner", lifespan=lifespan, registry=registry,
-        ready=lambda: None if state["started"] else {"reason": "starting"},
+        ready=lambda: ready(state["started"], worker_of(app)),
         admin_token=settings.admin_token,
         max_body_bytes=settings.max_body_bytes,
         limits={"ReasonBody": {"options": {"maxItems": settings.limits.max_options},

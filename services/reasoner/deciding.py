@@ -2,8 +2,9 @@
 
 :class:`Decider` asks the LLM backends for y in the offered options and returns a
 :class:`~shared.messages.ReasonerDecision` before ``received_at + deadline_s - margin_s``;
-on the bus (:meth:`Decider.decide_and_send`) a timer thread sends the timeout fallback at
-that moment if the event loop has not answered, so a loaded loop still answers by K:
+on the bus the deadline keeper (:mod:`.keeper`, a process of its own) sends the timeout
+fallback at that moment if this decision has not reached it, so a loaded process still
+answers by K:
 
 - ``llm``: the first answer that parses (strictly) into an offered option wins; every
   other attempt is cancelled, and its HTTP connection closed once the decision has left.
@@ -24,13 +25,11 @@ answer before the deadline. Every non-LLM answer is :func:`fallback_choice`.
 from __future__ import annotations
 
 import asyncio
+import contextvars
 import gc
-import heapq
-import itertools
 import logging
 import math
 import sys
-import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -38,7 +37,7 @@ from types import MappingProxyType
 from typing import Literal
 
 from shared.messages import DecisionSource, Option, ReasonerDecision, ReasonerRequest
-from shared.realtime import Priority, favoured, urgent
+from shared.realtime import favoured
 
 from .backends import BackendError, ChatBackend, Completion
 from .parsing import Parsed, ParseError, parse_decision, parse_partial
@@ -48,6 +47,10 @@ log = logging.getLogger(__name__)
 
 FallbackKind = Literal["first_recovery", "rank"]
 DEFAULT_TASK = "carry out the current mission safely"
+# the request_id being decided, for what the attempts call (a backend's logs, a bench's
+# timing): set by Decider.decide, copied into each attempt's task
+DECIDING: contextvars.ContextVar[str | None] = contextvars.ContextVar("aesop_deciding",
+                                                                      default=None)
 
 
 # --------------------------------------------------------------------------- fallback
@@ -74,6 +77,9 @@ class FallbackPolicy:
         folded = {label.strip().casefold(): rank for label, rank in self.ranks.items()}
         object.__setattr__(self, "ranks", MappingProxyType(folded))
 
+    def __reduce__(self) -> tuple[type[FallbackPolicy], tuple[str, dict[str, int]]]:
+        return FallbackPolicy, (self.kind, dict(self.ranks))  # to the keeper's process
+
 
 def fallback_choice(options: Sequence[Option], policy: FallbackPolicy) -> int:
     """The fallback option index: never 0 (continue) while a recovery option exists."""
@@ -87,6 +93,20 @@ def fallback_choice(options: Sequence[Option], policy: FallbackPolicy) -> int:
 
 def _rank(option: Option, policy: FallbackPolicy) -> float:
     return policy.ranks.get(option.label.strip().casefold(), math.inf)
+
+
+def fallback_decision(request: ReasonerRequest, policy: FallbackPolicy,
+                      source: DecisionSource, why: str, latency_ms: float) -> ReasonerDecision:
+    """The labelled fallback for ``request``: :func:`fallback_choice`, and why."""
+    choice = fallback_choice(request.options, policy)
+    return ReasonerDecision(
+        robot=request.robot, request_id=request.request_id, choice=choice, source=source,
+        rationale=f"{source}: {why}; fallback option {choice} ({policy.kind})",
+        latency_ms=latency_ms, model="")
+
+
+def timeout_reason(deadline_s: float) -> str:
+    return f"no valid answer within the deadline of {deadline_s:g} s"
 
 
 # --------------------------------------------------------------------------- outcomes
@@ -126,7 +146,7 @@ class DeciderConfig:
     domain: str = "quadrotor"
     variant: Variant = "cot"
     hedge_after_s: float | None = None
-    margin_s: float = 0.010  # covers the deadline thread waiting out a collection
+    margin_s: float = 0.020  # the machine's own scheduling stalls (benchmarks.md)
 
     def __post_init__(self) -> None:
         if self.hedge_after_s is not None and self.hedge_after_s < 0:
@@ -153,15 +173,21 @@ class Decider:
         self._clock = clock
         self._template = load_template(config.domain)
         self._closing: set[asyncio.Future[list[Win | Failure | BaseException]]] = set()
-        self._timer = DeadlineTimer()
 
     @property
     def backends(self) -> tuple[ChatBackend, ...]:
         return self._backends
 
+    @property
+    def config(self) -> DeciderConfig:
+        return self._config
+
+    @property
+    def policy(self) -> FallbackPolicy:
+        return self._policy
+
     async def aclose(self) -> None:
         """Wait for the cancelled attempts to close, then close every backend."""
-        self._timer.close()
         if self._closing:
             await asyncio.gather(*self._closing, return_exceptions=True)
         for backend in self._backends:
@@ -172,6 +198,7 @@ class Decider:
         """y for ``request``, by ``received_at + deadline_s - margin_s`` (clock seconds)."""
         start = self._clock() if received_at is None else received_at
         deadline = start + request.deadline_s - self._config.margin_s
+        DECIDING.set(request.request_id)  # this task's context only
         flagged = suspicious_scene(task=request.observation.task,
                                    observation=request.observation.text,
                                    unusual=unusual_of(request))
@@ -185,29 +212,6 @@ class Decider:
         offered = [o.index for o in request.options]
         outcome = await self._race(messages, offered, deadline)
         return self._decision(request, start, outcome)
-
-    async def decide_and_send(self, request: ReasonerRequest, send: Send, *,
-                              received_at: float | None = None) -> ReasonerDecision:
-        """Call ``send`` exactly once, by the deadline whatever the event loop's load: with
-        the decision :meth:`decide` reaches in time, or else, from the timer thread at the
-        deadline, with the timeout fallback (computed without the loop). Returns what was
-        sent. This is the bus's contract: a loaded loop (many answers streaming in at once)
-        wakes late, a thread with its own timer does not."""
-        start = self._clock() if received_at is None else received_at
-        once = _Once(send)
-        # the timer thread may wait up to a switch interval for the GIL: it starts that
-        # much earlier than the loop's own deadline
-        due = time.monotonic() + (start + request.deadline_s - self._config.margin_s
-                                  - sys.getswitchinterval() - self._clock())
-        why = f"no valid answer within the deadline of {request.deadline_s:g} s"
-        handle = self._timer.at(due, lambda: once(self._fallback(request, start, "timeout", why)))
-        try:
-            decision = await self.decide(request, received_at=start)
-        finally:
-            self._timer.cancel(handle)
-        once(decision)
-        assert once.sent is not None
-        return once.sent
 
     def _messages(self, request: ReasonerRequest) -> list[dict[str, str]]:
         return build_messages(self._template, task=request.observation.task or DEFAULT_TASK,
@@ -281,20 +285,15 @@ class Decider:
                 model=outcome.model)
         if isinstance(outcome, Timeout):
             seen = _describe(outcome.failures)
-            return self._fallback(request, start, "timeout",
-                                  f"no valid answer within the deadline of "
-                                  f"{request.deadline_s:g} s" + (f" ({seen})" if seen else ""))
+            return self._fallback(request, start, "timeout", timeout_reason(request.deadline_s)
+                                  + (f" ({seen})" if seen else ""))
         source: DecisionSource = (
             "parse_error" if any(f.source == "parse_error" for f in outcome) else "backend_error")
         return self._fallback(request, start, source, _describe(outcome))
 
     def _fallback(self, request: ReasonerRequest, start: float, source: DecisionSource,
                   why: str) -> ReasonerDecision:
-        choice = fallback_choice(request.options, self._policy)
-        return ReasonerDecision(
-            robot=request.robot, request_id=request.request_id, choice=choice, source=source,
-            rationale=f"{source}: {why}; fallback option {choice} ({self._policy.kind})",
-            latency_ms=self._latency_ms(start), model="")
+        return fallback_decision(request, self._policy, source, why, self._latency_ms(start))
 
     def _latency_ms(self, start: float) -> float:
         return max(0.0, (self._clock() - start) * 1000.0)
@@ -321,99 +320,22 @@ async def _attempt(backend: ChatBackend, messages: list[dict[str, str]], offered
     return Win(parsed=parsed, model=backend.model, completion=completion)
 
 
-Send = Callable[[ReasonerDecision], None]
-SWITCH_INTERVAL_S = 0.001  # the GIL hand-over a deadline process asks for
-
-
-def keep_deadlines(process_switch_interval_s: float = SWITCH_INTERVAL_S) -> None:
-    """Tune this process for the deadline thread (call once, from the entry point, before
-    other threads start): a thread that wants the GIL waits at most
-    ``process_switch_interval_s`` for it (Python's default is 5 ms), and the process's
-    threads get a larger share of a busy machine's cores where allowed
-    (:func:`shared.realtime.favoured`), so the one holding the GIL is not kept from
-    handing it over. See also :func:`settle`."""
-    sys.setswitchinterval(process_switch_interval_s)
+def keep_up(switch_interval_s: float = 0.001) -> None:
+    """Tune the service's process, once, from its entry point: a thread that wants the GIL
+    waits at most ``switch_interval_s`` for it (Python's default is 5 ms), and the process
+    gets a larger share of a busy machine's cores where allowed
+    (:func:`shared.realtime.favoured`). The deadline does not depend on it (the keeper
+    keeps that); how many answers beat the deadline does."""
+    sys.setswitchinterval(switch_interval_s)
     favoured()
 
 
 def settle() -> None:
     """Once started: move the objects alive now (models, clients, schemas) out of the
-    garbage collector's generations. Its full collections hold the GIL, and the timer
-    thread with it, for as long as they walk every live object (18 ms were measured in
-    the bench before; the deadline thread cannot run during one)."""
+    garbage collector's generations, so that its full collections walk only what came
+    after (they hold the GIL for as long as they walk)."""
     gc.collect()
     gc.freeze()
-
-
-class _Once:
-    """``send`` for the first decision offered, from whichever thread; the rest dropped."""
-
-    def __init__(self, send: Send) -> None:
-        self._send, self._lock = send, threading.Lock()
-        self.sent: ReasonerDecision | None = None
-
-    def __call__(self, decision: ReasonerDecision) -> None:
-        with self._lock:
-            if self.sent is not None:
-                return
-            self.sent = decision
-        self._send(decision)
-
-
-class DeadlineTimer:
-    """One thread that runs callbacks at ``time.monotonic()`` deadlines, earliest first,
-    independent of any event loop (it needs only the GIL, which a busy thread hands over
-    every ``sys.getswitchinterval()``). The thread asks the OS to run it ahead of other
-    processes (:func:`shared.realtime.urgent`; ``priority`` says what it got), so a busy
-    machine does not make it late."""
-
-    def __init__(self) -> None:
-        self._heap: list[tuple[float, int]] = []
-        self._pending: dict[int, Callable[[], None]] = {}  # not yet run nor cancelled
-        self._ready = threading.Condition()
-        self._order = itertools.count()
-        self._thread: threading.Thread | None = None
-        self._closed = False
-        self.priority: Priority | None = None  # once the thread runs
-
-    def at(self, due: float, fn: Callable[[], None]) -> int:
-        with self._ready:
-            if self._thread is None:
-                self._thread = threading.Thread(target=self._serve, name="aesop-deadlines",
-                                                daemon=True)
-                self._thread.start()
-            handle = next(self._order)
-            self._pending[handle] = fn
-            heapq.heappush(self._heap, (due, handle))
-            self._ready.notify()
-        return handle
-
-    def cancel(self, handle: int) -> None:
-        with self._ready:
-            self._pending.pop(handle, None)
-
-    def close(self) -> None:
-        with self._ready:
-            self._closed = True
-            self._ready.notify()
-
-    def _serve(self) -> None:
-        self.priority = urgent()
-        while True:
-            with self._ready:
-                while not self._closed and (
-                        not self._heap or self._heap[0][0] > time.monotonic()):
-                    self._ready.wait(None if not self._heap
-                                     else self._heap[0][0] - time.monotonic())
-                if self._closed:
-                    return
-                _, handle = heapq.heappop(self._heap)
-                fn = self._pending.pop(handle, None)
-            if fn is not None:
-                try:
-                    fn()
-                except Exception:
-                    log.exception("a deadline callback failed")
 
 
 def _describe(failures: Sequence[Failure]) -> str:

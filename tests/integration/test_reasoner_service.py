@@ -17,7 +17,7 @@ from shared import topics
 from shared.bus import Bus
 from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
 from shared.process import ServiceProcess, free_port
-from tests.zenoh_peers import DEADLINE_S, routed
+from tests.zenoh_peers import DEADLINE_S, async_wait_until, wait_until
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
@@ -110,18 +110,20 @@ def test_every_route_needs_the_token_and_backends_hide_credentials(llm_url: str)
     assert backends[0]["base_url"] == llm_url.replace("http://", "http://***@") + "?***"
 
 
-async def test_zenoh_round_trip(llm_url: str, listener: Bus, connector: Bus) -> None:
-    decider = build_decider(settings_for(llm_url))
-    worker = ReasonerWorker(decider, listener)
+async def test_zenoh_round_trip(llm_url: str, listener: Bus, endpoint: str) -> None:
+    settings = settings_for(llm_url, zenoh_connect=[endpoint])
+    decider = build_decider(settings)
+    worker = ReasonerWorker(decider, settings)
     task = asyncio.create_task(worker.run())
-    sub = connector.subscribe(topics.reasoner_decision(topics.ANY_ROBOT), ReasonerDecision)
-    await routed(connector, listener)
-    await routed(listener, connector)
+    sub = listener.subscribe(topics.reasoner_decision(topics.ANY_ROBOT), ReasonerDecision)
+    await async_wait_until(lambda: worker.listening, "the deadline keeper", DEADLINE_S * 6)
+    await asyncio.to_thread(wait_until, lambda: "reasoner" in listener.alive(),
+                            "the keeper on the bus")
     request = ReasonerRequest(
         robot="drone7", request_id="z1", deadline_s=5.0,
         observation=Observation(robot="drone7", **RED_BOX),
         options=tuple(Option(**o) for o in OPTIONS))
-    connector.publish(topics.reasoner_request("drone7"), request)
+    listener.publish(topics.reasoner_request("drone7"), request)
     got = await asyncio.wait_for(anext(sub), DEADLINE_S)
     assert got.key == topics.reasoner_decision("drone7")
     assert got.message.request_id == "z1" and got.message.choice == 1

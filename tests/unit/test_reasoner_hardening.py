@@ -4,18 +4,19 @@ request limits shared by HTTP and the Zenoh worker."""
 
 from __future__ import annotations
 
-import asyncio
 import itertools
 import logging
 import math
 import re
 import threading
-from typing import Any, cast
+import time
+from typing import Any
 
 import pytest
 from prometheus_client import CollectorRegistry
 
-from services.reasoner.deciding import Decider, DeciderConfig
+from services.reasoner.deciding import Decider, DeciderConfig, FallbackPolicy
+from services.reasoner.keeper import Answer, DeadlineTimer, Keeper, Refused, Report
 from services.reasoner.limits import LimitError, check_request
 from services.reasoner.metrics import ReasonerMetrics
 from services.reasoner.parsing import _FINAL_LINE, ParseError, parse_decision
@@ -26,10 +27,10 @@ from services.reasoner.prompts import (
 from services.reasoner.settings import ReasonerLimits, ReasonerSettings
 from services.reasoner.worker import ReasonerWorker
 from shared import topics
-from shared.bus import Bus, Received
+from shared.bus import Received
 from shared.injection import _PATTERNS, tripwire
-from shared.messages import Message, Observation, Option, ReasonerDecision, ReasonerRequest
-from tests.fakes.chat_backends import Recording, Stalling
+from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
+from tests.fakes.chat_backends import Recording
 
 OPTIONS = (Option(index=0, label="continue"),
            Option(index=1, label="alternative landing site", description="the blue box"),
@@ -179,14 +180,17 @@ def test_limits_name_the_field(req: ReasonerRequest, field: str, problem: str) -
     assert str(err.value) == f"{field}: {err.value.problem}"
 
 
-class FakeBus:
-    """Records what the worker publishes."""
+class Told:
+    """The keeper's two outlets: what it publishes and what it tells the service."""
 
     def __init__(self) -> None:
-        self.published: list[tuple[str, Message]] = []
+        self.published: list[tuple[str, ReasonerDecision]] = []
+        self.told: list[Report] = []
+        self.sent = threading.Event()
 
-    def publish(self, key: str, message: Message) -> None:
-        self.published.append((key, message))
+    def publish(self, key: str, decision: ReasonerDecision) -> None:
+        self.published.append((key, decision))
+        self.sent.set()
 
 
 class Clock:
@@ -197,74 +201,100 @@ class Clock:
         return self.now
 
 
-def received(req: ReasonerRequest) -> Received[ReasonerRequest]:
-    return Received(topics.reasoner_request("drone7"), req, 0.0)
+def received(req: ReasonerRequest, at: float = 0.0) -> Received[ReasonerRequest]:
+    return Received(topics.reasoner_request("drone7"), req, at)
 
 
-async def test_the_worker_drops_a_request_over_the_limits(
+def keeper(told: Told, timer: DeadlineTimer, clock: Clock | None = None,
+           **kw: Any) -> Keeper:
+    return Keeper(LIMITS, FallbackPolicy(), 0.005, told.publish, told.told.append, timer,
+                  **({"clock": clock} if clock else {}), **kw)
+
+
+def test_the_keeper_drops_a_request_over_the_limits() -> None:
+    """An infinite deadline (which the message may refuse some day) is dropped: nothing is
+    armed or published, the service is told why (it counts and logs), and a request within
+    the limits goes on to the service."""
+    told, timer = Told(), DeadlineTimer()
+    k = keeper(told, timer)
+    k.arrived(received(unchecked(deadline_s=math.inf)))
+    assert told.published == [] and k.armed == 0
+    assert [(r.field, "finite" in r.problem) for r in told.told
+            if isinstance(r, Refused)] == [("deadline_s", True)]
+    good = received(request(deadline_s=9.0), time.monotonic())
+    k.arrived(good)
+    assert told.told[-1] is good and k.armed == 1
+    timer.close()
+
+
+async def test_the_worker_counts_and_logs_drops_once_per_field_per_10_s(
         caplog: pytest.LogCaptureFixture) -> None:
-    """An infinite deadline (which the message may refuse some day) is dropped, nothing is
-    published, the LLM is not asked, and the drop is counted and logged."""
-    backend, bus, registry, clock = Recording(), FakeBus(), CollectorRegistry(), Clock()
-    worker = ReasonerWorker(Decider([backend], DeciderConfig()), cast(Bus, bus),
-                            settings=LIMITS, metrics=ReasonerMetrics(registry), clock=clock)
+    clock, registry = Clock(), CollectorRegistry()
+    worker = ReasonerWorker(Decider([Recording()], DeciderConfig()), LIMITS,
+                            metrics=ReasonerMetrics(registry), clock=clock)
+    late = Refused(topics.reasoner_request("drone7"), "deadline_s", "over the limit 10")
+    crowded = Refused(topics.reasoner_request("drone7"), "options", "4 options")
     with caplog.at_level(logging.WARNING, logger="services.reasoner.worker"):
-        await worker._answer(received(unchecked(deadline_s=math.inf)))
-    assert bus.published == [] and backend.calls == 0
-    assert registry.get_sample_value("aesop_reasoner_bus_rejected_total",
-                                     {"field": "deadline_s"}) == 1
-    assert len(caplog.records) == 1
-    assert "dropped 1 reasoner request(s)" in caplog.text and "deadline_s" in caplog.text
-    await worker._answer(received(request()))
-    assert [m.request_id for _, m in bus.published] == ["r1"]  # type: ignore[attr-defined]
-
-
-async def test_drops_are_logged_once_per_field_per_10_s(
-        caplog: pytest.LogCaptureFixture) -> None:
-    bus, clock = FakeBus(), Clock()
-    worker = ReasonerWorker(Decider([Recording()], DeciderConfig()), cast(Bus, bus),
-                            settings=LIMITS, clock=clock)
-    late, crowded = request(deadline_s=50.0), request(options=(
-        *OPTIONS, Option(index=3, label="land")))
-    with caplog.at_level(logging.WARNING, logger="services.reasoner.worker"):
-        for now, req in [(0.0, late), (1.0, late), (2.0, crowded), (9.0, late), (10.5, late),
-                         (11.0, late)]:
+        for now, refused in [(0.0, late), (1.0, late), (2.0, crowded), (9.0, late),
+                             (10.5, late), (11.0, late)]:
             clock.now = now
-            await worker._answer(received(req))
+            worker.report(refused)
     said = [r.getMessage() for r in caplog.records]
-    assert len(said) == 3 and bus.published == []
+    assert len(said) == 3
     assert said[0].startswith("dropped 1 reasoner request(s)") and "deadline_s" in said[0]
     assert said[1].startswith("dropped 1 reasoner request(s)") and "options" in said[1]
     assert said[2].startswith("dropped 3 reasoner request(s)") and "deadline_s" in said[2]
+    assert registry.get_sample_value("aesop_reasoner_bus_rejected_total",
+                                     {"field": "deadline_s"}) == 5
 
 
 # --------------------------------------------------------------------------- the deadline
 
 
-async def test_the_decision_leaves_by_the_deadline_while_the_loop_is_blocked() -> None:
-    """Issue 14: the deadline leaned on the event loop waking up in time (at concurrency 32,
-    9 of 1000 answers were late by up to 7 ms). A loop held busy from before the deadline
-    until something is sent still gets the fallback, from the timer thread, exactly once
-    (the loop is released by the send itself, so nothing here depends on timing)."""
-    decider = Decider([Stalling()], DeciderConfig(margin_s=0.005))
-    loop_thread = threading.get_ident()
-    held, released = threading.Event(), threading.Event()
-    sent: list[tuple[str, bool, bool]] = []
+def test_the_keeper_sends_the_fallback_when_no_answer_comes() -> None:
+    """Nobody answers: the timer thread publishes the timeout fallback, once, stamped from
+    the request's arrival; an answer after it is dropped (no second decision)."""
+    told, timer, clock = Told(), DeadlineTimer(), Clock()
+    k = keeper(told, timer, clock)
+    clock.now = 100.0
+    k.arrived(received(request(deadline_s=0.05), time.monotonic()))
+    clock.now = 100.25
+    assert told.sent.wait(30)
+    [(key, sent)] = told.published
+    assert key == topics.reasoner_decision("drone7") and sent.robot == "drone7"
+    assert (sent.source, sent.choice, sent.request_id) == ("timeout", 1, "r1")
+    assert "no valid answer within the deadline of 0.05 s" in sent.rationale
+    late = ReasonerDecision(request_id="r1", choice=2, source="llm", latency_ms=1.0)
+    k.answered(Answer("drone7", late))
+    assert len(told.published) == 1 and k.armed == 0
+    assert [type(r).__name__ for r in told.told] == ["Received", "Left"]
+    timer.close()
 
-    def send(decision: ReasonerDecision) -> None:
-        sent.append((decision.source, held.is_set(), threading.get_ident() == loop_thread))
-        released.set()
 
-    async def hold_the_loop() -> None:
-        held.set()
-        released.wait(30)  # blocks the event loop, as a burst of parsing would
-        held.clear()
+def test_the_keeper_sends_the_answer_once_and_disarms_the_fallback() -> None:
+    told, timer, clock = Told(), DeadlineTimer(), Clock()
+    k = keeper(told, timer, clock)
+    clock.now = 5.0
+    k.arrived(received(request(deadline_s=9.0), 5.0))
+    k.arrived(received(request(deadline_s=9.0), 5.0))  # a repeat while deciding: one answer
+    clock.now = 5.2
+    answer = ReasonerDecision(request_id="r1", choice=2, source="llm", latency_ms=1.0,
+                              model="m")
+    k.answered(Answer("drone7", answer))
+    k.answered(Answer("drone7", answer))
+    [(_, sent)] = told.published
+    assert (sent.source, sent.choice, sent.robot, sent.model) == ("llm", 2, "drone7", "m")
+    assert sent.latency_ms == pytest.approx(200.0)  # arrival to publication, on its clock
+    assert k.armed == 0 and not timer._pending  # the fallback was disarmed
+    timer.close()
 
-    holder = asyncio.create_task(hold_the_loop())  # runs at decide's first await
-    decision = await decider.decide_and_send(request(deadline_s=0.2), send)
-    await holder
-    assert sent == [("timeout", True, False)]  # once, while the loop was held, not from it
-    assert decision.source == "timeout"
-    fast = await decider.decide_and_send(request(deadline_s=0.03), send)
-    assert fast.source == "timeout" and len(sent) == 2  # an idle loop: still exactly once
-    await decider.aclose()
+
+def test_the_keeper_refuses_more_than_it_may_arm() -> None:
+    told, timer = Told(), DeadlineTimer()
+    k = keeper(told, timer, max_pending=2)
+    for i in range(3):
+        k.arrived(received(request(deadline_s=9.0).model_copy(update={"request_id": f"r{i}"}),
+                           time.monotonic()))
+    assert k.armed == 2 and told.published == []
+    assert isinstance(told.told[-1], Refused) and told.told[-1].field == "pending"
+    timer.close()
