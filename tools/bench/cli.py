@@ -122,7 +122,7 @@ def cmd_bench_detector(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_reasoner(args: argparse.Namespace) -> int:
-    from services.reasoner.deciding import keep_deadlines
+    from services.reasoner.deciding import keep_up
     from tools.bench.reasoner import run_reasoner_bench
 
     if args.requests < 1 or args.concurrency < 1 or not args.scale > 0:
@@ -131,7 +131,7 @@ def cmd_bench_reasoner(args: argparse.Namespace) -> int:
         raise CliError("--hedge-after must be >= 0")
     if not 0 <= args.cpu_hog <= 64:
         raise CliError("--cpu-hog must be in 0..64")
-    keep_deadlines()  # as `aesop serve reasoner` does
+    keep_up()  # as `aesop serve reasoner` does
     result = run_reasoner_bench(requests=args.requests, scale=args.scale,
                                 concurrency=args.concurrency, seed=args.seed,
                                 hedge_after_s=args.hedge_after, table=not args.json,
