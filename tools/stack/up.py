@@ -1,7 +1,8 @@
 """``aesop up``: the whole stack on this machine as child processes.
 
-A Zenoh hub (:mod:`tools.stack.router`, router mode on loopback), then the
-fake LLM (unless ``AESOP_REASONER_LLM_BASE_URL`` names a real backend), the vector-cache
+A Zenoh hub (:mod:`tools.stack.router`, router mode on loopback), then the LLM server
+(the fake one; with ``--llm local`` llama.cpp's serving a trained GGUF model,
+:mod:`tools.local_llm`; none when ``AESOP_REASONER_LLM_BASE_URL`` names a backend), the vector-cache
 (embedding), the slow reasoner, the control loop, the simulated quadrotor it flies
 (``serve sim``, as the robot's user: a vehicle like any other) and the dashboard, all
 as ``python -m tools.cli serve ...`` clients of the hub.
@@ -16,8 +17,9 @@ access-control list lets each publish only its own keys.
   to every group, SIGKILL to what is left after a grace period, the hub last.
 * :func:`run_up` is the command: it generates an admin token when
   ``AESOP_ADMIN_TOKEN`` is unset (kept in a 0600 file, not printed), prints the
-  URLs and serves until SIGINT/SIGTERM or until a service dies (a hub that dies is
-  started again).
+  URLs and serves until SIGINT/SIGTERM or until a service dies (a hub or an LLM server
+  that dies is started again: meanwhile the services' clients reconnect, and the
+  reasoner answers with its fallback).
 """
 
 from __future__ import annotations
@@ -50,10 +52,13 @@ from shared.process import (
 )
 from shared.settings import BusSettings, ServiceSettings, read_settings, to_env
 from tools.fakes.llm import FakeLLMServiceSettings, FakeLLMSettings
+from tools.local_llm import REASONER_SETTINGS, LocalModel, server_argv
 
 from .acl import new_passwords, robot_user, users_of, write_credentials, write_private
 
 DETECTOR_CACHE = "quadrotor"
+LOCAL_LLM = "llm"  # the name of --llm local's server among the children
+RESTARTED = ("fake-llm", LOCAL_LLM)  # children started again when they die, like the hub
 FAKE_LLM_LATENCY_S = 3.1  # the paper's mean GPT-3.5-turbo CoT latency (Table "jetson timings")
 # Environment a child must not inherit: each service listens on its own port
 # and joins the hub, whatever the calling shell says.
@@ -71,7 +76,7 @@ class Ports:
     reasoner: int = 8002
     control: int = 8003
     dashboard: int = 8080
-    fake_llm: int = 8010
+    fake_llm: int = 8010  # the LLM server the stack starts: the fake, or --llm local's
     sim: int = 8004
 
     @classmethod
@@ -102,6 +107,7 @@ class StackOptions:
     rate_hz: float | None = None  # None: AESOP_CONTROL_RATE_HZ, else the control default
     dashboard: bool = True
     python: str = sys.executable
+    local_model: LocalModel | None = None  # served by llama.cpp instead of the fake LLM
 
 
 @dataclass(frozen=True)
@@ -111,6 +117,7 @@ class StackPlan:
     token: str
     token_generated: bool
     fake_llm: bool
+    local_model: LocalModel | None  # the model the stack serves, if any
     robot: str  # the robot the services serve
     scenario: Path  # the scene the control loop flies
     zenoh_dir: Path  # the hub's user dictionary and each user's password file
@@ -159,11 +166,17 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
     def data(name: str) -> Path:
         return options.data_dir / name
 
-    fake = "AESOP_REASONER_LLM_BASE_URL" not in environ
+    local = options.local_model
+    fake = local is None and "AESOP_REASONER_LLM_BASE_URL" not in environ
+    llm: dict[str, Any] = {}  # how the reasoner reaches the LLM server the stack starts
+    if fake or local is not None:
+        llm["llm_base_url"] = f"http://127.0.0.1:{ports.fake_llm}/v1"
+    if local is not None:  # its model, asked as that server wants (the environment's knobs win)
+        asked = read_settings(ReasonerSettings, environ).request.model_dump(exclude_unset=True)
+        llm |= {"llm_model": local.alias, "request": {**REASONER_SETTINGS["request"], **asked}}
     reasoner = read_settings(
         ReasonerSettings, environ, defaults={"llm_model": "fake"} if fake else None, **common,
-        **user("reasoner"), port=ports.reasoner, data_dir=data("reasoner"),
-        **({"llm_base_url": f"http://127.0.0.1:{ports.fake_llm}/v1"} if fake else {}))
+        **user("reasoner"), port=ports.reasoner, data_dir=data("reasoner"), **llm)
     embedding = read_settings(EmbeddingSettings, environ,
                               defaults={"detector_cache": DETECTOR_CACHE}, **common,
                               **user("embedding"), port=ports.embedding,
@@ -204,8 +217,12 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
     hub = ChildSpec("hub", (py, "-m", "tools.stack.router", "--users",
                             str(zenoh_dir / "users.txt"), "--robot", robot, "--listen", endpoint),
                     ports.hub, inherited, ready="tcp")
-    return StackPlan(hub, tuple(child(n, s) for n, s in settings), given or token, not given,
-                     fake, control.robot, scenario, zenoh_dir, secret)
+    children = tuple(child(n, s) for n, s in settings)
+    if local is not None:  # it accepts connections once the model is loaded
+        children = (ChildSpec(LOCAL_LLM, server_argv(local, ports.fake_llm), ports.fake_llm,
+                              inherited, ready="tcp"), *children)
+    return StackPlan(hub, children, given or token, not given, fake, local, control.robot,
+                     scenario, zenoh_dir, secret)
 
 
 # --------------------------------------------------------------------------- processes
@@ -222,8 +239,8 @@ class Stack:
         self.children = [Child(spec, sink) for spec in plan.services]
         self.ready_timeout_s = ready_timeout_s
         self.stopping = stop_event or threading.Event()
-        self.hub_restarts = 0
-        self.hub_restart_delay_s = hub_restart_delay_s  # a crashing hub is not a busy loop
+        self.restarts: dict[str, int] = {}  # child name -> times started again
+        self.hub_restart_delay_s = hub_restart_delay_s  # a crashing child is not a busy loop
 
     @property
     def pids(self) -> dict[str, int]:
@@ -247,21 +264,26 @@ class Stack:
         """Block until ``stopping`` is set (None) or a service exits (its description).
         A hub that exits is started again on its port: the services are Zenoh clients
         that reconnect by themselves, and meanwhile the control loop takes the silence
-        as an anomaly."""
+        as an anomaly. So is an LLM server (:data:`RESTARTED`): meanwhile the reasoner
+        answers with its labelled fallback."""
         while not self.stopping.wait(0.2):
-            status = self.hub.exited()
-            if status is not None:
-                self.hub_restarts += 1
-                self.sink("up", f"hub exited with status {status}: starting it again in "
-                          f"{self.hub_restart_delay_s:g} s")
-                if self.stopping.wait(self.hub_restart_delay_s):
-                    break
-                self.hub.start()
-            for child in self.children:
+            for child in [self.hub, *self.children]:
                 status = child.exited()
-                if status is not None:
+                if status is None:
+                    continue
+                if child is not self.hub and child.name not in RESTARTED:
                     return f"{child.name} exited with status {status}"
+                self.restarts[child.name] = self.restarts.get(child.name, 0) + 1
+                self.sink("up", f"{child.name} exited with status {status}: starting it "
+                          f"again in {self.hub_restart_delay_s:g} s")
+                if self.stopping.wait(self.hub_restart_delay_s):
+                    return None
+                child.start()
         return None
+
+    @property
+    def hub_restarts(self) -> int:
+        return self.restarts.get("hub", 0)
 
     def stop(self, grace_s: float = 10.0) -> None:
         """SIGTERM every service group, SIGKILL what is left after ``grace_s``; hub last."""
@@ -300,8 +322,11 @@ def urls_text(plan: StackPlan, token_file: Path | None) -> str:
                  f"AESOP_ZENOH_PASSWORD_FILE={plan.zenoh_dir / 'monitor.password'} "
                  f"aesop watch --connect {plan.endpoint}")
     if plan.fake_llm:
-        lines.append("  LLM: the fake OpenAI-compatible server (set "
-                     "AESOP_REASONER_LLM_BASE_URL for a real one)")
+        lines.append("  LLM: the fake OpenAI-compatible server (--llm local for a trained "
+                     "model here, or AESOP_REASONER_LLM_BASE_URL for any server)")
+    if plan.local_model is not None:
+        lines.append(f"  LLM: {plan.local_model.alias} ({plan.local_model.path}), served by "
+                     "llama.cpp's server")
     if token_file is not None:
         lines.append(f"  admin token: generated, in {token_file} (export AESOP_ADMIN_TOKEN="
                      f"$(cat {token_file}))")
