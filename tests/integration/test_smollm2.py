@@ -10,8 +10,10 @@ picks, only that its answer parses or falls back, by the deadline.
 
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -125,3 +127,17 @@ async def test_usage_is_counted_when_not_streamed(server: str, model: LocalModel
     assert completion.prompt_tokens and completion.prompt_tokens > 10
     assert completion.completion_tokens and completion.completion_tokens > 1
     assert completion.text.rstrip().splitlines()[-1] in {"FINAL ANSWER: 0", "FINAL ANSWER: 1"}
+
+
+def test_the_template_bench_asks_the_real_model_and_prints_one_object() -> None:
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "bench", "reasoner", "--llm", "local",
+                        "--repeats", "1", "--template", "single-json", "--json"],
+                       capture_output=True, text=True, timeout=280, stdin=subprocess.DEVNULL)
+    assert r.returncode == 0, r.stderr[-3000:]
+    result = json.loads(r.stdout)
+    t = result["templates"]["single-json"]
+    assert t["n"] == 3 and set(result["cases"]) == {
+        "2a-quadrotor-on-red-box", "2b-both-boxes-occupied", "3-keyboard-on-ground"}
+    assert t["right"] + t["parse_errors"] + t["timeouts"] + t["backend_errors"] <= 3
+    assert all(a["source"] in ("llm", "parse_error", "timeout") for a in result["answers"])
+    assert {"p50", "p99", "max"} <= set(t["latency_ms"])

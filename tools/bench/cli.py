@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from tools.commands import CliError, control_scenario, emit
+from tools.stack.cli import add_llm_options
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -35,6 +36,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     br.add_argument("--cpu-hog", type=int, default=0,
                     help="this many other processes spin on the CPU throughout (default 0)")
     br.add_argument("--json", action="store_true")
+    add_llm_options(br)
+    br.add_argument("--repeats", type=int, default=3,
+                    help="--llm local: times each hardware case is asked per template (3)")
+    br.add_argument("--deadline", type=float, default=60.0,
+                    help="--llm local: each decision's deadline in s (60)")
+    br.add_argument("--template", action="append", default=None,
+                    choices=["cot", "single", "cot-json", "single-json"],
+                    help="--llm local: only these templates (repeatable; default all)")
     br.set_defaults(func=cmd_bench_reasoner)
 
     bm = bsub.add_parser("mpc", help="per-tick AESOP control step vs a CVXPY reference of eq. 3")
@@ -124,7 +133,11 @@ def cmd_bench_detector(args: argparse.Namespace) -> int:
 def cmd_bench_reasoner(args: argparse.Namespace) -> int:
     from services.reasoner.deciding import keep_up
     from tools.bench.reasoner import run_reasoner_bench
+    from tools.stack.cli import local_model
 
+    model = local_model(args)
+    if model is not None:
+        return bench_templates(args, model)
     if args.requests < 1 or args.concurrency < 1 or not args.scale > 0:
         raise CliError("--requests and --concurrency must be >= 1 and --scale > 0")
     if args.hedge_after is not None and args.hedge_after < 0:
@@ -138,6 +151,24 @@ def cmd_bench_reasoner(args: argparse.Namespace) -> int:
                                 cpu_hog=args.cpu_hog)
     if args.json:
         emit(result, True)
+    return 0
+
+
+def bench_templates(args: argparse.Namespace, model: Any) -> int:
+    import tempfile
+
+    from tools.bench.templates import TEMPLATES, render, run_templates_bench
+
+    if args.repeats < 1 or not args.deadline > 0:
+        raise CliError("--repeats must be >= 1 and --deadline > 0")
+    with tempfile.TemporaryDirectory(prefix="aesop-bench-templates-") as logs:
+        result = run_templates_bench(model, repeats=args.repeats, deadline_s=args.deadline,
+                                     templates=args.template or tuple(TEMPLATES),
+                                     logs=Path(logs))
+    if args.json:
+        emit(result, True)
+    else:
+        print(render(result))
     return 0
 
 

@@ -1,0 +1,183 @@
+"""``aesop bench reasoner --llm local``: which prompt a small local model follows.
+
+The bundled SmolLM2-135M-Instruct (or ``--llm-model FILE``) on llama-cpp-python's server
+(:mod:`tools.local_llm`, 2 threads), asked by the reasoner's own decider the questions of
+the paper's hardware scenarios: for each anomalous scenario of :mod:`tools.scenes.hardware`,
+the scene as the camera reports it at the anomaly's spot, the scene's recovery regions
+offered beside "continue", and the answer the scenario expects (``expected_decision``). The
+verdict's unusual detections are not quoted (they need the detector's cache), so the model
+sees the scene as text alone.
+
+Per template (the chain-of-thought or single-answer prompt, free text or JSON mode with the
+options as an ``enum``), ``repeats`` times each case, at temperature 0 and not streamed (so
+the server reports its token counts):
+
+- **parse errors**: decisions whose source is ``parse_error`` (no valid final answer);
+- **timeouts**: no answer within ``deadline_s``; **right**: the expected option;
+- **continue when a recovery was expected**: the unsafe kind of wrong (the fallback never
+  picks it; the robot would fly on);
+- latency p50 / p99 / max of the whole decision, and generated tokens per second.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+from services.control.outbox import options_for
+from services.control.scenario import load_scenario
+from services.reasoner.api import build_decider
+from services.reasoner.backends import Completion
+from services.reasoner.settings import ReasonerSettings
+from shared.messages import Observation, ReasonerDecision, ReasonerRequest
+from shared.process import Child, ChildSpec, await_ready, file_sink, free_port
+from shared.tables import table
+from tools.local_llm import REASONER_SETTINGS, LocalModel, server_argv
+from tools.scenes.hardware import SCENARIOS, observation_text
+from tools.stack.up import hardware_scenario
+
+TASK = "landing on the red box"
+# name -> (prompt variant, JSON mode)
+TEMPLATES: Mapping[str, tuple[str, bool]] = {
+    "cot": ("cot", False), "single": ("single", False),
+    "cot-json": ("cot", True), "single-json": ("single", True)}
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str
+    request: ReasonerRequest
+    expected: int  # the option index the scenario expects
+
+
+@dataclass(frozen=True)
+class Answer:
+    template: str
+    case: str
+    decision: ReasonerDecision
+    expected: int
+    completion_tokens: int | None
+    seconds: float
+
+
+def hardware_cases(deadline_s: float) -> list[Case]:
+    """The anomalous hardware scenarios as the reasoner would be asked at their spot."""
+    scene = load_scenario(hardware_scenario())
+    options = options_for(scene.regions, [r.index for r in scene.regions])
+    by_label = {o.label: o.index for o in options}
+    cases = []
+    for s in SCENARIOS:
+        if s.expected_decision is None or s.spot is None:
+            continue
+        text = observation_text(s.detections((*s.spot, 1.0)))
+        request = ReasonerRequest(
+            request_id=s.name, deadline_s=deadline_s, options=options,
+            observation=Observation(seq=1, task=TASK, text=text))
+        cases.append(Case(s.name, request, by_label[s.expected_decision]))
+    return cases
+
+
+@contextmanager
+def served(model: LocalModel, logs: Path) -> Iterator[str]:
+    """llama.cpp's server on ``model``; its ``/v1`` URL once the model answers."""
+    port = free_port()
+    child = Child(ChildSpec("llm", server_argv(model, port), port, {}, ready="tcp"),
+                  file_sink(logs))
+    child.start()
+    try:
+        await_ready([child], 120.0)
+        yield f"http://127.0.0.1:{port}/v1"
+    finally:
+        child.stop()
+
+
+async def ask(url: str, model: LocalModel, template: str, cases: Sequence[Case],
+              repeats: int) -> list[Answer]:
+    variant, json_mode = TEMPLATES[template]
+    request = {**REASONER_SETTINGS["request"], "stream": False, "json_schema": json_mode}
+    settings = ReasonerSettings(llm_base_url=url, llm_model=model.alias, variant=variant,
+                                request=request)
+    tokens: list[Completion] = []
+    decider = build_decider(settings, tokens.append)
+    answers = []
+    try:
+        for _ in range(repeats):
+            for case in cases:
+                tokens.clear()
+                t0 = time.perf_counter()
+                decision = await decider.decide(case.request)
+                seconds = time.perf_counter() - t0
+                used = tokens[0].completion_tokens if tokens else None
+                answers.append(Answer(template, case.name, decision, case.expected, used,
+                                      seconds))
+    finally:
+        await decider.aclose()
+    return answers
+
+
+def summarise(answers: Sequence[Answer]) -> dict[str, Any]:
+    """Per template: counts, accuracy, latency and token rate (see the module docstring)."""
+    out: dict[str, Any] = {}
+    for template in dict.fromkeys(a.template for a in answers):
+        mine = [a for a in answers if a.template == template]
+        ms = np.asarray([a.decision.latency_ms for a in mine])
+        rates = [a.completion_tokens / a.seconds for a in mine
+                 if a.completion_tokens and a.decision.source == "llm"]
+        out[template] = {
+            "n": len(mine),
+            "parse_errors": sum(a.decision.source == "parse_error" for a in mine),
+            "timeouts": sum(a.decision.source == "timeout" for a in mine),
+            "backend_errors": sum(a.decision.source == "backend_error" for a in mine),
+            "right": sum(a.decision.source == "llm" and a.decision.choice == a.expected
+                         for a in mine),
+            "continue_when_recovery_expected": sum(
+                a.decision.source == "llm" and a.decision.choice == 0 and a.expected != 0
+                for a in mine),
+            "latency_ms": {"p50": float(np.percentile(ms, 50)),
+                           "p99": float(np.percentile(ms, 99)), "max": float(ms.max())},
+            "tokens_per_s_p50": float(np.median(rates)) if rates else None,
+            "choices": {case: sorted({a.decision.choice for a in mine if a.case == case})
+                        for case in dict.fromkeys(a.case for a in mine)},
+        }
+    return out
+
+
+def run_templates_bench(model: LocalModel, *, repeats: int = 3, deadline_s: float = 60.0,
+                        templates: Sequence[str] = tuple(TEMPLATES), logs: Path) -> dict[str, Any]:
+    cases = hardware_cases(deadline_s)
+    with served(model, logs) as url:
+        httpx.get(f"{url}/models", timeout=30).raise_for_status()
+        answers = [a for t in templates
+                   for a in asyncio.run(ask(url, model, t, cases, repeats))]
+    return {"model": model.alias, "path": str(model.path), "repeats": repeats,
+            "deadline_s": deadline_s, "cases": {c.name: c.expected for c in cases},
+            "templates": summarise(answers),
+            "answers": [{"template": a.template, "case": a.case, "source": a.decision.source,
+                         "choice": a.decision.choice, "expected": a.expected,
+                         "latency_ms": a.decision.latency_ms,
+                         "completion_tokens": a.completion_tokens,
+                         "rationale": a.decision.rationale[:300]} for a in answers]}
+
+
+def render(result: Mapping[str, Any]) -> str:
+    rows = []
+    for name, t in result["templates"].items():
+        rows.append({"template": name, "n": t["n"], "right": t["right"],
+                     "continue (unsafe)": t["continue_when_recovery_expected"],
+                     "parse errors": t["parse_errors"], "timeouts": t["timeouts"],
+                     "p50 s": t["latency_ms"]["p50"] / 1e3, "p99 s": t["latency_ms"]["p99"] / 1e3,
+                     "tokens/s": t["tokens_per_s_p50"],
+                     "choices": " ".join(f"{c}:{'/'.join(map(str, v))}"
+                                         for c, v in t["choices"].items())})
+    expected = ", ".join(f"{k} -> {v}" for k, v in result["cases"].items())
+    return table(f"{result['model']} on llama.cpp (2 threads), {result['repeats']} x each "
+                 f"hardware case, deadline {result['deadline_s']:g} s; expected: {expected}",
+                 rows)
