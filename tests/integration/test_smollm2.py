@@ -73,6 +73,7 @@ def server(model: LocalModel, tmp_path_factory: pytest.TempPathFactory) -> Itera
 
 def settings(url: str, model: LocalModel, **request: object) -> ReasonerSettings:
     return ReasonerSettings(llm_base_url=url, llm_model=model.alias,
+                            variant=REASONER_SETTINGS["variant"],
                             request={**REASONER_SETTINGS["request"], **request})
 
 

@@ -223,6 +223,7 @@ def test_plan_serves_a_local_model_and_asks_it_as_its_server_wants(tmp_path: Pat
     reasoner = plan.services[2].env
     assert reasoner["AESOP_REASONER_LLM_BASE_URL"] == "http://127.0.0.1:6/v1"
     assert reasoner["AESOP_REASONER_LLM_MODEL"] == "smol"
+    assert reasoner["AESOP_REASONER_VARIANT"] == "single"  # what the small model follows best
     request = json.loads(reasoner["AESOP_REASONER_REQUEST"])
     assert request["json_schema"] is True and request["response_format"] == "json_object"
     assert request["max_reasoning_chars"] == 200 and request["max_tokens"] == 123

@@ -174,8 +174,10 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
     if local is not None:  # its model, asked as that server wants (the environment's knobs win)
         asked = read_settings(ReasonerSettings, environ).request.model_dump(exclude_unset=True)
         llm |= {"llm_model": local.alias, "request": {**REASONER_SETTINGS["request"], **asked}}
+    defaults = ({"llm_model": "fake"} if fake else
+                {"variant": REASONER_SETTINGS["variant"]} if local is not None else None)
     reasoner = read_settings(
-        ReasonerSettings, environ, defaults={"llm_model": "fake"} if fake else None, **common,
+        ReasonerSettings, environ, defaults=defaults, **common,
         **user("reasoner"), port=ports.reasoner, data_dir=data("reasoner"), **llm)
     embedding = read_settings(EmbeddingSettings, environ,
                               defaults={"detector_cache": DETECTOR_CACHE}, **common,
