@@ -15,9 +15,13 @@ from __future__ import annotations
 import json
 import os
 import subprocess
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from shared.process import Child, ChildSpec, await_ready, file_sink, free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 LLAMA_PYTHON = Path(os.environ.get("AESOP_LLAMA_PYTHON", ROOT / ".venv-llama" / "bin" / "python"))
@@ -92,3 +96,19 @@ def server_argv(model: LocalModel, port: int, *, python: Path = LLAMA_PYTHON,
             "--model_alias", model.alias, "--host", host, "--port", str(port),
             "--n_threads", str(threads), "--n_ctx", str(n_ctx), "--verbose", "False",
             "--interrupt_requests", "False")
+
+
+@contextmanager
+def served(model: LocalModel, logs: Path, *, ready_timeout_s: float = 120.0) -> Iterator[str]:
+    """llama.cpp's server on ``model`` on a free port (its output in ``logs``), for the
+    block; its ``/v1`` URL once it accepts connections (after the model has loaded)."""
+    port = free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("AESOP_")}
+    child = Child(ChildSpec("llm", server_argv(model, port), port, env, ready="tcp"),
+                  file_sink(logs))
+    child.start()
+    try:
+        await_ready([child], ready_timeout_s)
+        yield f"http://127.0.0.1:{port}/v1"
+    finally:
+        child.stop()

@@ -11,22 +11,18 @@ picks, only that its answer parses or falls back, by the deadline.
 from __future__ import annotations
 
 import json
-import signal
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
-import httpx
 import pytest
 
 from services.reasoner.api import build_decider
 from services.reasoner.backends import OpenAIChatBackend
 from services.reasoner.settings import ReasonerSettings
 from shared.messages import Observation, Option, ReasonerRequest
-from shared.process import free_port
-from tools.local_llm import REASONER_SETTINGS, LocalModel, bundled_model, server_argv
+from tools.local_llm import REASONER_SETTINGS, LocalModel, bundled_model, served
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
@@ -44,31 +40,8 @@ def model() -> LocalModel:
 
 @pytest.fixture(scope="module")
 def server(model: LocalModel, tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
-    port = free_port()
-    log = Path(tmp_path_factory.mktemp("smollm2")) / "server.log"
-    with open(log, "wb") as out:
-        proc = subprocess.Popen(server_argv(model, port), stdout=out,
-                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
-    url = f"http://127.0.0.1:{port}/v1"
-    try:
-        deadline = time.monotonic() + 120
-        while True:
-            assert proc.poll() is None, log.read_text(errors="replace")[-2000:]
-            try:
-                if httpx.get(f"{url}/models", timeout=2).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            assert time.monotonic() < deadline, log.read_text(errors="replace")[-2000:]
-            time.sleep(0.1)
+    with served(model, Path(tmp_path_factory.mktemp("smollm2"))) as url:
         yield url
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
 
 
 def settings(url: str, model: LocalModel, **request: object) -> ReasonerSettings:

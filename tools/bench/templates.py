@@ -23,8 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -38,9 +37,8 @@ from services.reasoner.api import build_decider
 from services.reasoner.backends import Completion
 from services.reasoner.settings import ReasonerSettings
 from shared.messages import Observation, ReasonerDecision, ReasonerRequest
-from shared.process import Child, ChildSpec, await_ready, file_sink, free_port
 from shared.tables import table
-from tools.local_llm import REASONER_SETTINGS, LocalModel, server_argv
+from tools.local_llm import REASONER_SETTINGS, LocalModel, served
 from tools.scenes.hardware import SCENARIOS, observation_text
 from tools.stack.up import hardware_scenario
 
@@ -83,20 +81,6 @@ def hardware_cases(deadline_s: float) -> list[Case]:
             observation=Observation(seq=1, task=TASK, text=text))
         cases.append(Case(s.name, request, by_label[s.expected_decision]))
     return cases
-
-
-@contextmanager
-def served(model: LocalModel, logs: Path) -> Iterator[str]:
-    """llama.cpp's server on ``model``; its ``/v1`` URL once the model answers."""
-    port = free_port()
-    child = Child(ChildSpec("llm", server_argv(model, port), port, {}, ready="tcp"),
-                  file_sink(logs))
-    child.start()
-    try:
-        await_ready([child], 120.0)
-        yield f"http://127.0.0.1:{port}/v1"
-    finally:
-        child.stop()
 
 
 async def ask(url: str, model: LocalModel, template: str, cases: Sequence[Case],
