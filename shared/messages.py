@@ -40,6 +40,7 @@ MAX_TEXT_CHARS = 16_000
 MAX_TASK_CHARS = 1_000
 MAX_DETECTIONS = 64
 MAX_LABEL_CHARS = 200
+MAX_AHEAD = 16  # commands of a plan a set-point carries ahead
 # limits of an optional number go before NotBool, or pydantic cannot publish them:
 # Annotated[int, Field(ge=1), NotBool] | None
 
@@ -319,6 +320,12 @@ class VehicleSetpoint(Message):
     holds position on its own: both on the *vehicle's* clock (the stamp ``state_stamp`` of
     the state ``state_seq`` this was computed from, plus that state's age when the tick
     ran), so a vehicle never compares two clocks. ``stamp`` is control's own clock.
+
+    ``ahead``: the plan's next commands (same kind as the command), the ``j``-th due from
+    ``t + j * step_s`` (packetized predictive control): a vehicle that has no newer set-point
+    by then flies the plan on through a late or missed tick rather than holding one
+    command for longer than it was planned for. Optional to follow; none past
+    ``valid_until``.
     """
 
     seq: Int = Field(ge=0)
@@ -332,6 +339,8 @@ class VehicleSetpoint(Message):
     torque: Point3 | None = None
     position: Point3
     velocity: Point3
+    ahead: tuple[tuple[Finite, ...], ...] = Field(default=(), max_length=MAX_AHEAD)
+    step_s: Annotated[float, Field(gt=0.0, allow_inf_nan=False), NotBool] | None = None
 
     @model_validator(mode="after")
     def _one_command(self) -> VehicleSetpoint:
@@ -341,7 +350,42 @@ class VehicleSetpoint(Message):
         if (self.acceleration is not None) == motors[0]:
             raise ValueError("a set-point carries either an acceleration or a thrust with a "
                              "torque")
+        if self.ahead:
+            if self.step_s is None:
+                raise ValueError("ahead needs step_s")
+            size = 3 if self.acceleration is not None else 4
+            if any(len(u) != size for u in self.ahead):
+                raise ValueError(f"each command ahead has {size} numbers, as the command")
         return self
+
+    def _passed(self, clock: float) -> int:
+        """How many commands ahead have come due by ``clock`` (the vehicle's)."""
+        if not self.ahead or self.step_s is None:
+            return 0
+        n, step = len(self.ahead), self.step_s
+        j = min(max(math.floor((clock - self.t) / step), 0), n)
+        while j < n and self.t + (j + 1) * step <= clock:  # as the instants round
+            j += 1
+        while j > 0 and self.t + j * step > clock:
+            j -= 1
+        return j
+
+    def command_at(self, clock: float) -> tuple[float, ...]:
+        """The command due at ``clock`` (the vehicle's): the plan's ahead from its instant."""
+        j = self._passed(clock)
+        if j:
+            return self.ahead[j - 1]
+        if self.acceleration is not None:
+            return self.acceleration
+        assert self.thrust is not None and self.torque is not None  # the validator's rule
+        return (self.thrust, *self.torque)
+
+    def switches_after(self, clock: float) -> float | None:
+        """The next instant after ``clock`` at which :meth:`command_at` changes, if any."""
+        j = self._passed(clock)
+        if self.step_s is None or j >= len(self.ahead):
+            return None
+        return self.t + (j + 1) * self.step_s
 
 
 class VehicleClock(Message):

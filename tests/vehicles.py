@@ -50,10 +50,13 @@ class Vehicle:
         self.sim.reset(rest_at(position), now)
 
 
-def fly_tick(rt: ControlRuntime, vehicle: Vehicle, now: float, **inputs: object) -> TickResult:
-    """One tick at ``now`` with the vehicle's newest state; the set-point goes back to it."""
-    result = rt.tick(deadline=now, state=vehicle.advance(now), **inputs)  # type: ignore[arg-type]
-    vehicle.follow(result, now)
+def fly_tick(rt: ControlRuntime, vehicle: Vehicle, now: float, deadline: float | None = None,
+             work_s: float = 0.0, **inputs: object) -> TickResult:
+    """One tick at ``now`` (its deadline: ``deadline``, else ``now``) with the vehicle's newest
+    state; the set-point goes back to it ``work_s`` later (the tick's work, in wall time)."""
+    result = rt.tick(deadline=now if deadline is None else deadline,
+                     state=vehicle.advance(now), **inputs)  # type: ignore[arg-type]
+    vehicle.follow(result, now + work_s)
     return result
 
 
@@ -75,6 +78,7 @@ class Flown:
     inputs: list[np.ndarray] = field(default_factory=list)
     results: list[TickResult] = field(default_factory=list)
     holding: list[bool] = field(default_factory=list)  # the vehicle held itself
+    ticks: list[int] = field(default_factory=list)  # the index of each tick run
 
     def kinds(self) -> list[str]:
         return [e.kind for r in self.results for e in r.events]
@@ -84,19 +88,24 @@ class Flown:
 
 
 Fault = Callable[[Vehicle, float, float], None]  # (vehicle, flight time, clock) each tick
+# tick -> how late it starts and how long its work takes (s), None: it does not run at all
+Starved = Callable[[int], tuple[float, float] | None]
 
 
 def fly(scenario: Scenario, seconds: float, *, reporting: Reporting | None = None,
         latency_s: float = 0.0, fault: Fault | None = None, sync_every_s: float | None = 1.0,
         decide: Callable[[TickResult], int | None] | None = None,
-        start: Sequence[float] | None = None) -> Flown:
+        start: Sequence[float] | None = None, anomaly_at_s: float | None = None,
+        starved: Starved | None = None) -> Flown:
     """The control runtime flying the simulated vehicle for ``seconds`` of simulated time
     at the scene's rate, the detector answering every tick with a nominal verdict.
 
     ``fault`` is called before each tick; ``sync_every_s``: how often the vehicle's clock
     is read as a clock query would (None: never, the arrivals are all the loop has);
     ``decide``: the reasoner, given each tick's result with a request (None: it never
-    answers and the loop commits its fallback at K)."""
+    answers and the loop commits its fallback at K); ``anomaly_at_s``: from then on the
+    verdicts are anomalies; ``starved``: a loop that cannot keep its rate (its ticks late, or
+    missed while the vehicle flies on; the results and truths are those of the ticks run)."""
     clock = FakeClock()
     rt = ControlRuntime(ControlSettings(robot="drone1"), scenario, clock=clock)
     vehicle = Vehicle(scenario, start or scenario.start_center, clock.now, reporting,
@@ -105,7 +114,14 @@ def fly(scenario: Scenario, seconds: float, *, reporting: Reporting | None = Non
     decision: ReasonerDecision | None = None
     synced = -math.inf
     for k in range(round(seconds / scenario.dt)):
-        now, t = clock.now, k * scenario.dt
+        deadline, t = clock.now, k * scenario.dt
+        late = (0.0, 0.0) if starved is None else starved(k)
+        clock.now = deadline + (late[0] if late is not None else 0.0)
+        now = clock.now
+        if late is None:
+            vehicle.advance(now)
+            clock.now = deadline + scenario.dt
+            continue
         if fault is not None:
             fault(vehicle, t, now)
         if sync_every_s is not None and now - synced >= sync_every_s:
@@ -113,11 +129,13 @@ def fly(scenario: Scenario, seconds: float, *, reporting: Reporting | None = Non
             synced = now
         seen = Received("aesop/drone1/observation",
                         Observation(robot="drone1", seq=k, text="the red box"), now)
+        anomalous = anomaly_at_s is not None and t >= anomaly_at_s - 1e-9
         verdict = Received("aesop/drone1/anomaly", AnomalyVerdict(
-            robot="drone1", seq=k, score=-0.9, threshold=-0.7, is_anomaly=False, k=1,
+            robot="drone1", seq=k, score=-0.5 if anomalous else -0.9, threshold=-0.7,
+            is_anomaly=anomalous, k=1,
             model="m", cache="c", cache_version=1, latency_ms=1.0), now)
-        result = fly_tick(rt, vehicle, now, verdict=verdict, observation=seen,
-                          decision=decision)
+        result = fly_tick(rt, vehicle, now, deadline, late[1], verdict=verdict,
+                          observation=seen, decision=decision)
         if result.request is not None and decide is not None:
             choice = decide(result)
             if choice is not None:
@@ -127,5 +145,6 @@ def fly(scenario: Scenario, seconds: float, *, reporting: Reporting | None = Non
         flown.inputs.append(result.output.u)
         flown.results.append(result)
         flown.holding.append(vehicle.sim.holding)
-        clock.now += scenario.dt
+        flown.ticks.append(k)
+        clock.now = deadline + scenario.dt
     return flown

@@ -70,6 +70,7 @@ from .regions import Region
 from .selection import SubsetSelector
 
 SENT_KEPT = 64  # inputs remembered for delay compensation (3.2 s at 20 Hz)
+AHEAD = 16  # the plan's next inputs an output carries (the set-point sends some of them)
 
 
 def carry_forward(model: PlanningModel, x: np.ndarray, age: float,
@@ -87,6 +88,20 @@ def carry_forward(model: PlanningModel, x: np.ndarray, age: float,
     lag = model.advance_by(lag_first, u_first, dt - first_s) if model.n_lag else lag_first
     inputs = [u for u, _ in list(sent)[len(sent) - back:]]
     return model.predict(x, lag, inputs, first_s)
+
+
+def sendable(model: PlanningModel, x: np.ndarray, u: np.ndarray, thrust_hi: float
+             ) -> np.ndarray:
+    """What the plant is sent for the planned input ``u`` at the 12-state ``x`` (as is when
+    ``x`` is not finite). For the hover model, the collective thrust scaled by
+    ``1 / (cos phi cos theta)``: the model assumes all thrust is vertical, and a tilted
+    vehicle loses that fraction of it and sinks below the plan (saturated at ``thrust_hi``,
+    the thrust box the MPC plans in). An acceleration command goes as is."""
+    if model.name != "quadrotor" or not np.all(np.isfinite(x)):
+        return u
+    u = u.copy()
+    u[0] = min(u[0] / max(np.cos(x[6]) * np.cos(x[7]), 0.5), thrust_hi)
+    return u
 
 
 @dataclass(frozen=True)
@@ -159,6 +174,9 @@ class ControlOutput:
     # flying blind on the kept branch: its steps left after this one (0: spent, its last
     # input repeated); None when the input comes from this step's own plan
     blind: int | None = None
+    # the plan's next inputs after ``u``, one per tick, as ``u`` is sent (``(j, m)``; empty
+    # without a plan): what the vehicle flies through ticks the loop misses
+    ahead: np.ndarray = field(default_factory=lambda: np.empty((0, 0)))
 
 
 @dataclass
@@ -204,7 +222,7 @@ class Controller:
         self.memory = _Memory()
         self._x = np.zeros(N_STATE)  # the measured plant state of this step
         self._lag = np.zeros(model.n_lag)  # the model's lag states, from the commands sent
-        self._du_hi = tightened_inputs(model, config)[1]
+        self._thrust_hi = model.linear.u_hover[0] + tightened_inputs(model, config)[1][0]
         self.goal = route.goal  # this step's nominal target (model state)
         self.measured = model.rest_state(np.zeros(3))  # the model state of the last step
         self._alarms: list[str] = []  # what went wrong in this step
@@ -213,6 +231,8 @@ class Controller:
         self._sent: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=SENT_KEPT)
         self._reference: np.ndarray | None = None  # this step's, for ControlOutput
         self._blind_left: int | None = None
+        # the plan's inputs after this step's (model units), flown through missed ticks
+        self._ahead = np.empty((0, model.m))
 
     @property
     def state(self) -> np.ndarray:
@@ -230,6 +250,7 @@ class Controller:
         self.route.index = other.route.index
         self._lag = other.lag.copy()
         self._sent = deque(other._sent, maxlen=SENT_KEPT)
+        self._ahead = other._ahead.copy()
 
     @property
     def mode(self) -> Mode:
@@ -298,6 +319,7 @@ class Controller:
                 mem.states = next(iter(plan.recovery.values()), plan.nominal)
                 mem.age = 0
                 self._reference, self._blind_left = self.measured, None
+                self._ahead = plan.inputs[1:1 + AHEAD]
                 return plan.u0, plan
             self._alarms.append("non-finite plan from the solver: flying the last plan's "
                                 "recovery branch")
@@ -308,12 +330,28 @@ class Controller:
         mem = self.memory
         if mem.inputs is None:
             self._reference, self._blind_left = None, 0
+            self._ahead = self._ahead[:0]
             return self.model.linear.u_hover.copy()
         mem.age += 1
         step = min(mem.age, len(mem.inputs) - 1)
         self._blind_left = len(mem.inputs) - 1 - step
         self._reference = None if mem.states is None else mem.states[step]
+        self._ahead = mem.inputs[step + 1:step + 1 + AHEAD]
         return mem.inputs[step].copy()
+
+    def skip(self, ticks: int, ahead: int = AHEAD) -> None:
+        """``ticks`` ticks passed unstepped (a late loop); the vehicle flew the first ``ahead``
+        inputs sent ahead, then held (hover). They count as stepped: K is the vehicle's time."""
+        mem = self.memory
+        flown = self._ahead[:min(max(ahead, 0), ticks)]
+        for i in range(ticks):
+            u = flown[i] if i < len(flown) else self.model.linear.u_hover
+            self._sent.append((np.array(u, dtype=float), self._lag))
+            self._lag = self.model.advance(self._lag, self._sendable(u))
+            mem.t += 1
+            mem.age += mem.inputs is not None
+            mem.held += mem.held > 0
+        self._ahead = self._ahead[ticks:]
 
     def _select(self, selector: SubsetSelector, x: np.ndarray
                 ) -> tuple[np.ndarray, Plan | None, SolveStatus]:
@@ -508,18 +546,8 @@ class Controller:
         mem.mode, mem.chosen, mem.fallback = Mode.RECOVERING, choice, True
         mem.events.append(f"no decision by K: fallback to region {choice}")
 
-    def _command(self, u: np.ndarray) -> np.ndarray:
-        """What the plant is sent. For the hover model, the collective thrust scaled by
-        ``1 / (cos phi cos theta)``: the model assumes all thrust is vertical, and a tilted
-        vehicle loses that fraction of it and sinks below the plan (saturated at the
-        thrust box the MPC plans in). An acceleration command goes as is."""
-        if self.model.name != "quadrotor":
-            return u
-        phi, theta = self._x[6], self._x[7]
-        u = u.copy()
-        hi = self.model.linear.u_hover[0] + self._du_hi[0]
-        u[0] = min(u[0] / max(np.cos(phi) * np.cos(theta), 0.5), hi)
-        return u
+    def _sendable(self, u: np.ndarray) -> np.ndarray:
+        return sendable(self.model, self._x, np.asarray(u, dtype=float), self._thrust_hi)
 
     def _output(self, u, status, plan, active, request=None) -> ControlOutput:
         mem = self.memory
@@ -528,15 +556,18 @@ class Controller:
             status = SolveStatus.FAILED
         u = np.asarray(u, dtype=float)
         planned = u
-        if np.all(np.isfinite(self._x)):
-            u = self._command(u)
+        u = self._sendable(u)
         if not np.all(np.isfinite(u)):
             u, plan, status = self._blind(), None, SolveStatus.FAILED
             if not np.all(np.isfinite(u)):
                 mem.inputs, u = None, self.model.linear.u_hover.copy()
+                self._ahead = self._ahead[:0]
             alarms += ("non-finite input from the solver: flying the last plan's recovery "
                        "branch",)
             planned = u
+        if not np.all(np.isfinite(self._ahead)):
+            self._ahead = self._ahead[:0]
+        ahead = np.array([self._sendable(a) for a in self._ahead]).reshape(self._ahead.shape)
         self._sent.append((np.asarray(planned, dtype=float).copy(), self._lag))
         self._lag = self.model.advance(self._lag, u)
         left = self.config.consensus - self._k() if mem.mode is Mode.PENDING else None
@@ -544,7 +575,7 @@ class Controller:
                             t_anom=mem.t_anom, chosen=mem.chosen, request=request,
                             events=tuple(mem.events), fallback=mem.fallback,
                             consensus_left=left, alarms=alarms, reference=self._reference,
-                            blind=self._blind_left)
+                            blind=self._blind_left, ahead=ahead)
         self._reference, self._blind_left = None, None
         mem.events.clear()
         mem.t += 1

@@ -277,8 +277,10 @@ class ControlRuntime:
         self._warming: Future[tuple[Controller, np.ndarray]] | None = None
         self._builder: ThreadPoolExecutor | None = None
         self._setpoints = 0  # set-points sent (their seq)
-        self._k = 0  # ticks flown since the flight (re)started
+        self._k = 0  # ticks flown since the flight (re)started, missed ones included
         self._k0 = 0  # tick at which the controller was built
+        self._stepped: float | None = None  # the deadline of the last tick that stepped
+        self._ahead_sent = 0  # inputs the last set-point carried ahead
         self.mode = Mode.WAITING
         self._queued: list[Event] = [self._waiting_event()]
         self.handshake = Handshake()  # the pending request, silence, cleared scenes
@@ -340,9 +342,14 @@ class ControlRuntime:
             ready = self.mode is not Mode.WAITING or self._warm_where(reading)
             inputs = self._read_inputs(verdict, decision, reading, ready)
             if inputs.waiting:
+                self._stepped = None
                 result = self._finish(self._hold(), inputs, 0.0, deadline, seen, reading)
                 self.last = result
                 return result
+            missed = self._missed(deadline)
+            if missed:  # the vehicle flew on through them: they are spent
+                self.controller.skip(missed, self._ahead_sent)
+                self._k += missed
             x = reading.x if reading.fresh else None
             age = (reading.age or 0.0) * self.time_scale if x is not None else 0.0
             started = time.perf_counter()
@@ -351,6 +358,11 @@ class ControlRuntime:
             result = self._finish(output, inputs, step_ms, deadline, seen, reading)
             self.last = result
             return result
+
+    def _missed(self, deadline: float) -> int:
+        """How many deadlines passed since the last tick that stepped, without a tick."""
+        last, self._stepped = self._stepped, deadline
+        return 0 if last is None else max(0, round((deadline - last) / self.period_s) - 1)
 
     def _see(self, observation: Received[Observation] | Observation | None
              ) -> Observation | None:
@@ -457,11 +469,13 @@ class ControlRuntime:
             self._last_x = self.controller.state  # carried forward to this tick
         sent = None
         if not inputs.waiting:
+            valid = self.settings.vehicle.setpoint_valid_ticks
             sent = setpoint(robot=robot, seq=self._setpoints, output=output,
                             model=self.controller.model, reading=reading,
-                            valid_s=self.settings.vehicle.setpoint_valid_ticks * self.period_s,
-                            mode=output.mode)
+                            valid_s=valid * self.period_s, mode=output.mode,
+                            period_s=self.period_s, ahead=math.ceil(valid - 1e-9) - 1)
             self._setpoints += sent is not None
+            self._ahead_sent = 0 if sent is None else len(sent.ahead)
             self._k += 1
         fresh = not inputs.waiting and reading.fresh
         state = outbox.control_state(robot=robot, t=t, x=self._last_x, output=output,
@@ -538,6 +552,7 @@ class ControlRuntime:
             self.controller, self._warm_at, self._warming = controller, x0[POS].copy(), None
             self.vehicle.forget()
             self._k = self._k0 = 0
+            self._stepped, self._ahead_sent = None, 0
             self.mode, self.handshake = Mode.WAITING, Handshake()
             self._queued.append(self._waiting_event())
             self._queued.append(self._event("reset", "info", "flight restarted: waiting for "

@@ -34,7 +34,7 @@ import numpy as np
 
 from shared.bus import Received
 from shared.frames import euler_from_quaternion
-from shared.messages import Mode, VehicleSetpoint, VehicleState
+from shared.messages import MAX_AHEAD, Mode, VehicleSetpoint, VehicleState
 
 from .aesop import ControlOutput
 from .dynamics import N_STATE
@@ -281,13 +281,15 @@ class StateInput:
 
 
 def setpoint(*, robot: str, seq: int, output: ControlOutput, model: PlanningModel,
-             reading: StateReading, valid_s: float, mode: Mode) -> VehicleSetpoint | None:
+             reading: StateReading, valid_s: float, mode: Mode, period_s: float,
+             ahead: int = 0) -> VehicleSetpoint | None:
     """The set-point of one tick's ``output``; None when there is nothing to send: no state
     was ever seen (no clock to write the times in), or the step flew blind past the end of
     its kept branch (the vehicle's own hold is safer than repeating its last input).
 
     The times are on the vehicle's clock: the state's stamp plus its age at this tick,
-    and ``valid_s`` more for ``valid_until``.
+    and ``valid_s`` more for ``valid_until``. ``ahead``: how many of the plan's next inputs
+    go with it, one per ``period_s``.
     """
     if reading.stamp is None or reading.age is None or reading.x is None or output.blind == 0:
         return None
@@ -303,6 +305,8 @@ def setpoint(*, robot: str, seq: int, output: ControlOutput, model: PlanningMode
         command: dict[str, object] = {"acceleration": (float(u[0]), float(u[1]), float(u[2]))}
     else:
         command = {"thrust": float(u[0]), "torque": (float(u[1]), float(u[2]), float(u[3]))}
+    later = tuple(tuple(float(v) for v in a) for a in output.ahead[:min(ahead, MAX_AHEAD)])
     return VehicleSetpoint(robot=robot, seq=seq, state_seq=reading.seq or 0,
                            state_stamp=reading.stamp, t=t, valid_until=t + valid_s, mode=mode,
-                           position=position, velocity=velocity, **command)
+                           position=position, velocity=velocity, ahead=later,
+                           step_s=period_s if later else None, **command)

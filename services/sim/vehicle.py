@@ -7,8 +7,10 @@ closed-loop benchmarks run in process, so both fly the same vehicle:
   controller when the scene's model commands accelerations), integrated in steps of
   at most the flight controller's period;
 * the set-point it follows: the newest valid one (a command of the kind the scene's
-  model sends), applied from the moment it arrives. Past the set-point's
-  ``valid_until`` on the vehicle's clock, or before any, it *holds* on its own: a
+  model sends), applied from the moment it arrives, then the plan's commands it carries
+  ``ahead``, each from its own instant (a late or missed tick does not stretch one
+  command). Past the set-point's ``valid_until`` on the vehicle's clock, or before any, it
+  *holds* on its own: a
   position loop around the flight controller brings it to rest where it was
   (:func:`hold_gains`), as PX4 drops out of offboard mode into a hold;
 * the states it reports (:class:`Reporting`): at ``rate_hz``, each published
@@ -204,7 +206,9 @@ class SimVehicle:
 
     def _integrate(self, now: float) -> None:
         while self.now < now - 1e-12:
-            until = min(now, self._next_report, self.now + self._step_s)
+            until = min(now, self._next_report, self.now + self._step_s, self._next_switch())
+            if until <= self.now:  # a switch that rounds onto now (epoch clocks): step on
+                until = min(now, self.now + self._step_s)
             self._step(until - self.now)
             self.now = until
             if self.now >= self._next_report - 1e-12:
@@ -223,11 +227,17 @@ class SimVehicle:
         if self._hold_at is not None or sp is None:
             accel = self._hold_accel(x)
             u = accel if self.accelerations else self._fc.command(x, accel)
-        elif sp.acceleration is not None:
-            u = np.asarray(sp.acceleration, dtype=float)
         else:
-            u = np.array([sp.thrust, *sp.torque], dtype=float)  # type: ignore[misc]
+            u = np.asarray(sp.command_at(self.clock(self.now)), dtype=float)
         self.plant.step(u, h)
+
+    def _next_switch(self) -> float:
+        """When the set-point followed next moves on to a command ahead (``now``'s clock)."""
+        sp = self._setpoint
+        if sp is None or self._hold_at is not None:
+            return math.inf
+        at = sp.switches_after(self.clock(self.now))
+        return math.inf if at is None else at - self.reporting.clock_offset_s
 
     def _hold_accel(self, x: np.ndarray) -> np.ndarray:
         target = self._hold_at if self._hold_at is not None else x[0:3]

@@ -148,3 +148,37 @@ def test_a_stopped_vehicle_is_flown_blind_to_the_end_of_its_branch_then_left_to_
     sent = [r.setpoint is not None for r in flown.results]
     assert sent[int(FAULT_AT / SCENE.dt) + 5]  # blind on the kept branch
     assert not sent[-1] and flown.holding[-1]  # the branch spent: nothing sent, it holds
+
+
+
+PAPER = load_scenario("paper")
+
+
+def starved(scene):
+    """A loop that keeps about two thirds of its rate (as one beside two busy processes on
+    two cores was seen to): every third tick missed, the others starting up to 40% of a
+    period late and working up to half a period before their set-point leaves."""
+    def tick(k: int) -> tuple[float, float] | None:
+        if k % 3 == 2:
+            return None
+        return scene.dt * 0.4 * ((k * 7919) % 11) / 10.0, scene.dt * 0.5 * ((k * 104729) % 7) / 6
+    return tick
+
+
+@pytest.mark.parametrize("scene", [PAPER, SCENE], ids=["paper hover model", "hardware"])
+def test_a_starved_loop_still_commits_its_fallback_at_k_and_lands_in_the_region(
+        scene) -> None:
+    """Ticks missed or late: the vehicle flies the plan it was sent through the missed ones,
+    the loop counts them as spent (K is wall time, not ticks run), commits its fallback by K
+    and the vehicle comes to rest in the region without a violation. (Before, the hover
+    model held each torque for the missed ticks too, its attitude diverged and it flew
+    away: the integration test of a reasoner killed mid-anomaly failed beside busy work.)"""
+    flown = fly(scene, 16.0, anomaly_at_s=2.0, starved=starved(scene))
+    truth = np.array(flown.truth)
+    assert count_violations(truth, np.array(flown.inputs), scene) == 0
+    assert [r.state.t for r in flown.results] == pytest.approx(
+        [k * scene.dt for k in flown.ticks])  # the loop's time is the vehicle's, not ticks run
+    fallback = next(r for r in flown.results if r.output.fallback)
+    assert fallback.state.t - fallback.state.t_anom <= scene.consensus_s + 1e-6
+    region = scene.region(fallback.output.chosen)
+    assert ended_in(truth[-1], scene) == region.name

@@ -198,15 +198,23 @@ def test_the_set_point_is_on_the_vehicles_clock_and_none_when_the_branch_is_spen
     ref[3] = 0.4
     out = ControlOutput(u=np.array([0.1, -0.2, 0.3]), mode=Mode.NOMINAL,
                         status=SolveStatus.SOLVED, plan=None, active_regions=(1, 2),
-                        t_anom=None, chosen=None, reference=ref)
+                        t_anom=None, chosen=None, reference=ref,
+                        ahead=np.array([[0.2, 0.0, 0.0], [0.3, 0.0, 0.0], [0.4, 0.0, 0.0]]))
     sp = setpoint(robot="r", seq=3, output=out, model=model, reading=reading, valid_s=0.15,
-                  mode=Mode.NOMINAL)
+                  mode=Mode.NOMINAL, period_s=0.05, ahead=2)
     assert sp is not None and sp.state_seq == 7 and sp.state_stamp == 999.99
     assert sp.t == pytest.approx(1000.04) and sp.valid_until == pytest.approx(1000.19)
     assert sp.acceleration == pytest.approx((0.1, -0.2, 0.3)) and sp.thrust is None
     assert sp.position == (1.0, 2.0, 1.5) and sp.velocity == (0.4, 0.0, 0.0)
+    assert sp.ahead == ((0.2, 0.0, 0.0), (0.3, 0.0, 0.0)) and sp.step_s == 0.05
+    assert sp.command_at(1000.04) == pytest.approx((0.1, -0.2, 0.3))
+    assert sp.command_at(1000.095) == (0.2, 0.0, 0.0)  # late: the plan where it is by then
+    assert sp.command_at(1000.145) == (0.3, 0.0, 0.0)
+    alone = setpoint(robot="r", seq=3, output=out, model=model, reading=reading, valid_s=0.15,
+                     mode=Mode.NOMINAL, period_s=0.05)
+    assert alone is not None and alone.ahead == () and alone.step_s is None
     spent = ControlOutput(**{**out.__dict__, "blind": 0})
     assert setpoint(robot="r", seq=4, output=spent, model=model, reading=reading,
-                    valid_s=0.15, mode=Mode.NOMINAL) is None
+                    valid_s=0.15, mode=Mode.NOMINAL, period_s=0.05) is None
     assert setpoint(robot="r", seq=4, output=out, model=model, reading=view().read(0.0),
-                    valid_s=0.15, mode=Mode.NOMINAL) is None  # no state ever seen
+                    valid_s=0.15, mode=Mode.NOMINAL, period_s=0.05) is None  # no state seen

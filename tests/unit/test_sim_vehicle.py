@@ -66,6 +66,37 @@ def test_it_follows_a_set_point_then_holds_itself_when_it_expires() -> None:
     assert np.linalg.norm(v.truth[3:6]) < 0.02 and abs(v.truth[0] - START[0]) < 0.2
 
 
+def test_it_flies_the_commands_ahead_each_from_its_own_instant() -> None:
+    """A set-point carrying the plan's next commands 50 ms apart flies exactly as the same
+    commands sent one by one on time would, even when it arrives 20 ms after its instant
+    (the next command still starts at its own instant, not 50 ms after the arrival); past
+    ``valid_until`` the vehicle holds."""
+    def sp(seq: int, t: float, a: float, ahead=()) -> VehicleSetpoint:
+        return VehicleSetpoint(seq=seq, state_seq=0, state_stamp=t, t=t, valid_until=100.15,
+                               mode=Mode.NOMINAL, acceleration=(a, 0.0, 0.0),
+                               position=(0.0, 0.0, 0.0), velocity=(0.0, 0.0, 0.0),
+                               ahead=ahead, step_s=0.05 if ahead else None)
+    for arrival in (100.0, 100.02):
+        packet, one_by_one, held = vehicle(), vehicle(), vehicle()
+        for v in (packet, one_by_one, held):
+            v.advance(arrival)
+        held.receive(sp(1, 100.0, 1.0), arrival)  # the first command alone, held
+        assert packet.receive(sp(1, 100.0, 1.0, ((-1.0, 0.0, 0.0), (0.5, 0.0, 0.0))), arrival)
+        one_by_one.receive(sp(1, 100.0, 1.0), arrival)
+        for at, a in ((100.05, -1.0), (100.1, 0.5)):
+            packet.advance(at)
+            one_by_one.receive(sp(2 if a < 0 else 3, at, a), at)
+            assert packet.truth == pytest.approx(one_by_one.truth, abs=1e-9)
+        packet.advance(100.14)
+        one_by_one.advance(100.14)
+        assert packet.truth == pytest.approx(one_by_one.truth, abs=1e-9)
+        assert not packet.holding
+        held.advance(100.14)
+        assert abs(held.truth[3] - packet.truth[3]) > 0.01  # what a stretched command gives
+        packet.advance(100.2)
+        assert packet.holding  # past valid_until
+
+
 def test_a_set_point_of_the_wrong_kind_or_an_older_one_is_not_taken() -> None:
     v = vehicle()
     motors = VehicleSetpoint(seq=1, state_seq=0, state_stamp=100.0, t=100.0,
@@ -118,3 +149,21 @@ def test_its_own_hold_brings_either_airframe_to_rest(scenario) -> None:
         worst = max(worst, float(np.linalg.norm(v.truth[0:3] - x0[0:3])))
     assert v.holding and worst < 0.5
     assert np.linalg.norm(v.truth[0:3] - x0[0:3]) < 0.02 and np.linalg.norm(v.truth[3:6]) < 0.01
+
+
+@pytest.mark.timeout(20)
+def test_commands_ahead_on_an_epoch_clock_never_stall_the_integration() -> None:
+    """At epoch seconds a float's step is about 0.2 us: an instant ahead can round onto the
+    vehicle's time (a first version of this code hung the simulator there); it must step on."""
+    now = 1_795_689_442.4108565
+    v = SimVehicle(HARDWARE, START, Reporting(clock_offset_s=0.3), now=now)
+    ahead = tuple((0.1 * j, 0.0, 0.0) for j in range(8))
+    sp = VehicleSetpoint(seq=1, state_seq=0, state_stamp=now, t=v.clock(now) - 1e-7,
+                         valid_until=v.clock(now) + 0.2, mode=Mode.NOMINAL,
+                         acceleration=(0.0, 0.0, 0.0), position=(0.0, 0.0, 0.0),
+                         velocity=(0.0, 0.0, 0.0), ahead=ahead, step_s=0.02)
+    assert v.receive(sp, now)
+    for i in range(1, 500):
+        v.advance(now + i * 0.0005 + (i % 3) * 1e-7)
+    assert v.holding and np.all(np.isfinite(v.truth))
+    assert sp.command_at(sp.t + 0.02) == ahead[0] and sp.switches_after(sp.t + 0.02) > sp.t + 0.02

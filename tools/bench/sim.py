@@ -147,7 +147,8 @@ def fly(method: Method, scenario: Scenario, case: Case, config: MPCConfig | None
         out = controller.make_step(x, tick == anomaly_tick, decision,
                                    (reading.age or 0.0) if x is not None else 0.0)
         sent = setpoint(robot="bench", seq=tick, output=out, model=controller.model,
-                        reading=reading, valid_s=SETPOINT_TICKS * dt, mode=out.mode)
+                        reading=reading, valid_s=SETPOINT_TICKS * dt, mode=out.mode,
+                        period_s=dt, ahead=round(SETPOINT_TICKS) - 1)
         if sent is not None:
             vehicle.receive(sent, now)
         if out.request is not None and answer_tick is None:
