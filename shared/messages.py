@@ -189,7 +189,9 @@ DecisionSource = Literal["llm", "timeout", "parse_error", "backend_error"]
 
 
 class ReasonerDecision(Message):
-    """Reasoner -> control: y, the chosen option index, and where it came from."""
+    """Reasoner -> control: y, the chosen option index, and where it came from. ``answer``:
+    what the model wrote, as it wrote it (the winning answer, else the first that did not
+    parse; empty when no model answered), so a wrong or unparsable answer can be read."""
 
     request_id: str = Field(min_length=1, max_length=128)
     choice: Int = Field(ge=0)
@@ -197,6 +199,7 @@ class ReasonerDecision(Message):
     rationale: str = Field(default="", max_length=MAX_TEXT_CHARS)
     latency_ms: Float = Field(ge=0.0)
     model: str = ""
+    answer: str = Field(default="", max_length=MAX_TEXT_CHARS)
 
 
 class Mode(StrEnum):

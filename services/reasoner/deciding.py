@@ -36,7 +36,13 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Literal
 
-from shared.messages import DecisionSource, Option, ReasonerDecision, ReasonerRequest
+from shared.messages import (
+    MAX_TEXT_CHARS,
+    DecisionSource,
+    Option,
+    ReasonerDecision,
+    ReasonerRequest,
+)
 from shared.realtime import favoured
 
 from .backends import BackendError, ChatBackend, Completion
@@ -96,13 +102,15 @@ def _rank(option: Option, policy: FallbackPolicy) -> float:
 
 
 def fallback_decision(request: ReasonerRequest, policy: FallbackPolicy,
-                      source: DecisionSource, why: str, latency_ms: float) -> ReasonerDecision:
-    """The labelled fallback for ``request``: :func:`fallback_choice`, and why."""
+                      source: DecisionSource, why: str, latency_ms: float,
+                      answer: str = "") -> ReasonerDecision:
+    """The labelled fallback for ``request``: :func:`fallback_choice`, and why (``answer``:
+    what a model wrote that did not parse)."""
     choice = fallback_choice(request.options, policy)
     return ReasonerDecision(
         robot=request.robot, request_id=request.request_id, choice=choice, source=source,
         rationale=f"{source}: {why}; fallback option {choice} ({policy.kind})",
-        latency_ms=latency_ms, model="")
+        latency_ms=latency_ms, model="", answer=answer[:MAX_TEXT_CHARS])
 
 
 def timeout_reason(deadline_s: float) -> str:
@@ -127,6 +135,7 @@ class Failure:
 
     source: Literal["parse_error", "backend_error"]
     detail: str
+    text: str = ""  # what the model wrote (a parse error's)
 
 
 @dataclass(frozen=True)
@@ -282,18 +291,19 @@ class Decider:
                 robot=request.robot, request_id=request.request_id,
                 choice=outcome.parsed.choice, source="llm",
                 rationale=outcome.parsed.rationale, latency_ms=self._latency_ms(start),
-                model=outcome.model)
+                model=outcome.model, answer=outcome.completion.text[:MAX_TEXT_CHARS])
         if isinstance(outcome, Timeout):
             seen = _describe(outcome.failures)
             return self._fallback(request, start, "timeout", timeout_reason(request.deadline_s)
-                                  + (f" ({seen})" if seen else ""))
+                                  + (f" ({seen})" if seen else ""), outcome.failures)
         source: DecisionSource = (
             "parse_error" if any(f.source == "parse_error" for f in outcome) else "backend_error")
-        return self._fallback(request, start, source, _describe(outcome))
+        return self._fallback(request, start, source, _describe(outcome), outcome)
 
     def _fallback(self, request: ReasonerRequest, start: float, source: DecisionSource,
-                  why: str) -> ReasonerDecision:
-        return fallback_decision(request, self._policy, source, why, self._latency_ms(start))
+                  why: str, failures: Sequence[Failure] = ()) -> ReasonerDecision:
+        return fallback_decision(request, self._policy, source, why, self._latency_ms(start),
+                                 next((f.text for f in failures if f.text), ""))
 
     def _latency_ms(self, start: float) -> float:
         return max(0.0, (self._clock() - start) * 1000.0)
@@ -316,7 +326,8 @@ async def _attempt(backend: ChatBackend, messages: list[dict[str, str]], offered
     try:
         parsed = parse_decision(completion.text, offered)
     except ParseError as exc:
-        return Failure("parse_error", f"{backend.name}: {exc.reason} ({exc.detail})")
+        return Failure("parse_error", f"{backend.name}: {exc.reason} ({exc.detail})",
+                       completion.text)
     return Win(parsed=parsed, model=backend.model, completion=completion)
 
 

@@ -109,6 +109,7 @@ async def test_llm_answer_within_deadline(fake_llm: str) -> None:
     assert decision.choice == 1
     assert decision.model == "fake-fixed-0.2"
     assert "red box" in decision.rationale
+    assert "red box" in decision.answer and decision.answer.rstrip().endswith("1")  # as written
 
 
 async def test_stall_times_out_and_closes_connection(fake_llm: str, stats: FakeStats) -> None:
@@ -119,6 +120,7 @@ async def test_stall_times_out_and_closes_connection(fake_llm: str, stats: FakeS
     assert decision.choice == 1  # first recovery option
     assert decision.model == ""
     assert "deadline" in decision.rationale
+    assert decision.answer == ""  # no model answered
     after = await stats.settled()
     assert after["active"] == 0
     assert after["outcomes"].get("disconnected", 0) >= 1
@@ -129,6 +131,7 @@ async def test_garbage_two_is_parse_error(fake_llm: str) -> None:
     assert decision.source == "parse_error"
     assert decision.choice == 1
     assert "multiple_answers" in decision.rationale
+    assert decision.answer.strip()  # what the model wrote, for whoever reads the decision
 
 
 async def test_500_is_backend_error(fake_llm: str) -> None:
