@@ -56,8 +56,9 @@ test: $(STAMP) browser llama
 	$(VENV)/bin/mypy
 	$(PY) -m pytest -q
 
-demo: $(STAMP)
-	$(VENV)/bin/aesop demo
+# make demo LLM=local: the trained model served by llama.cpp (built by `make llama`)
+demo: $(STAMP) $(if $(filter local,$(LLM)),llama)
+	$(VENV)/bin/aesop demo $(if $(LLM),--llm $(LLM))
 
 bench: $(STAMP)
 	$(VENV)/bin/aesop bench detector

@@ -1,34 +1,56 @@
 """The demo's stack on free ports, as `aesop demo --random-ports` plans it (a Zenoh
-router, the fake LLM, the vector cache, the reasoner, the control loop and the
-dashboard, as processes), for the tests that fly the demo's scenarios."""
+router, the fake LLM or a served local model, the vector cache, the reasoner, the control
+loop, the simulated vehicle and the dashboard, as processes), for the tests that fly the
+demo's scenarios."""
 
 from __future__ import annotations
 
 import contextlib
 import os
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 from services.control.scenario import load_scenario
 from shared.process import file_sink
+from tools.local_llm import LocalModel
 from tools.stack.up import Ports, Stack, StackOptions, StackPlan, hardware_scenario, plan_stack
+
+
+@dataclass(frozen=True)
+class Running:
+    """A stack that is up, with what it was planned from."""
+
+    stack: Stack
+    plan: StackPlan
+    options: StackOptions
+    environ: Mapping[str, str]
+
+
+@contextlib.contextmanager
+def running_stack(tmp_path: Path, token: str, *, local_model: LocalModel | None = None,
+                  environ: Mapping[str, str] | None = None) -> Iterator[Running]:
+    """Up with its data in ``tmp_path/data`` and logs in ``tmp_path/logs`` (``environ``:
+    variables over this process's); stopped whatever happens. The control loop runs at
+    the scene's rate unless ``AESOP_CONTROL_RATE_HZ`` says otherwise."""
+    path = hardware_scenario()
+    scene = load_scenario(path)
+    env = {k: v for k, v in {**os.environ, **(environ or {})}.items()
+           if k != "AESOP_ADMIN_TOKEN"}
+    rate = None if env.get("AESOP_CONTROL_RATE_HZ") else 1.0 / scene.dt
+    options = StackOptions(data_dir=tmp_path / "data", ports=Ports.free(), scenario=path,
+                           rate_hz=rate, local_model=local_model)
+    plan = plan_stack(options, env, token)
+    running = Stack(plan, file_sink(tmp_path / "logs"))
+    try:
+        running.start()
+        yield Running(running, plan, options, env)
+    finally:
+        running.stop()
 
 
 @contextlib.contextmanager
 def demo_stack(tmp_path: Path, token: str) -> Iterator[StackPlan]:
-    """Up with its data in ``tmp_path/data`` and logs in ``tmp_path/logs``; stopped
-    whatever happens. The control loop runs at the scene's rate unless
-    ``AESOP_CONTROL_RATE_HZ`` says otherwise."""
-    path = hardware_scenario()
-    scene = load_scenario(path)
-    rate = None if os.environ.get("AESOP_CONTROL_RATE_HZ") else 1.0 / scene.dt
-    options = StackOptions(data_dir=tmp_path / "data", ports=Ports.free(), scenario=path,
-                           rate_hz=rate)
-    environ = {k: v for k, v in os.environ.items() if k != "AESOP_ADMIN_TOKEN"}
-    plan = plan_stack(options, environ, token)
-    running = Stack(plan, file_sink(tmp_path / "logs"))
-    try:
-        running.start()
-        yield plan
-    finally:
-        running.stop()
+    """:func:`running_stack` with the fake LLM; its plan."""
+    with running_stack(tmp_path, token) as up:
+        yield up.plan

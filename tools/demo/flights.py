@@ -23,9 +23,11 @@ import asyncio
 import secrets
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +40,7 @@ from services.sim.client import SimClient
 from services.sim.judge import count_violations
 from shared import topics
 from shared.bus import Bus, Subscription
+from shared.client import ServiceError
 from shared.messages import (
     AnomalyVerdict,
     ControlState,
@@ -65,12 +68,23 @@ from tools.stack.up import (
     plan_stack,
 )
 
-from .report import ended_in, flight_measures, judge, summary_table, write_report
+from .k import QUERIES, KChoice, calibrate, choose_k, scene_with_k
+from .report import (
+    decisions_text,
+    ended_in,
+    flight_measures,
+    judge,
+    summary_table,
+    verdict_line,
+    write_report,
+)
 
 FLIGHT_S = 22.0  # simulated seconds per scenario: the way in, T = 10 s after the anomaly, settling
 ROUTE_TIMEOUT_S = 60.0
 STALE_WAIT_S = 0.8  # the control loop's verdicts go stale after 0.5 s by default
 CAMERA_PERIOD_S = 0.1  # observations at 10 Hz (the paper's detector ran at 18.8 Hz)
+MAX_ANSWER_CHARS = 1000  # of the model's answer, in the report
+LOAD_FLIGHTS = 20  # nominal flights at most while the model is timed (about 30 s each)
 
 
 def run_stack_demo(options: StackOptions, environ: Mapping[str, str], out: Path, *,
@@ -84,21 +98,27 @@ def run_stack_demo(options: StackOptions, environ: Mapping[str, str], out: Path,
     try:
         _say(f"starting the stack (logs in {out / 'logs'}) ...")
         stack.start()
+        k = None
+        if plan.local_model is not None:  # a model nobody has timed here: K from it first
+            k, scenario = fly_with_k(stack, plan, options, environ, scenario, out)
         dashboard = plan.url("dashboard")
         if dashboard:
             _say(f"dashboard: {dashboard}  (watch the flights live)")
         result, flights = fly_scenarios(plan, scenario=scenario, model=model,
                                         robot=plan.robot, record_dir=out / "recordings")
-        result.update(scene=scenario.name, rate_hz=1.0 / scenario.dt,
-                      llm=(f"the fake LLM, {FAKE_LLM_LATENCY_S:g} s per answer" if plan.fake_llm
-                           else "the configured LLM backend"),
+        result.update(scene=scenario.name, rate_hz=1.0 / scenario.dt, llm=llm_line(plan, k),
                       wall_s=round(time.monotonic() - started, 1), dashboard=dashboard)
+        if k is not None:
+            result["k"] = {"flown_s": k.k_s, "scene_s": k.scene_k_s,
+                           "measured_s": k.measured_k_s, "why": k.why,
+                           "calibration": dict(k.report)}
         report = write_report(out, result, flights, scenario)
         if table:
             print(f"\nAESOP demo — {scenario.name}, {result['llm']}\n")
             print(summary_table(result["scenarios"]))
-            print(f"\n{'all scenarios ended as expected' if result['ok'] else 'SOME FAILED'}"
-                  f" ({result['wall_s']:.0f} s)\nreport: {report}")
+            if k is not None:
+                print(decisions_text(result))
+            print(f"\n{verdict_line(result)} ({result['wall_s']:.0f} s)\nreport: {report}")
             if dashboard:
                 print(f"dashboard: {dashboard}" + ("" if keep_up else " (stopped with the demo;"
                                                    " `aesop demo --keep-up` leaves it running)"))
@@ -119,6 +139,68 @@ def _interrupt(*_: object) -> None:
     raise KeyboardInterrupt
 
 
+def fly_with_k(stack: Stack, plan: StackPlan, options: StackOptions,
+               environ: Mapping[str, str], scenario: Scenario, out: Path
+               ) -> tuple[KChoice, Scenario]:
+    """Measure the served model's latency with the reasoner's calibration job while the
+    robot flies the nominal scenario again and again, the detector's cache built before
+    (the model shares these cores with the control loop and the detector, as it will in the
+    scenarios: timed on an idle stack, SmolLM2's 95 % quantile was 2.6 s and every answer
+    in flight came later; timed while the cache was built, a few took 20 s), and,
+    when the scene can keep it, give the control loop that K (:mod:`.k`): it is started
+    again on the scene with that K. The K chosen and the scene now flown."""
+    _say(f"timing the model: {QUERIES} answers to scenario 2a's question while the robot "
+          "flies the nominal scenario (a few minutes) ...")
+    url = plan.url("reasoner")
+    assert url is not None
+    fly_scenarios(plan, [], scenario=scenario, robot=plan.robot)  # the cache, built first
+    done = threading.Event()
+    with ThreadPoolExecutor(1) as pool:
+        flying = pool.submit(fly_scenarios, plan, ["1-nominal"] * LOAD_FLIGHTS,
+                             scenario=scenario, robot=plan.robot, until=done)
+        try:
+            report = _time_the_model(url, plan.token)
+        finally:
+            done.set()
+        flown = len(flying.result()[0]["scenarios"])
+    _say(f"  timed during {flown} nominal flights")
+    choice = choose_k(scenario, report)
+    _say(choice.why)
+    if choice.k_s != scenario.consensus_s:
+        path = scene_with_k(plan.scenario, choice.k_s, out / "data" / "scene-with-k.yaml")
+        again = plan_stack(replace(options, scenario=path), environ, plan.token,
+                           passwords=lambda _: dict(plan.passwords))
+        stack.replace(next(s for s in again.services if s.name == "control"))
+        scenario = load_scenario(path)
+    return choice, scenario
+
+
+def _time_the_model(url: str, token: str) -> dict[str, Any]:
+    """The calibration job's report (or why it failed)."""
+    shown: set[int] = set()
+
+    def progress(job: Any) -> None:
+        if job.done % 10 == 0 and job.done not in shown:
+            shown.add(job.done)
+            _say(f"  {job.done} of {job.total}")
+
+    try:
+        report = asyncio.run(calibrate(url, token, say=progress))
+    except ServiceError as exc:  # every query failed: the job says why
+        report = {"error": str(exc)}
+    return report
+
+
+def llm_line(plan: StackPlan, k: KChoice | None) -> str:
+    if plan.fake_llm:
+        return f"the fake LLM, {FAKE_LLM_LATENCY_S:g} s per answer"
+    if plan.local_model is None:
+        return "the configured LLM backend"
+    return (f"{plan.local_model.alias} on llama.cpp's server"
+            + ("" if k is None else f", K = {k.k_s:g} s"
+               + (" (measured)" if k.calibrated else " (the scene's)")))
+
+
 def _say(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
@@ -136,7 +218,8 @@ def demo_scenario(name: str) -> DemoScenario:
 
 def fly_scenarios(plan: StackPlan, names: Sequence[str] | None = None, *,
                   scenario: Scenario | None = None, model: str | None = None,
-                  robot: str | None = None, record_dir: Path | None = None
+                  robot: str | None = None, record_dir: Path | None = None,
+                  until: threading.Event | None = None
                   ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Build and calibrate the cache on the running stack of ``plan``, then fly the named
     demo scenarios (all of :data:`SCENARIOS` by default) in turn, as ``aesop demo`` does.
@@ -144,7 +227,11 @@ def fly_scenarios(plan: StackPlan, names: Sequence[str] | None = None, *,
     ``scenario`` defaults to the scene the stack's services were given, ``robot`` to the
     one they serve. With ``record_dir``, each flight's topics are recorded there as
     ``<scenario>.mcap`` (by the read-only ``monitor`` user). Returns the result (``ok``,
-    one row per scenario, the detector's calibration) and each flight's states.
+    one row per scenario, the detector's calibration) and each flight's states. With a
+    real model (the plan serves one) a wrong decision is reported, not failed: a flight
+    passes when it ends safely where its decision sent it (:func:`.report.judge`).
+    ``until``: no further flight starts once it is set (flights flown only as load: none
+    is reported on the terminal).
     """
     if scenario is None:
         scenario = load_scenario(plan.scenario)
@@ -154,7 +241,8 @@ def fly_scenarios(plan: StackPlan, names: Sequence[str] | None = None, *,
     recorders = None if record_dir is None else Recorders(
         plan.bus_settings(MONITOR, robot=robot), record_dir, robot)
     return asyncio.run(_demo(plan.url("embedding"), plan.url("control"), plan.url("sim"),
-                             plan.token, settings, scenario, model, demos, recorders))
+                             plan.token, settings, scenario, model, demos, recorders,
+                             real_model=plan.local_model is not None, until=until))
 
 
 @dataclass(frozen=True)
@@ -188,7 +276,8 @@ class Recorder:
 
 async def _demo(embedding_url: str | None, control_url: str | None, sim_url: str | None,
                 token: str, settings: BusSettings, scenario: Scenario, model: str | None,
-                demos: Sequence[DemoScenario] = SCENARIOS, recorders: Recorders | None = None
+                demos: Sequence[DemoScenario] = SCENARIOS, recorders: Recorders | None = None,
+                *, real_model: bool = False, until: threading.Event | None = None
                 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     assert embedding_url and control_url and sim_url
     async with EmbeddingClient(embedding_url, token=token, timeout_s=60) as client:
@@ -220,11 +309,15 @@ async def _demo(embedding_url: str | None, control_url: str | None, sim_url: str
                     SimClient(sim_url, token=token, timeout_s=60) as sim:
                 pilots = Pilots(control, sim)
                 for demo in demos:
+                    if until is not None and until.is_set():
+                        break
                     row, states = await fly(pilots, camera, verdicts, rec, demo, scenario,
-                                            None if recorders is None else recorders.of(demo))
+                                            None if recorders is None else recorders.of(demo),
+                                            real_model=real_model)
                     rows.append(row)
                     flights[demo.name] = states
-                    _say(f"  {demo.name}: {row['outcome']}")
+                    if until is None:
+                        _say(f"  {demo.name}: {row['outcome']}")
                 state_rate_hz = (await sim.state()).reporting["rate_hz"]
             add_time_lost(rows)
         finally:
@@ -298,14 +391,15 @@ class Pilots:
 
 async def fly(pilots: Pilots, camera: Camera, verdicts: Subscription[AnomalyVerdict],
               rec: Recorder, demo: DemoScenario, scenario: Scenario,
-              recorder: Background | None = None) -> tuple[dict[str, Any], np.ndarray]:
+              recorder: Background | None = None, *, real_model: bool = False
+              ) -> tuple[dict[str, Any], np.ndarray]:
     camera.scene, camera.flying = demo, False
     await _calm(camera, verdicts)
     if recorder is None:
-        return await _fly(pilots, camera, rec, demo, scenario)
+        return await _fly(pilots, camera, rec, demo, scenario, real_model)
     await asyncio.to_thread(recorder.start)
     try:
-        row, states = await _fly(pilots, camera, rec, demo, scenario)
+        row, states = await _fly(pilots, camera, rec, demo, scenario, real_model)
     finally:  # a failed flight's recording is finished (indexed) too
         totals = await asyncio.to_thread(recorder.stop)
     row["recording"] = recording_row(totals, recorder.out)
@@ -313,7 +407,7 @@ async def fly(pilots: Pilots, camera: Camera, verdicts: Subscription[AnomalyVerd
 
 
 async def _fly(pilots: Pilots, camera: Camera, rec: Recorder, demo: DemoScenario,
-               scenario: Scenario) -> tuple[dict[str, Any], np.ndarray]:
+               scenario: Scenario, real_model: bool) -> tuple[dict[str, Any], np.ndarray]:
     rec.recording = False
     rec.states, rec.requests, rec.decisions, rec.events = [], [], [], []
     rec.detector_alarms = 0
@@ -332,7 +426,7 @@ async def _fly(pilots: Pilots, camera: Camera, rec: Recorder, demo: DemoScenario
     vehicle, trace = await pilots.sim.state(), await pilots.sim.trace()
     truth = np.array([x for t, x in zip(trace.t, trace.x, strict=True) if t <= rec.t + 1e-9])
     return summarize(rec, demo, scenario, time.monotonic() - wall, truth,
-                     vehicle.setpoints)
+                     vehicle.setpoints, real_model=real_model)
 
 
 def recording_row(totals: Totals, path: Path) -> dict[str, Any]:
@@ -356,10 +450,11 @@ def add_time_lost(rows: list[dict[str, Any]]) -> None:
 
 
 def summarize(rec: Recorder, demo: DemoScenario, scenario: Scenario, wall_s: float,
-              truth: np.ndarray, setpoints: Mapping[str, float | int | None]
-              ) -> tuple[dict[str, Any], np.ndarray]:
+              truth: np.ndarray, setpoints: Mapping[str, float | int | None], *,
+              real_model: bool = False) -> tuple[dict[str, Any], np.ndarray]:
     """A flight's row, judged on the vehicle's ``truth`` (its trace, 12-state rows) and the
-    loop's inputs; ``setpoints``: their age at the vehicle (the simulator's summary)."""
+    loop's inputs; ``setpoints``: their age at the vehicle (the simulator's summary);
+    ``real_model``: a wrong decision is reported (``decision_right``), not failed."""
     states = truth if len(truth) else np.array([s.x for s in rec.states])
     inputs = np.array([s.u for s in rec.states])
     ages = [s.state_age_s * 1000.0 for s in rec.states if s.state_age_s is not None]
@@ -381,12 +476,16 @@ def summarize(rec: Recorder, demo: DemoScenario, scenario: Scenario, wall_s: flo
     ended = ended_in(states[-1], scenario) if len(states) else None
     violations = count_violations(states, inputs, scenario)
     problems = judge(demo, ended=ended, detector_alarms=rec.detector_alarms,
-                     anomaly_at_s=anomaly_at, decision=decision, violations=violations)
+                     anomaly_at_s=anomaly_at, decision=decision, violations=violations,
+                     scenario=scenario if real_model else None)
     measures = flight_measures([s.t for s in rec.states], np.array([s.x for s in rec.states]),
                                [s.mode for s in rec.states], scenario.goal, anomaly_at)
     row = {"name": demo.name, "expected": demo.expected, "outcome": "; ".join(problems) or "ok",
            "ended_in": ended, "anomaly_at_s": None if anomaly_at is None else round(anomaly_at, 2),
            "decision": decision, "decision_source": source,
+           "decision_right": None if demo.expected_decision is None
+           else decision == demo.expected_decision,
+           "answer": None if decided is None else decided.answer[:MAX_ANSWER_CHARS],
            "constraint_violations": violations,
            "duration_s": round(rec.states[-1].t, 2) if rec.states else 0.0,
            "wall_s": round(wall_s, 2),

@@ -95,22 +95,38 @@ def flight_measures(t: Sequence[float] | np.ndarray,
         float(np.min(reach[after])) if after.any() else None)
 
 
+def destination(demo: DemoScenario, decision: str | None, scenario: Scenario) -> str | None:
+    """Where a flight must end given the ``decision`` taken (an option label): the goal on
+    "continue", the region of that label, the scenario's end when nothing was decided."""
+    if decision is None:
+        return demo.expected
+    if decision == "continue":
+        return GOAL
+    return next((r.name for r in scenario.regions if r.label == decision), None)
+
+
 def judge(demo: DemoScenario, *, ended: str | None, detector_alarms: int,
-          anomaly_at_s: float | None, decision: str | None, violations: int) -> list[str]:
+          anomaly_at_s: float | None, decision: str | None, violations: int,
+          scenario: Scenario | None = None) -> list[str]:
     """What did not go as expected (empty: the scenario passed).
 
     In the nominal scenario the detector must never flag the scene; an anomaly the
     control loop raised because a verdict came late (fail-safe) is reported in the
-    row but is no failure as long as the flight ends where it should.
+    row but is no failure as long as the flight ends where it should. With ``scenario``
+    (a real model, which may decide wrong) a wrong decision is no failure: the flight
+    must end safely where that decision sent it (:func:`destination`); whether the
+    decision was right is the row's ``decision_right``.
     """
     problems = []
-    if ended != demo.expected:
-        problems.append(f"ended in {ended or 'no region'}, expected {demo.expected}")
+    expected = demo.expected if scenario is None else destination(demo, decision, scenario)
+    if ended != expected:
+        problems.append(f"ended in {ended or 'no region'}, expected {expected}")
     if demo.expected_decision is None and detector_alarms:
         problems.append(f"the detector flagged the nominal scene {detector_alarms} times")
     if demo.expected_decision is not None and anomaly_at_s is None:
         problems.append("the anomaly was not detected")
-    if demo.expected_decision is not None and decision != demo.expected_decision:
+    if scenario is None and demo.expected_decision is not None \
+            and decision != demo.expected_decision:
         problems.append(f"decision {decision!r}, expected {demo.expected_decision!r}")
     if violations:
         problems.append(f"{violations} ticks outside the limits")
@@ -120,7 +136,8 @@ def judge(demo: DemoScenario, *, ended: str | None, detector_alarms: int,
 # --------------------------------------------------------------------------- output
 
 COLUMNS = (("name", "scenario"), ("anomaly_at_s", "anomaly at [s]"), ("decision", "decision"),
-           ("decision_source", "source"), ("ended_in", "ended in"),
+           ("decision_source", "source"), ("decision_right", "right"),
+           ("decision_latency_ms", "latency [ms]"), ("ended_in", "ended in"),
            ("constraint_violations", "violations"), ("approach_altitude_m", "approach alt. [m]"),
            ("speeds", "speed before / slowest waiting / fastest after [m/s]"),
            ("closest_to_goal_m", "closest to red box after [m]"),
@@ -133,6 +150,8 @@ COLUMNS = (("name", "scenario"), ("anomaly_at_s", "anomaly at [s]"), ("decision"
 def _cell(value: Any) -> str:
     if value is None:
         return "-"
+    if isinstance(value, bool):
+        return "yes" if value else "NO"
     if isinstance(value, float):
         return f"{value:.2f}"
     if isinstance(value, list | tuple):
@@ -149,6 +168,64 @@ def summary_table(rows: Sequence[dict[str, Any]]) -> str:
     out = [line, "-" * len(line)]
     out += ["  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)) for row in cells]
     return "\n".join(out)
+
+
+def verdict_line(result: dict[str, Any]) -> str:
+    """The demo's one-line verdict. With a real model (``result["k"]``): safety, and how
+    many decisions were the expected ones."""
+    rows = result["scenarios"]
+    if "k" not in result:
+        return "all scenarios ended as expected" if result["ok"] else "SOME FAILED"
+    asked = [r for r in rows if r.get("decision_right") is not None]
+    right = sum(bool(r["decision_right"]) for r in asked)
+    safe = ("every flight ended safely where its decision sent it" if result["ok"]
+            else "SOME FLIGHTS DID NOT END SAFELY")
+    return f"{safe}; {right} of {len(asked)} decisions were the expected ones"
+
+
+def decisions_text(result: dict[str, Any]) -> str:
+    """What the model answered in each scenario, and the K flown (text for the terminal)."""
+    lines = [f"\nK: {result['k']['why']}"]
+    for r in result["scenarios"]:
+        if r.get("decision") is None:
+            continue
+        answer = " ".join((r.get("answer") or "(no answer from the model)").split())
+        right = "right" if r.get("decision_right") else "WRONG"
+        lines.append(f"{r['name']}: {r['decision']} ({right}; {r['decision_source']}, "
+                     f"{_cell(r.get('decision_latency_ms'))} ms): {answer[:240]}")
+    return "\n".join(lines)
+
+
+def decisions_section(result: dict[str, Any]) -> str:
+    """The model's answer in each scenario, and how K was chosen (HTML)."""
+    k = result.get("k")
+    if k is None:
+        return ""
+    cal = k["calibration"]
+    items = []
+    for r in result["scenarios"]:
+        if r.get("decision") is None:
+            continue
+        right = "the expected one" if r.get("decision_right") else (
+            "<b>wrong</b> (the scenario expects another)")
+        fallback = "" if r["decision_source"] == "llm" else (
+            f"; no valid answer by K: the fallback chose {html.escape(r['decision'])} "
+            f"and the flight ended in {html.escape(str(r['ended_in']))}")
+        items.append(
+            f"<li><b>{html.escape(r['name'])}</b>: {html.escape(r['decision'])}, "
+            f"{right}; {html.escape(str(r['decision_source']))}, "
+            f"{_cell(r.get('decision_latency_ms'))} ms{fallback}.<pre>"
+            f"{html.escape(r.get('answer') or '(no answer from the model)')}</pre></li>")
+    measured = ""
+    if "quantiles_s" in cal:
+        quantiles = ", ".join(f"{name} {value:.2f} s" for name, value in
+                              cal["quantiles_s"].items())
+        measured = (f" Latency over {cal['n']} answers ({cal['n_failed']} failed): mean "
+                    f"{cal['mean_s']:.2f} s, {quantiles}, max {cal['max_s']:.2f} s; the "
+                    f"distribution-free bound on the {cal['quantile']:.0%} quantile at "
+                    f"{cal['confidence']:.0%} confidence {cal['k_upper_s']:.2f} s.")
+    return (f"<h2>The model's decisions</h2><p>{html.escape(k['why'])}.{measured}</p><ul>"
+            + "".join(items) + "</ul>")
 
 
 def plot_flights(flights: dict[str, np.ndarray], scenario: Scenario, path: Path) -> None:
@@ -229,7 +306,8 @@ processes over Zenoh (vector cache, reasoner with {html.escape(result['llm'])}, 
 {result['state_rate_hz']:g} Hz, the set-points back). Violations and where a flight
 ended are judged on the simulator's truth.</p>
 <table><tr>{head}</tr>{body}</table>
-<p>{'All scenarios ended as expected.' if result['ok'] else 'SOME SCENARIOS FAILED.'}</p>
+<p>{html.escape(verdict_line(result))}.</p>
+{decisions_section(result)}
 <h2>Flights</h2><img src="flights.png" alt="flights, top and side view" width="100%">
 {recordings_section(result["scenarios"])}
 <h2>Fast anomaly detector</h2><pre>{detector}</pre>

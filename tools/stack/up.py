@@ -52,7 +52,7 @@ from shared.process import (
 )
 from shared.settings import BusSettings, ServiceSettings, read_settings, to_env
 from tools.fakes.llm import FakeLLMServiceSettings, FakeLLMSettings
-from tools.local_llm import REASONER_SETTINGS, LocalModel, server_argv
+from tools.local_llm import REASONER_SETTINGS, STACK_THREADS, LocalModel, server_argv
 
 from .acl import new_passwords, robot_user, users_of, write_credentials, write_private
 
@@ -221,8 +221,9 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
                     ports.hub, inherited, ready="tcp")
     children = tuple(child(n, s) for n, s in settings)
     if local is not None:  # it accepts connections once the model is loaded
-        children = (ChildSpec(LOCAL_LLM, server_argv(local, ports.fake_llm), ports.fake_llm,
-                              inherited, ready="tcp"), *children)
+        argv = server_argv(local, ports.fake_llm, threads=STACK_THREADS)
+        children = (ChildSpec(LOCAL_LLM, argv, ports.fake_llm, inherited, ready="tcp"),
+                    *children)
     return StackPlan(hub, children, given or token, not given, fake, local, control.robot,
                      scenario, zenoh_dir, secret)
 
@@ -282,6 +283,15 @@ class Stack:
                     return None
                 child.start()
         return None
+
+    def replace(self, spec: ChildSpec) -> None:
+        """Stop the service named ``spec.name`` and start it again as ``spec`` says (new
+        settings); returns once it is ready."""
+        i = next(i for i, c in enumerate(self.children) if c.name == spec.name)
+        self.children[i].stop()
+        self.children[i] = Child(spec, self.sink)
+        self.children[i].start()
+        self._await_ready([self.children[i]])
 
     @property
     def hub_restarts(self) -> int:

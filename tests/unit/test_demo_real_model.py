@@ -1,0 +1,89 @@
+"""``aesop demo --llm local``'s pure parts: K from the served model's calibration, kept only
+when the scene can keep it, and a flight with a real model judged on safety, its decision's
+rightness reported beside it (issue 27)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from services.control.scenario import load_scenario
+from tools.demo.k import QUERIES, choose_k, scene_with_k, tree_at_start
+from tools.demo.report import decisions_text, destination, judge, verdict_line
+from tools.scenes.hardware import GOAL, SCENARIOS
+from tools.stack.up import hardware_scenario
+
+SCENE = load_scenario("hardware")
+BY_NAME = {s.name: s for s in SCENARIOS}
+
+
+def calibration(quantile: float | None) -> dict:
+    return {"n": QUERIES, "n_failed": 0, "k_s": quantile,
+            "k_upper_s": None if quantile is None else quantile * 2}
+
+
+def test_the_calibrations_quantile_rounded_up_to_a_tick_is_flown_when_the_tree_can_wait(
+        ) -> None:
+    assert QUERIES == 60  # 59 bound the 95 % quantile at 95 % confidence: the slowest of 60
+    for bound, flown in ((2.01, 2.05), (4.9, 4.9), (5.96, 6.0)):
+        choice = choose_k(SCENE, calibration(bound))
+        assert choice.k_s == pytest.approx(flown) and choice.calibrated
+        assert f"K = {flown:g} s" in choice.why
+
+
+@pytest.mark.parametrize(("bound", "why"), [
+    (12.0, "not below T"),  # longer than the horizon
+    (7.5, "no tree of recovery plans is feasible from the start"),  # fits, but cannot wait
+    (None, "no bound"),  # too many queries failed (the report holds no quantile)
+])
+def test_a_k_the_scene_cannot_keep_leaves_the_scenes_own_and_says_why(
+        bound: float | None, why: str) -> None:
+    choice = choose_k(SCENE, calibration(bound))
+    assert choice.k_s == SCENE.consensus_s and not choice.calibrated
+    assert why in choice.why and f"flying the scene's K = {SCENE.consensus_s:g} s" in choice.why
+
+
+def test_the_scene_with_k_loads_as_the_same_scene_but_for_k(tmp_path: Path) -> None:
+    path = scene_with_k(hardware_scenario(), 4.9, tmp_path / "scene.yaml")
+    scene = load_scenario(path)
+    assert scene.consensus_s == 4.9 and scene.consensus == 98
+    assert (scene.regions, scene.goal, scene.dt, scene.horizon_s) == (
+        SCENE.regions, SCENE.goal, SCENE.dt, SCENE.horizon_s)
+    assert tree_at_start(SCENE) is None
+
+
+def test_a_wrong_decision_is_no_failure_when_the_flight_ends_where_it_sent_it() -> None:
+    red = BY_NAME["2a-quadrotor-on-red-box"]
+    assert destination(red, "holding zone", SCENE) == "holding-zone"
+    assert destination(red, "continue", SCENE) == GOAL
+    assert destination(red, None, SCENE) == "blue-box"
+    wrong = {"detector_alarms": 3, "anomaly_at_s": 1.1, "decision": "holding zone",
+             "violations": 0}
+    assert judge(red, ended="holding-zone", scenario=SCENE, **wrong) == []
+    assert judge(red, ended="holding-zone", **wrong) == [  # the fake LLM's demo: a failure
+        "ended in holding-zone, expected blue-box",
+        "decision 'holding zone', expected 'alternative landing site'"]
+    assert judge(red, ended="blue-box", scenario=SCENE, **wrong) == [
+        "ended in blue-box, expected holding-zone"]  # not where its decision sent it
+    assert judge(red, ended="holding-zone", scenario=SCENE,
+                 **{**wrong, "violations": 2}) == ["2 ticks outside the limits"]
+
+
+def test_the_verdict_counts_the_right_decisions_and_the_text_quotes_each_answer() -> None:
+    rows = [{"name": "1-nominal", "decision": None, "decision_right": None},
+            {"name": "2a-quadrotor-on-red-box", "decision": "holding zone",
+             "decision_right": False, "decision_source": "llm", "decision_latency_ms": 2710.0,
+             "answer": '{"reasoning": "the box\nis taken", "answer": "holding zone"}'},
+            {"name": "2b-both-boxes-occupied", "decision": "holding zone",
+             "decision_right": True, "decision_source": "parse_error",
+             "decision_latency_ms": 3100.0, "answer": ""}]
+    result = {"ok": True, "scenarios": rows, "k": {"why": "K = 4.9 s: measured"}}
+    assert verdict_line(result) == ("every flight ended safely where its decision sent it; "
+                                    "1 of 2 decisions were the expected ones")
+    text = decisions_text(result)
+    assert "K = 4.9 s: measured" in text and "1-nominal" not in text
+    assert "2a-quadrotor-on-red-box: holding zone (WRONG; llm, 2710.00 ms)" in text
+    assert '"answer": "holding zone"' in text and "the box is taken" in text
+    assert "(no answer from the model)" in text
+    assert verdict_line({"ok": False, "scenarios": rows}) == "SOME FAILED"
