@@ -194,7 +194,8 @@
       const meta = document.createElement("div");
       meta.className = "meta";
       meta.textContent = `${clockOf(d.stamp)} · ${d.latency_ms.toFixed(0)} ms` +
-        (d.model ? ` · ${d.model}` : "") + (d.rationale ? ` · ${d.rationale}` : "");
+        (d.model ? ` · ${d.model}` : "") + (d.rationale ? ` · ${d.rationale}` : "") +
+        (d.source !== "llm" && d.answer ? ` · the model wrote: ${d.answer}` : "");
       li.append(choice, source, meta);
       return li;
     });
