@@ -4,7 +4,7 @@ the answers (pure)."""
 from __future__ import annotations
 
 from shared.messages import DecisionSource, ReasonerDecision
-from tools.bench.templates import Answer, hardware_cases, summarise
+from tools.bench.templates import Answer, domain_cases, hardware_cases, summarise
 
 
 def test_the_hardware_cases_ask_what_the_scenarios_expect() -> None:
@@ -32,3 +32,20 @@ def test_the_summary_tells_right_unsafe_and_fallbacks_apart() -> None:
     assert (t["parse_errors"], t["timeouts"]) == (1, 0)
     assert t["tokens_per_s_p50"] == 5.0  # 10 tokens in 2 s, llm answers only
     assert t["choices"] == {"2a": [0, 1], "2b": [1], "3": [0]}
+    assert t["right_by_set"] == {"hardware": "2/4"}
+
+
+def test_the_synthetic_domains_ask_to_stop_for_an_anomaly_and_go_on_for_a_nominal_scene(
+        ) -> None:
+    cases = domain_cases(2, deadline_s=30.0)
+    assert [c.domain for c in cases] == ["warehouse"] * 4 + ["vehicle"] * 4 + ["vtol"] * 4
+    for case in cases:
+        assert [o.label for o in case.request.options] == ["continue", "stop"]
+        assert case.expected == int("-anomaly-" in case.name)
+        assert case.request.observation.task and case.request.observation.text
+    assert [(c.name, c.request.observation.text) for c in domain_cases(2, 30.0)] == [
+        (c.name, c.request.observation.text) for c in cases]  # seeded
+    t = summarise([answer(cases[0].name, "llm", 0, cases[0].expected),
+                   answer(cases[3].name, "llm", 0, cases[3].expected)])["single-json"]
+    assert t["right_by_set"] == {"warehouse nominal": "1/1", "warehouse anomalies": "0/1"}
+    assert t["continue_when_recovery_expected"] == 1  # an anomaly let through

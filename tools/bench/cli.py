@@ -41,6 +41,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="--llm local: times each hardware case is asked per template (3)")
     br.add_argument("--deadline", type=float, default=60.0,
                     help="--llm local: each decision's deadline in s (60)")
+    br.add_argument("--domain-samples", type=int, default=2,
+                    help="--llm local: anomalies and nominal scenes asked per synthetic domain "
+                         "(2)")
     br.add_argument("--template", action="append", default=None,
                     choices=["cot", "single", "cot-json", "single-json"],
                     help="--llm local: only these templates (repeatable; default all)")
@@ -159,12 +162,12 @@ def bench_templates(args: argparse.Namespace, model: Any) -> int:
 
     from tools.bench.templates import TEMPLATES, render, run_templates_bench
 
-    if args.repeats < 1 or not args.deadline > 0:
-        raise CliError("--repeats must be >= 1 and --deadline > 0")
+    if args.repeats < 1 or not args.deadline > 0 or args.domain_samples < 0:
+        raise CliError("--repeats must be >= 1, --deadline > 0 and --domain-samples >= 0")
     with tempfile.TemporaryDirectory(prefix="aesop-bench-templates-") as logs:
         result = run_templates_bench(model, repeats=args.repeats, deadline_s=args.deadline,
                                      templates=args.template or tuple(TEMPLATES),
-                                     logs=Path(logs))
+                                     logs=Path(logs), domain_samples=args.domain_samples)
     if args.json:
         emit(result, True)
     else:

@@ -6,7 +6,11 @@ the paper's hardware scenarios: for each anomalous scenario of :mod:`tools.scene
 the scene as the camera reports it at the anomaly's spot, the scene's recovery regions
 offered beside "continue", and the answer the scenario expects (``expected_decision``). The
 verdict's unusual detections are not quoted (they need the detector's cache), so the model
-sees the scene as text alone.
+sees the scene as text alone. And the synthetic domains' samples (warehouse, vehicle, VTOL;
+``domain_samples`` anomalies and as many nominal scenes each, seeded), with the domain's own
+prompt and two options, "continue" or "stop": an anomaly's right answer is to stop (the
+domains' anomalies are overtly abnormal, a smoking battery on the belt), a nominal scene's
+(a false alarm reaching the reasoner) to continue.
 
 Per template (the chain-of-thought or single-answer prompt, free text or JSON mode with the
 options as an ``enum``), ``repeats`` times each case, at temperature 0 and not streamed (so
@@ -36,10 +40,11 @@ from services.control.scenario import load_scenario
 from services.reasoner.api import build_decider
 from services.reasoner.backends import Completion
 from services.reasoner.settings import ReasonerSettings
-from shared.messages import Observation, ReasonerDecision, ReasonerRequest
+from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
 from shared.tables import table
 from tools.local_llm import REASONER_SETTINGS, LocalModel, served
 from tools.scenes.hardware import SCENARIOS, observation_text
+from tools.scenes.registry import generate
 from tools.stack.up import hardware_scenario
 
 TASK = "landing on the red box"
@@ -49,11 +54,17 @@ TEMPLATES: Mapping[str, tuple[str, bool]] = {
     "cot-json": ("cot", True), "single-json": ("single", True)}
 
 
+SYNTHETIC = ("warehouse", "vehicle", "vtol")
+STOP = (Option(index=0, label="continue", description="carry on with the task"),
+        Option(index=1, label="stop", description="stop safely and wait for an operator"))
+
+
 @dataclass(frozen=True)
 class Case:
     name: str
     request: ReasonerRequest
     expected: int  # the option index the scenario expects
+    domain: str = "quadrotor"  # the reasoner's prompt template
 
 
 @dataclass(frozen=True)
@@ -83,28 +94,58 @@ def hardware_cases(deadline_s: float) -> list[Case]:
     return cases
 
 
+def domain_cases(per_domain: int, deadline_s: float, seed: int = 0) -> list[Case]:
+    """``per_domain`` anomalies and nominal scenes of each synthetic domain (module
+    docstring), as its robot would publish them (the task and the detections, brief)."""
+    cases = []
+    for name in SYNTHETIC:
+        data = generate(name, seed=seed, n_nominal=per_domain, n_anomaly=per_domain)
+        for i, sample in enumerate(data.samples):
+            anomaly = sample.label == "anomaly"
+            request = ReasonerRequest(
+                request_id=f"{name}-{i}", deadline_s=deadline_s, options=STOP,
+                observation=Observation(seq=1, task=sample.task, text=sample.observation))
+            cases.append(Case(f"{name}-{'anomaly' if anomaly else 'nominal'}-{i}", request,
+                              int(anomaly), name))
+    return cases
+
+
 async def ask(url: str, model: LocalModel, template: str, cases: Sequence[Case],
               repeats: int) -> list[Answer]:
     variant, json_mode = TEMPLATES[template]
     request = {**REASONER_SETTINGS["request"], "stream": False, "json_schema": json_mode}
-    settings = ReasonerSettings(llm_base_url=url, llm_model=model.alias, variant=variant,
-                                request=request)
     tokens: list[Completion] = []
-    decider = build_decider(settings, tokens.append)
+    deciders = {domain: build_decider(ReasonerSettings(
+        llm_base_url=url, llm_model=model.alias, variant=variant, request=request,
+        domain=domain), tokens.append) for domain in dict.fromkeys(c.domain for c in cases)}
     answers = []
     try:
         for _ in range(repeats):
             for case in cases:
                 tokens.clear()
                 t0 = time.perf_counter()
-                decision = await decider.decide(case.request)
+                decision = await deciders[case.domain].decide(case.request)
                 seconds = time.perf_counter() - t0
                 used = tokens[0].completion_tokens if tokens else None
                 answers.append(Answer(template, case.name, decision, case.expected, used,
                                       seconds))
     finally:
-        await decider.aclose()
+        for decider in deciders.values():
+            await decider.aclose()
     return answers
+
+
+def case_set(name: str) -> str:
+    """The set a case belongs to: ``hardware``, or a synthetic domain's anomalies or
+    nominal scenes."""
+    domain = name.split("-", 1)[0]
+    if domain not in SYNTHETIC:
+        return "hardware"
+    return f"{domain} {'anomalies' if '-anomaly-' in name else 'nominal'}"
+
+
+def _right(answer: Answer) -> bool:
+    return answer.decision.source == "llm" and answer.decision.choice == answer.expected
 
 
 def summarise(answers: Sequence[Answer]) -> dict[str, Any]:
@@ -120,8 +161,10 @@ def summarise(answers: Sequence[Answer]) -> dict[str, Any]:
             "parse_errors": sum(a.decision.source == "parse_error" for a in mine),
             "timeouts": sum(a.decision.source == "timeout" for a in mine),
             "backend_errors": sum(a.decision.source == "backend_error" for a in mine),
-            "right": sum(a.decision.source == "llm" and a.decision.choice == a.expected
-                         for a in mine),
+            "right": sum(map(_right, mine)),
+            "right_by_set": {group: f"{sum(map(_right, these))}/{len(these)}"
+                             for group in dict.fromkeys(case_set(a.case) for a in mine)
+                             if (these := [a for a in mine if case_set(a.case) == group])},
             "continue_when_recovery_expected": sum(
                 a.decision.source == "llm" and a.decision.choice == 0 and a.expected != 0
                 for a in mine),
@@ -135,14 +178,16 @@ def summarise(answers: Sequence[Answer]) -> dict[str, Any]:
 
 
 def run_templates_bench(model: LocalModel, *, repeats: int = 3, deadline_s: float = 60.0,
-                        templates: Sequence[str] = tuple(TEMPLATES), logs: Path) -> dict[str, Any]:
-    cases = hardware_cases(deadline_s)
+                        templates: Sequence[str] = tuple(TEMPLATES), logs: Path,
+                        domain_samples: int = 2) -> dict[str, Any]:
+    cases = hardware_cases(deadline_s) + domain_cases(domain_samples, deadline_s)
     with served(model, logs) as url:
         httpx.get(f"{url}/models", timeout=30).raise_for_status()
         answers = [a for t in templates
                    for a in asyncio.run(ask(url, model, t, cases, repeats))]
     return {"model": model.alias, "path": str(model.path), "repeats": repeats,
-            "deadline_s": deadline_s, "cases": {c.name: c.expected for c in cases},
+            "deadline_s": deadline_s, "domain_samples": domain_samples,
+            "cases": {c.name: c.expected for c in cases},
             "templates": summarise(answers),
             "answers": [{"template": a.template, "case": a.case, "source": a.decision.source,
                          "choice": a.decision.choice, "expected": a.expected,
@@ -155,13 +200,17 @@ def render(result: Mapping[str, Any]) -> str:
     rows = []
     for name, t in result["templates"].items():
         rows.append({"template": name, "n": t["n"], "right": t["right"],
+                     "right by set": " ".join(f"{k}:{v}" for k, v in t["right_by_set"].items()),
                      "continue (unsafe)": t["continue_when_recovery_expected"],
                      "parse errors": t["parse_errors"], "timeouts": t["timeouts"],
                      "p50 s": t["latency_ms"]["p50"] / 1e3, "p99 s": t["latency_ms"]["p99"] / 1e3,
                      "tokens/s": t["tokens_per_s_p50"],
-                     "choices": " ".join(f"{c}:{'/'.join(map(str, v))}"
-                                         for c, v in t["choices"].items())})
-    expected = ", ".join(f"{k} -> {v}" for k, v in result["cases"].items())
+                     "hardware choices": " ".join(
+                         f"{c.split('-', 1)[0]}:{'/'.join(map(str, v))}"
+                         for c, v in t["choices"].items() if case_set(c) == "hardware")})
+    expected = ", ".join(f"{k.split('-', 1)[0]} -> {v}" for k, v in result["cases"].items()
+                         if case_set(k) == "hardware")
     return table(f"{result['model']} on llama.cpp (2 threads), {result['repeats']} x each "
-                 f"hardware case, deadline {result['deadline_s']:g} s; expected: {expected}",
-                 rows)
+                 f"case, deadline {result['deadline_s']:g} s; hardware expected: {expected}; "
+                 f"{result['domain_samples']} anomalies (stop: 1) and nominal scenes "
+                 f"(continue: 0) of each synthetic domain", rows)
