@@ -25,6 +25,9 @@ cloud OpenAI, Ollama (``/v1``), vLLM, llama.cpp's server and the fake LLM
   marker in the reasoning stays, so the parser rejects the ambiguity. Reply content that
   is not such JSON is passed through unchanged (the parser then rejects it).
   ``stop_when`` is not consulted in JSON mode (partial JSON is not a final-answer line).
+  With ``answer_first`` the schema puts the answer before the reasoning (a grammar-bound
+  server writes the keys in the schema's order) and a streamed reply ends as soon as
+  ``{"answer": n`` is complete: the text is then ``FINAL ANSWER: n``, without reasoning.
 - **The API as it is now**: the completion limit goes by ``token_field``
   (``max_completion_tokens`` for OpenAI, whose reasoning models refuse ``max_tokens``),
   ``temperature`` is left out when None (those models refuse any but the default), a
@@ -57,17 +60,30 @@ MAX_ERROR_BODY = 200  # characters of a server's error body kept in a BackendErr
 
 
 def answer_schema(answers: Sequence[int] | None = None,
-                  max_reasoning_chars: int | None = None) -> dict[str, Any]:
+                  max_reasoning_chars: int | None = None, answer_first: bool = False
+                  ) -> dict[str, Any]:
     """The JSON Schema of a JSON-mode reply: the answer one of ``answers`` (any integer
-    when None), the reasoning at most ``max_reasoning_chars`` long (unbounded when None)."""
+    when None), the reasoning at most ``max_reasoning_chars`` long (unbounded when None);
+    the reasoning first, or the answer with ``answer_first``."""
     reasoning: dict[str, Any] = {"type": "string"}
     if max_reasoning_chars is not None:
         reasoning["maxLength"] = max_reasoning_chars
     answer: dict[str, Any] = {"type": "integer"}
     if answers:
         answer["enum"] = sorted(set(answers))
-    return {"type": "object", "properties": {"reasoning": reasoning, "answer": answer},
-            "required": ["reasoning", "answer"], "additionalProperties": False}
+    order = ("answer", "reasoning") if answer_first else ("reasoning", "answer")
+    properties = {"reasoning": reasoning, "answer": answer}
+    return {"type": "object", "properties": {k: properties[k] for k in order},
+            "required": list(order), "additionalProperties": False}
+
+
+_ANSWER_FIRST = re.compile(r'^\s*\{\s*"answer"\s*:\s*(\d+)\s*[,}]')
+
+
+def answer_so_far(partial: str) -> int | None:
+    """The answer of a streamed answer-first JSON reply, once it is complete."""
+    match = _ANSWER_FIRST.match(partial)
+    return None if match is None else int(match.group(1))
 
 
 def response_format(shape: ResponseFormat, schema: dict[str, Any]) -> dict[str, Any]:
@@ -128,6 +144,7 @@ class BackendConfig:
     token_field: TokenField = "max_tokens"
     response_format: ResponseFormat = "json_schema"  # the shape of JSON mode's request
     max_reasoning_chars: int | None = None  # JSON mode: the reasoning's maxLength
+    answer_first: bool = False  # JSON mode: the answer first, the stream ended after it
 
     def __post_init__(self) -> None:
         if not self.name or not self.model:
@@ -231,7 +248,8 @@ class OpenAIChatBackend:
         if self.config.json_schema:
             payload["response_format"] = response_format(
                 self.config.response_format,
-                answer_schema(answers, self.config.max_reasoning_chars))
+                answer_schema(answers, self.config.max_reasoning_chars,
+                              self.config.answer_first))
         return payload
 
     def _headers(self) -> dict[str, str]:
@@ -253,6 +271,7 @@ class OpenAIChatBackend:
     async def _streamed(self, payload: dict[str, Any], stop_when: StopWhen | None
                         ) -> Completion:
         check = None if self.config.json_schema else stop_when
+        first = self.config.json_schema and self.config.answer_first
         parts: list[str] = []
         usage: dict[str, Any] = {}
         async with self._client.stream("POST", self.url, json=payload,
@@ -269,6 +288,8 @@ class OpenAIChatBackend:
                 if not delta:
                     continue
                 parts.append(delta)
+                if first and (answer := answer_so_far("".join(parts))) is not None:
+                    return self._finish(f"FINAL ANSWER: {answer}", usage, stopped_early=True)
                 if check is not None and check("".join(parts)):
                     return self._finish("".join(parts), usage, stopped_early=True)
             # leaving the block closes the response; an early return closes it unread

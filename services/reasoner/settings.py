@@ -27,6 +27,9 @@ class LLMRequest(Group):
     # JSON mode: the reasoning's maxLength, so that a small local model's grammar closes
     # the string before max_tokens cuts the JSON off (OpenAI's strict mode may refuse it)
     max_reasoning_chars: int | None = Field(default=None, ge=1)
+    # JSON mode: the answer before the reasoning, and the stream ended once the answer is
+    # out (a slow model's decision in a few tokens; its reasoning is not waited for)
+    answer_first: bool = False
     max_tokens: int = Field(default=512, ge=1)
     # the name the limit is sent under; auto: max_completion_tokens for api.openai.com
     # (its reasoning models refuse max_tokens), max_tokens for every other server
@@ -111,4 +114,5 @@ class ReasonerSettings(ServiceSettings):
             name=name, base_url=base_url, model=model, api_key=key, max_tokens=ask.max_tokens,
             temperature=self.temperature(model), stream=ask.stream, json_schema=ask.json_schema,
             token_field=self.token_field(base_url), response_format=ask.response_format,
-            max_reasoning_chars=ask.max_reasoning_chars) for name, base_url, model in targets]
+            max_reasoning_chars=ask.max_reasoning_chars, answer_first=ask.answer_first)
+            for name, base_url, model in targets]

@@ -198,6 +198,24 @@ async def test_injected_observation_never_reaches_server(fake_llm: str, stats: F
     assert after["total"] == before["total"]
 
 
+async def test_answer_first_json_ends_the_stream_once_the_answer_is_out(
+        fake_llm: str, stats: FakeStats) -> None:
+    """The schema asks for the answer first; the decision leaves once ``{"answer": n`` is
+    complete, long before the 2 s reply would have ended, and the stream is closed."""
+    chat = OpenAIChatBackend(BackendConfig(name="json", base_url=f"{fake_llm}/v1",
+                                           model="fake-fixed-2.0", json_schema=True,
+                                           answer_first=True))
+    decider = Decider([chat], DeciderConfig())
+    try:
+        decision = await decider.decide(request())
+    finally:
+        await chat.aclose()
+    assert (decision.source, decision.choice) == ("llm", 1)
+    assert decision.answer == "FINAL ANSWER: 1" and decision.latency_ms < 1900.0
+    after = await stats.settled()
+    assert after["active"] == 0 and after["outcomes"].get("disconnected", 0) >= 1
+
+
 async def test_json_mode_answers_through_the_same_parser(fake_llm: str) -> None:
     chat = OpenAIChatBackend(BackendConfig(name="json", base_url=f"{fake_llm}/v1",
                                            model="fake-fixed-0.05", json_schema=True))

@@ -172,6 +172,19 @@ def test_partial_streaming_exits_on_complete_line() -> None:
 # must be able to close the reasoning and can only pick an offered option)
 
 
+def test_answer_first_puts_the_answer_first_and_reads_it_from_the_stream() -> None:
+    from services.reasoner.backends import answer_so_far
+
+    assert list(answer_schema([0, 1], answer_first=True)["properties"]) == [
+        "answer", "reasoning"]
+    assert answer_schema([0, 1], answer_first=True)["required"] == ["answer", "reasoning"]
+    assert list(answer_schema([0, 1])["properties"]) == ["reasoning", "answer"]
+    assert answer_so_far('{"answer": 1') is None  # 1 or 10, not yet known
+    assert answer_so_far('{"answer": 1,') == 1 and answer_so_far('{ "answer":12}') == 12
+    assert answer_so_far('{"reasoning": "x", "answer": 1,') is None
+    assert answer_so_far('{"answer": "1",') is None
+
+
 def test_the_answer_schema_offers_only_the_options_and_bounds_the_reasoning() -> None:
     schema = answer_schema([2, 0, 1, 1], max_reasoning_chars=200)
     assert schema["properties"]["answer"] == {"type": "integer", "enum": [0, 1, 2]}

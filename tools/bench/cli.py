@@ -45,7 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="--llm local: anomalies and nominal scenes asked per synthetic domain "
                          "(2)")
     br.add_argument("--template", action="append", default=None,
-                    choices=["cot", "single", "cot-json", "single-json"],
+                    choices=["cot", "single", "cot-json", "single-json", "single-json-first"],
                     help="--llm local: only these templates (repeatable; default all)")
     br.set_defaults(func=cmd_bench_reasoner)
 

@@ -13,8 +13,10 @@ domains' anomalies are overtly abnormal, a smoking battery on the belt), a nomin
 (a false alarm reaching the reasoner) to continue.
 
 Per template (the chain-of-thought or single-answer prompt, free text or JSON mode with the
-options as an ``enum``), ``repeats`` times each case, at temperature 0 and not streamed (so
-the server reports its token counts):
+options as an ``enum``; ``single-json-first``: the answer before the reasoning, the stream
+ended once it is out), ``repeats`` times each case, at temperature 0 and not streamed (so
+the server reports its token counts; the answer-first template is streamed, it ends the
+stream):
 
 - **parse errors**: decisions whose source is ``parse_error`` (no valid final answer);
 - **timeouts**: no answer within ``deadline_s``; **right**: the expected option;
@@ -48,10 +50,11 @@ from tools.scenes.registry import generate
 from tools.stack.up import hardware_scenario
 
 TASK = "landing on the red box"
-# name -> (prompt variant, JSON mode)
-TEMPLATES: Mapping[str, tuple[str, bool]] = {
-    "cot": ("cot", False), "single": ("single", False),
-    "cot-json": ("cot", True), "single-json": ("single", True)}
+# name -> (prompt variant, JSON mode, the answer first and the stream ended after it)
+TEMPLATES: Mapping[str, tuple[str, bool, bool]] = {
+    "cot": ("cot", False, False), "single": ("single", False, False),
+    "cot-json": ("cot", True, False), "single-json": ("single", True, False),
+    "single-json-first": ("single", True, True)}
 
 
 SYNTHETIC = ("warehouse", "vehicle", "vtol")
@@ -112,8 +115,11 @@ def domain_cases(per_domain: int, deadline_s: float, seed: int = 0) -> list[Case
 
 async def ask(url: str, model: LocalModel, template: str, cases: Sequence[Case],
               repeats: int) -> list[Answer]:
-    variant, json_mode = TEMPLATES[template]
-    request = {**REASONER_SETTINGS["request"], "stream": False, "json_schema": json_mode}
+    variant, json_mode, first = TEMPLATES[template]
+    # streamed only when the answer comes first (it ends the stream); else whole, so that
+    # the server reports its token counts
+    request = {**REASONER_SETTINGS["request"], "stream": first, "json_schema": json_mode,
+               "answer_first": first}
     tokens: list[Completion] = []
     deciders = {domain: build_decider(ReasonerSettings(
         llm_base_url=url, llm_model=model.alias, variant=variant, request=request,

@@ -38,7 +38,8 @@ rates (``rate_429``, ``rate_5xx``, ``rate_garbage``) from a seeded RNG.
 
 A stream ends with a usage chunk when ``stream_options.include_usage`` is true (as
 OpenAI's API does). When ``response_format`` asks for JSON (``json_object`` /
-``json_schema``) the content is ``{"reasoning": str, "answer": int}``.
+``json_schema``) the content is ``{"reasoning": str, "answer": int}``, its keys in the
+order of the schema's properties, as a grammar-bound server writes them.
 
 Run: ``python -m tools.fakes.llm --port 8010 [--profile bimodal]``; every
 flag also from ``AESOP_FAKE_LLM_*`` (``AESOP_FAKE_LLM_HOST``, ``AESOP_FAKE_LLM_PORT`` too).
@@ -415,6 +416,14 @@ class ChatRequest(BaseModel):
         kind = (self.response_format or {}).get("type", "text")
         return kind in ("json_object", "json_schema")
 
+    def answer_first(self) -> bool:
+        """The schema asks for the answer before the reasoning (a grammar-bound server
+        writes the keys in the schema's order)."""
+        fmt = self.response_format or {}
+        schema = fmt.get("schema") or (fmt.get("json_schema") or {}).get("schema") or {}
+        keys = list((schema.get("properties") or {}) if isinstance(schema, dict) else {})
+        return keys[:1] == ["answer"]
+
 
 @dataclass
 class Stats:
@@ -575,6 +584,8 @@ def _content(body: ChatRequest, cfg: FakeLLMConfig, rng: random.Random) -> str:
     if kind:
         text = garble(cast(GarbageKind, kind), text, choice, n_options)
     if body.wants_json():
+        if body.answer_first():
+            return json.dumps({"answer": choice, "reasoning": text})
         return json.dumps({"reasoning": text, "answer": choice})
     return text
 
