@@ -105,13 +105,16 @@ async def test_usage_is_counted_when_not_streamed(server: str, model: LocalModel
 
 def test_the_template_bench_asks_the_real_model_and_prints_one_object() -> None:
     r = subprocess.run([sys.executable, "-m", "tools.cli", "bench", "reasoner", "--llm", "local",
-                        "--repeats", "1", "--template", "single-json", "--json"],
+                        "--repeats", "1", "--domain-samples", "1", "--template", "single-json",
+                        "--json"],
                        capture_output=True, text=True, timeout=280, stdin=subprocess.DEVNULL)
     assert r.returncode == 0, r.stderr[-3000:]
     result = json.loads(r.stdout)
     t = result["templates"]["single-json"]
-    assert t["n"] == 3 and set(result["cases"]) == {
-        "2a-quadrotor-on-red-box", "2b-both-boxes-occupied", "3-keyboard-on-ground"}
-    assert t["right"] + t["parse_errors"] + t["timeouts"] + t["backend_errors"] <= 3
+    assert t["n"] == 9 and {"2a-quadrotor-on-red-box", "2b-both-boxes-occupied",
+                            "3-keyboard-on-ground"} < set(result["cases"])
+    assert set(t["right_by_set"]) == {"hardware", *(f"{d} {kind}" for d in (
+        "warehouse", "vehicle", "vtol") for kind in ("anomalies", "nominal"))}
+    assert t["right"] + t["parse_errors"] + t["timeouts"] + t["backend_errors"] <= 9
     assert all(a["source"] in ("llm", "parse_error", "timeout") for a in result["answers"])
     assert {"p50", "p99", "max"} <= set(t["latency_ms"])

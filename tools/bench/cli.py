@@ -14,6 +14,19 @@ from tools.commands import CliError, control_scenario, emit
 from tools.stack.cli import add_llm_options
 
 
+def _add_template_options(br: argparse.ArgumentParser) -> None:
+    """``aesop bench reasoner --llm local``'s own options (the template bench)."""
+    br.add_argument("--repeats", type=int, default=3,
+                    help="--llm local: times each case is asked per template (3)")
+    br.add_argument("--deadline", type=float, default=60.0,
+                    help="--llm local: each decision's deadline in s (60)")
+    br.add_argument("--domain-samples", type=int, default=2,
+                    help="--llm local: anomalies, nominal scenes per synthetic domain (2)")
+    br.add_argument("--template", action="append", default=None,
+                    choices=["cot", "single", "cot-json", "single-json", "single-json-first"],
+                    help="--llm local: only these templates (repeatable; default all)")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     bench = sub.add_parser("bench", help="benchmarks (tables, or one JSON object with --json)")
     bsub = bench.add_subparsers(dest="bench_command", required=True)
@@ -37,16 +50,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="this many other processes spin on the CPU throughout (default 0)")
     br.add_argument("--json", action="store_true")
     add_llm_options(br)
-    br.add_argument("--repeats", type=int, default=3,
-                    help="--llm local: times each hardware case is asked per template (3)")
-    br.add_argument("--deadline", type=float, default=60.0,
-                    help="--llm local: each decision's deadline in s (60)")
-    br.add_argument("--domain-samples", type=int, default=2,
-                    help="--llm local: anomalies and nominal scenes asked per synthetic domain "
-                         "(2)")
-    br.add_argument("--template", action="append", default=None,
-                    choices=["cot", "single", "cot-json", "single-json", "single-json-first"],
-                    help="--llm local: only these templates (repeatable; default all)")
+    _add_template_options(br)
     br.set_defaults(func=cmd_bench_reasoner)
 
     bm = bsub.add_parser("mpc", help="per-tick AESOP control step vs a CVXPY reference of eq. 3")
