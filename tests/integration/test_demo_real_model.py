@@ -59,7 +59,10 @@ def test_the_trained_model_decides_and_the_flight_ends_where_its_decision_sent_i
     with running_stack(tmp_path, TOKEN, local_model=bundled_model()) as up:
         result, _ = fly_scenarios(up.plan, [RED_BOX])
     [row] = result["scenarios"]
-    assert row["outcome"] == "ok", row  # safe, where its decision sent it
+    said = {k: row[k] for k in ("outcome", "anomaly_at_s", "decision", "decision_source",
+                                "decision_latency_ms", "reasoner_requests", "duration_s",
+                                "stale_verdict_alarms", "constraint_violations")}
+    assert row["outcome"] == "ok", said  # safe, where its decision sent it
     assert row["constraint_violations"] == 0 and row["anomaly_at_s"] is not None
     assert row["decision_source"] in {"llm", "parse_error", "timeout", "control fallback at K"}
     assert row["decision_right"] == (row["decision"] == "alternative landing site")

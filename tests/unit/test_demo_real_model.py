@@ -87,3 +87,20 @@ def test_the_verdict_counts_the_right_decisions_and_the_text_quotes_each_answer(
     assert '"answer": "holding zone"' in text and "the box is taken" in text
     assert "(no answer from the model)" in text
     assert verdict_line({"ok": False, "scenarios": rows}) == "SOME FAILED"
+
+
+def test_a_flight_lasts_until_a_late_anomalys_t_has_come_due() -> None:
+    from shared.messages import ControlState
+    from tools.demo.flights import FLIGHT_S, Recorder, flight_end
+
+    def at(t: float, t_anom: float | None) -> ControlState:
+        return ControlState(t=t, x=(0.0,) * 12, u=(0.0,) * 3, mode="nominal", t_anom=t_anom)
+
+    rec = Recorder()
+    assert flight_end(rec, SCENE) == FLIGHT_S
+    rec.states = [at(1.0, None), at(7.6, 7.6)]  # the paper's timing: judged at 22 s
+    assert flight_end(rec, SCENE) == FLIGHT_S
+    rec.states.append(at(15.0, 14.0))  # a late one: its T (10 s) and 3 s to settle
+    assert flight_end(rec, SCENE) == pytest.approx(27.0)
+    rec.states.append(at(40.0, 39.0))  # never longer than twice the flight
+    assert flight_end(rec, SCENE) == 2 * FLIGHT_S
