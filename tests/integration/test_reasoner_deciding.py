@@ -89,8 +89,9 @@ def backend(url: str, model: str, **kwargs: Any) -> OpenAIChatBackend:
 
 
 async def decide(url: str, *models: str, deadline_s: float = 5.0, text: str = RED_BOX,
-                 hedge_after_s: float | None = None) -> ReasonerDecision:
-    backends = [backend(url, m) for m in models]
+                 hedge_after_s: float | None = None, **config: Any) -> ReasonerDecision:
+    """A decision of backends on ``models`` (``config``: the rest of each BackendConfig)."""
+    backends = [backend(url, m, **config) for m in models]
     decider = Decider(backends, DeciderConfig(hedge_after_s=hedge_after_s))
     try:
         return await decider.decide(request(text, deadline_s))
@@ -201,29 +202,16 @@ async def test_injected_observation_never_reaches_server(fake_llm: str, stats: F
 async def test_answer_first_json_ends_the_stream_once_the_answer_is_out(
         fake_llm: str, stats: FakeStats) -> None:
     """The schema asks for the answer first; the decision leaves once ``{"answer": n`` is
-    complete, long before the 2 s reply would have ended, and the stream is closed."""
-    chat = OpenAIChatBackend(BackendConfig(name="json", base_url=f"{fake_llm}/v1",
-                                           model="fake-fixed-2.0", json_schema=True,
-                                           answer_first=True))
-    decider = Decider([chat], DeciderConfig())
-    try:
-        decision = await decider.decide(request())
-    finally:
-        await chat.aclose()
+    complete (its text has no reasoning) and the stream is closed before the reply ends."""
+    decision = await decide(fake_llm, "fake-fixed-2.0", json_schema=True, answer_first=True)
     assert (decision.source, decision.choice) == ("llm", 1)
-    assert decision.answer == "FINAL ANSWER: 1" and decision.latency_ms < 1900.0
+    assert decision.answer == "FINAL ANSWER: 1"  # the early exit's text, no reasoning
     after = await stats.settled()
     assert after["active"] == 0 and after["outcomes"].get("disconnected", 0) >= 1
 
 
 async def test_json_mode_answers_through_the_same_parser(fake_llm: str) -> None:
-    chat = OpenAIChatBackend(BackendConfig(name="json", base_url=f"{fake_llm}/v1",
-                                           model="fake-fixed-0.05", json_schema=True))
-    decider = Decider([chat], DeciderConfig())
-    try:
-        decision = await decider.decide(request())
-    finally:
-        await chat.aclose()
+    decision = await decide(fake_llm, "fake-fixed-0.05", json_schema=True)
     assert (decision.source, decision.choice) == ("llm", 1)
 
 
