@@ -92,15 +92,15 @@ def carry_forward(model: PlanningModel, x: np.ndarray, age: float,
 
 def sendable(model: PlanningModel, x: np.ndarray, u: np.ndarray, thrust_hi: float
              ) -> np.ndarray:
-    """What the plant is sent for the planned input ``u`` at the 12-state ``x`` (as is when
-    ``x`` is not finite). For the hover model, the collective thrust scaled by
-    ``1 / (cos phi cos theta)``: the model assumes all thrust is vertical, and a tilted
-    vehicle loses that fraction of it and sinks below the plan (saturated at ``thrust_hi``,
-    the thrust box the MPC plans in). An acceleration command goes as is."""
+    """What the plant is sent for the planned input ``u`` (or rows of inputs) at the
+    12-state ``x`` (as is when ``x`` is not finite). For the hover model, the collective
+    thrust scaled by ``1 / (cos phi cos theta)``: the model assumes all thrust is vertical,
+    and a tilted vehicle loses that fraction of it and sinks below the plan (saturated at
+    ``thrust_hi``, the thrust box the MPC plans in). An acceleration command goes as is."""
     if model.name != "quadrotor" or not np.all(np.isfinite(x)):
         return u
     u = u.copy()
-    u[0] = min(u[0] / max(np.cos(x[6]) * np.cos(x[7]), 0.5), thrust_hi)
+    u[..., 0] = np.minimum(u[..., 0] / max(np.cos(x[6]) * np.cos(x[7]), 0.5), thrust_hi)
     return u
 
 
@@ -567,7 +567,7 @@ class Controller:
             planned = u
         if not np.all(np.isfinite(self._ahead)):
             self._ahead = self._ahead[:0]
-        ahead = np.array([self._sendable(a) for a in self._ahead]).reshape(self._ahead.shape)
+        ahead = self._sendable(self._ahead)  # every row at once: this runs each tick
         self._sent.append((np.asarray(planned, dtype=float).copy(), self._lag))
         self._lag = self.model.advance(self._lag, u)
         left = self.config.consensus - self._k() if mem.mode is Mode.PENDING else None
