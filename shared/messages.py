@@ -126,6 +126,18 @@ class PairMatch(BaseModel):
     p_value: Float | None = None
 
 
+class Drift(BaseModel):
+    """The robot's detector flags more than its calibration allows (a binomial test on its
+    recent verdicts): it may be seeing new wording (a new captioner), not new objects.
+    ``phrases``: the new detection phrases its flagged observations held most often."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    flagged: Int = Field(ge=0)
+    seen: Int = Field(ge=1)
+    phrases: tuple[str, ...] = Field(default=(), max_length=MAX_DETECTIONS)
+
+
 class AnomalyVerdict(Message):
     """Fast reasoner output for observation ``seq``: s(e_t) compared with tau.
 
@@ -152,6 +164,7 @@ class AnomalyVerdict(Message):
     p_value: Float | None = None
     detections: tuple[DetectionMatch, ...] = ()
     pair: PairMatch | None = None
+    drift: Drift | None = None
 
     @field_validator("score")
     @classmethod
@@ -183,6 +196,7 @@ class ReasonerRequest(Message):
     deadline_s: Finite = Field(gt=0.0)
     unusual: tuple[DetectionMatch, ...] = Field(default=(), max_length=MAX_DETECTIONS)
     unusual_pair: PairMatch | None = None
+    drift: Drift | None = None
 
 
 DecisionSource = Literal["llm", "timeout", "parse_error", "backend_error"]

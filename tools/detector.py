@@ -39,6 +39,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--pairs", action="store_true",
                     help="with --score combined: pairs of detections no nominal line holds "
                          "together as a third component")
+    ev.add_argument("--adapt", type=Path, metavar="FILE", help="JSONL whose nominal lines "
+                    "are accepted, in order, as reviewed scenes before the test set is "
+                    "scored, as the service accepts them (held-out scores, then the "
+                    "calibration by --recalibrate)")
+    ev.add_argument("--recalibrate", choices=["window", "stale"], default="window",
+                    help="with --adapt: the service's policy (AESOP_EMBEDDING_ADAPT__RECALIBRATE)")
+    ev.add_argument("--window", type=int, default=50, help="with --adapt and --recalibrate "
+                    "window: the accepted scenes calibrated on (AESOP_EMBEDDING_ADAPT__WINDOW)")
     ev.add_argument("--model", default=None, help="embedding model (default: all-MiniLM-L6-v2)")
     ev.add_argument("--json", action="store_true")
     ev.set_defaults(func=cmd_detector_eval)
@@ -61,7 +69,7 @@ def cmd_detector_eval(args: argparse.Namespace) -> int:
     from services.embedding.loading import load_embedder
     from services.embedding.settings import DEFAULT_MODEL
 
-    for name in ("nominal", "calibration", "test", "recording"):
+    for name in ("nominal", "calibration", "test", "recording", "adapt"):
         path = getattr(args, name)
         if path is not None and not path.is_file():
             raise CliError(f"--{name}: no such file: {path}")
@@ -69,6 +77,10 @@ def cmd_detector_eval(args: argparse.Namespace) -> int:
         raise CliError("--alpha must be in (0, 1)")
     if args.k < 1:
         raise CliError("--k must be at least 1")
+    if args.window < 1:
+        raise CliError("--window must be at least 1")
+    if args.adapt is not None and args.recording is not None:
+        raise CliError("--adapt goes with --test, not --recording")
     if args.recording is None and (args.cache or args.robot or args.changed_only):
         raise CliError("--cache, --robot and --changed-only go with --recording")
     if args.recording is not None:
@@ -79,12 +91,14 @@ def cmd_detector_eval(args: argparse.Namespace) -> int:
         raise CliError("--nominal is required (the JSONL of nominal experiences)")
     try:
         config = EvalConfig(k=args.k, alpha=args.alpha, method=args.method, score=args.score,
-                            tpr=args.tpr, pairs=args.pairs)
+                            tpr=args.tpr, pairs=args.pairs, recalibrate=args.recalibrate,
+                            window=args.window)
         nominal = read_jsonl(args.nominal)
         test = read_jsonl(args.test)
         calibration = read_jsonl(args.calibration) if args.calibration else []
         embedder = load_embedder(args.model or DEFAULT_MODEL)
-        result = evaluate(embedder, nominal, test, calibration, config)
+        adapt = read_jsonl(args.adapt) if args.adapt else []
+        result = evaluate(embedder, nominal, test, calibration, config, adapt)
     except (DetectorError, EmbedderError, ValueError) as exc:
         raise CliError(str(exc)) from None
     emit(result, args.json)

@@ -87,7 +87,8 @@ def request(*, robot: str, request_id: str, cause: Cause | None,
         robot=robot, request_id=request_id, observation=observation,
         options=options_for(regions, offered, continue_=not silent), deadline_s=deadline_s,
         unusual=named.detections if named is not None else (),
-        unusual_pair=named.pair if named is not None else None)
+        unusual_pair=named.pair if named is not None else None,
+        drift=verdict.drift if verdict is not None else None)
 
 
 def points(states: np.ndarray) -> tuple[tuple[float, float, float], ...]:

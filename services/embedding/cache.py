@@ -349,7 +349,8 @@ class Cache:
         if calibrated:
             assert cal is not None and cal.alpha is not None and scores is not None
             p_each = det.p_values_sorted(scores.detection, -sims).tolist()
-            p_obs = det.p_values_sorted(scores.observation, np.array([score]))
+            p_obs = det.p_values_sorted(scores.observation, np.array([score]),
+                                         None if self.config.score == "mahalanobis" else 1.0)
             p_det = det.p_values_sorted(scores.detection, np.array([worst]))
             p_pairs = None
             if scores.pair is not None:

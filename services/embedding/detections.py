@@ -28,6 +28,13 @@ such observations, so ``P(p_pair <= t/3) <= t/3`` overall and the bound holds). 
 helps where the nominal experiences show most nominal pairs (measured per domain in
 ``aesop bench detector --only kinds``).
 
+Beyond every calibration score a conformal p-value is ``1/(n+1)`` for all: when a new
+captioner's wording puts every frame there, the detector could no longer rank. There the
+p-value goes on falling with the score, staying above ``1/(2(n+1))``, so it ranks and flags
+exactly what the conformal one flags (:func:`p_values_sorted`). A phrase is embedded
+without its leading article or count (:func:`embedded_form`: "the red box", "two red boxes"
+and "a red box" mean one object); the phrase itself stays the label.
+
 Similarities are rounded to :data:`~.scoring.DECIMALS` places, as the top-k score's are:
 the same phrase embedded in two batches can differ in the seventh decimal, and a nominal
 detection seen again must tie with its calibration scores, not score a hair above them.
@@ -35,6 +42,7 @@ detection seen again must tie with its calibration scores, not score a hair abov
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -101,6 +109,17 @@ def pairs_of(observations: Sequence[Sequence[int]]) -> NominalPairs:
     first = np.array([k[0] for k in keys], dtype=np.int64)
     second = np.array([k[1] for k in keys], dtype=np.int64)
     return NominalPairs(first, second, np.array(list(counts.values()), dtype=np.int64))
+
+
+_LEADING = re.compile(r"^(?:(?:a|an|the|one|two|three|some|several)\s+)+", re.IGNORECASE)
+
+
+def embedded_form(phrase: str) -> str:
+    """What of a detection phrase is embedded: without its leading article or count, its
+    spacing collapsed ("two  red boxes" -> "red boxes"), so that a captioner's "the red box"
+    and "a red box" mean one object. The phrase itself stays the label."""
+    text = " ".join(phrase.split())
+    return _LEADING.sub("", text) or text
 
 
 def similarities(nominal: NominalDetections, vectors: np.ndarray) -> np.ndarray:
@@ -210,17 +229,38 @@ def floats(values: Iterable[float | None]) -> np.ndarray:
     return np.array([np.nan if v is None else v for v in values], dtype=np.float64)
 
 
-def p_values(calibration: np.ndarray, scores: np.ndarray) -> np.ndarray:
+def p_values(calibration: np.ndarray, scores: np.ndarray,
+             bound: float | None = 1.0) -> np.ndarray:
     """Conformal p-values of ``scores`` against nominal ``calibration`` scores (NaN ones
-    ignored): ``(1 + #{cal >= s}) / (n + 1)``; NaN stays NaN."""
-    return p_values_sorted(np.sort(calibration[~np.isnan(calibration)]), scores)
+    ignored): ``(1 + #{cal >= s}) / (n + 1)``, ranked beyond them all as
+    :func:`p_values_sorted` says; NaN stays NaN."""
+    return p_values_sorted(np.sort(calibration[~np.isnan(calibration)]), scores, bound)
 
 
-def p_values_sorted(calibration: np.ndarray, scores: np.ndarray) -> np.ndarray:
+def p_values_sorted(calibration: np.ndarray, scores: np.ndarray,
+                    bound: float | None = 1.0) -> np.ndarray:
     """:func:`p_values` against calibration scores already sorted and without NaN (a
-    cache's, kept so: sorting a million of them took 17 ms per verdict)."""
-    above = len(calibration) - np.searchsorted(calibration, scores, side="left")
-    p = (1.0 + above) / (len(calibration) + 1.0)
+    cache's, kept so: sorting a million of them took 17 ms per verdict).
+
+    Beyond every calibration score the conformal p-value is ``1/(n+1)`` for all, and a
+    detector seeing new wording cannot rank what it flags: there the p-value goes on
+    falling with the score, ``(1 - g/2)/(n+1)``, ``g`` the score's way from the largest
+    calibration score to the score's ``bound`` (1: a negated cosine similarity), in
+    (0, 1] (``None``: an unbounded score, ``g = 1 - 1/(1 + excess)``). Every such p-value
+    stays in ``[1/(2(n+1)), 1/(n+1))``, below any p-value of a score within the
+    calibration set, so a threshold at or above ``1/(n+1)`` flags exactly what the
+    conformal p-value flags: the false-positive bound is unchanged."""
+    n = len(calibration)
+    above = n - np.searchsorted(calibration, scores, side="left")
+    p = (1.0 + above) / (n + 1.0)
+    if n:
+        top = float(calibration[-1])
+        excess = np.maximum(np.nan_to_num(scores, nan=top) - top, 0.0)
+        if bound is None or bound <= top:
+            g = 1.0 - 1.0 / (1.0 + excess)
+        else:
+            g = np.minimum(excess / (bound - top), 1.0)
+        p = np.where(above == 0, (1.0 - g / 2.0) / (n + 1.0), p)
     return np.where(np.isnan(scores), np.nan, p)
 
 

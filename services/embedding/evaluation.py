@@ -24,6 +24,7 @@ import numpy as np
 
 from shared.messages import Detection
 
+from .adapt import DEFAULT_WINDOW, HELD_OUT, Recalibrate, held_out, recalibration
 from .cache import (
     Cache,
     CacheConfig,
@@ -35,7 +36,7 @@ from .cache import (
     unit_vectors,
 )
 from .calibration import Calibration, Method, auroc, binary_metrics
-from .detections import distinct, floats, p_values_sorted
+from .detections import distinct, embedded_form, floats, p_values_sorted
 from .embedders import Embedder
 from .errors import InvalidInput
 from .policy import DEFAULT_ALPHA, DEFAULT_TPR, Components, Evidence, needs_loo, threshold
@@ -52,6 +53,8 @@ class EvalConfig:
     score: EvalScore = "topk"
     tpr: float = DEFAULT_TPR  # the target of "tpr-target" (the hardware appendix uses 0.9)
     pairs: bool = False  # "combined" with pairs of detections as a third component
+    recalibrate: Recalibrate = "window"  # the service's policy after accepted scenes
+    window: int = DEFAULT_WINDOW  # accepted scenes the policy "window" calibrates on
 
 
 def read_jsonl(path: Path) -> list[Labelled]:
@@ -129,14 +132,63 @@ def evaluate(
     test: Sequence[Labelled],
     calibration: Sequence[Labelled] = (),
     config: EvalConfig = EvalConfig(),
+    adapt: Sequence[Labelled] = (),
 ) -> dict[str, Any]:
-    """Build, calibrate, test; the ``aesop detector eval --json`` object."""
+    """Build, calibrate, accept the nominal ``adapt`` scenes in order as the service
+    accepts reviewed scenes (:func:`accept`), test; the ``aesop detector eval --json``
+    object."""
     if config.score in ("detections", "combined"):
-        return evaluate_structured(embedder, nominal, test, calibration, config)
+        return evaluate_structured(embedder, nominal, test, calibration, config, adapt)
     cache, cal = fit(embedder, nominal, calibration, config)
+    if adapt:
+        cache.apply(cache.plan_calibration(cal))
+        accept(cache, embedder, adapt, config)
+        assert cache.calibration is not None
+        cal = cache.calibration
     scores = score_all(cache, embedder, [x.text for x in test], config.k)
     labels = np.array([x.is_anomaly for x in test])
-    return report(cal, scores, labels, config, embedder.name, len(nominal), len(calibration))
+    return report(cal, scores, labels, config, embedder.name, len(nominal),
+                  len(calibration)) | _adapted(cache, adapt, config)
+
+
+def accept(cache: Cache, embedder: Embedder, scenes: Sequence[Labelled],
+           config: EvalConfig) -> None:
+    """Each nominal scene of ``scenes``, in order, accepted as the service accepts a
+    reviewed one (:mod:`.adapt`): scored against the cache without it (its held-out
+    scores), added with them, and the calibration recomputed by ``config.recalibrate``."""
+    pairs = cache.calibration is not None and cache.calibration.pairs
+    for n, scene in enumerate(x for x in scenes if not x.is_anomaly):
+        if scene.detections:
+            scored = score_structured(cache, embedder, [scene], pairs=pairs)[0]
+        else:
+            scored = cache.score(embedder.embed([scene.text]), cache.config.k, 0)[0]
+        held = tuple(Detection.model_construct(label=d, where=None) for d in scene.detections)
+        new = [p for p in dict.fromkeys(scene.detections) if p not in cache.detection_vectors]
+        cache.apply(cache.plan_add(
+            embedder.embed([scene.text]), ids=[f"adapt-{n}"], texts=[scene.text],
+            metadata=[{HELD_OUT: held_out(scored)}], detections=[held],
+            detection_vectors=phrase_vectors(embedder, new)))
+        if config.recalibrate == "window":
+            op = recalibration(cache, config.window)
+            if op is not None:
+                cache.apply(op)
+
+
+def _adapted(cache: Cache, adapt: Sequence[Labelled], config: EvalConfig) -> dict[str, Any]:
+    if not adapt:
+        return {}
+    cal = cache.calibration
+    return {"adapted": sum(not x.is_anomaly for x in adapt), "recalibrate": config.recalibrate,
+            "window": config.window, "calibrated_on": None if cal is None else cal.n,
+            "stale": cache.stale}
+
+
+def phrase_vectors(embedder: Embedder, phrases: Sequence[str]) -> dict[str, np.ndarray]:
+    """Unit vectors of detection phrases, as the service embeds them (:func:`embedded_form`)."""
+    if not phrases:
+        return {}
+    rows = embedder.embed([embedded_form(p) for p in phrases])
+    return dict(zip(phrases, unit_vectors(rows), strict=True))
 
 
 def fit(embedder: Embedder, nominal: Sequence[Labelled],
@@ -181,12 +233,15 @@ def report(cal: Calibration, scores: np.ndarray, labels: np.ndarray, config: Eva
 
 def evaluate_structured(embedder: Embedder, nominal: Sequence[Labelled],
                         test: Sequence[Labelled], calibration: Sequence[Labelled],
-                        config: EvalConfig) -> dict[str, Any]:
+                        config: EvalConfig, adapt: Sequence[Labelled] = ()
+                        ) -> dict[str, Any]:
     """``--score detections|combined``: see the module docstring. The calibration scores
     are the nominal set's leave-one-out scores (``loo-quantile``) or the calibration
     set's nominal ones (``conformal``), kept and judged by the cache as the service
     does."""
     cache, kept = fit_structured(embedder, nominal, calibration, config)
+    accept(cache, embedder, adapt, config)
+    kept = cache.calibration_scores or kept
     scored = score_structured(cache, embedder, test)
     p_whole = p_values_sorted(kept.observation, np.array([r.score for r in scored]))
     if config.score == "combined":
@@ -196,11 +251,13 @@ def evaluate_structured(embedder: Embedder, nominal: Sequence[Labelled],
         p_det = p_values_sorted(kept.detection, floats(r.detection_score for r in scored))
         p = np.where(np.isnan(p_det), p_whole, p_det)
     labels_test = np.array([x.is_anomaly for x in test])
-    cal = Calibration(config.method, config.alpha, config.alpha, len(kept.observation),
+    method = config.method if cache.calibration is None else cache.calibration.method
+    cal = Calibration(method, config.alpha, config.alpha, len(kept.observation),
                       pairs=config.pairs)
     return report(cal, 1.0 - p, labels_test, config, embedder.name, len(nominal),
                   len(calibration)) | {"score": config.score, "pairs": config.pairs,
-                                       "nominal_detections": len(cache.detection_counts)}
+                                       "nominal_detections": len(cache.detection_counts)
+                                       } | _adapted(cache, adapt, config)
 
 
 def fit_structured(embedder: Embedder, nominal: Sequence[Labelled],
@@ -252,8 +309,7 @@ def structured_cache(embedder: Embedder, nominal: Sequence[Labelled],
     vectors = embedder.embed([x.text for x in nominal])
     cache = Cache(CacheConfig("eval", embedder.name, vectors.shape[1], config.k, "topk"))
     phrases, _ = distinct([x.detections for x in nominal])
-    found = dict(zip(phrases, unit_vectors(embedder.embed(phrases)), strict=True)) \
-        if phrases else {}
+    found = phrase_vectors(embedder, phrases)
     n = len(nominal)
     # a phrase is one label here (a JSONL line's "label where", joined as Detection.phrase)
     held = [tuple(Detection.model_construct(label=d, where=None) for d in x.detections)
@@ -268,8 +324,7 @@ def score_structured(cache: Cache, embedder: Embedder, items: Sequence[Labelled]
     """Each item scored and judged by ``cache`` with its detections."""
     vectors = embedder.embed([x.text for x in items])
     phrases = list(dict.fromkeys(d for x in items for d in x.detections))
-    rows = dict(zip(phrases, unit_vectors(embedder.embed(phrases)), strict=True)) \
-        if phrases else {}
+    rows = phrase_vectors(embedder, phrases)
     found = [Detections(tuple(dict.fromkeys(x.detections)),
                         np.stack([rows[d] for d in dict.fromkeys(x.detections)]))
              if x.detections else None for x in items]

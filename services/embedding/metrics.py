@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Mapping
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
-from prometheus_client.core import CounterMetricFamily
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
 
 from .service import CacheService
@@ -27,6 +27,8 @@ class EmbeddingMetrics:
             ["field"], registry=registry)
         self.dropped = Dropped()
         registry.register(self.dropped)
+        self.drifting = Drifting()
+        registry.register(self.drifting)
         size = Gauge("aesop_embedding_cache_size", "Experiences per cache", ["cache"],
                      registry=registry)
         self.size = size
@@ -51,4 +53,20 @@ class Dropped(Collector):
             "tracked", labels=["robot", "reason"])
         for (robot, reason), n in sorted((self.source() if self.source else {}).items()):
             family.add_metric([robot, reason], n)
+        yield family
+
+
+class Drifting(Collector):
+    """``aesop_embedding_drifting{robot}``: 1 for each robot whose verdicts flag more than
+    the calibration allows (:mod:`.drift`), read at scrape time from the bus worker."""
+
+    def __init__(self) -> None:
+        self.source: Callable[[], list[str]] | None = None
+
+    def collect(self) -> Iterator[GaugeMetricFamily]:
+        family = GaugeMetricFamily(
+            "aesop_embedding_drifting", "Robots whose recent verdicts flag more than the "
+            "calibration allows (drift: new wording?), 1 each", labels=["robot"])
+        for robot in self.source() if self.source else []:
+            family.add_metric([robot], 1.0)
         yield family

@@ -6,20 +6,25 @@ worker publishes them as events)."""
 from __future__ import annotations
 
 import asyncio
+import builtins
 import logging
-from collections.abc import Callable
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Literal
 
 from shared.messages import Observation
 
+from .adapt import HELD_OUT, held_out, recalibration
+from .cache import Labelled
 from .entries import Entry, Item
-from .errors import Conflict, NotFound
+from .errors import Conflict, InvalidInput, NotFound
 from .proposals import Proposal, State, scene_id
 
 if TYPE_CHECKING:
     from .service import CacheService
 
 log = logging.getLogger(__name__)
+
+Decided = Literal["accepted", "rejected"]
 
 
 class Review:
@@ -31,7 +36,7 @@ class Review:
         # called with each proposal made, counted, accepted or rejected
         self.listeners: list[Callable[[str, Proposal], None]] = []
 
-    def list(self, name: str, state: State | None = None) -> list[Proposal]:
+    def list(self, name: str, state: State | None = None) -> builtins.list[Proposal]:
         entry = self.caches.entry(name)
         return [p for p in entry.proposals.values() if state is None or p.state == state]
 
@@ -73,9 +78,39 @@ class Review:
         return proposal
 
     async def accept(self, name: str, ident: str, *, now: float) -> Proposal:
-        """Add a pending proposal's scene as a nominal experience (id = the scene's): one
-        transaction with the proposal's new state; the calibration goes stale."""
+        """Add a pending proposal's scene as a nominal experience (id = the scene's), with
+        its held-out scores (:mod:`.adapt`): one transaction with the proposal's new state;
+        then the calibration by the policy ``AESOP_EMBEDDING_ADAPT__RECALIBRATE``."""
+        return (await self.decide_many(name, [ident], "accepted", now=now, field="id"))[0]
+
+    async def reject(self, name: str, ident: str, *, now: float) -> Proposal:
+        return (await self.decide_many(name, [ident], "rejected", now=now, field="id"))[0]
+
+    async def decide_many(self, name: str, idents: Sequence[str], state: Decided, *,
+                          now: float, field: str = "ids") -> builtins.list[Proposal]:
+        """Accept or reject pending proposals in the order given (a batch review). Every
+        id is checked first (unknown: NotFound, decided: Conflict, twice: InvalidInput,
+        each naming ``field[n]``, or ``field`` alone for one id), so a batch with a bad id
+        changes nothing; the calibration follows the batch once."""
         entry = self.caches.entry(name)
+        for n, ident in enumerate(idents):
+            named = field if len(idents) == 1 and field == "id" else f"{field}[{n}]"
+            self._pending(entry, ident, field=named)
+            if ident in idents[:n]:
+                raise InvalidInput(f"proposal {ident!r} is named twice", field=named)
+        done: builtins.list[Proposal] = []
+        try:
+            for ident in idents:
+                done.append(await (self._accept(entry, ident, now) if state == "accepted"
+                                   else self._reject(entry, ident, now)))
+        finally:
+            if state == "accepted" and done:
+                await self._recalibrate(entry)
+        for proposal in done:
+            self._tell(state, proposal)
+        return done
+
+    async def _accept(self, entry: Entry, ident: str, now: float) -> Proposal:
         proposal = self._pending(entry, ident)
         config = entry.cache.config
         item = Item(text=proposal.text, id=ident, detections=proposal.detections, metadata={
@@ -85,29 +120,51 @@ class Review:
         found = await self.caches.new_phrases(entry, item.detections)
         async with entry.writer:
             proposal = self._pending(entry, ident).decided("accepted", now)
+            metadata = {**item.metadata, **await self._held_out(entry, item)}
             op = entry.cache.plan_add(vectors, ids=[ident], texts=[item.text],
-                                      metadata=[item.metadata], detections=[item.detections],
+                                      metadata=[metadata], detections=[item.detections],
                                       detection_vectors=found)
             await self.caches.commit(entry, op, proposal)
             entry.proposals[ident] = proposal
-        self._tell("accepted", proposal)
         return proposal
 
-    async def reject(self, name: str, ident: str, *, now: float) -> Proposal:
-        entry = self.caches.entry(name)
+    async def _held_out(self, entry: Entry, item: Item) -> dict[str, object]:
+        """The scene's scores against the cache as it is, without it (none for a cache
+        smaller than its k, which cannot score)."""
+        cal = entry.cache.calibration
+        if entry.cache.size < entry.cache.config.k or item.text is None:
+            return {}
+        scene = Labelled(item.text, False, tuple(d.phrase for d in item.detections))
+        scored = await self.caches.scorer.score_labelled(
+            entry, [scene], pairs=cal is not None and cal.pairs)
+        return {HELD_OUT: held_out(scored[0])}
+
+    async def _recalibrate(self, entry: Entry) -> None:
+        adapt = self.settings.adapt
+        if adapt.recalibrate != "window":
+            return
+        async with entry.writer:
+            op = recalibration(entry.cache, adapt.window)
+            if op is not None:
+                await self.caches.commit(entry, op)
+                log.info("cache %s recalibrated on its %d most recently accepted scenes",
+                         entry.cache.name, op.calibration.n)
+
+    async def _reject(self, entry: Entry, ident: str, now: float) -> Proposal:
         async with entry.writer:
             proposal = self._pending(entry, ident).decided("rejected", now)
-            await asyncio.to_thread(self.caches.store.save_proposal, name, proposal)
+            await asyncio.to_thread(self.caches.store.save_proposal, entry.cache.name,
+                                    proposal)
             entry.proposals[ident] = proposal
-        self._tell("rejected", proposal)
         return proposal
 
-    def _pending(self, entry: Entry, ident: str) -> Proposal:
+    @staticmethod
+    def _pending(entry: Entry, ident: str, field: str = "id") -> Proposal:
         proposal = entry.proposals.get(ident)
         if proposal is None:
-            raise NotFound(f"no proposal {ident!r} on cache {entry.cache.name!r}", field="id")
+            raise NotFound(f"no proposal {ident!r} on cache {entry.cache.name!r}", field=field)
         if proposal.state != "pending":
-            raise Conflict(f"proposal {ident!r} is already {proposal.state}", field="id")
+            raise Conflict(f"proposal {ident!r} is already {proposal.state}", field=field)
         return proposal
 
     def _tell(self, what: str, proposal: Proposal) -> None:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import Awaitable, Sequence
-from typing import Annotated
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse
@@ -21,6 +21,7 @@ from .entries import Item
 from .errors import DetectorError, InvalidInput, NotFound
 from .metrics import EmbeddingMetrics
 from .proposals import State
+from .review import Decided
 from .schemas import (
     Added,
     AddExperiences,
@@ -33,6 +34,8 @@ from .schemas import (
     Experience,
     ProposalInfo,
     ProposalList,
+    Reviewed,
+    ReviewMany,
     Score,
     ScoreResult,
     Scores,
@@ -145,6 +148,18 @@ async def list_proposals(name: str, service: ServiceDep,
     """Scenes the slow reasoner answered "continue" for, oldest first."""
     return ProposalList(cache=name, policy=service.entry(name).cache.config.proposals,
                         proposals=[ProposalInfo.of(p) for p in service.review.list(name, state)])
+
+
+@router.post("/v1/caches/{name}/proposals/{decision}",
+             responses=errors(400, 401, 404, 409, 422, 502, 503, 507))
+async def review_proposals(name: str, decision: Literal["accept", "reject"], body: ReviewMany,
+                           service: ServiceDep) -> Reviewed:
+    """A batch review: accept (or reject) the pending proposals ``ids`` in order. Any id
+    unknown (404) or already decided (409) and nothing changes."""
+    state: Decided = "accepted" if decision == "accept" else "rejected"
+    done = await service.review.decide_many(name, body.ids, state, now=time.time())
+    return Reviewed(proposals=[ProposalInfo.of(p) for p in done],
+                    cache=CacheInfo.of(service.entry(name).cache))
 
 
 @router.post("/v1/caches/{name}/proposals/{ident}/accept",

@@ -343,6 +343,20 @@ class ProposalList(Answer):
     proposals: list[ProposalInfo]
 
 
+class ReviewMany(Body):
+    """``POST /v1/caches/{name}/proposals/accept|reject``: a batch review, in this order."""
+
+    ids: list[str] = Field(min_length=1, max_length=1000)
+
+
+class Reviewed(Answer):
+    """The proposals a batch review decided, and the cache after it (its calibration
+    recomputed from the accepted scenes under the policy ``window``)."""
+
+    proposals: list[ProposalInfo]
+    cache: CacheInfo
+
+
 class Scores(Answer):
     """``POST /v1/caches/{name}/score``."""
 

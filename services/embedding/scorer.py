@@ -24,6 +24,7 @@ from shared.messages import Detection
 
 from .batching import MicroBatcher
 from .cache import CacheConfig, Detections, Labelled, Scored, unit_vectors
+from .detections import embedded_form
 from .embedders import Embedder, ModelNotFound
 from .entries import Entry, on_fresh_thread
 from .errors import Busy, Conflict, InvalidInput
@@ -79,6 +80,7 @@ class ScoreBatch:
     version: int
     k: int
     model: str | None
+    alpha: float | None = None  # the calibration's (1 - alpha: the false-positive promise)
 
 
 def check_dims(config: CacheConfig, rows: Sequence[Sequence[float]],
@@ -160,7 +162,8 @@ class Scorer:
 
     def _batch(self, entry: Entry, results: list[Scored], k: int) -> ScoreBatch:
         c = entry.cache
-        return ScoreBatch(results, c.threshold, c.stale, c.version, k, c.config.model)
+        alpha = None if c.calibration is None else c.calibration.alpha
+        return ScoreBatch(results, c.threshold, c.stale, c.version, k, c.config.model, alpha)
 
     def _batcher(self, entry: Entry, k: int, urgent: bool) -> MicroBatcher[Query, Scored]:
         """One batcher per (k, lane): the bus's observations are batched together and
@@ -187,7 +190,8 @@ class Scorer:
         known |= self._phrases.recall(config.model, [p for p in phrases if p not in known])
         unknown = [p for p in phrases if p not in known]
         rows = self.embedders.get(config.model).embed(
-            [q.text for q in queries] + unknown, batch_size=self.settings.tuning.embed_batch_size)
+            [q.text for q in queries] + [embedded_form(p) for p in unknown],
+            batch_size=self.settings.tuning.embed_batch_size)
         vectors = rows[:len(queries)]
         if unknown:
             new = dict(zip(unknown, unit_vectors(rows[len(queries):]), strict=True))

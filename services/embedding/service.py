@@ -25,7 +25,7 @@ from . import policy
 from .batching import NORMAL, URGENT, ComputeThread
 from .cache import Add, Cache, CacheConfig, Delete, Labelled, Op, ScoreKind, unit_vectors
 from .calibration import Method, roc_curve
-from .detections import floats
+from .detections import embedded_form, floats
 from .entries import Entry, Item, on_fresh_thread
 from .errors import Conflict, InvalidInput, NotFound
 from .index import IndexKind
@@ -253,7 +253,7 @@ class CacheService:
             raise Conflict(f"cache {config.name!r} has no embedding model to embed "
                            "detections with", field="items")
         embedder = await self.scorer.embedder(config.model)
-        rows = await self.scorer.on_compute(embedder.embed, list(phrases),
+        rows = await self.scorer.on_compute(embedder.embed, [embedded_form(p) for p in phrases],
                                       batch_size=self.settings.tuning.embed_batch_size)
         return dict(zip(phrases, unit_vectors(rows), strict=True))
 

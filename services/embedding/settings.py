@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 from pydantic import AliasChoices, Field, SecretStr
 from pydantic_settings import SettingsConfigDict
 
 from shared.settings import Group, ServiceSettings
+
+from .adapt import DEFAULT_WINDOW
 
 DEFAULT_MODEL = "sentence-transformers/all-MiniLM-L6-v2"
 # the service's default: the same model run by ONNX Runtime in float32, exported once into
@@ -64,6 +67,22 @@ class EmbeddingTuning(Group):
     onnx_threads: int = Field(default=1, ge=1, le=256)
 
 
+class EmbeddingAdapt(Group):
+    """Drift and re-learning (``AESOP_EMBEDDING_ADAPT``, docs/embedding.md): when a robot's
+    verdicts flag more than the calibration allows, and what accepting reviewed scenes
+    does to the calibration."""
+
+    # after each accepted scene: "window" recalibrates split-conformal on the held-out
+    # scores of the last ``window`` accepted scenes (services/embedding/adapt.py);
+    # "stale" keeps the calibration, marked stale, until an operator recalibrates
+    recalibrate: Literal["window", "stale"] = "window"
+    window: int = Field(default=DEFAULT_WINDOW, ge=1, le=100_000)
+    # a robot's last drift_window verdicts are tested against 1 - alpha (binomial); below
+    # drift_significance it is drifting (services/embedding/drift.py)
+    drift_window: int = Field(default=50, ge=5, le=10_000)
+    drift_significance: float = Field(default=1e-7, gt=0.0, lt=0.5)
+
+
 class EmbeddingSettings(ServiceSettings):
     model_config = SettingsConfigDict(env_prefix="AESOP_EMBEDDING_", extra="ignore",
                                       validate_by_name=True)
@@ -86,3 +105,4 @@ class EmbeddingSettings(ServiceSettings):
     fsync: bool = True
     limits: EmbeddingLimits = EmbeddingLimits()
     tuning: EmbeddingTuning = EmbeddingTuning()
+    adapt: EmbeddingAdapt = EmbeddingAdapt()

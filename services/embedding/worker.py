@@ -32,6 +32,7 @@ from shared import topics
 from shared.bus import Bus, Received, Subscription
 from shared.messages import (
     AnomalyVerdict,
+    Drift,
     Event,
     Observation,
     ReasonerDecision,
@@ -39,6 +40,7 @@ from shared.messages import (
 )
 from shared.pump import MessagePump
 
+from .drift import DriftMonitor, DriftReport
 from .errors import DetectorError
 from .fairness import OTHER, DropReports, FairInbox, Reason
 from .proposals import Proposal
@@ -57,7 +59,7 @@ WHY = {"rate": "over its rate (AESOP_EMBEDDING_LIMITS__ROBOT_HZ)",
 
 
 def make_verdict(obs: Observation, robot: str, batch: ScoreBatch, cache: str,
-                 latency_ms: float) -> AnomalyVerdict:
+                 latency_ms: float, drift: Drift | None = None) -> AnomalyVerdict:
     """h(o_t) as the cache judged it (``Cache.judge``); no tau yet -> anomaly, with the
     reason."""
     scored = batch.results[0]
@@ -72,14 +74,14 @@ def make_verdict(obs: Observation, robot: str, batch: ScoreBatch, cache: str,
         robot=robot, seq=obs.seq, score=scored.score, threshold=batch.threshold,
         is_anomaly=is_anomaly, k=batch.k, neighbors=scored.neighbors, model=batch.model or "",
         cache=cache, cache_version=batch.version, latency_ms=latency_ms, reason=reason,
-        p_value=scored.p_value, detections=scored.matches, pair=scored.pair)
+        p_value=scored.p_value, detections=scored.matches, pair=scored.pair, drift=drift)
 
 
 class DetectorWorker:
     def __init__(self, service: CacheService, bus: Bus, *, cache: str,
                  max_in_flight: int = 256, metrics: Any = None, owns_bus: bool = False,
                  max_text_chars: int = 4000, robot_hz: float = 25.0,
-                 max_robots: int = 256) -> None:
+                 max_robots: int = 256, drift: DriftMonitor | None = None) -> None:
         self.service = service
         # as over HTTP (AESOP_EMBEDDING_LIMITS__MAX_TEXT_CHARS)
         self.max_text_chars = max_text_chars
@@ -90,8 +92,10 @@ class DetectorWorker:
         self.max_in_flight = max_in_flight
         self.inbox: FairInbox[Received[Observation]] = FairInbox(rate_hz=robot_hz,
                                                                  max_robots=max_robots)
+        self.drift = drift if drift is not None else DriftMonitor(max_robots=max_robots)
         if metrics is not None:
             metrics.dropped.source = self.inbox.counts
+            metrics.drifting.source = self.drift.drifting
         self._scoring: set[asyncio.Task[None]] = set()
         self._observations: Subscription[Observation] | None = None
         self._reports = DropReports(DROPS_EVERY_S)
@@ -114,10 +118,12 @@ class DetectorWorker:
 
         def make(service: CacheService, metrics: Any) -> DetectorWorker:
             bus = Bus.open(settings, "embedding")
-            limits = settings.limits
+            limits, adapt = settings.limits, settings.adapt
             return cls(service, bus, cache=settings.detector_cache, metrics=metrics,
                        owns_bus=True, max_text_chars=limits.max_text_chars,
-                       robot_hz=limits.robot_hz, max_robots=limits.max_robots)
+                       robot_hz=limits.robot_hz, max_robots=limits.max_robots,
+                       drift=DriftMonitor(adapt.drift_window, adapt.drift_significance,
+                                          limits.max_robots))
 
         return make
 
@@ -214,9 +220,19 @@ class DetectorWorker:
         except Exception:
             log.exception("scoring observation %s of %s failed", obs.seq, robot)
             return
+        scored = batch.results[0]
+        flagged = scored.is_anomaly is not False
+        report = self.drift.observe(robot, flagged, None if batch.alpha is None or
+                                    scored.is_anomaly is None else 1.0 - batch.alpha,
+                                    [m.detection for m in scored.matches])
+        now = self.drift.current(robot)
         verdict = make_verdict(obs, robot, batch, self.cache,
-                               (time.perf_counter() - start) * 1000)
+                               (time.perf_counter() - start) * 1000,
+                               None if now is None else Drift(flagged=now[0], seen=now[1],
+                                                              phrases=now[2]))
         self.bus.publish(topics.anomaly(robot), verdict)
+        if report is not None:
+            self._say_drift(robot, report)
         if verdict.is_anomaly:
             remember(self._flagged, (robot, obs.seq), (obs, verdict))
         if self.metrics is not None:
@@ -257,6 +273,17 @@ class DetectorWorker:
             data={"cache": self.cache, "id": proposal.id, "state": proposal.state,
                   "count": proposal.count, "text": proposal.text[:1000],
                   "model": proposal.model, "flag": proposal.flag}))
+
+    def _say_drift(self, robot: str, report: DriftReport) -> None:
+        """``drift`` (a warning) or ``drift_cleared`` on the robot's event key."""
+        log.warning("%s: %s", robot, report.message)
+        self.bus.publish(topics.event(robot, SOURCE), Event(
+            robot=robot, source=SOURCE, kind="drift" if report.state == "drift" else
+            "drift_cleared", severity="warning" if report.state == "drift" else "info",
+            message=report.message, data={
+                "cache": self.cache, "flagged": report.flagged, "seen": report.seen,
+                "expected_rate": report.expected_rate, "p_value": report.p_value,
+                "phrases": "; ".join(report.phrases)}))
 
     def _undecodable(self) -> None:  # on a Zenoh thread; the bus logs it, rate-limited
         if self.metrics is not None:

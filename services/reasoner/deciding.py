@@ -208,8 +208,9 @@ class Decider:
         start = self._clock() if received_at is None else received_at
         deadline = start + request.deadline_s - self._config.margin_s
         DECIDING.set(request.request_id)  # this task's context only
+        drift = () if request.drift is None else request.drift.phrases
         flagged = suspicious_scene(task=request.observation.task,
-                                   observation=request.observation.text,
+                                   observation="\n".join((request.observation.text, *drift)),
                                    unusual=unusual_of(request))
         if flagged:
             return self._fallback(request, start, "parse_error",
@@ -225,7 +226,8 @@ class Decider:
     def _messages(self, request: ReasonerRequest) -> list[dict[str, str]]:
         return build_messages(self._template, task=request.observation.task or DEFAULT_TASK,
                               observation=request.observation.text, options=request.options,
-                              variant=self._config.variant, unusual=unusual_of(request))
+                              variant=self._config.variant, unusual=unusual_of(request),
+                              drift=None if request.drift is None else request.drift.phrases)
 
     # ------------------------------------------------------------------ the race
 

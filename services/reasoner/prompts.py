@@ -128,9 +128,11 @@ def build_prompt(
     options: Sequence[Option],
     variant: Variant = "cot",
     unusual: Sequence[Named] = (),
+    drift: Sequence[str] | None = None,
 ) -> str:
     """The single-string prompt: description, scene, instruction (module docstring layout)."""
-    scene = render_scene(task=task, observation=observation, options=options, unusual=unusual)
+    scene = render_scene(task=task, observation=observation, options=options, unusual=unusual,
+                         drift=drift)
     return f"{template.description}\n\n{scene}\n\n{_instruction(template, variant)}"
 
 
@@ -142,23 +144,31 @@ def build_messages(
     options: Sequence[Option],
     variant: Variant = "cot",
     unusual: Sequence[Named] = (),
+    drift: Sequence[str] | None = None,
 ) -> list[dict[str, str]]:
     """OpenAI chat messages: system = description + instructions, user = the scene."""
-    scene = render_scene(task=task, observation=observation, options=options, unusual=unusual)
+    scene = render_scene(task=task, observation=observation, options=options, unusual=unusual,
+                         drift=drift)
     system = f"{template.description}\n\n{_instruction(template, variant)}"
     return [{"role": "system", "content": system}, {"role": "user", "content": scene}]
 
 
 UNUSUAL = "Unusual detections (nearest nominal detection, cosine similarity):"
+DRIFT = ("Note: the anomaly detector has flagged far more observations than its calibration "
+         "allows; it may be seeing new wording (a new captioner), not new objects. Judge the "
+         "objects, not their wording. New phrases it saw most:")
 
 
 def render_scene(*, task: str, observation: str, options: Sequence[Option],
-                 unusual: Sequence[Named] = ()) -> str:
-    """The ``Task:`` / ``Observation:`` / [``Unusual detections:``] / ``Options:`` block."""
+                 unusual: Sequence[Named] = (), drift: Sequence[str] | None = None) -> str:
+    """The ``Task:`` / ``Observation:`` / [``Unusual detections:``] / [drift note] /
+    ``Options:`` block (``drift``: None unless the detector is drifting)."""
+    named = "\n".join(QUOTE + " ".join(p.split()) for p in drift or ()) or QUOTE + "(none)"
     return (
         f"Task:\n{QUOTE}{_single_line(task, 'task')}\n"
         f"Observation:\n{quote_observation(observation)}\n"
         + (f"{UNUSUAL}\n{render_unusual(unusual)}\n" if unusual else "")
+        + (f"{DRIFT}\n{named}\n" if drift is not None else "")
         + f"Options:\n{render_options(options)}"
     )
 

@@ -14,7 +14,7 @@ from services.embedding.api import create_app
 from services.embedding.embedders import ModelNotFound
 from services.embedding.loading import EmbedderPool
 from services.embedding.service import CacheService
-from services.embedding.settings import EmbeddingLimits, EmbeddingSettings
+from services.embedding.settings import EmbeddingAdapt, EmbeddingLimits, EmbeddingSettings
 from shared.messages import Detection, Observation
 from tests.fakes.hash_embedder import HashEmbedder
 
@@ -548,3 +548,62 @@ def test_the_proposal_policy_is_set_with_put_and_kept(tmp_path: Path) -> None:
         assert client.get(f"/v1/caches/wm/experiences/{made}").status_code == 200
     with make_client(tmp_path) as client:
         assert client.get("/v1/caches/wm").json()["proposals"] == "auto"
+
+
+def test_a_batch_review_accepts_in_order_recalibrates_on_the_accepted_and_checks_first(
+        tmp_path: Path) -> None:
+    """Select many, accept: each scene added with its held-out scores (scored against the
+    cache without it), then, under the policy ``window``, the calibration recomputed on
+    them (split-conformal, the same alpha); a batch naming a bad id changes nothing."""
+    with make_client(tmp_path) as client:
+        create(client, k=1)
+        client.post("/v1/caches/wm/experiences", headers=AUTH,
+                    json={"items": [scene(i) for i in range(40)]})
+        client.post("/v1/caches/wm/calibrate", headers=AUTH,
+                    json={"method": "loo-quantile", "alpha": 0.95})
+        ids = [propose(client, f"a crate number {i}", seq=i) for i in range(45)]
+        before = client.get("/v1/caches/wm").json()
+
+        for body, status, field in (
+                ({"ids": [ids[0], "rec-nothing"]}, 404, "ids[1]"),
+                ({"ids": [ids[0], ids[0]]}, 422, "ids[1]"),
+                ({"ids": []}, 422, "ids"),
+                ({"id": ids[0]}, 422, "ids")):
+            r = client.post("/v1/caches/wm/proposals/accept", headers=AUTH, json=body)
+            assert r.status_code == status, r.text
+            assert r.json()["error"]["field"] == field
+        assert client.get("/v1/caches/wm").json() == before  # nothing changed
+        assert client.post("/v1/caches/wm/proposals/accept", json={"ids": ids[:1]},
+                           headers={"Authorization": ""}).status_code == 401
+
+        r = client.post("/v1/caches/wm/proposals/accept", headers=AUTH, json={"ids": ids})
+        assert r.status_code == 200, r.text
+        got = r.json()
+        assert [p["id"] for p in got["proposals"]] == ids
+        assert {p["state"] for p in got["proposals"]} == {"accepted"}
+        cache = got["cache"]
+        assert cache["size"] == before["size"] + 45
+        assert cache["calibration"]["method"] == "conformal"
+        assert cache["calibration"]["alpha"] == 0.95 and cache["calibration"]["n"] == 45
+        assert cache["calibration"]["stale"] is False
+        first = client.get(f"/v1/caches/wm/experiences/{ids[0]}").json()["metadata"]
+        assert first["held_out"]["observation"] > -1.0  # scored before it was added
+        assert first["held_out"]["detection"] > -1.0  # its crate was new to the cache
+        r = client.post("/v1/caches/wm/proposals/reject", headers=AUTH, json={"ids": ids[:1]})
+        assert r.status_code == 409 and r.json()["error"]["field"] == "ids[0]"
+    with make_client(tmp_path) as client:  # the recalibration is kept
+        assert client.get("/v1/caches/wm").json()["calibration"]["method"] == "conformal"
+
+
+def test_under_the_policy_stale_a_batch_review_keeps_the_calibration(tmp_path: Path) -> None:
+    with make_client(tmp_path, adapt=EmbeddingAdapt(recalibrate="stale")) as client:
+        create(client, k=1)
+        client.post("/v1/caches/wm/experiences", headers=AUTH,
+                    json={"items": [scene(i) for i in range(40)]})
+        client.post("/v1/caches/wm/calibrate", headers=AUTH, json={"method": "loo-quantile"})
+        ids = [propose(client, f"a crate number {i}", seq=i) for i in range(45)]
+        r = client.post("/v1/caches/wm/proposals/reject", headers=AUTH, json={"ids": ids[:2]})
+        assert [p["state"] for p in r.json()["proposals"]] == ["rejected", "rejected"]
+        r = client.post("/v1/caches/wm/proposals/accept", headers=AUTH, json={"ids": ids[2:]})
+        calibration = r.json()["cache"]["calibration"]
+        assert calibration["method"] == "loo-quantile" and calibration["stale"] is True

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 from prometheus_client import CollectorRegistry
 
+from services.embedding.drift import DriftMonitor
 from services.embedding.entries import Item
 from services.embedding.errors import Conflict
 from services.embedding.loading import EmbedderPool
@@ -171,11 +172,12 @@ async def scene_cache(tmp_path: Path) -> AsyncIterator[CacheService]:
 
 
 @contextlib.asynccontextmanager
-async def serving(svc: CacheService, listener: Bus, connector: Bus
+async def serving(svc: CacheService, listener: Bus, connector: Bus,
+                  drift: DriftMonitor | None = None
                   ) -> AsyncIterator[Subscription[AnomalyVerdict]]:
     """The detector's worker on ``listener`` scoring against "scene", its verdicts
     subscribed on ``connector`` (subscribe anything else before), both ways routed."""
-    worker = DetectorWorker(svc, listener, cache="scene")
+    worker = DetectorWorker(svc, listener, cache="scene", drift=drift)
     task = asyncio.create_task(worker.run())
     sub = connector.subscribe(topics.anomaly(topics.ANY_ROBOT), AnomalyVerdict)
     await routed(connector, listener)
@@ -330,3 +332,44 @@ async def test_a_scene_that_talks_to_its_reader_is_never_learned_on_its_own(
         assert proposal.state == "pending"
         assert proposal.flag is not None and "answer" in proposal.flag
         assert (await ask(connector, sub, 2, *sign)).is_anomaly  # still flagged
+
+
+async def kind_event(events: object, kind: str) -> Event:
+    """The next event of ``kind`` (``routed`` publishes probes on the same key)."""
+    while True:
+        got = await asyncio.wait_for(anext(events), DEADLINE_S)  # type: ignore[call-overload]
+        if got.message.kind == kind:
+            return got.message
+
+
+async def test_a_new_wording_is_named_as_drift_once_and_cleared_when_it_passes(
+        scene_cache: CacheService, listener: Bus, connector: Bus) -> None:
+    """Frame after frame with a phrase the cache never saw (a new captioner): one ``drift``
+    event names it, the verdicts carry it (for the reasoner's prompt) and /metrics' gauge
+    would; the nominal frames after it clear it. One odd frame never does it."""
+    events = connector.subscribe(topics.event("drone7", "embedding"), Event)
+    monitor = DriftMonitor(window=10, significance=1e-6)
+    reworded = (Detection(label="one crimson carton", where="on the floor"),)
+    async with serving(scene_cache, listener, connector, drift=monitor) as sub:
+        got: list[AnomalyVerdict] = []
+        for seq in range(12):
+            found = reworded if seq else seen(2)[:1] + reworded  # the same new phrase
+            connector.publish(topics.observation("drone7"), Observation(
+                robot="drone7", seq=seq, text=scene_text(found), detections=found))
+            got += await verdicts(sub, 1)
+        drift = await kind_event(events, "drift")
+        assert drift.severity == "warning" and drift.source == "embedding"
+        assert drift.data["phrases"] == "one crimson carton on the floor"
+        assert "new wording" in drift.message
+        assert all(v.is_anomaly for v in got)
+        assert got[0].drift is None and got[-1].drift is not None
+        assert got[-1].drift.phrases == ("one crimson carton on the floor",)
+        assert monitor.drifting() == ["drone7"]
+        for seq in range(12, 24):
+            connector.publish(topics.observation("drone7"), Observation(
+                robot="drone7", seq=seq, text=scene_text(seen(seq)), detections=seen(seq)))
+            (verdict,) = await verdicts(sub, 1)
+            assert verdict.is_anomaly is False
+        cleared = await kind_event(events, "drift_cleared")
+        assert cleared.severity == "info" and monitor.drifting() == []
+        assert verdict.drift is None

@@ -8,6 +8,7 @@ from services.embedding.detections import (
     NominalDetections,
     combined_p,
     distinct,
+    embedded_form,
     loo_pair_scores,
     loo_scores,
     p_values,
@@ -50,8 +51,34 @@ def test_leave_one_out_drops_only_what_no_other_observation_holds() -> None:
 
 def test_p_values_are_conformal_ranks() -> None:
     cal = np.array([0.1, 0.2, 0.3, np.nan])  # NaN: a calibration item without detections
-    p = p_values(cal, np.array([0.05, 0.2, 0.25, 0.9, np.nan]))
-    assert np.allclose(p[:4], [4 / 4, 3 / 4, 2 / 4, 1 / 4]) and np.isnan(p[4])
+    p = p_values(cal, np.array([0.05, 0.2, 0.25, 0.3, np.nan]))
+    assert np.allclose(p[:4], [4 / 4, 3 / 4, 2 / 4, 2 / 4]) and np.isnan(p[4])
+
+
+def test_beyond_every_calibration_score_p_values_still_rank_and_flag_the_same() -> None:
+    """A new wording puts every score beyond the calibration set: the conformal p-value is
+    1/(n+1) for all and cannot rank. Here it goes on falling with the score, within
+    [1/(2(n+1)), 1/(n+1)), so any threshold at or above 1/(n+1) flags the same."""
+    cal = np.array([-1.0, -0.9, -0.8])
+    scores = np.array([-0.8, -0.7, -0.4, 0.1, 1.0, 1.5])
+    p = p_values(cal, scores)
+    assert p[0] == 2 / 4  # at the largest calibration score: conformal as ever
+    tail = p[1:]
+    assert np.all(np.diff(tail[:4]) < 0)  # ranks by the score
+    assert np.all(tail < 1 / 4) and np.all(tail >= 1 / 8)
+    assert tail[3] == tail[4] == 1 / 8  # the bound, 1: the worst a cosine score gets
+    assert np.allclose(tail[0], (1 - 0.1 / 1.8 / 2) / 4)
+    assert np.array_equal(p < 0.3, p_values(cal, np.minimum(scores, -0.7)) < 0.3)
+    unbounded = p_values(np.array([1.0, 2.0, 3.0]), np.array([4.0, 10.0, 100.0]), bound=None)
+    assert np.all(np.diff(unbounded) < 0) and np.all(unbounded >= 1 / 8)
+
+
+def test_a_phrase_is_embedded_without_its_article_or_count() -> None:
+    assert embedded_form("a red box") == "red box"
+    assert embedded_form("Two  red boxes on the ground") == "red boxes on the ground"
+    assert embedded_form("the one carton") == "carton"
+    assert embedded_form("the") == "the"  # nothing left: the phrase as it is
+    assert embedded_form("anvil") == "anvil"
 
 
 def test_bonferroni_over_two_and_text_only_unchanged() -> None:

@@ -149,7 +149,7 @@ def test_a_group_is_set_as_json_or_one_knob_at_a_time() -> None:
         read_settings(SimSettings, {"AESOP_SIM_REPORTS__DROP_RATE": "1.5"})
 
 
-@pytest.mark.parametrize(("cls", "most"), [(EmbeddingSettings, 14), (ReasonerSettings, 13),
+@pytest.mark.parametrize(("cls", "most"), [(EmbeddingSettings, 15), (ReasonerSettings, 13),
                                            (ControlSettings, 11), (SimSettings, 10),
                                            (DashboardSettings, 4)], ids=lambda c: str(c))
 def test_each_service_reads_few_variables_of_its_own(cls: type[BaseSettings], most: int) -> None:

@@ -87,6 +87,13 @@ class Sample:
     concepts: tuple[str, ...]
     label: Label
     brief: str = ""
+    # the detections as a captioner reported them, when not the concepts' own wording
+    reported: tuple[str, ...] = ()
+
+    @property
+    def detections(self) -> tuple[str, ...]:
+        """What the robot's detector reports: one phrase per concept."""
+        return self.reported or self.concepts
 
     def record(self, form: TextForm = "prompt") -> dict[str, object]:
         """The JSON record written by :func:`write_jsonl`; ``text`` in the chosen form."""
@@ -95,7 +102,7 @@ class Sample:
             "label": self.label,
             "task": self.task,
             "concepts": list(self.concepts),
-            "detections": list(self.concepts),  # what a detector reports: one per concept
+            "detections": list(self.detections),
         }
 
 

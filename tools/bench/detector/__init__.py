@@ -1,7 +1,7 @@
-"""``aesop bench detector``: quality, score kinds, latency, search, calibration, build,
-memory, REST, restart.
+"""``aesop bench detector``: quality, score kinds, drift, latency, search, calibration,
+build, memory, REST, restart.
 
-Nine parts, each one function returning a JSON-able dict (``--only PART``):
+Ten parts, each one function returning a JSON-able dict (``--only PART``):
 
 * ``quality``  accuracy / AUROC vs cache size and vs concept coverage on the
   synthetic domains (paper §V-A, ``fig:synthetic-results``), top-5 scoring,
@@ -10,6 +10,9 @@ Nine parts, each one function returning a JSON-able dict (``--only PART``):
 * ``kinds``    per domain (three synthetic, quadrotor), brief form with detections: AUROC,
   balanced accuracy and FPR of the top-k, detection and combined scores, and the
   split-conformal FPR of the combined score against alpha.
+* ``drift``    a new captioner's wording on the synthetic domains: zero-shot AUROC / FPR per
+  score kind, the curve after 0..80 reviewed scenes accepted, the drift monitor's delay
+  and its false alarms on 10,000 frames of the old wording.
 * ``latency``  one observation end to end through ``CacheService.score_texts``
   against a 20k cache, with the embed-only and search-only parts, per embedding
   backend (torch, ONNX float32, ONNX int8).
@@ -46,6 +49,7 @@ from shared.tables import table
 
 from .build import bench_build, render_build
 from .common import FULL, QUICK, Bench, jsonable
+from .drift import bench_drift, render_drift
 from .kinds import bench_kinds, render_kinds
 from .latency import bench_latency, render_latency
 from .memory import bench_memory, render_memory
@@ -57,7 +61,8 @@ from .search import bench_loo, bench_search, render_loo, render_search
 log = logging.getLogger(__name__)
 
 
-PARTS = ("quality", "kinds", "latency", "search", "loo", "build", "memory", "rest", "restart")
+PARTS = ("quality", "kinds", "drift", "latency", "search", "loo", "build", "memory", "rest",
+         "restart")
 
 
 def run_detector_bench(
@@ -78,6 +83,7 @@ def run_detector_bench(
     runners: dict[str, Callable[[], dict[str, Any]]] = {
         "quality": lambda: bench_quality(bench, plot),
         "kinds": lambda: bench_kinds(bench),
+        "drift": lambda: bench_drift(bench),
         "latency": lambda: bench_latency(bench),
         "search": lambda: bench_search(sizes, seed),
         "loo": lambda: bench_loo(sizes, seed),
@@ -132,7 +138,7 @@ def render(part: str, r: Mapping[str, Any]) -> str:
     """The human-readable tables of one part's result."""
     if "error" in r:
         return table(f"[{part}] FAILED", [{"error": r["error"]}])
-    return {"quality": render_quality, "kinds": render_kinds,
+    return {"quality": render_quality, "kinds": render_kinds, "drift": render_drift,
             "latency": render_latency, "search": render_search,
             "loo": render_loo, "build": render_build, "memory": render_memory,
             "rest": render_rest, "restart": render_restart}[part](r)

@@ -109,6 +109,7 @@ class Sizes:
     kind_domains: Mapping[str, tuple[int | None, int | None]] = field(default_factory=dict)
     rest_concurrency: int = 32
     restart_cache: int = 200_000
+    quick: bool = False  # the drift part's smaller sets
 
 
 FULL = Sizes(
@@ -123,7 +124,7 @@ QUICK = Sizes(
     kind_domains={name: (100, 40) for name in QUALITY_DOMAINS},
     repeats=1, threshold_seeds=2, latency_n=50, search_sizes=(10_000, 50_000),
     exact_queries=50, build_texts=300, rest_cache=100, rest_requests=200, loo_repeats=1,
-    restart_cache=20_000,
+    restart_cache=20_000, quick=True,
 )
 
 
@@ -256,7 +257,7 @@ def jsonable(value: Any) -> Any:
 def labelled(samples: Sequence[Any]) -> list[Any]:
     from services.embedding.cache import Labelled
 
-    return [Labelled(s.brief, s.label == "anomaly", tuple(s.concepts)) for s in samples]
+    return [Labelled(s.brief, s.label == "anomaly", tuple(s.detections)) for s in samples]
 
 
 class Memo(Embedder):

@@ -1,0 +1,102 @@
+"""The drift monitor, the held-out wordings and the re-learning policy (issue 28), pure."""
+
+from __future__ import annotations
+
+import random
+
+import numpy as np
+import pytest
+
+from services.embedding.adapt import HELD_OUT, recalibration, window
+from services.embedding.cache import Cache, CacheConfig, CalibrationScores
+from services.embedding.calibration import Calibration
+from services.embedding.drift import DriftMonitor
+from shared.messages import Detection
+from tools.scenes.registry import DOMAINS
+from tools.scenes.wording import Captioner, drift_set, reword_phrase
+
+
+def test_a_wording_switch_is_named_within_fifteen_frames_and_cleared_after() -> None:
+    monitor = DriftMonitor()  # 50 verdicts, 1e-7
+    rng = random.Random(0)
+    for _ in range(200):  # nominal: about 1 in 20 flagged, as alpha 0.95 promises
+        assert monitor.observe("r1", rng.random() < 0.05, 0.05, ["a box"]) is None
+    reports = [monitor.observe("r1", True, 0.05, ["a carton", "one crate"]) for _ in range(50)]
+    frame = next(i for i, r in enumerate(reports, 1) if r is not None)
+    assert frame <= 15
+    report = reports[frame - 1]
+    assert report is not None and report.state == "drift" and report.phrases[0] == "a carton"
+    assert "new wording" in report.message and "a carton" in report.message
+    assert monitor.drifting() == ["r1"] and monitor.current("r1") is not None
+    assert all(r is None for r in reports[frame:])  # named once
+    cleared = [monitor.observe("r1", False, 0.05) for _ in range(50)]
+    assert [r.state for r in cleared if r is not None] == ["cleared"]
+    assert monitor.drifting() == [] and monitor.current("r1") is None
+
+
+def test_one_robot_drifting_leaves_the_others_and_nothing_promised_is_not_tested() -> None:
+    monitor = DriftMonitor(window=20)
+    for _ in range(20):
+        monitor.observe("r1", True, 0.05, ["a carton"])
+        monitor.observe("r2", False, 0.05)
+        assert monitor.observe("r3", True, None) is None  # uncalibrated: fail-safe flags
+    assert monitor.drifting() == ["r1"]
+
+
+def test_ten_thousand_nominal_verdicts_at_the_promised_rate_raise_no_drift() -> None:
+    monitor = DriftMonitor()
+    rng = random.Random(1)
+    assert not any(monitor.observe("r1", rng.random() < 0.06, 0.05) for _ in range(10_000))
+
+
+def test_a_new_captioner_writes_each_concept_one_way_and_keeps_labels() -> None:
+    domain = DOMAINS["warehouse"]
+    data = drift_set(domain, n_nominal=40, n_calibration=10, n_reviewed=10,
+                     n_test_nominal=10, n_anomaly=10)
+    captioner = Captioner(domain)
+    assert [s.label for s in data.test] == ["nominal"] * 10 + ["anomaly"] * 10
+    old = {d for s in data.nominal for d in s.detections}
+    for sample in data.reviewed + data.test:
+        assert sample.detections == tuple(captioner.phrase(c) for c in sample.concepts)
+        assert sample.brief.startswith(captioner.style.split("{")[0])
+    assert not {d for s in data.test for d in s.detections} <= old  # words never seen
+    assert drift_set(domain, n_nominal=40, n_calibration=10, n_reviewed=10,
+                     n_test_nominal=10, n_anomaly=10) == data  # deterministic
+    assert reword_phrase("a red box on the ground", random.Random(3)) != "a red box on the ground"
+
+
+def held_cache(scores: list[tuple[float, float]]) -> Cache:
+    """A cache calibrated at alpha 0.9 whose experiences were accepted with these held-out
+    (observation, detection) scores, after two plain ones."""
+    cache = Cache(CacheConfig("c", "m", 2, k=1))
+    n = len(scores) + 2
+    vectors = np.tile([[1.0, 0.0]], (n, 1))
+    meta = [{}, {}] + [{HELD_OUT: {"observation": o, "detection": d, "pair": None}}
+                       for o, d in scores]
+    cache.apply(cache.plan_add(vectors, ids=[str(i) for i in range(n)], texts=[None] * n,
+                               metadata=meta, detections=[(Detection(label="box"),)] * n,
+                               detection_vectors={"box": np.array([1.0, 0.0])}))
+    cal = Calibration("loo-quantile", -1.0, 0.9, 30)
+    cache.apply(cache.plan_calibration(cal, CalibrationScores.of(np.full(30, -1.0),
+                                                                  np.full(30, -1.0))))
+    return cache
+
+
+def test_the_window_recalibrates_on_the_latest_accepted_scenes_at_the_same_alpha() -> None:
+    scores = [(-0.5 - i / 100, -0.6) for i in range(40)]
+    cache = held_cache(scores)
+    assert [s["observation"] for s in window(cache, 25)] == [s for s, _ in scores[-25:]]
+    op = recalibration(cache, 25)
+    assert op is not None and op.calibration.method == "conformal"
+    assert op.calibration.alpha == 0.9 and op.calibration.n == 25
+    assert op.scores is not None and len(op.scores.detection) == 25
+    cache.apply(op)
+    assert cache.stale is False
+    # the conformal quantile of the window's observation scores, ceil(26 * 0.9) = 24th
+    assert op.calibration.threshold == pytest.approx(sorted(s for s, _ in scores[-25:])[23])
+
+
+def test_too_short_a_window_keeps_the_calibration() -> None:
+    cache = held_cache([(-0.5, -0.6)] * 12)  # 2/(n+1) < 0.1 needs n >= 20
+    assert recalibration(cache, 50) is None
+    assert recalibration(Cache(CacheConfig("c", "m", 2, k=1)), 50) is None  # uncalibrated
