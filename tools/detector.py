@@ -59,6 +59,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     dd.add_argument("--seed", type=int, default=0)
     dd.add_argument("--form", choices=["brief", "prompt"], default="brief",
                     help="the text: the observation (brief) or the paper's whole prompt")
+    dd.add_argument("--drift", action="store_true", help="instead, each synthetic domain "
+                    "before and after a new captioner's wording: <domain>-drift-nominal, "
+                    "-calibration (the old wording), -reviewed (new nominal scenes, for "
+                    "eval --adapt) and -test (new wording, with every anomaly)")
     dd.set_defaults(func=cmd_detector_domains)
 
 
@@ -109,10 +113,27 @@ def cmd_detector_domains(args: argparse.Namespace) -> int:
     from tools.scenes.base import write_jsonl
     from tools.scenes.registry import DOMAINS, generate
 
+    if args.drift:
+        return _drift_domains(args)
     for name in DOMAINS:
         nominal, test = generate(name, seed=args.seed).split_for_eval(args.seed)
         write_jsonl(args.out / f"{name}-nominal.jsonl", nominal, args.form)
         write_jsonl(args.out / f"{name}-test.jsonl", test, args.form)
         print(f"{name}: {len(nominal)} nominal, {len(test)} test -> {args.out}",
               file=sys.stderr)
+    return 0
+
+
+def _drift_domains(args: argparse.Namespace) -> int:
+    from tools.scenes.base import write_jsonl
+    from tools.scenes.registry import DOMAINS
+    from tools.scenes.wording import drift_set
+
+    for name in ("warehouse", "vehicle", "vtol"):
+        data = drift_set(DOMAINS[name], seed=args.seed)
+        for part in ("nominal", "calibration", "reviewed", "test"):
+            write_jsonl(args.out / f"{name}-drift-{part}.jsonl", getattr(data, part), args.form)
+        print(f"{name}: {len(data.nominal)} nominal, {len(data.calibration)} calibration "
+              f"(old wording); {len(data.reviewed)} reviewed, {len(data.test)} test (new "
+              f"wording) -> {args.out}", file=sys.stderr)
     return 0

@@ -48,6 +48,9 @@ class Snapshot(BaseModel):
     # the detector cache's proposals (scenes the LLM answered "continue" for), from the
     # embedding service's proposal_* events: the newest data of each, oldest first
     proposals: list[Json]
+    # the detector's drift (services/embedding/drift.py): the newest ``drift`` event's
+    # message, data and stamp while the robot drifts; None once ``drift_cleared`` came
+    drift: Json | None = None
     services: dict[str, bool]  # liveliness by service
     counts: dict[str, int]  # updates received by kind
 
@@ -69,6 +72,7 @@ class FlightModel:
         self.events: deque[Json] = deque(maxlen=limits.log)
         self.proposals: dict[str, Json] = {}
         self._max_proposals = limits.proposals
+        self.drift: Json | None = None
         self.services: dict[str, bool] = {}
         self.counts: Counter[str] = Counter()
         self._apply: dict[str, Callable[[Json], Json]] = {
@@ -91,6 +95,7 @@ class FlightModel:
             "verdict": self.verdict, "scores": list(self.scores),
             "requests": list(self.requests), "decisions": list(self.decisions),
             "events": list(self.events), "proposals": list(self.proposals.values()),
+            "drift": self.drift,
             "services": dict(sorted(self.services.items())),
             "counts": dict(self.counts),
         }
@@ -128,6 +133,9 @@ class FlightModel:
 
     def _event(self, m: Json) -> Json:
         self.events.append(m)
+        if m.get("source") == "embedding" and m.get("kind") in ("drift", "drift_cleared"):
+            self.drift = None if m["kind"] == "drift_cleared" else {
+                "message": m.get("message", ""), "data": m.get("data", {}), "stamp": m["stamp"]}
         if m.get("source") == "embedding" and m.get("kind", "").startswith("proposal_") \
                 and isinstance(m.get("data", {}).get("id"), str):
             ident = m["data"]["id"]

@@ -120,3 +120,27 @@ def test_the_page_reconnects_and_redraws_from_the_snapshot(
     # the new service knows nothing yet: the page redrew from its (empty) snapshot
     expect(page.locator("#top")).to_have_attribute("data-points", "0")
     screenshot(page, tmp_path, "dashboard-reconnected.png")
+
+
+def test_the_page_names_detector_drift_until_it_is_cleared(
+        browser: Browser, live: Live, tmp_path: Path) -> None:
+    from shared.messages import Event
+
+    page = browser.new_page(viewport={"width": 1440, "height": 700})
+    page.goto(live.proc.url)
+    expect(page.locator("#status")).to_have_attribute("data-state", "connected",
+                                                      timeout=WAIT_MS)
+    expect(page.locator("#drift")).to_be_hidden()
+    key = topics.event(ROBOT, "embedding")
+    live.bus.publish(key, Event(
+        robot=ROBOT, source="embedding", kind="drift", severity="warning",
+        message="detector drift: the detector may be seeing new wording",
+        data={"flagged": 15, "seen": 15, "phrases": "one crimson carton; two skids"}))
+    drift = page.locator("#drift")
+    expect(drift).to_be_visible(timeout=WAIT_MS)
+    expect(drift).to_contain_text("15/15 flagged · one crimson carton; two skids")
+    expect(page.locator('#events li[data-kind="drift"]')).to_have_count(1)
+    screenshot(page, tmp_path, "dashboard-drift.png")
+    live.bus.publish(key, Event(robot=ROBOT, source="embedding", kind="drift_cleared",
+                                message="detector drift cleared"))
+    expect(drift).to_be_hidden(timeout=WAIT_MS)

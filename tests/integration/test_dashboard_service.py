@@ -17,6 +17,7 @@ from websockets.sync.client import ClientConnection, connect
 from services.dashboard.api import STATIC
 from shared import topics
 from shared.bus import Bus
+from shared.messages import Event
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
 from tests.e2e.demo_flight import GOAL, REGIONS, TICKS, fly, wait_following
@@ -153,3 +154,25 @@ def test_page_static_files_and_ops_routes(dashboard: Dashboard) -> None:
     assert 'aesop_dashboard_updates_total{kind="state"}' in metrics
     assert "aesop_dashboard_clients" in metrics
 
+
+
+def drift_event(kind: str = "drift") -> Event:
+    """What the embedding worker publishes when the robot's verdicts drift (or stop)."""
+    return Event(robot=ROBOT, source="embedding", kind=kind,
+                 severity="warning" if kind == "drift" else "info",
+                 message="detector drift: 15 of the last 15 observations flagged where the "
+                         "calibration allows 5%; the detector may be seeing new wording",
+                 data={"cache": "default", "flagged": 15, "seen": 15, "expected_rate": 0.05,
+                       "p_value": 3e-20, "phrases": "one crimson carton; two skids"})
+
+
+def test_a_drift_event_is_shown_until_it_is_cleared(dashboard: Dashboard) -> None:
+    key = topics.event(ROBOT, "embedding")
+    dashboard.bus.publish(key, drift_event())
+    wait_until(lambda: dashboard.snapshot()["drift"] is not None, "the drift", RECV_S)
+    snap = dashboard.snapshot()
+    assert snap["drift"]["data"]["phrases"] == "one crimson carton; two skids"
+    assert "new wording" in snap["drift"]["message"]
+    assert any(e["kind"] == "drift" and e["severity"] == "warning" for e in snap["events"])
+    dashboard.bus.publish(key, drift_event("drift_cleared"))
+    wait_until(lambda: dashboard.snapshot()["drift"] is None, "the drift cleared", RECV_S)

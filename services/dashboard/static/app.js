@@ -15,7 +15,7 @@
   function emptyFlight() {
     return { robot: "", state: null, trail: [], plan: null, regions: [], goal: null,
              verdict: null, scores: [], requests: [], decisions: [], events: [], proposals: [],
-             services: {} };
+             drift: null, services: {} };
   }
 
   // ---- the stream -------------------------------------------------------------------------
@@ -79,6 +79,10 @@
           flight.proposals = flight.proposals.filter((p) => p.id !== m.data.id);
           push(flight.proposals, { ...m.data, stamp: m.stamp }, LIMITS.log);
         }
+        if (m.source === "embedding" && (m.kind === "drift" || m.kind === "drift_cleared")) {
+          flight.drift = m.kind === "drift" ? { message: m.message, data: m.data || {},
+                                                stamp: m.stamp } : null;
+        }
         break;
       case "health": flight.services[m.service] = m.alive; break;
       case "regions": flight.regions = m.regions; flight.goal = m.goal || flight.goal; break;
@@ -106,6 +110,13 @@
       : `${v.is_anomaly ? "ANOMALY" : "nominal"} s=${v.score.toFixed(3)} τ=${
           v.threshold === null ? "none" : v.threshold.toFixed(3)}${
           v.p_value === null || v.p_value === undefined ? "" : ` p=${v.p_value.toFixed(3)}`}${named}`;
+    const drift = $("drift");  // the detector flags more than its calibration allows
+    drift.hidden = !flight.drift;
+    drift.dataset.drift = String(Boolean(flight.drift));
+    drift.textContent = !flight.drift ? "" : `DRIFT: new wording? ${
+      flight.drift.data.flagged}/${flight.drift.data.seen} flagged${
+      flight.drift.data.phrases ? " · " + flight.drift.data.phrases : ""}`;
+    drift.title = flight.drift ? flight.drift.message : "";
     const services = $("services");
     services.replaceChildren(...Object.entries(flight.services).sort().map(([name, alive]) => {
       const el = document.createElement("span");
