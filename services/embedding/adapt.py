@@ -39,7 +39,7 @@ from .policy import Components, Evidence, kept
 
 Recalibrate = Literal["window", "stale"]
 
-DEFAULT_WINDOW = 50  # accepted scenes the policy "window" calibrates on
+DEFAULT_WINDOW = 100  # accepted scenes the policy "window" calibrates on
 HELD_OUT = "held_out"  # the experience metadata key of an accepted scene's held-out scores
 
 

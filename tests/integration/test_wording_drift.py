@@ -87,7 +87,7 @@ def test_eval_adapt_accepts_the_new_wording_and_the_false_positive_promise_holds
     assert r.returncode == 0, r.stderr
     adapted = json.loads(r.stdout)
     assert adapted["adapted"] == 60 and adapted["recalibrate"] == "window"
-    assert adapted["calibrated_on"] == 50 and adapted["stale"] is False
+    assert adapted["calibrated_on"] == 60 and adapted["stale"] is False
     assert adapted["method"] == "conformal"
     assert adapted["fpr"] <= 1 - ALPHA + 0.01
     assert adapted["auroc"] > zero_shot["auroc"]

@@ -136,6 +136,10 @@ class Captioner:
 
     domain: Domain
     seed: int = 0
+    # False: only the detections are reworded, the line keeps the robot's own template and
+    # task ("The VTOL is ... and observes: a; b."), as when the detector's model changes
+    # but not the code that writes the line
+    lines: bool = True
 
     def phrase(self, concept: str) -> str:
         return reword_phrase(concept, random.Random(f"aesop:words:{self.seed}:{concept}"))
@@ -148,6 +152,10 @@ class Captioner:
         """``sample`` with its detections and brief line in this captioner's wording (same
         label, same concepts); the paper's whole prompt (``text``) carries them too."""
         phrases = tuple(self.phrase(c) for c in sample.concepts)
+        if not self.lines:
+            return replace(sample, brief=self.domain.brief(sample.task, phrases),
+                           text=self.domain.prompt(sample.task, phrases),
+                           observation=self.domain.scene(phrases), reported=phrases)
         task = _synonyms(sample.task, random.Random(f"aesop:words:{self.seed}:{sample.task}"),
                          0.8)
         line = self.style.format(task=task, items=", ".join(phrases))
@@ -159,33 +167,37 @@ class Captioner:
 class DriftSet:
     """A domain before and after a wording switch: the cache's nominal samples and a
     held-out nominal calibration set in the old wording; reviewed nominal scenes in the
-    new wording (to accept, in order); and a test set of new-wording nominal samples and
-    anomalies."""
+    new wording (to accept, in order); a test set of new-wording nominal samples and
+    anomalies, and the same test set as the old wording had it (what the detector does
+    without drift)."""
 
     domain: Domain
     nominal: tuple[Sample, ...]
     calibration: tuple[Sample, ...]
     reviewed: tuple[Sample, ...]
     test: tuple[Sample, ...]
+    original: tuple[Sample, ...]
 
 
 def drift_set(domain: Domain, *, seed: int = 0, n_nominal: int = 600,
               n_calibration: int = 200, n_reviewed: int = 80, n_test_nominal: int = 200,
-              n_anomaly: int = 100) -> DriftSet:
-    """Samples of ``domain`` split as :class:`DriftSet` says, the last three reworded
-    (one seeded stream each; the nominal draws are distinct scenes)."""
+              n_anomaly: int = 100, lines: bool = True) -> DriftSet:
+    """Samples of ``domain`` split as :class:`DriftSet` says, the reviewed and test ones
+    reworded by one :class:`Captioner` (``lines``: its line style too; the nominal draws
+    are distinct scenes)."""
     n_new = n_reviewed + n_test_nominal
     data: Dataset = sample_dataset(domain, seed=seed,
                                    n_nominal=n_nominal + n_calibration + n_new,
                                    n_anomaly=n_anomaly)
     nominal = list(data.nominal)
     random.Random(f"aesop:drift:{domain.name}:{seed}:split").shuffle(nominal)
-    captioner = Captioner(domain, seed)
+    captioner = Captioner(domain, seed, lines)
     cut = n_nominal + n_calibration
     new = [captioner.reword(s) for s in nominal[cut:]]
     anomalies = [captioner.reword(s) for s in data.anomalies]
     return DriftSet(domain, tuple(nominal[:n_nominal]), tuple(nominal[n_nominal:cut]),
-                    tuple(new[:n_reviewed]), tuple(new[n_reviewed:]) + tuple(anomalies))
+                    tuple(new[:n_reviewed]), tuple(new[n_reviewed:]) + tuple(anomalies),
+                    tuple(nominal[cut + n_reviewed:]) + data.anomalies)
 
 
 def vocabulary(samples: Sequence[Sample]) -> set[str]:
