@@ -53,6 +53,7 @@ def create_app(settings: DashboardSettings, bus_factory: Callable[[], Bus]) -> F
         max_body_bytes=settings.max_body_bytes, public=PUBLIC, session_reads=True)
     app.state.service = None
     app.state.feed = None
+    app.state.settings = settings
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     app.include_router(router)
     return app

@@ -1,7 +1,10 @@
-"""The dashboard's routes, all read-only: ``GET /`` (the page), ``GET /ws`` (the live
-stream), ``GET /v1/snapshot`` (the aggregated state). With a token configured the page
-is public and the flight is not: a browser opened with ``/?token=`` keeps a read-only
-session cookie derived from the token (never the token), good for these routes only.
+"""The dashboard's routes: ``GET /`` (the page), ``GET /ws`` (the live stream),
+``GET /v1/snapshot`` (the aggregated state), all read-only, and one write:
+``POST /v1/proposals/accept|reject``, a batch review of the detector's proposals forwarded
+to the embedding service. With a token configured the page is public and the flight is
+not: a browser opened with ``/?token=`` keeps a read-only session cookie derived from the
+token (never the token), good for the reads only; the review needs the token itself in
+``Authorization: Bearer`` (the page asks for it), so no cookie can make a write.
 
 On ``/ws`` a page first receives ``{"kind": "snapshot", "message": <snapshot>}``,
 then one JSON item per update (``FlightModel.apply``).
@@ -14,11 +17,12 @@ import contextlib
 import json
 from importlib.resources import files
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
+import httpx
 from fastapi import APIRouter, Depends, Request, WebSocket, WebSocketDisconnect
-from fastapi.responses import FileResponse, RedirectResponse, Response
-from pydantic import SecretStr
+from fastapi.responses import FileResponse, JSONResponse, RedirectResponse, Response
+from pydantic import BaseModel, ConfigDict, Field, SecretStr
 
 from shared.http import (
     SECURE_SESSION_COOKIE,
@@ -32,6 +36,7 @@ from shared.http import (
 from .hub import ClientQueue
 from .model import Snapshot
 from .service import DashboardService
+from .settings import DashboardSettings
 
 STATIC = Path(str(files("services.dashboard") / "static"))
 
@@ -75,6 +80,37 @@ async def page(request: Request, token: str | None = None) -> Response:
 @router.get("/v1/snapshot", responses=errors(503))
 async def snapshot(service: RunningDep) -> Snapshot:
     return Snapshot.model_validate(service.model.snapshot())
+
+
+class Review(BaseModel):
+    """``POST /v1/proposals/accept|reject``: the proposals ``ids`` of cache ``cache``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    cache: str = Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.-]+$")
+    ids: list[str] = Field(min_length=1, max_length=1000)
+
+
+@router.post("/v1/proposals/{decision}", responses=errors(401, 404, 409, 422, 502))
+async def review(decision: Literal["accept", "reject"], body: Review,
+                 request: Request) -> JSONResponse:
+    """Accept (or reject) the detector's pending proposals ``ids`` in one batch: forwarded
+    to the embedding service (``AESOP_DASHBOARD_EMBEDDING_URL``), whose answer (the
+    proposals decided and the cache after them, or its error) comes back as it is."""
+    settings: DashboardSettings = request.app.state.settings
+    token = settings.admin_token
+    headers = {"Authorization": f"Bearer {token.get_secret_value()}"} if token else {}
+    url = f"{settings.embedding_url.rstrip('/')}/v1/caches/{body.cache}/proposals/{decision}"
+    try:
+        async with httpx.AsyncClient(timeout=60.0) as client:
+            answer = await client.post(url, json={"ids": body.ids}, headers=headers)
+    except httpx.HTTPError as exc:
+        raise ApiError(502, "bad_gateway", f"the embedding service at "
+                       f"{settings.embedding_url} did not answer: {exc}", "embedding") from None
+    if answer.status_code >= 500 or "json" not in answer.headers.get("content-type", ""):
+        raise ApiError(502, "bad_gateway", f"the embedding service answered "
+                       f"{answer.status_code}", "embedding")
+    return JSONResponse(answer.json(), status_code=answer.status_code)
 
 
 @router.websocket("/ws")

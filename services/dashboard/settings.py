@@ -1,7 +1,8 @@
 """Settings of the dashboard service (``AESOP_DASHBOARD_*``, and the shared ``AESOP_*``).
 
-The dashboard is read-only, but it follows the shared rule all the same: off
-loopback only with ``AESOP_ADMIN_TOKEN`` set.
+The dashboard reads the bus; its one write is a batch review of the detector's proposals,
+forwarded to the embedding service at ``embedding_url`` with the shared admin token (the
+caller must bring it too). Off loopback only with ``AESOP_ADMIN_TOKEN`` set.
 """
 
 from __future__ import annotations
@@ -26,4 +27,6 @@ class DashboardSettings(ServiceSettings):
                                       validate_by_name=True)
 
     port: int = Field(default=8080, ge=0, le=65535)
+    # where a batch review of the detector's proposals goes (POST /v1/proposals/...)
+    embedding_url: str = "http://127.0.0.1:8001"
     limits: DashboardLimits = DashboardLimits()

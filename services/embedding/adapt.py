@@ -6,17 +6,15 @@ learns them. Its calibration, though, still describes the old wording: kept as i
 scores are those of a wording the robot no longer sees; mixed with the new, the
 false-positive promise holds for neither.
 
-So each accepted scene is scored against the cache *before* it is added (its *held-out*
-scores, kept in the experience's metadata under :data:`HELD_OUT`), which is exactly a
-split-conformal calibration score of the cache as it then was. Under the policy
-``window`` (the default), the calibration is recomputed after every acceptance from the
-held-out scores of the ``window`` most recently accepted scenes, split-conformal at the
-calibration's own alpha (with pairs if it had them): a calibration of the wording the
-robot sees now. Each score was taken against a cache that held fewer of the new scenes
-than today's, so it is at least today's score: the promise is kept, conservatively. Until
-the window holds enough scenes to ever flag (``tests/(n+1) < 1 - alpha``, 40 at alpha 0.95
-with detections) the calibration is kept and marked stale, as under the policy ``stale``
-(which never recalibrates on its own).
+Under the policy ``window`` (the default), the calibration is recomputed after every
+acceptance (a batch review: once after the batch) from the ``window`` most recently
+accepted scenes alone: each one's leave-one-out scores against the cache as it now is
+(:meth:`.Cache.loo_members`, the scores eq. 2 calibrates on, for those scenes only),
+split-conformal at the calibration's own alpha, with pairs if it had them: a calibration of
+the wording the robot sees now. Until the window holds enough scenes to ever flag
+(``tests/(n+1) < 1 - alpha``, 40 at alpha 0.95 with detections, 60 with pairs) the
+calibration is kept and marked stale, as under the policy ``stale`` (which never
+recalibrates on its own).
 
 The price: the scenes a person accepts were flagged first, so in a steady wording the
 window holds the hardest nominal scenes, and its threshold sits higher than a calibration
@@ -26,59 +24,44 @@ operator's calibration until they recalibrate. docs/embedding.md says when to ch
 
 from __future__ import annotations
 
-import math
-from collections.abc import Mapping
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 
-from .cache import Cache, Calibrate, Scored
-from .calibration import Calibration, conformal
-from .errors import InvalidInput
+from .cache import Cache, Calibrate
+from .calibration import Calibration, CalibrationError, conformal
+from .errors import DetectorError
 from .policy import Components, Evidence, kept
 
 Recalibrate = Literal["window", "stale"]
 
 DEFAULT_WINDOW = 100  # accepted scenes the policy "window" calibrates on
-HELD_OUT = "held_out"  # the experience metadata key of an accepted scene's held-out scores
+ACCEPTED = "proposal"  # the metadata key an accepted scene's experience carries
 
 
-def held_out(scored: Scored) -> dict[str, float | None]:
-    """What an accepted scene's metadata keeps of its score against the cache without it."""
-    return {"observation": scored.score, "detection": scored.detection_score,
-            "pair": scored.pair_score}
-
-
-def window(cache: Cache, size: int) -> list[Mapping[str, Any]]:
-    """The held-out scores of the ``size`` most recently accepted scenes, oldest first."""
-    found = [e.metadata[HELD_OUT] for _, e in sorted(cache.experiences.items())
-             if isinstance(e.metadata.get(HELD_OUT), Mapping)]
+def window(cache: Cache, size: int) -> list[int]:
+    """The labels of the ``size`` most recently accepted scenes, oldest first."""
+    found = [label for label, e in sorted(cache.experiences.items()) if ACCEPTED in e.metadata]
     return found[-size:] if size else []
 
 
 def recalibration(cache: Cache, size: int) -> Calibrate | None:
-    """The calibration of the ``size`` most recent accepted scenes, split-conformal at the
+    """The calibration of the ``size`` most recently accepted scenes, split-conformal at the
     current calibration's alpha (pairs if it had them); None when there is nothing to
     recalibrate (no calibration with an alpha) or the window is too short to ever flag."""
     current = cache.calibration
     if current is None or current.alpha is None or current.method == "tpr-target":
         return None
-    scores = window(cache, size)
-    if not scores:
+    labels = window(cache, size)
+    if not labels:
         return None
     alpha, pairs = current.alpha, current.pairs
-
-    def column(key: str) -> np.ndarray:
-        return np.array([math.nan if s.get(key) is None else float(s[key]) for s in scores])
-
-    part = Components(column("observation"), column("detection"),
-                      column("pair") if pairs else None)
-    labels = np.zeros(len(scores), dtype=bool)
-    evidence = Evidence(None, part, labels)
     try:
+        part = Components(*cache.loo_members(labels, pairs=pairs))
         tau = conformal(part.observation, alpha)
         cal = Calibration("conformal", tau.threshold, alpha, tau.n, fpr=tau.fpr, pairs=pairs)
-        kept_scores = kept(cal, evidence) if cache.has_detections else None
-    except (InvalidInput, ValueError):  # too few scenes yet to ever flag at this alpha
+        scores = kept(cal, Evidence(None, part, np.zeros(len(labels), dtype=bool))) \
+            if cache.has_detections else None
+    except (CalibrationError, DetectorError):  # too few scenes yet to ever flag
         return None
-    return cache.plan_calibration(cal, kept_scores)
+    return cache.plan_calibration(cal, scores)

@@ -414,6 +414,31 @@ class Cache:
         held = [[where[p] for p in exp.phrases] for exp in self.experiences.values()]
         return det.loo_scores(nominal, held, nominal.vectors)
 
+    def loo_members(self, labels: Sequence[int], *, pairs: bool = False
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """The leave-one-out scores of the experiences ``labels`` alone (each scored
+        against the cache without itself, as :meth:`loo_scores`,
+        :meth:`loo_detection_scores` and :meth:`loo_pair_scores` score every member):
+        whole observation, worst detection (NaN without one), worst pair (None unless
+        ``pairs``; NaN with fewer than two detections)."""
+        wanted = np.array(labels, dtype=np.int64)
+        where = {int(label): i for i, label in enumerate(self.index.labels())}
+        rows = [where[int(label)] for label in wanted]
+        if self.config.score == "mahalanobis":
+            observation = self.loo_scores()[rows]
+        else:
+            k = self.check_k(self.config.k, leave_one_out=True)
+            sims, found = self.index.search(self.index.vectors()[rows], k + 1)
+            observation = loo_topk_scores(sims, found, wanted, k)
+        if not self.has_detections:
+            return observation, np.full(len(rows), np.nan), None
+        nominal = self.nominal_detections()
+        index = {p: i for i, p in enumerate(nominal.labels)}
+        held = [[index[p] for p in self.experiences[int(label)].phrases] for label in wanted]
+        detection = det.loo_scores(nominal, held, nominal.vectors)
+        pair = det.loo_pair_scores(nominal, self.nominal_pairs(), held) if pairs else None
+        return observation, detection, pair
+
     def loo_scores(self, k: int | None = None) -> np.ndarray:
         """s(e_i; D_e minus {e_i}) for every member: the scores behind eq. (2)."""
         if self.config.score == "mahalanobis":

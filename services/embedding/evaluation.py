@@ -24,7 +24,7 @@ import numpy as np
 
 from shared.messages import Detection
 
-from .adapt import DEFAULT_WINDOW, HELD_OUT, Recalibrate, held_out, recalibration
+from .adapt import ACCEPTED, DEFAULT_WINDOW, Recalibrate, recalibration
 from .cache import (
     Cache,
     CacheConfig,
@@ -153,25 +153,21 @@ def evaluate(
 
 def accept(cache: Cache, embedder: Embedder, scenes: Sequence[Labelled],
            config: EvalConfig) -> None:
-    """Each nominal scene of ``scenes``, in order, accepted as the service accepts a
-    reviewed one (:mod:`.adapt`): scored against the cache without it (its held-out
-    scores), added with them, and the calibration recomputed by ``config.recalibrate``."""
-    pairs = cache.calibration is not None and cache.calibration.pairs
+    """The nominal scenes of ``scenes`` accepted in order, as the service accepts one batch
+    review of them (:mod:`.adapt`): each added, marked accepted; then the calibration by
+    ``config.recalibrate`` (the window's leave-one-out scores depend on the cache after
+    the batch alone, so one batch or one review per scene ends the same)."""
     for n, scene in enumerate(x for x in scenes if not x.is_anomaly):
-        if scene.detections:
-            scored = score_structured(cache, embedder, [scene], pairs=pairs)[0]
-        else:
-            scored = cache.score(embedder.embed([scene.text]), cache.config.k, 0)[0]
         held = tuple(Detection.model_construct(label=d, where=None) for d in scene.detections)
         new = [p for p in dict.fromkeys(scene.detections) if p not in cache.detection_vectors]
         cache.apply(cache.plan_add(
             embedder.embed([scene.text]), ids=[f"adapt-{n}"], texts=[scene.text],
-            metadata=[{HELD_OUT: held_out(scored)}], detections=[held],
+            metadata=[{ACCEPTED: {"adapt": n}}], detections=[held],
             detection_vectors=phrase_vectors(embedder, new)))
-        if config.recalibrate == "window":
-            op = recalibration(cache, config.window)
-            if op is not None:
-                cache.apply(op)
+    if scenes and config.recalibrate == "window":  # as after one batch review of them all
+        op = recalibration(cache, config.window)
+        if op is not None:
+            cache.apply(op)
 
 
 def _adapted(cache: Cache, adapt: Sequence[Labelled], config: EvalConfig) -> dict[str, Any]:

@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING, Literal
 
 from shared.messages import Observation
 
-from .adapt import HELD_OUT, held_out, recalibration
-from .cache import Labelled
+from .adapt import ACCEPTED, recalibration
+from .cache import Calibrate
 from .entries import Entry, Item
 from .errors import Conflict, InvalidInput, NotFound
 from .proposals import Proposal, State, scene_id
@@ -114,41 +114,34 @@ class Review:
         proposal = self._pending(entry, ident)
         config = entry.cache.config
         item = Item(text=proposal.text, id=ident, detections=proposal.detections, metadata={
-            "proposal": {"robot": proposal.robot, "seq": proposal.seq, "count": proposal.count,
+            ACCEPTED: {"robot": proposal.robot, "seq": proposal.seq, "count": proposal.count,
                          "request_id": proposal.request_id, "model": proposal.model}})
         vectors = await self.caches.vectors_for(config, [item], None)
         found = await self.caches.new_phrases(entry, item.detections)
         async with entry.writer:
             proposal = self._pending(entry, ident).decided("accepted", now)
-            metadata = {**item.metadata, **await self._held_out(entry, item)}
             op = entry.cache.plan_add(vectors, ids=[ident], texts=[item.text],
-                                      metadata=[metadata], detections=[item.detections],
+                                      metadata=[item.metadata], detections=[item.detections],
                                       detection_vectors=found)
             await self.caches.commit(entry, op, proposal)
             entry.proposals[ident] = proposal
         return proposal
-
-    async def _held_out(self, entry: Entry, item: Item) -> dict[str, object]:
-        """The scene's scores against the cache as it is, without it (none for a cache
-        smaller than its k, which cannot score)."""
-        cal = entry.cache.calibration
-        if entry.cache.size < entry.cache.config.k or item.text is None:
-            return {}
-        scene = Labelled(item.text, False, tuple(d.phrase for d in item.detections))
-        scored = await self.caches.scorer.score_labelled(
-            entry, [scene], pairs=cal is not None and cal.pairs)
-        return {HELD_OUT: held_out(scored[0])}
 
     async def _recalibrate(self, entry: Entry) -> None:
         adapt = self.settings.adapt
         if adapt.recalibrate != "window":
             return
         async with entry.writer:
-            op = recalibration(entry.cache, adapt.window)
+            op = await asyncio.to_thread(self._planned, entry, adapt.window)
             if op is not None:
                 await self.caches.commit(entry, op)
                 log.info("cache %s recalibrated on its %d most recently accepted scenes",
                          entry.cache.name, op.calibration.n)
+
+    @staticmethod
+    def _planned(entry: Entry, size: int) -> Calibrate | None:
+        with entry.rw.read():
+            return recalibration(entry.cache, size)
 
     async def _reject(self, entry: Entry, ident: str, now: float) -> Proposal:
         async with entry.writer:

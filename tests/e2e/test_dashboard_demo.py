@@ -113,6 +113,16 @@ def test_the_page_follows_a_real_demo_scenario(browser: Browser, stack: StackPla
     # and the loop may already have asked about the silence)
     named = page.locator("#requests li .unusual").filter(has_text="a keyboard on the ground")
     expect(named.first).to_contain_text("a keyboard on the ground — nearest nominal:")
+    # reviewed on the page: selected and accepted (the page asks for the admin token; the
+    # dashboard forwards the batch to the embedding service, whose event comes back)
+    ident = proposal.get_attribute("data-id")
+    page.on("dialog", lambda dialog: dialog.accept(TOKEN))
+    proposal.locator("input[type=checkbox]").check()
+    page.locator("#accept-selected").click()
+    expect(page.locator("#review-status")).to_contain_text("1 accepted on", timeout=WAIT_MS)
+    expect(page.locator(f'#proposals li[data-id="{ident}"]')).to_have_attribute(
+        "data-state", "accepted", timeout=WAIT_MS)
+    expect(page.locator("#accept-selected")).to_be_disabled()
     shot = screenshot(page, tmp_path, "dashboard-demo.png")
     assert shot.stat().st_size > 10_000
     assert errors == []

@@ -47,7 +47,9 @@ def dashboard(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Dashboard]:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     port = free_port()
     env = {"AESOP_ZENOH_LISTEN": endpoint, "AESOP_ROBOT": ROBOT,
-           "AESOP_DASHBOARD_LIMITS__CLIENT_QUEUE": "1000"}
+           "AESOP_DASHBOARD_LIMITS__CLIENT_QUEUE": "1000",
+           # nothing listens there: a review cannot reach the embedding service
+           "AESOP_DASHBOARD_EMBEDDING_URL": f"http://127.0.0.1:{free_port()}"}
     proc = ServiceProcess(["serve", "dashboard", "--port", str(port)], port=port, env=env,
                           log_path=tmp / "dashboard.log", ready_timeout_s=60,
                           unset=["AESOP_ADMIN_TOKEN"])
@@ -176,3 +178,19 @@ def test_a_drift_event_is_shown_until_it_is_cleared(dashboard: Dashboard) -> Non
     assert any(e["kind"] == "drift" and e["severity"] == "warning" for e in snap["events"])
     dashboard.bus.publish(key, drift_event("drift_cleared"))
     wait_until(lambda: dashboard.snapshot()["drift"] is None, "the drift cleared", RECV_S)
+
+
+@pytest.mark.parametrize(("path", "body", "status", "field"), [
+    ("/v1/proposals/accept", {"cache": "default", "ids": ["rec-1"]}, 502, "embedding"),
+    ("/v1/proposals/accept", {"cache": "default", "ids": []}, 422, "ids"),
+    ("/v1/proposals/accept", {"cache": "../caches", "ids": ["rec-1"]}, 422, "cache"),
+    ("/v1/proposals/approve", {"cache": "default", "ids": ["rec-1"]}, 422, "decision"),
+])
+def test_a_review_the_embedding_service_cannot_take_is_answered_naming_why(
+        dashboard: Dashboard, path: str, body: dict[str, Any], status: int,
+        field: str) -> None:
+    """The batch review is forwarded to the embedding service (the e2e demo test accepts a
+    real proposal through the page); here none is listening, or the review is malformed."""
+    r = dashboard.http.post(path, json=body)
+    assert r.status_code == status, r.text
+    assert r.json()["error"]["field"] == field

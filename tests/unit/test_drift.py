@@ -7,7 +7,7 @@ import random
 import numpy as np
 import pytest
 
-from services.embedding.adapt import HELD_OUT, recalibration, window
+from services.embedding.adapt import ACCEPTED, recalibration, window
 from services.embedding.cache import Cache, CacheConfig, CalibrationScores
 from services.embedding.calibration import Calibration
 from services.embedding.drift import DriftMonitor
@@ -65,38 +65,51 @@ def test_a_new_captioner_writes_each_concept_one_way_and_keeps_labels() -> None:
     assert reword_phrase("a red box on the ground", random.Random(3)) != "a red box on the ground"
 
 
-def held_cache(scores: list[tuple[float, float]]) -> Cache:
-    """A cache calibrated at alpha 0.9 whose experiences were accepted with these held-out
-    (observation, detection) scores, after two plain ones."""
-    cache = Cache(CacheConfig("c", "m", 2, k=1))
-    n = len(scores) + 2
-    vectors = np.tile([[1.0, 0.0]], (n, 1))
-    meta = [{}, {}] + [{HELD_OUT: {"observation": o, "detection": d, "pair": None}}
-                       for o, d in scores]
+def accepted_cache(n_accepted: int, alpha: float = 0.9) -> Cache:
+    """A cache of 30 plain scenes and ``n_accepted`` accepted ones (each a direction of its
+    own, with a phrase of its own), calibrated at ``alpha`` on the plain ones."""
+    cache = Cache(CacheConfig("c", "m", 3, k=1))
+    n = 30 + n_accepted
+    rng = np.random.default_rng(0)
+    vectors = np.vstack([np.tile([1.0, 0.0, 0.0], (30, 1)),
+                         rng.normal(size=(n_accepted, 3)) + [0.0, 3.0, 0.0]])
+    phrases = ["box"] * 30 + [f"carton {i}" for i in range(n_accepted)]
+    meta = [{}] * 30 + [{ACCEPTED: {"robot": "r1"}}] * n_accepted
+    found = {p: v for p, v in zip(phrases, rng.normal(size=(n, 3)), strict=True)}
     cache.apply(cache.plan_add(vectors, ids=[str(i) for i in range(n)], texts=[None] * n,
-                               metadata=meta, detections=[(Detection(label="box"),)] * n,
-                               detection_vectors={"box": np.array([1.0, 0.0])}))
-    cal = Calibration("loo-quantile", -1.0, 0.9, 30)
+                               metadata=meta,
+                               detections=[(Detection(label=p),) for p in phrases],
+                               detection_vectors=found))
+    cal = Calibration("loo-quantile", -1.0, alpha, 30)
     cache.apply(cache.plan_calibration(cal, CalibrationScores.of(np.full(30, -1.0),
                                                                   np.full(30, -1.0))))
     return cache
 
 
 def test_the_window_recalibrates_on_the_latest_accepted_scenes_at_the_same_alpha() -> None:
-    scores = [(-0.5 - i / 100, -0.6) for i in range(40)]
-    cache = held_cache(scores)
-    assert [s["observation"] for s in window(cache, 25)] == [s for s, _ in scores[-25:]]
+    cache = accepted_cache(40)
+    labels = window(cache, 25)
+    assert labels == sorted(cache.experiences)[-25:]
     op = recalibration(cache, 25)
     assert op is not None and op.calibration.method == "conformal"
     assert op.calibration.alpha == 0.9 and op.calibration.n == 25
     assert op.scores is not None and len(op.scores.detection) == 25
+    observation, _, _ = cache.loo_members(labels)
+    # the conformal quantile of the window's leave-one-out scores, ceil(26 * 0.9) = 24th
+    assert op.calibration.threshold == pytest.approx(np.sort(observation)[23])
     cache.apply(op)
     assert cache.stale is False
-    # the conformal quantile of the window's observation scores, ceil(26 * 0.9) = 24th
-    assert op.calibration.threshold == pytest.approx(sorted(s for s, _ in scores[-25:])[23])
+
+
+def test_leave_one_out_of_some_members_is_the_whole_caches_for_those() -> None:
+    cache = accepted_cache(40)
+    labels = window(cache, 10)
+    observation, detection, pair = cache.loo_members(labels)
+    where = [sorted(cache.experiences).index(label) for label in labels]
+    assert np.allclose(observation, cache.loo_scores()[where])
+    assert np.allclose(detection, cache.loo_detection_scores()[where]) and pair is None
 
 
 def test_too_short_a_window_keeps_the_calibration() -> None:
-    cache = held_cache([(-0.5, -0.6)] * 12)  # 2/(n+1) < 0.1 needs n >= 20
-    assert recalibration(cache, 50) is None
+    assert recalibration(accepted_cache(12), 50) is None  # 2/(n+1) < 0.1 needs n >= 20
     assert recalibration(Cache(CacheConfig("c", "m", 2, k=1)), 50) is None  # uncalibrated

@@ -203,9 +203,10 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
     settings += [("embedding", embedding), ("reasoner", reasoner), ("sim", sim),
                  ("control", control)]
     if options.dashboard:
-        settings.append(("dashboard", read_settings(DashboardSettings, environ, **common,
-                                                    **user("dashboard"), port=ports.dashboard,
-                                                    data_dir=data("dashboard"))))
+        settings.append(("dashboard", read_settings(
+            DashboardSettings, environ, **common, **user("dashboard"), port=ports.dashboard,
+            data_dir=data("dashboard"),
+            embedding_url=f"http://127.0.0.1:{ports.embedding}")))
     inherited = {k: v for k, v in environ.items() if not k.startswith("AESOP_")}
     fake_llm = to_env(read_settings(FakeLLMSettings, environ, defaults={
         "profile": "fixed", "fixed_s": FAKE_LLM_LATENCY_S}))

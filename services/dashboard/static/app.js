@@ -214,11 +214,23 @@
   }
 
   function renderProposals() {
-    // scenes the LLM answered "continue" for, proposed to the detector's cache
+    // scenes the LLM answered "continue" for, proposed to the detector's cache; a pending
+    // one has a box to select it for a batch review
     const items = flight.proposals.slice().reverse().map((p) => {
       const li = document.createElement("li");
       li.dataset.state = p.state;
       li.dataset.id = p.id;
+      if (p.state === "pending") {
+        const box = document.createElement("input");
+        box.type = "checkbox";
+        box.checked = selected.has(p.id);
+        box.setAttribute("aria-label", "select for review");
+        box.onchange = () => { if (box.checked) selected.set(p.id, p.cache);
+                               else selected.delete(p.id); renderReview(); };
+        li.append(box);
+      } else {
+        selected.delete(p.id);
+      }
       const state = document.createElement("span");
       state.className = "state";
       state.textContent = p.state;
@@ -231,7 +243,56 @@
       return li;
     });
     $("proposals").replaceChildren(...items);
+    renderReview();
   }
+
+  // ---- batch review: the one write; the admin token is asked for when the dashboard
+  // wants it, kept in this page's memory only, and sent as a bearer header (never a cookie)
+
+  const selected = new Map();  // proposal id -> its cache
+  let adminToken = null;
+
+  function renderReview() {
+    $("accept-selected").disabled = $("reject-selected").disabled = selected.size === 0;
+  }
+
+  async function review(decision) {
+    const byCache = new Map();
+    for (const [id, cache] of selected) {
+      if (!byCache.has(cache)) byCache.set(cache, []);
+      byCache.get(cache).push(id);
+    }
+    const said = [];
+    for (const [cache, ids] of byCache) {
+      let answer = await send(decision, cache, ids);
+      if (answer.status === 401) {
+        adminToken = window.prompt("The admin token (AESOP_ADMIN_TOKEN), to review proposals:");
+        if (!adminToken) { said.push("not sent: the review needs the admin token"); continue; }
+        answer = await send(decision, cache, ids);
+      }
+      const body = await answer.json().catch(() => ({}));
+      if (answer.ok) {
+        ids.forEach((id) => selected.delete(id));
+        const cal = body.cache && body.cache.calibration;
+        said.push(`${ids.length} ${decision === "accept" ? "accepted" : "rejected"} on ${cache}` +
+                  (cal ? ` · calibration ${cal.method} on ${cal.n}${cal.stale ? " (stale)" : ""}` : ""));
+      } else {
+        said.push(`${cache}: ${answer.status} ${body.error ? body.error.message : ""}`);
+      }
+    }
+    $("review-status").textContent = said.join("; ");
+    renderReview();
+  }
+
+  function send(decision, cache, ids) {
+    const headers = { "Content-Type": "application/json" };
+    if (adminToken) headers.Authorization = `Bearer ${adminToken}`;
+    return fetch(`/v1/proposals/${decision}`, {
+      method: "POST", headers, body: JSON.stringify({ cache, ids }) });
+  }
+
+  $("accept-selected").onclick = () => review("accept");
+  $("reject-selected").onclick = () => review("reject");
 
   function renderEvents() {
     const items = flight.events.slice().reverse().map((e) => {
