@@ -45,7 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "calibration by --recalibrate)")
     ev.add_argument("--recalibrate", choices=["window", "stale"], default="window",
                     help="with --adapt: the service's policy (AESOP_EMBEDDING_ADAPT__RECALIBRATE)")
-    ev.add_argument("--window", type=int, default=50, help="with --adapt and --recalibrate "
+    ev.add_argument("--window", type=int, default=100, help="with --adapt and --recalibrate "
                     "window: the accepted scenes calibrated on (AESOP_EMBEDDING_ADAPT__WINDOW)")
     ev.add_argument("--model", default=None, help="embedding model (default: all-MiniLM-L6-v2)")
     ev.add_argument("--json", action="store_true")

@@ -87,7 +87,7 @@ class Review(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    cache: str = Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.-]+$")
+    cache: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")  # a cache name
     ids: list[str] = Field(min_length=1, max_length=1000)
 
 

@@ -11,6 +11,7 @@ still refuse are listed per operation, with the reason, in ``schemathesis.toml``
 
 from __future__ import annotations
 
+import contextlib
 import re
 import subprocess
 import sys
@@ -44,8 +45,16 @@ def service_args(service: str, tmp_path: Path) -> tuple[list[str], dict[str, str
 def test_the_service_keeps_its_published_contract(service: str, tmp_path: Path) -> None:
     args, env = service_args(service, tmp_path)
     port = free_port()
-    with ServiceProcess([*args, "--port", str(port)], port=port, env=env,
-                        log_path=tmp_path / f"{service}.log"):
+    with contextlib.ExitStack() as upstream:
+        if service == "dashboard":  # its batch review goes to a real embedding service
+            up_args, up_env = service_args("embedding", tmp_path)
+            up_port = free_port()
+            upstream.enter_context(ServiceProcess(
+                [*up_args, "--port", str(up_port)], port=up_port, env=up_env,
+                log_path=tmp_path / "embedding.log"))
+            env["AESOP_DASHBOARD_EMBEDDING_URL"] = f"http://127.0.0.1:{up_port}"
+        upstream.enter_context(ServiceProcess([*args, "--port", str(port)], port=port,
+                                              env=env, log_path=tmp_path / f"{service}.log"))
         run = subprocess.run(
             [str(SCHEMATHESIS), "--no-color", "--config-file", str(CONFIG), "run",
              f"http://127.0.0.1:{port}/openapi.json", "--checks", "all",

@@ -113,3 +113,16 @@ def test_leave_one_out_of_some_members_is_the_whole_caches_for_those() -> None:
 def test_too_short_a_window_keeps_the_calibration() -> None:
     assert recalibration(accepted_cache(12), 50) is None  # 2/(n+1) < 0.1 needs n >= 20
     assert recalibration(Cache(CacheConfig("c", "m", 2, k=1)), 50) is None  # uncalibrated
+
+
+def test_eval_adapt_defaults_to_the_service_policy() -> None:
+    import argparse
+
+    from services.embedding.settings import EmbeddingAdapt
+    from tools.detector import register
+
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    args = parser.parse_args(["detector", "eval", "--nominal", "n", "--test", "t"])
+    assert (args.recalibrate, args.window) == (EmbeddingAdapt().recalibrate,
+                                               EmbeddingAdapt().window)
