@@ -52,6 +52,7 @@ class Snapshot(BaseModel):
     # message, data and stamp while the robot drifts; None once ``drift_cleared`` came
     drift: Json | None = None
     services: dict[str, bool]  # liveliness by service
+    review_token: bool = False  # a batch review needs the admin token (one is configured)
     counts: dict[str, int]  # updates received by kind
 
 

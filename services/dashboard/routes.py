@@ -79,7 +79,7 @@ async def page(request: Request, token: str | None = None) -> Response:
 
 @router.get("/v1/snapshot", responses=errors(503))
 async def snapshot(service: RunningDep) -> Snapshot:
-    return Snapshot.model_validate(service.model.snapshot())
+    return Snapshot.model_validate(service.snapshot())
 
 
 class Review(BaseModel):
@@ -123,7 +123,7 @@ async def stream(websocket: WebSocket) -> None:
     client = service.hub.connect()  # before the snapshot, so nothing falls between
     try:
         await websocket.send_text(json.dumps(
-            {"kind": "snapshot", "message": service.model.snapshot()}, allow_nan=False))
+            {"kind": "snapshot", "message": service.snapshot()}, allow_nan=False))
         await _pump(websocket, client)
     except (WebSocketDisconnect, RuntimeError, OSError):
         pass  # the page went away mid-send

@@ -51,6 +51,11 @@ class DashboardService:
         self.metrics.updates.labels(update.kind).inc()
         self.hub.publish(json.dumps(item, allow_nan=False))
 
+    def snapshot(self) -> dict[str, object]:
+        """The flight so far (:meth:`.FlightModel.snapshot`), and whether a batch review
+        needs the admin token (the page then asks for it before it sends one)."""
+        return {**self.model.snapshot(), "review_token": self.settings.admin_token is not None}
+
     async def run(self) -> None:
         await follow(self.session, self.settings.robot, self.on_update, clock=self.clock)
 

@@ -2,14 +2,18 @@
 
 A calibrated detector promises to flag at most ``1 - alpha`` of nominal observations. A new
 captioner, camera or model update breaks that promise for every frame at once, and a robot
-that sees one anomaly after another cannot tell drift from danger. So, per robot, the last
-``window`` verdicts are tested against the promise: with ``k`` of ``n`` flagged, the
-binomial tail ``P(X >= k)`` for ``X ~ Binomial(n, 1 - alpha)``; below ``significance`` the
-robot is *drifting*, named in one ``drift`` event with the new phrases its flagged
-observations held most often (those the cache holds no exact match for), until the tail
-rises above :data:`CLEAR_P` again (``drift_cleared``). One anomaly never does it: at the
-defaults (50 verdicts, 1e-7) it takes 15 flags in 50 at alpha 0.95, and a switch that
-flags every frame is named on its 15th.
+that sees one anomaly after another cannot tell drift from danger. So, per robot, the
+verdicts of its last ``window`` distinct scenes are tested against the promise: with ``k``
+of ``n`` flagged, the binomial tail ``P(X >= k)`` for ``X ~ Binomial(n, 1 - alpha)``; below
+``significance`` the robot is *drifting*, named in one ``drift`` event with the new phrases
+its flagged scenes held most often (those the cache holds no exact match for), until the
+tail rises above :data:`CLEAR_P` again (``drift_cleared``).
+
+A scene already in the window does not count again: one anomaly that stays in view for a
+minute is one flagged scene, not 600, and never reads as drift (a captioner that rewrites
+every object makes one new scene after another). At the defaults (50 scenes, 1e-7) it takes
+15 flagged scenes in 50 at alpha 0.95, and a switch that flags every scene is named on its
+15th.
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
-from scipy.stats import binom
+from scipy.special import bdtrc
 
 CLEAR_P = 0.01  # a drifting robot is cleared once its window's tail is above this
 NAMED = 5  # new phrases a drift event names
@@ -50,8 +54,10 @@ class DriftReport:
 
 @dataclass
 class _Robot:
-    verdicts: deque[tuple[bool, tuple[str, ...]]]
+    verdicts: deque[tuple[bool, tuple[str, ...], str]]  # flagged, new phrases, scene
+    scenes: set[str] = field(default_factory=set)  # those in ``verdicts``
     drifting: bool = False
+    flagged: int = 0  # of the verdicts kept
     phrases: Counter[str] = field(default_factory=Counter)
 
 
@@ -74,37 +80,45 @@ class DriftMonitor:
         state = self._robots.get(robot)
         if state is None or not state.drifting:
             return None
-        flagged = sum(f for f, _ in state.verdicts)
-        return flagged, len(state.verdicts), self._named(state)
+        return state.flagged, len(state.verdicts), self._named(state)
 
     @staticmethod
     def _named(state: _Robot) -> tuple[str, ...]:
         return tuple(p for p, _ in state.phrases.most_common(NAMED))
 
     def observe(self, robot: str, flagged: bool, rate: float | None,
-                new_phrases: Sequence[str] = ()) -> DriftReport | None:
-        """One verdict of ``robot`` (``new_phrases``: its detections the cache holds no
-        exact match for); ``rate`` the false-positive rate the calibration allows (None:
-        nothing promised, e.g. uncalibrated: not tested). A report when the robot starts
-        or stops drifting."""
+                new_phrases: Sequence[str] = (), scene: str | None = None
+                ) -> DriftReport | None:
+        """One verdict of ``robot`` for ``scene`` (its content's key; None: every verdict a
+        scene of its own), ``new_phrases`` its detections the cache holds no exact match
+        for; ``rate`` the false-positive rate the calibration allows (None: nothing
+        promised, e.g. uncalibrated: not tested). A report when the robot starts or stops
+        drifting; a scene already in the window changes nothing."""
         state = self._robots.get(robot)
         if state is None:
             if len(self._robots) >= self.max_robots:
                 self._robots.pop(next(iter(self._robots)))
             state = self._robots[robot] = _Robot(deque(maxlen=self.window))
+        if scene is not None and scene in state.scenes:
+            return None
         if len(state.verdicts) == self.window:
-            old_flagged, old = state.verdicts[0]
-            if old_flagged:
-                state.phrases.subtract(old)
+            old_flagged, old, old_scene = state.verdicts[0]
+            state.scenes.discard(old_scene)
+            state.flagged -= old_flagged
+            for phrase in old:
+                state.phrases[phrase] -= 1
+                if state.phrases[phrase] <= 0:
+                    del state.phrases[phrase]
         kept = tuple(dict.fromkeys(new_phrases)) if flagged else ()
-        state.verdicts.append((flagged, kept))
+        if scene is not None:
+            state.scenes.add(scene)
+        state.verdicts.append((flagged, kept, "" if scene is None else scene))
+        state.flagged += flagged
         state.phrases.update(kept)
-        state.phrases = +state.phrases  # drop the counts gone to zero
         if rate is None or not 0.0 < rate < 1.0:
             return None
-        seen = len(state.verdicts)
-        k = sum(f for f, _ in state.verdicts)
-        p = float(binom.sf(k - 1, seen, rate))
+        seen, k = len(state.verdicts), state.flagged
+        p = float(bdtrc(k - 1, seen, rate)) if k else 1.0  # P(X >= k), X ~ Bin(seen, rate)
         if not state.drifting and p < self.significance:
             state.drifting = True
             return DriftReport("drift", k, seen, rate, p, self._named(state))

@@ -12,11 +12,14 @@ Accepting adds the scene as a
 nominal experience (a versioned add like any other, id = the scene's id, so accepting
 twice or importing the same scene from a recording adds it once).
 
-The calibration is kept and marked stale, not refreshed: an added nominal experience
-can only lower later scores (a new neighbour raises the top-k similarity; a new nominal
-detection raises the nearest-detection similarity), so the kept calibration scores give
-p-values at least as large as a refreshed calibration's would: the false-positive bound
-still holds, and the operator recalibrates when the stale flag says so.
+What the calibration does then is the service's policy (:mod:`.adapt`): under ``window``
+(the default) it is recomputed on the most recently accepted scenes once there are enough
+to flag; under ``stale`` it is kept and marked stale, not refreshed: an added nominal
+experience can only lower later scores (a new neighbour raises the top-k similarity; a
+new nominal detection raises the nearest-detection similarity), so the kept calibration
+scores give p-values at least as large as a refreshed calibration's would: the
+false-positive bound still holds, and the operator recalibrates when the stale flag says
+so.
 
 Only an LLM's answer makes a proposal (never a fallback), only for an observation the
 detector itself flagged, and only for a request that offered "continue": the worker

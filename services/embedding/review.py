@@ -78,9 +78,9 @@ class Review:
         return proposal
 
     async def accept(self, name: str, ident: str, *, now: float) -> Proposal:
-        """Add a pending proposal's scene as a nominal experience (id = the scene's), with
-        its held-out scores (:mod:`.adapt`): one transaction with the proposal's new state;
-        then the calibration by the policy ``AESOP_EMBEDDING_ADAPT__RECALIBRATE``."""
+        """Add a pending proposal's scene as a nominal experience (id = the scene's): one
+        transaction with the proposal's new state; then the calibration by the policy
+        ``AESOP_EMBEDDING_ADAPT__RECALIBRATE`` (:mod:`.adapt`)."""
         return (await self.decide_many(name, [ident], "accepted", now=now, field="id"))[0]
 
     async def reject(self, name: str, ident: str, *, now: float) -> Proposal:
@@ -103,11 +103,11 @@ class Review:
             for ident in idents:
                 done.append(await (self._accept(entry, ident, now) if state == "accepted"
                                    else self._reject(entry, ident, now)))
-        finally:
+        finally:  # what was decided is told, and calibrated on, even if a later one failed
+            for proposal in done:
+                self._tell(state, proposal)
             if state == "accepted" and done:
                 await self._recalibrate(entry)
-        for proposal in done:
-            self._tell(state, proposal)
         return done
 
     async def _accept(self, entry: Entry, ident: str, now: float) -> Proposal:

@@ -43,7 +43,7 @@ from shared.pump import MessagePump
 from .drift import DriftMonitor, DriftReport
 from .errors import DetectorError
 from .fairness import OTHER, DropReports, FairInbox, Reason
-from .proposals import Proposal
+from .proposals import Proposal, scene_id
 from .scorer import ScoreBatch
 from .service import CacheService
 from .settings import EmbeddingSettings
@@ -224,7 +224,7 @@ class DetectorWorker:
         flagged = scored.is_anomaly is not False
         report = self.drift.observe(robot, flagged, None if batch.alpha is None or
                                     scored.is_anomaly is None else 1.0 - batch.alpha,
-                                    [m.detection for m in scored.matches])
+                                    [m.detection for m in scored.matches], scene_id(obs))
         now = self.drift.current(robot)
         verdict = make_verdict(obs, robot, batch, self.cache,
                                (time.perf_counter() - start) * 1000,

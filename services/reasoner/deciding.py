@@ -208,9 +208,8 @@ class Decider:
         start = self._clock() if received_at is None else received_at
         deadline = start + request.deadline_s - self._config.margin_s
         DECIDING.set(request.request_id)  # this task's context only
-        drift = () if request.drift is None else request.drift.phrases
         flagged = suspicious_scene(task=request.observation.task,
-                                   observation="\n".join((request.observation.text, *drift)),
+                                   observation=request.observation.text,
                                    unusual=unusual_of(request))
         if flagged:
             return self._fallback(request, start, "parse_error",
@@ -227,7 +226,7 @@ class Decider:
         return build_messages(self._template, task=request.observation.task or DEFAULT_TASK,
                               observation=request.observation.text, options=request.options,
                               variant=self._config.variant, unusual=unusual_of(request),
-                              drift=None if request.drift is None else request.drift.phrases)
+                              drift=request.drift is not None)
 
     # ------------------------------------------------------------------ the race
 

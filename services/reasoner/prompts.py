@@ -128,7 +128,7 @@ def build_prompt(
     options: Sequence[Option],
     variant: Variant = "cot",
     unusual: Sequence[Named] = (),
-    drift: Sequence[str] | None = None,
+    drift: bool = False,
 ) -> str:
     """The single-string prompt: description, scene, instruction (module docstring layout)."""
     scene = render_scene(task=task, observation=observation, options=options, unusual=unusual,
@@ -144,7 +144,7 @@ def build_messages(
     options: Sequence[Option],
     variant: Variant = "cot",
     unusual: Sequence[Named] = (),
-    drift: Sequence[str] | None = None,
+    drift: bool = False,
 ) -> list[dict[str, str]]:
     """OpenAI chat messages: system = description + instructions, user = the scene."""
     scene = render_scene(task=task, observation=observation, options=options, unusual=unusual,
@@ -154,21 +154,23 @@ def build_messages(
 
 
 UNUSUAL = "Unusual detections (nearest nominal detection, cosine similarity):"
-DRIFT = ("Note: the anomaly detector has flagged far more observations than its calibration "
-         "allows; it may be seeing new wording (a new captioner), not new objects. Judge the "
-         "objects, not their wording. New phrases it saw most:")
+# said, neutrally, while the detector drifts: it flags more than it promised, so its alarm
+# says less than usual; the note names no phrase (those are other frames' words, for the
+# operator: the drift event names them) and leans towards no answer
+DRIFT = ("Note: over its recent scenes the anomaly detector has flagged far more than its "
+         "calibration allows; it may be seeing new wording (a new captioner or camera) rather "
+         "than new objects. Judge this observation on its own.")
 
 
 def render_scene(*, task: str, observation: str, options: Sequence[Option],
-                 unusual: Sequence[Named] = (), drift: Sequence[str] | None = None) -> str:
-    """The ``Task:`` / ``Observation:`` / [``Unusual detections:``] / [drift note] /
-    ``Options:`` block (``drift``: None unless the detector is drifting)."""
-    named = "\n".join(QUOTE + " ".join(p.split()) for p in drift or ()) or QUOTE + "(none)"
+                 unusual: Sequence[Named] = (), drift: bool = False) -> str:
+    """The ``Task:`` / ``Observation:`` / [``Unusual detections:``] / [the drift note] /
+    ``Options:`` block."""
     return (
         f"Task:\n{QUOTE}{_single_line(task, 'task')}\n"
         f"Observation:\n{quote_observation(observation)}\n"
         + (f"{UNUSUAL}\n{render_unusual(unusual)}\n" if unusual else "")
-        + (f"{DRIFT}\n{named}\n" if drift is not None else "")
+        + (f"{DRIFT}\n" if drift else "")
         + f"Options:\n{render_options(options)}"
     )
 

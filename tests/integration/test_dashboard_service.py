@@ -191,6 +191,7 @@ def test_a_review_the_embedding_service_cannot_take_is_answered_naming_why(
         field: str) -> None:
     """The batch review is forwarded to the embedding service (the e2e demo test accepts a
     real proposal through the page); here none is listening, or the review is malformed."""
+    assert dashboard.snapshot()["review_token"] is False  # this dashboard has no token
     r = dashboard.http.post(path, json=body)
     assert r.status_code == status, r.text
     assert r.json()["error"]["field"] == field

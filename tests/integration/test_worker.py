@@ -344,16 +344,16 @@ async def kind_event(events: object, kind: str) -> Event:
 
 async def test_a_new_wording_is_named_as_drift_once_and_cleared_when_it_passes(
         scene_cache: CacheService, listener: Bus, connector: Bus) -> None:
-    """Frame after frame with a phrase the cache never saw (a new captioner): one ``drift``
-    event names it, the verdicts carry it (for the reasoner's prompt) and /metrics' gauge
-    would; the nominal frames after it clear it. One odd frame never does it."""
+    """Scene after scene with a phrase the cache never saw (a new captioner): one ``drift``
+    event names it, the verdicts carry it (for the reasoner's prompt); the nominal scenes
+    after it clear it. One flagged scene seen again and again never does it."""
     events = connector.subscribe(topics.event("drone7", "embedding"), Event)
     monitor = DriftMonitor(window=10, significance=1e-6)
     reworded = (Detection(label="one crimson carton", where="on the floor"),)
     async with serving(scene_cache, listener, connector, drift=monitor) as sub:
         got: list[AnomalyVerdict] = []
-        for seq in range(12):
-            found = reworded if seq else seen(2)[:1] + reworded  # the same new phrase
+        for seq in range(12):  # twelve scenes, the same new phrase in each
+            found = seen(seq) + reworded
             connector.publish(topics.observation("drone7"), Observation(
                 robot="drone7", seq=seq, text=scene_text(found), detections=found))
             got += await verdicts(sub, 1)
@@ -373,3 +373,11 @@ async def test_a_new_wording_is_named_as_drift_once_and_cleared_when_it_passes(
         cleared = await kind_event(events, "drift_cleared")
         assert cleared.severity == "info" and monitor.drifting() == []
         assert verdict.drift is None
+        for seq in range(24, 36):  # one anomaly that stays in view: one scene, not drift
+            odd = seen(1)[:1] + (Detection(label="a keyboard", where="on the ground"),)
+            await asyncio.sleep(0.05)  # within the robot's rate (AESOP_..._ROBOT_HZ, 25)
+            connector.publish(topics.observation("drone7"), Observation(
+                robot="drone7", seq=seq, text=scene_text(odd), detections=odd))
+            (verdict,) = await verdicts(sub, 1)
+            assert verdict.is_anomaly is True and verdict.drift is None
+        assert monitor.drifting() == []

@@ -34,6 +34,15 @@ def test_a_wording_switch_is_named_within_fifteen_frames_and_cleared_after() -> 
     assert monitor.drifting() == [] and monitor.current("r1") is None
 
 
+def test_one_anomaly_that_stays_in_view_is_one_scene_not_drift() -> None:
+    monitor = DriftMonitor()
+    for _ in range(600):  # a minute of one flagged scene at 10 Hz
+        assert monitor.observe("r1", True, 0.05, ["a fire"], scene="fire on the belt") is None
+    assert monitor.drifting() == []
+    reports = [monitor.observe("r1", True, 0.05, ["a carton"], scene=f"s{i}") for i in range(20)]
+    assert [r.state for r in reports if r is not None] == ["drift"]  # new scenes do
+
+
 def test_one_robot_drifting_leaves_the_others_and_nothing_promised_is_not_tested() -> None:
     monitor = DriftMonitor(window=20)
     for _ in range(20):

@@ -10,6 +10,7 @@ from services.reasoner.prompts import (
     CONTINUE_LINE,
     CONTINUE_WITHHELD,
     DOMAINS,
+    DRIFT,
     FINAL_INSTRUCTION,
     Template,
     build_messages,
@@ -104,6 +105,19 @@ def test_the_detections_the_detector_named_are_quoted_with_their_nearest_nominal
     parsed = parse_prompt(text)
     assert parsed.observations == tuple(OBSERVATION.splitlines()) and len(parsed.options) == 3
     assert "Unusual" not in prompt()  # no finding, no block
+
+
+def test_a_drifting_detector_is_noted_neutrally_without_other_frames_words() -> None:
+    """While the detector drifts its alarm says less than usual: the prompt says so, names
+    no phrase (they come from other frames) and the observation reads the same."""
+    text = prompt(unusual=(KEYBOARD,), drift=True)
+    assert f"0.61)\n{DRIFT}\nOptions:\n" in text
+    assert "new wording" in DRIFT and "Judge this observation on its own." in DRIFT
+    parsed = parse_prompt(text)
+    assert parsed.observations == tuple(OBSERVATION.splitlines()) and len(parsed.options) == 3
+    assert DRIFT not in prompt(unusual=(KEYBOARD,))
+    plain = prompt(drift=True)  # no unusual block: the note still is no observation line
+    assert parse_prompt(plain).observations == tuple(OBSERVATION.splitlines())
 
 
 def test_a_pair_the_detector_named_is_quoted_after_the_detections() -> None:

@@ -263,13 +263,10 @@
       byCache.get(cache).push(id);
     }
     const said = [];
+    if (flight.review_token && !adminToken) askToken();
     for (const [cache, ids] of byCache) {
       let answer = await send(decision, cache, ids);
-      if (answer.status === 401) {
-        adminToken = window.prompt("The admin token (AESOP_ADMIN_TOKEN), to review proposals:");
-        if (!adminToken) { said.push("not sent: the review needs the admin token"); continue; }
-        answer = await send(decision, cache, ids);
-      }
+      if (answer.status === 401 && askToken()) answer = await send(decision, cache, ids);
       const body = await answer.json().catch(() => ({}));
       if (answer.ok) {
         ids.forEach((id) => selected.delete(id));
@@ -282,6 +279,11 @@
     }
     $("review-status").textContent = said.join("; ");
     renderReview();
+  }
+
+  function askToken() {
+    adminToken = window.prompt("The admin token (AESOP_ADMIN_TOKEN), to review proposals:");
+    return Boolean(adminToken);
   }
 
   function send(decision, cache, ids) {

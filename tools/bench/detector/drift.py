@@ -115,12 +115,14 @@ def _monitor(memo: Memo, nominal: Sequence[Labelled], calibration: Sequence[Labe
     rng = random.Random(f"aesop:drift-stream:{seed}")
     monitor = DriftMonitor()
     false_drifts = 0
-    for _ in range(NOMINAL_FRAMES):
-        if monitor.observe("robot", rng.choice(old), 1 - ALPHA) is not None:
+    for _ in range(NOMINAL_FRAMES):  # a scene seen again within the window counts once
+        i = rng.randrange(len(old))
+        if monitor.observe("robot", old[i], 1 - ALPHA, scene=f"old {i}") is not None:
             false_drifts += 1
     to_drift = None
     for frame in range(1, 1001):
-        if monitor.observe("robot", rng.choice(new), 1 - ALPHA) is not None:
+        i = rng.randrange(len(new))
+        if monitor.observe("robot", new[i], 1 - ALPHA, scene=f"new {i}") is not None:
             to_drift = frame
             break
     return {"old_flag_rate": float(np.mean(old)), "new_flag_rate": float(np.mean(new)),
