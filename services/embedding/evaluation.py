@@ -10,6 +10,9 @@ set's distinct detections, alone or combined with the whole-observation top-k sc
 (and, with ``--pairs``, the worst pair of detections) through conformal p-values
 (Bonferroni), judged by the service's own cache (``Cache.judge``). Their scores are
 ``1 - p`` and tau is ``alpha``: an observation is flagged when ``p < 1 - alpha``.
+
+``--adapt FILE`` accepts FILE's nominal lines as reviewed scenes before the test, as the
+service accepts one batch review (:func:`accept`, :mod:`.adapt`).
 """
 
 from __future__ import annotations

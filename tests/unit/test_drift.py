@@ -135,3 +135,20 @@ def test_eval_adapt_defaults_to_the_service_policy() -> None:
     args = parser.parse_args(["detector", "eval", "--nominal", "n", "--test", "t"])
     assert (args.recalibrate, args.window) == (EmbeddingAdapt().recalibrate,
                                                EmbeddingAdapt().window)
+
+
+def test_metrics_show_each_drifting_robot() -> None:
+    from prometheus_client import CollectorRegistry, generate_latest
+
+    from services.embedding.metrics import EmbeddingMetrics
+
+    registry = CollectorRegistry()
+    metrics = EmbeddingMetrics(registry, service=None)  # type: ignore[arg-type]
+    monitor = DriftMonitor(window=10)
+    metrics.drifting.source = monitor.drifting
+    for i in range(10):
+        monitor.observe("r1", True, 0.05, scene=f"s{i}")
+        monitor.observe("r2", False, 0.05, scene=f"s{i}")
+    text = generate_latest(registry).decode()
+    assert 'aesop_embedding_drifting{robot="r1"} 1.0' in text
+    assert 'robot="r2"' not in text
