@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import random
 import re
-from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 from .base import Dataset, Domain, Sample, sample_dataset
@@ -199,7 +198,3 @@ def drift_set(domain: Domain, *, seed: int = 0, n_nominal: int = 600,
                     tuple(new[:n_reviewed]), tuple(new[n_reviewed:]) + tuple(anomalies),
                     tuple(nominal[cut + n_reviewed:]) + data.anomalies)
 
-
-def vocabulary(samples: Sequence[Sample]) -> set[str]:
-    """The distinct detection phrases of ``samples``."""
-    return {d for s in samples for d in s.detections}
