@@ -41,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                          "together as a third component")
     ev.add_argument("--adapt", type=Path, metavar="FILE", help="JSONL whose nominal lines "
                     "are accepted, in order, as reviewed scenes before the test set is "
-                    "scored, as the service accepts them (held-out scores, then the "
+                    "scored, as the service accepts one batch review of them (then the "
                     "calibration by --recalibrate)")
     ev.add_argument("--recalibrate", choices=["window", "stale"], default="window",
                     help="with --adapt: the service's policy (AESOP_EMBEDDING_ADAPT__RECALIBRATE)")

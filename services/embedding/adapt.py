@@ -29,9 +29,8 @@ from typing import Literal
 import numpy as np
 
 from .cache import Cache, Calibrate
-from .calibration import Calibration, CalibrationError, conformal
 from .errors import DetectorError
-from .policy import Components, Evidence, kept
+from .policy import Components, Evidence, calibrate
 
 Recalibrate = Literal["window", "stale"]
 
@@ -55,13 +54,12 @@ def recalibration(cache: Cache, size: int) -> Calibrate | None:
     labels = window(cache, size)
     if not labels:
         return None
-    alpha, pairs = current.alpha, current.pairs
+    # the accepted scenes as a held-out nominal set, calibrated as the service calibrates one
+    evidence = Evidence(None, Components(*cache.loo_members(labels, pairs=current.pairs)),
+                        np.zeros(len(labels), dtype=bool))
     try:
-        part = Components(*cache.loo_members(labels, pairs=pairs))
-        tau = conformal(part.observation, alpha)
-        cal = Calibration("conformal", tau.threshold, alpha, tau.n, fpr=tau.fpr, pairs=pairs)
-        scores = kept(cal, Evidence(None, part, np.zeros(len(labels), dtype=bool))) \
-            if cache.has_detections else None
-    except (CalibrationError, DetectorError):  # too few scenes yet to ever flag
+        cal, scores = calibrate("conformal", evidence, alpha=current.alpha,
+                                pairs=current.pairs)
+    except DetectorError:  # too few scenes yet to ever flag
         return None
     return cache.plan_calibration(cal, scores)

@@ -81,23 +81,24 @@ class Review:
         """Add a pending proposal's scene as a nominal experience (id = the scene's): one
         transaction with the proposal's new state; then the calibration by the policy
         ``AESOP_EMBEDDING_ADAPT__RECALIBRATE`` (:mod:`.adapt`)."""
-        return (await self.decide_many(name, [ident], "accepted", now=now, field="id"))[0]
+        self._pending(self.caches.entry(name), ident)  # an error names "id"
+        return (await self.decide_many(name, [ident], "accepted", now=now))[0]
 
     async def reject(self, name: str, ident: str, *, now: float) -> Proposal:
-        return (await self.decide_many(name, [ident], "rejected", now=now, field="id"))[0]
+        self._pending(self.caches.entry(name), ident)
+        return (await self.decide_many(name, [ident], "rejected", now=now))[0]
 
     async def decide_many(self, name: str, idents: Sequence[str], state: Decided, *,
-                          now: float, field: str = "ids") -> builtins.list[Proposal]:
+                          now: float) -> builtins.list[Proposal]:
         """Accept or reject pending proposals in the order given (a batch review). Every
         id is checked first (unknown: NotFound, decided: Conflict, twice: InvalidInput,
-        each naming ``field[n]``, or ``field`` alone for one id), so a batch with a bad id
-        changes nothing; the calibration follows the batch once."""
+        each naming ``ids[n]``), so a batch with a bad id changes nothing; the calibration
+        follows the batch once."""
         entry = self.caches.entry(name)
         for n, ident in enumerate(idents):
-            named = field if len(idents) == 1 and field == "id" else f"{field}[{n}]"
-            self._pending(entry, ident, field=named)
+            self._pending(entry, ident, field=f"ids[{n}]")
             if ident in idents[:n]:
-                raise InvalidInput(f"proposal {ident!r} is named twice", field=named)
+                raise InvalidInput(f"proposal {ident!r} is named twice", field=f"ids[{n}]")
         done: builtins.list[Proposal] = []
         try:
             for ident in idents:

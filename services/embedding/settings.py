@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
 
 from pydantic import AliasChoices, Field, SecretStr
 from pydantic_settings import SettingsConfigDict
 
 from shared.settings import Group, ServiceSettings
 
-from .adapt import DEFAULT_WINDOW
+from .adapt import DEFAULT_WINDOW, Recalibrate
 
 DEFAULT_MODEL = "sentence-transformers/all-MiniLM-L6-v2"
 # the service's default: the same model run by ONNX Runtime in float32, exported once into
@@ -72,10 +71,10 @@ class EmbeddingAdapt(Group):
     verdicts flag more than the calibration allows, and what accepting reviewed scenes
     does to the calibration."""
 
-    # after each accepted scene: "window" recalibrates split-conformal on the held-out
+    # after accepted scenes: "window" recalibrates split-conformal on the leave-one-out
     # scores of the last ``window`` accepted scenes (services/embedding/adapt.py);
     # "stale" keeps the calibration, marked stale, until an operator recalibrates
-    recalibrate: Literal["window", "stale"] = "window"
+    recalibrate: Recalibrate = "window"
     window: int = Field(default=DEFAULT_WINDOW, ge=1, le=100_000)
     # a robot's last drift_window verdicts are tested against 1 - alpha (binomial); below
     # drift_significance it is drifting (services/embedding/drift.py)
