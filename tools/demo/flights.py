@@ -426,7 +426,11 @@ async def _fly(pilots: Pilots, camera: Camera, rec: Recorder, demo: DemoScenario
     camera.flying = False
     rec.recording = False
     vehicle, trace = await pilots.sim.state(), await pilots.sim.trace()
-    truth = np.array([x for t, x in zip(trace.t, trace.x, strict=True) if t <= rec.t + 1e-9])
+    # judged where the vehicle is now, on its own clock: it counts from its reset, which
+    # came before the loop's first tick (the loop waits for a verdict and warms up), so
+    # the loop's t lags it (by seconds on a loaded machine)
+    truth = np.array([x for t, x in zip(trace.t, trace.x, strict=True)
+                      if t <= vehicle.t + 1e-9])
     return summarize(rec, demo, scenario, time.monotonic() - wall, truth,
                      vehicle.setpoints, real_model=real_model)
 
