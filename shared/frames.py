@@ -33,3 +33,17 @@ def euler_from_quaternion(q: Quaternion) -> tuple[float, float, float]:
     theta = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
     psi = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
     return phi, theta, psi
+
+
+def rotate(q: Quaternion, v: tuple[float, float, float]) -> tuple[float, float, float]:
+    """``v`` rotated by the unit quaternion ``q`` ``(w, x, y, z)`` (normalised first): a
+    body vector into the world for an attitude; the conjugate ``(w, -x, -y, -z)`` goes
+    back."""
+    w, x, y, z = q
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    w, x, y, z = w / n, x / n, y / n, z / n
+    vx, vy, vz = v
+    # t = 2 (q_vec x v); v' = v + w t + q_vec x t
+    tx, ty, tz = 2 * (y * vz - z * vy), 2 * (z * vx - x * vz), 2 * (x * vy - y * vx)
+    return (vx + w * tx + (y * tz - z * ty), vy + w * ty + (z * tx - x * tz),
+            vz + w * tz + (x * ty - y * tx))

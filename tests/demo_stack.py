@@ -29,17 +29,19 @@ class Running:
 
 @contextlib.contextmanager
 def running_stack(tmp_path: Path, token: str, *, local_model: LocalModel | None = None,
-                  environ: Mapping[str, str] | None = None) -> Iterator[Running]:
+                  environ: Mapping[str, str] | None = None,
+                  ros2: Path | None = None) -> Iterator[Running]:
     """Up with its data in ``tmp_path/data`` and logs in ``tmp_path/logs`` (``environ``:
     variables over this process's); stopped whatever happens. The control loop runs at
-    the scene's rate unless ``AESOP_CONTROL_RATE_HZ`` says otherwise."""
+    the scene's rate unless ``AESOP_CONTROL_RATE_HZ`` says otherwise; ``ros2``: the
+    bridge with this config instead of the simulated vehicle."""
     path = hardware_scenario()
     scene = load_scenario(path)
     env = {k: v for k, v in {**os.environ, **(environ or {})}.items()
            if k != "AESOP_ADMIN_TOKEN"}
     rate = None if env.get("AESOP_CONTROL_RATE_HZ") else 1.0 / scene.dt
     options = StackOptions(data_dir=tmp_path / "data", ports=Ports.free(), scenario=path,
-                           rate_hz=rate, local_model=local_model)
+                           rate_hz=rate, local_model=local_model, ros2=ros2)
     plan = plan_stack(options, env, token)
     running = Stack(plan, file_sink(tmp_path / "logs"))
     try:

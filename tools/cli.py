@@ -16,7 +16,7 @@ from collections.abc import Mapping
 
 from pydantic import ValidationError
 
-from tools import detector, serve, watch
+from tools import detector, ros2, serve, watch
 from tools.bench import cli as bench_cli
 from tools.commands import CliError
 from tools.demo import cli as demo_cli
@@ -66,12 +66,13 @@ def warn_unknown_settings(environ: Mapping[str, str]) -> list[str]:
     from services.dashboard.settings import DashboardSettings
     from services.embedding.settings import EmbeddingSettings
     from services.reasoner.settings import ReasonerSettings
+    from services.ros2.settings import Ros2Settings
     from services.sim.settings import SimSettings
     from shared.settings import unknown_names
     from tools.fakes.llm import FakeLLMServiceSettings, FakeLLMSettings
 
     classes: list[type[BaseSettings]] = [EmbeddingSettings, ReasonerSettings, ControlSettings,
-                                          DashboardSettings, SimSettings,
+                                          DashboardSettings, SimSettings, Ros2Settings,
                                           FakeLLMServiceSettings, FakeLLMSettings]
     lines = [f"aesop: {name} is not a setting of any service" +
              (f" (did you mean {meant}?)" if meant else "")
@@ -92,7 +93,7 @@ def require_bench_extra() -> None:
                        "installed): pip install 'aesop-stack[bench]'")
 
 
-COMMANDS = (serve, detector, bench_cli, watch, recording_cli, stack_cli, demo_cli)
+COMMANDS = (serve, detector, bench_cli, watch, recording_cli, stack_cli, demo_cli, ros2)
 
 
 def build_parser() -> argparse.ArgumentParser:

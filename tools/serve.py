@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from tools.commands import CliError, control_scenario
+from tools.commands import CliError, control_scenario, ros2_config
 
 if TYPE_CHECKING:
     from shared.settings import ServiceSettings
@@ -19,8 +19,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     serve = sub.add_parser("serve", help="run one service (settings also from AESOP_* env vars)")
     serve.add_argument("service",
                        choices=["embedding", "reasoner", "control", "dashboard", "sim",
-                                "fake-llm"],
-                       help="sim: the simulated vehicle control flies; fake-llm: an "
+                                "ros2", "fake-llm"],
+                       help="sim: the simulated vehicle control flies; ros2: the bridge to a "
+                            "ROS 2 robot (AESOP_ROS2_CONFIG); fake-llm: an "
                             "OpenAI-compatible test server, see its --help")
     serve.add_argument("--host")
     serve.add_argument("--port", type=int)
@@ -47,6 +48,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
                        "scenario")
     if args.service == "sim":
         return serve_sim(overrides, args.scenario)
+    if args.service == "ros2":
+        return serve_ros2(overrides)
     if args.service == "reasoner":
         return serve_reasoner(overrides)
     if args.service == "control":
@@ -120,6 +123,20 @@ def serve_sim(overrides: dict[str, Any], scenario: str | None = None) -> int:
     except ValueError as exc:
         raise CliError(str(exc)) from None
     serve(app, settings)
+    return 0
+
+
+def serve_ros2(overrides: dict[str, Any]) -> int:
+    from services.ros2.api import create_app
+    from services.ros2.bridge import SERVICE
+    from services.ros2.settings import Ros2Settings
+    from shared.bus import Bus
+    from shared.serving import serve
+
+    settings = _exposed(Ros2Settings(**overrides))
+    config = ros2_config(settings.config)
+    serve(create_app(settings, config, bus_factory=lambda: Bus.open(settings, SERVICE)),
+          settings)
     return 0
 
 

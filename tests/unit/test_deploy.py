@@ -31,6 +31,8 @@ import zenoh
 from pydantic import AliasChoices
 from pydantic_settings import BaseSettings
 
+from services.ros2 import convert, wire
+from services.ros2.config import load_config
 from shared import topics
 from shared.bus import HEALTH_ALL, Bus, zenoh_config
 from shared.messages import Event
@@ -54,11 +56,14 @@ SETTINGS = {
     "control": ["services.control.settings:ControlSettings"],
     "dashboard": ["services.dashboard.settings:DashboardSettings"],
     "sim": ["services.sim.settings:SimSettings"],
+    "ros2": ["services.ros2.settings:Ros2Settings"],
     "fake-llm": ["tools.fakes.llm:FakeLLMServiceSettings",
                  "tools.fakes.llm:FakeLLMSettings"],
 }
 STACK = {"embedding", "reasoner", "control", "dashboard"}  # the Zenoh services
 VEHICLE = "sim"  # the simulated vehicle: the robot's user
+BRIDGE = "ros2"  # the ROS 2 bridge (profile ros2): the ros2 user
+QUADROTOR = ROOT / "deploy" / "ros2" / "quadrotor.yaml"
 ROBOT = "robot0"
 # docs/architecture.md, "Zenoh key expressions": who publishes what.
 def events_of(source: str) -> Callable[[str], str]:
@@ -240,16 +245,19 @@ def test_the_router_image_is_the_version_of_the_zenoh_wheel() -> None:
 def test_the_stack_serves_every_service_and_the_llms_sit_behind_profiles() -> None:
     services = compose()["services"]
     served = {name: serve_args(svc)[0].service for name, svc in aesop_services().items()}
-    assert served == {s: s for s in (*STACK, VEHICLE, "fake-llm")}
+    assert served == {s: s for s in (*STACK, VEHICLE, BRIDGE, "fake-llm")}
     assert {n for n, s in services.items() if not s.get("profiles")} == {"zenoh", *STACK,
                                                                            VEHICLE}
     assert services["fake-llm"]["profiles"] == ["demo"]
+    assert services[BRIDGE]["profiles"] == ["ros2"]
+    assert host_path(services[BRIDGE], str(Path(services[BRIDGE]["environment"][
+        "AESOP_ROS2_CONFIG"]).parent)) == QUADROTOR.parent
     assert services["ollama"]["profiles"] == ["local-llm"]
     assert services["ollama"]["image"].startswith("ollama/ollama:")
     assert not services["ollama"]["image"].endswith(":latest")
 
 
-@pytest.mark.parametrize("name", sorted([*STACK, VEHICLE, "fake-llm"]))
+@pytest.mark.parametrize("name", sorted([*STACK, VEHICLE, BRIDGE, "fake-llm"]))
 def test_commands_parse_and_listen_on_every_interface(name: str) -> None:
     args, fake = serve_args(aesop_services()[name])
     assert args.host == "0.0.0.0"
@@ -257,7 +265,7 @@ def test_commands_parse_and_listen_on_every_interface(name: str) -> None:
         assert fake.profile in {"fixed", "normal", "bimodal", "stall"}
 
 
-@pytest.mark.parametrize("name", sorted([*STACK, VEHICLE, "fake-llm"]))
+@pytest.mark.parametrize("name", sorted([*STACK, VEHICLE, BRIDGE, "fake-llm"]))
 def test_every_environment_variable_is_a_setting_of_that_service(name: str) -> None:
     svc = aesop_services()[name]
     known = set().union(*(env_names(c) for c in settings_classes(serve_args(svc)[0].service)))
@@ -265,7 +273,7 @@ def test_every_environment_variable_is_a_setting_of_that_service(name: str) -> N
     assert not unknown, f"{name}: no such setting: {sorted(unknown)}"
 
 
-@pytest.mark.parametrize("name", sorted([*STACK, VEHICLE, "fake-llm"]))
+@pytest.mark.parametrize("name", sorted([*STACK, VEHICLE, BRIDGE, "fake-llm"]))
 def test_settings_load_in_the_container_and_ports_agree(
         name: str, monkeypatch: pytest.MonkeyPatch) -> None:
     svc = aesop_services()[name]
@@ -277,7 +285,7 @@ def test_settings_load_in_the_container_and_ports_agree(
         "compose wants strings (quote true/false and numbers)"
 
 
-@pytest.mark.parametrize("name", sorted([*STACK, VEHICLE]))
+@pytest.mark.parametrize("name", sorted([*STACK, VEHICLE, BRIDGE]))
 def test_services_are_zenoh_clients_of_the_router(
         name: str, monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     svc = aesop_services()[name]
@@ -483,7 +491,7 @@ def acl_users() -> set[str]:
 def test_the_router_is_the_hubs_acl_and_denies_by_default() -> None:
     """The shipped router.json5 is what `aesop zenoh router-config` writes: the ACL of
     `aesop up`'s hub, every session authenticated, a size cap."""
-    assert ROUTER.read_text() == router_config_text([ROBOT])
+    assert ROUTER.read_text() == router_config_text([ROBOT], ros2=load_config(QUADROTOR))
     conf = router_config()
     assert json.loads(conf.get_json("mode")) == "router"
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
@@ -491,7 +499,7 @@ def test_the_router_is_the_hubs_acl_and_denies_by_default() -> None:
         "/run/secrets/zenoh-users"
     rules = acl()
     assert rules["enabled"] is True and rules["default_permission"] == "deny"
-    assert acl_users() == {*STACK, "monitor", f"robot-{ROBOT}"}
+    assert acl_users() == {*STACK, "monitor", f"robot-{ROBOT}", BRIDGE}
     rule_ids = {r["id"] for r in rules["rules"]}
     for policy in rules["policies"]:
         assert set(policy["rules"]) <= rule_ids and set(policy["subjects"]) <= acl_users()
@@ -593,3 +601,46 @@ def test_only_services_declare_health_and_strangers_see_nothing(
     with pytest.raises(zenoh.ZError):  # a session without a user is refused outright
         Bus.open(settings, stranger_name)
     assert stranger_name not in dashboard.alive()
+
+
+def test_the_ros2_user_uses_only_its_mapped_ros_topics_and_its_robots_inputs(
+        router: str, credentials: tuple[Path, dict[str, str]],
+        stack: dict[str, tuple[Bus, Tap]]) -> None:
+    """Two sessions of the ros2 user (the bridge, a ROS 2 node) on the shipped router: a
+    mapped topic's samples (any type: the bridge refuses a wrong one itself) and the
+    graph's tokens pass; an unmapped topic, another domain and the stack's outputs do
+    not."""
+    config = load_config(QUADROTOR)
+    settings = BusSettings(zenoh_config=CLIENTS / "ros2.json5", zenoh_mode="client",
+                           zenoh_connect=[router], zenoh_user=BRIDGE,
+                           zenoh_password_file=credentials[0] / f"{BRIDGE}.password")
+    odom = next(m for m in config.topics() if m.role == "odometry")
+    ok = wire.data_key(0, odom.name, odom.ros_type, convert.type_hash(odom.ros_type))
+    other_type = wire.data_key(0, odom.name, "std_msgs/msg/String",
+                               convert.type_hash("std_msgs/msg/String"))
+    refused = [wire.data_key(0, "/not/mapped", odom.ros_type, convert.type_hash(odom.ros_type)),
+               wire.data_key(7, odom.name, odom.ros_type, convert.type_hash(odom.ros_type))]
+    got: list[str] = []
+    robot = settings.model_copy(update={"zenoh_config": None})  # a session id of its own
+    with Bus.open(settings, BRIDGE) as bridge, zenoh.open(zenoh_config(robot)) as node:
+        for key in [wire.topic_keys(0, odom.name), *refused]:  # the refused: not declared
+            bridge.session.declare_subscriber(key, lambda s: got.append(str(s.key_expr)))
+        tokens: list[str] = []
+        bridge.session.liveliness().declare_subscriber(
+            f"{wire.LIVELINESS}/0/**", lambda s: tokens.append(str(s.key_expr)), history=True)
+        token = wire.Node(0, str(node.zid()), "talker").token()
+        node.liveliness().declare_token(token)
+        wait_until(lambda: node.put(ok, b"x") or ok in got, "the mapped topic, through")
+        for key in [*refused, other_type]:  # sent first: they would arrive first
+            node.put(key, b"x")
+        node.put(ok, b"last")
+        wait_until(lambda: got.count(ok) >= 2, "the last sample")
+        wait_until(lambda: token in tokens, "the ROS node's liveliness token")
+        wait_until(lambda: other_type in got, "a mapped topic's sample of another type")
+        assert not set(refused) & set(got)
+        tap = stack["dashboard"][1]
+        state_key, forged = topics.vehicle_state(ROBOT), topics.anomaly(ROBOT)
+        bridge.publish(forged, Event(source=BRIDGE, kind="forged"))
+        bridge.publish(state_key, Event(source=BRIDGE, kind="own"))
+        wait_until(lambda: tap.has(state_key, BRIDGE, "own"), "the robot's input, through")
+        assert not tap.has(forged, BRIDGE, "forged")

@@ -13,7 +13,12 @@ router's ACL then allows, per user, only what that part of the stack does
   answer queries of its own clock (``aesop/<id>/vehicle/clock``) and declare a
   vehicle's health token (``aesop/health/sim`` or ``aesop/health/vehicle``); only control
   publishes set-points and asks the clock;
-- ``monitor`` (``aesop watch``, a recorder) only reads.
+- ``monitor`` (``aesop watch``, a recorder) only reads;
+- ``ros2`` (``aesop ros2``, the bridge, and the ROS 2 robot's rmw_zenoh sessions), when a
+  bridge config is given: the ROS keys of its domain and mapped topics (data keys of any
+  type, rmw_zenoh's ``@adv`` keys under them, the graph's ``@ros2_lv/<domain>/**``
+  tokens) both ways, and of the stack's keys only its robot's inputs (observations,
+  vehicle state, its events) and its health token.
 
 The router also passes on at most ``max_observation_hz`` observations per second
 from each session (its ``downsampling``), so a robot flooding its own key loads the
@@ -33,6 +38,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from services.ros2 import wire
+from services.ros2.config import BridgeConfig
 from shared import topics
 
 ALL = "aesop/**"
@@ -58,14 +65,15 @@ def robot_user(robot: str) -> str:
     return f"robot-{robot}"
 
 
-def users_of(robots: Iterable[str]) -> list[str]:
-    return [*SERVICE_PUTS, MONITOR, *(robot_user(r) for r in robots)]
+def users_of(robots: Iterable[str], *, ros2: bool = False) -> list[str]:
+    return [*SERVICE_PUTS, MONITOR, *(robot_user(r) for r in robots),
+            *([ROS2] if ros2 else [])]
 
 
-def stack_acl(robots: Sequence[str]) -> dict[str, Any]:
-    """The router's ``access_control`` block for the four services, ``monitor`` and
-    ``robots`` (a rule names its message kinds and the flows as the router sees them:
-    ingress from a session, egress to it)."""
+def stack_acl(robots: Sequence[str], ros2: BridgeConfig | None = None) -> dict[str, Any]:
+    """The router's ``access_control`` block for the four services, ``monitor``,
+    ``robots`` and the ROS 2 bridge of ``ros2`` (a rule names its message kinds and the
+    flows as the router sees them: ingress from a session, egress to it)."""
     rules: list[dict[str, Any]] = [
         _rule("subscribe", "ingress", ["declare_subscriber", "declare_liveliness_subscriber",
                                        "liveliness_query"], [ALL]),
@@ -77,9 +85,10 @@ def stack_acl(robots: Sequence[str]) -> dict[str, Any]:
         _rule("clock-relay", "egress", ["query", "reply", "declare_queryable"], [CLOCK]),
         _rule("control-clock", "ingress", ["query"], [CLOCK]),
     ]
+    users = users_of(robots, ros2=ros2 is not None)
     policies: list[dict[str, Any]] = [
         {"id": "everyone", "rules": ["subscribe", "receive", "clock-relay"],
-         "subjects": users_of(robots)}]
+         "subjects": users}]
     for service, keys in SERVICE_PUTS.items():
         rules += [_rule(f"{service}-puts", "ingress", ["put", "delete"], list(keys)),
                   _rule(f"{service}-health", "ingress", ["liveliness_token"],
@@ -100,13 +109,49 @@ def stack_acl(robots: Sequence[str]) -> dict[str, Any]:
         ]
         policies.append({"id": user, "rules": [f"{user}-puts", f"{user}-clock",
                                                f"{user}-health"], "subjects": [user]})
+    if ros2 is not None:
+        ros_rules, ros_policy = ros2_acl(ros2)
+        rules += ros_rules
+        policies.append(ros_policy)
     return {
         "enabled": True,
         "default_permission": "deny",
         "rules": rules,
-        "subjects": [{"id": user, "usernames": [user]} for user in users_of(robots)],
+        "subjects": [{"id": user, "usernames": [user]} for user in users],
         "policies": policies,
     }
+
+
+ROS2 = "ros2"  # the user of the ROS 2 bridge and of the robot's rmw_zenoh sessions
+ROS_MESSAGES = ["put", "delete", "declare_subscriber", "declare_queryable", "query", "reply",
+                "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"]
+
+
+def ros_keys(config: BridgeConfig) -> list[str]:
+    """The ROS keys of ``config``'s topics: every data key (any type and hash, so the
+    bridge sees and refuses a wrong one), rmw_zenoh's advanced pub/sub keys under them,
+    and the domain's graph tokens."""
+    domain = config.domain_id
+    keys = []
+    for mapped in config.topics():
+        data = wire.topic_keys(domain, mapped.name)
+        keys += [data, f"{data}/@adv/**"]
+    return [*keys, f"{wire.LIVELINESS}/{domain}/**"]
+
+
+def ros2_acl(config: BridgeConfig) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """The ``ros2`` user's rules and policy: the ROS keys both ways, its robot's inputs."""
+    robot, keys = config.robot, ros_keys(config)
+    rules = [
+        _rule("ros2-ros-in", "ingress", ROS_MESSAGES, keys),
+        _rule("ros2-ros-out", "egress", ROS_MESSAGES, keys),
+        _rule("ros2-puts", "ingress", ["put", "delete"],
+              [f"aesop/{robot}/observation", f"aesop/{robot}/vehicle/state",
+               f"aesop/{robot}/event/{ROS2}"]),
+        _rule("ros2-health", "ingress", ["liveliness_token"], [f"aesop/health/{ROS2}"]),
+    ]
+    policy = {"id": ROS2, "rules": [r["id"] for r in rules], "subjects": [ROS2]}
+    return rules, policy
 
 
 def size_cap(max_message_bytes: int = MAX_MESSAGE_BYTES) -> list[dict[str, Any]]:
@@ -159,17 +204,20 @@ def _rule(rule_id: str, flow: str, messages: list[str], keys: list[str]) -> dict
 
 ROUTER_HEADER = """\
 // The Zenoh router of the compose stack (image eclipse/zenoh, same version as the
-// eclipse-zenoh wheel). Written by `aesop zenoh router-config --robot robot0`, from the
-// same code as the ACL of `aesop up`'s hub (tools/stack/acl.py): regenerate it, do not
-// edit it. Every session authenticates (user:password, the dictionary is the compose
-// secret zenoh-users, made by `aesop zenoh credentials deploy/secrets`); each service may
-// publish only its own keys, robot-<id> only its own observations, events and vehicle
-// state (and answer its clock), monitor only reads; a message past the size limit is
-// dropped, and observations past the rate per session. See deploy/README.md.
+// eclipse-zenoh wheel). Written by `aesop zenoh router-config --robot robot0 --ros2
+// deploy/ros2/quadrotor.yaml`, from the same code as the ACL of `aesop up`'s hub
+// (tools/stack/acl.py): regenerate it, do not edit it. Every session authenticates
+// (user:password, the dictionary is the compose secret zenoh-users, made by `aesop zenoh
+// credentials deploy/secrets`); each service may publish only its own keys, robot-<id>
+// only its own observations, events and vehicle state (and answer its clock), ros2 (the
+// ROS 2 bridge and the robot's rmw_zenoh nodes) the mapped ROS topics and its robot's
+// inputs, monitor only reads; a message past the size limit is dropped, and observations
+// past the rate per session. See deploy/README.md.
 """
 
 
-def router_config_text(robots: Sequence[str], *, listen: str = "tcp/[::]:7447",
+def router_config_text(robots: Sequence[str], *, ros2: BridgeConfig | None = None,
+                       listen: str = "tcp/[::]:7447",
                        users_file: str = "/run/secrets/zenoh-users",
                        max_message_bytes: int = MAX_MESSAGE_BYTES,
                        max_observation_hz: float = MAX_OBSERVATION_HZ) -> str:
@@ -179,7 +227,7 @@ def router_config_text(robots: Sequence[str], *, listen: str = "tcp/[::]:7447",
         "listen": {"endpoints": [listen]},
         "scouting": {"multicast": {"enabled": False}},
         "transport": {"auth": {"usrpwd": {"dictionary_file": users_file}}},
-        "access_control": stack_acl(robots),
+        "access_control": stack_acl(robots, ros2),
         "low_pass_filter": size_cap(max_message_bytes),
         "downsampling": rate_cap(max_observation_hz),
     }

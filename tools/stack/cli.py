@@ -8,7 +8,7 @@ import os
 import sys
 from pathlib import Path
 
-from tools.commands import CliError, control_scenario
+from tools.commands import CliError, control_scenario, ros2_config
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -17,6 +17,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     rc = zsub.add_parser("router-config", help="print the router config (the stack's ACL)")
     rc.add_argument("--robot", action="append", default=None,
                     help="a robot that may publish its observations (repeatable; robot0)")
+    rc.add_argument("--ros2", type=Path, default=None, metavar="CONFIG",
+                    help="the ROS 2 bridge's config (deploy/ros2/quadrotor.yaml): the ros2 "
+                         "user may use its topics")
     rc.set_defaults(func=cmd_zenoh_router_config)
     cr = zsub.add_parser("credentials", help="a fresh password for every Zenoh user: the "
                          "router's users.txt and <user>.password files (0600)")
@@ -34,6 +37,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     up.add_argument("--random-ports", action="store_true",
                     help="free ports instead of 7447 (Zenoh) and 8001-8003, 8010, 8080")
     up.add_argument("--no-dashboard", action="store_true")
+    up.add_argument("--ros2", type=Path, default=None, metavar="CONFIG",
+                    help="fly a ROS 2 robot through the bridge (aesop ros2) with this config "
+                         "(deploy/ros2/quadrotor.yaml) instead of the simulated vehicle")
     add_llm_options(up)
     up.set_defaults(func=cmd_up)
 
@@ -69,14 +75,15 @@ def local_model(args: argparse.Namespace):
 def cmd_zenoh_router_config(args: argparse.Namespace) -> int:
     from tools.stack.acl import router_config_text
 
-    print(router_config_text(args.robot or ["robot0"]), end="")
+    ros2 = None if args.ros2 is None else ros2_config(args.ros2)
+    print(router_config_text(args.robot or ["robot0"], ros2=ros2), end="")
     return 0
 
 
 def cmd_zenoh_credentials(args: argparse.Namespace) -> int:
     from tools.stack.acl import new_passwords, users_of, write_credentials
 
-    users = users_of(args.robot or ["robot0"])
+    users = users_of(args.robot or ["robot0"], ros2=True)  # the shipped router has the bridge
     try:
         write_credentials(args.folder, new_passwords(users))
     except OSError as exc:
@@ -107,8 +114,18 @@ def stack_options(args: argparse.Namespace, data_dir: Path):
         raise CliError(f"ports already in use: {', '.join(busy)} (is `aesop up` running?); "
                        "stop it or pass --random-ports")
     rate = None if control.rate_hz is not None else 1.0 / scenario.dt
+    ros2 = getattr(args, "ros2", None)
+    if ros2 is not None:
+        from shared.settings import BusSettings
+
+        mapped, robot = ros2_config(ros2).robot, BusSettings().robot  # a bad file stops here
+        if mapped != robot:
+            raise CliError(f"--ros2 {ros2} maps the topics of robot {mapped!r}, the stack "
+                           f"serves {robot!r} (AESOP_ROBOT)")
+        ros2 = ros2.resolve()
     return StackOptions(data_dir=data_dir, ports=ports, scenario=scenario_path.resolve(),
-                        rate_hz=rate, dashboard=dashboard, local_model=local_model(args))
+                        rate_hz=rate, dashboard=dashboard, local_model=local_model(args),
+                        ros2=ros2)
 
 
 def cmd_up(args: argparse.Namespace) -> int:

@@ -4,7 +4,8 @@ The ``eclipse-zenoh`` wheel ships no ``zenohd``; this process stands in for it.
 Every service of the stack is a client that connects here, with multicast
 scouting off, so nothing leaves the machine. With ``--users`` every session must
 authenticate (a ``user:password`` dictionary) and the access-control list of
-:mod:`.acl` applies (``--robot`` names the robots it lets publish observations);
+:mod:`.acl` applies (``--robot`` names the robots it lets publish observations,
+``--ros2`` the ROS 2 bridge's config whose topics the ``ros2`` user may use);
 a message past ``--max-message-bytes`` is dropped, and observations past
 ``--max-observation-hz`` per session. It serves until SIGINT/SIGTERM.
 
@@ -24,10 +25,13 @@ from pathlib import Path
 
 import zenoh
 
+from services.ros2.config import BridgeConfig, ConfigError, load_config
+
 from .acl import MAX_MESSAGE_BYTES, MAX_OBSERVATION_HZ, rate_cap, size_cap, stack_acl
 
 
 def hub_config(listen: str, *, users: Path | None = None, robots: Sequence[str] = (),
+               ros2: BridgeConfig | None = None,
                max_message_bytes: int = MAX_MESSAGE_BYTES,
                max_observation_hz: float = MAX_OBSERVATION_HZ) -> zenoh.Config:
     conf = zenoh.Config()
@@ -38,7 +42,7 @@ def hub_config(listen: str, *, users: Path | None = None, robots: Sequence[str] 
     conf.insert_json5("downsampling", json.dumps(rate_cap(max_observation_hz)))
     if users is not None:
         conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(users)))
-        conf.insert_json5("access_control", json.dumps(stack_acl(robots)))
+        conf.insert_json5("access_control", json.dumps(stack_acl(robots, ros2)))
     return conf
 
 
@@ -50,6 +54,8 @@ def main(argv: list[str] | None = None) -> int:
                              "apply the stack's access-control list")
     parser.add_argument("--robot", action="append", default=[],
                         help="a robot whose user may publish its observations (repeat)")
+    parser.add_argument("--ros2", type=Path, default=None, metavar="CONFIG",
+                        help="the ROS 2 bridge's config: its user may use those ROS topics")
     parser.add_argument("--max-message-bytes", type=int, default=MAX_MESSAGE_BYTES)
     parser.add_argument("--max-observation-hz", type=float, default=MAX_OBSERVATION_HZ,
                         help="observations per second passed on from each session")
@@ -58,7 +64,13 @@ def main(argv: list[str] | None = None) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     try:
+        ros2 = None if args.ros2 is None else load_config(args.ros2)
+    except ConfigError as exc:
+        print(f"hub: {exc}", file=sys.stderr)
+        return 2
+    try:
         session = zenoh.open(hub_config(args.listen, users=args.users, robots=args.robot,
+                                        ros2=ros2,
                                         max_message_bytes=args.max_message_bytes,
                                         max_observation_hz=args.max_observation_hz))
     except zenoh.ZError as exc:

@@ -4,7 +4,8 @@ A Zenoh hub (:mod:`tools.stack.router`, router mode on loopback), then the LLM s
 (the fake one; with ``--llm local`` llama.cpp's serving a trained GGUF model,
 :mod:`tools.local_llm`; none when ``AESOP_REASONER_LLM_BASE_URL`` names a backend), the vector-cache
 (embedding), the slow reasoner, the control loop, the simulated quadrotor it flies
-(``serve sim``, as the robot's user: a vehicle like any other) and the dashboard, all
+(``serve sim``, as the robot's user: a vehicle like any other; with ``--ros2 CONFIG`` the
+bridge to a ROS 2 robot instead, ``serve ros2`` as the ``ros2`` user) and the dashboard, all
 as ``python -m tools.cli serve ...`` clients of the hub.
 Every Zenoh session authenticates to the hub with its own user and a password
 generated per start (:mod:`.acl`; kept in ``<data-dir>/zenoh``, 0600), and the hub's
@@ -40,6 +41,8 @@ from services.control.settings import ControlSettings
 from services.dashboard.settings import DashboardSettings
 from services.embedding.settings import EmbeddingSettings
 from services.reasoner.settings import ReasonerSettings
+from services.ros2.config import load_config
+from services.ros2.settings import Ros2Settings
 from services.sim.settings import SimSettings
 from shared.process import (
     Child,
@@ -54,7 +57,7 @@ from shared.settings import BusSettings, ServiceSettings, read_settings, to_env
 from tools.fakes.llm import FakeLLMServiceSettings, FakeLLMSettings
 from tools.local_llm import REASONER_SETTINGS, STACK_THREADS, LocalModel, server_argv
 
-from .acl import new_passwords, robot_user, users_of, write_credentials, write_private
+from .acl import ROS2, new_passwords, robot_user, users_of, write_credentials, write_private
 
 DETECTOR_CACHE = "quadrotor"
 LOCAL_LLM = "llm"  # the name of --llm local's server among the children
@@ -77,7 +80,7 @@ class Ports:
     control: int = 8003
     dashboard: int = 8080
     fake_llm: int = 8010  # the LLM server the stack starts: the fake, or --llm local's
-    sim: int = 8004
+    sim: int = 8004  # the vehicle's: the simulator, or with --ros2 the bridge to the robot
 
     @classmethod
     def free(cls) -> Ports:
@@ -108,6 +111,7 @@ class StackOptions:
     dashboard: bool = True
     python: str = sys.executable
     local_model: LocalModel | None = None  # served by llama.cpp instead of the fake LLM
+    ros2: Path | None = None  # a ROS 2 robot through the bridge with this config, not the sim
 
 
 @dataclass(frozen=True)
@@ -158,7 +162,10 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
                               "zenoh_mode": "client", "zenoh_multicast": False,
                               "zenoh_config": None, "admin_token": given or token}
     robot = read_settings(BusSettings, environ).robot
-    secret = passwords(users_of([robot]))
+    if options.ros2 is not None and (mapped := load_config(options.ros2).robot) != robot:
+        raise ValueError(f"{options.ros2} maps the topics of robot {mapped!r}, the stack "
+                         f"serves {robot!r} (AESOP_ROBOT)")
+    secret = passwords(users_of([robot], ros2=options.ros2 is not None))
 
     def user(name: str) -> dict[str, Any]:  # a service's Zenoh credentials
         return {"zenoh_user": name, "zenoh_password": secret[name]}
@@ -190,17 +197,21 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
     control = read_settings(ControlSettings, environ, **forced)
     scenario = options.scenario or resolve_scenario(control.scenario or hardware_scenario())
     control = control.model_copy(update={"scenario": scenario})  # a resolved, existing path
-    # the vehicle: the robot's own user; as fast as the loop flies the scene (real time at
-    # the scene's 1/dt)
+    # the vehicle: the simulator as the robot's own user, as fast as the loop flies the scene
+    # (real time at the scene's 1/dt); or the bridge to a ROS 2 robot, as the ros2 user
     dt = load_scenario(scenario).dt
-    sim = read_settings(SimSettings, environ, **common, **user(robot_user(robot)),
-                        port=ports.sim, data_dir=data("sim"), scenario=scenario,
-                        time_scale=dt / control.period_s(dt))
+    vehicle: tuple[str, ServiceSettings] = (
+        ("sim", read_settings(SimSettings, environ, **common, **user(robot_user(robot)),
+                              port=ports.sim, data_dir=data("sim"), scenario=scenario,
+                              time_scale=dt / control.period_s(dt)))
+        if options.ros2 is None else
+        (ROS2, read_settings(Ros2Settings, environ, **common, **user(ROS2), port=ports.sim,
+                             data_dir=data(ROS2), config=options.ros2)))
     settings: list[tuple[str, ServiceSettings]] = []
     if fake:
         settings.append(("fake-llm", read_settings(FakeLLMServiceSettings, environ, **common,
                                                    port=ports.fake_llm)))
-    settings += [("embedding", embedding), ("reasoner", reasoner), ("sim", sim),
+    settings += [("embedding", embedding), ("reasoner", reasoner), vehicle,
                  ("control", control)]
     if options.dashboard:
         settings.append(("dashboard", read_settings(
@@ -218,7 +229,8 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
 
     zenoh_dir = options.data_dir / "zenoh"
     hub = ChildSpec("hub", (py, "-m", "tools.stack.router", "--users",
-                            str(zenoh_dir / "users.txt"), "--robot", robot, "--listen", endpoint),
+                            str(zenoh_dir / "users.txt"), "--robot", robot, "--listen", endpoint,
+                            *(("--ros2", str(options.ros2)) if options.ros2 else ())),
                     ports.hub, inherited, ready="tcp")
     children = tuple(child(n, s) for n, s in settings)
     if local is not None:  # it accepts connections once the model is loaded

@@ -1,0 +1,34 @@
+"""What the bridge's routes answer (``/openapi.json``)."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict
+
+from shared.messages import Int
+
+
+class Answer(BaseModel):
+    model_config = ConfigDict(extra="ignore")
+
+
+class TopicAnswer(Answer):
+    role: str  # odometry, scene, detections, setpoint, mode, decision, alarms
+    direction: str  # in: ROS -> stack; out: stack -> ROS
+    topic: str  # fully qualified
+    type: str  # pkg/msg/Name
+    key: str  # the Zenoh data key
+    received: Int
+    published: Int
+    dropped: dict[str, Int]  # reason -> samples
+
+
+class BridgeAnswer(Answer):
+    """``GET /v1/bridge``: who the bridge is in the ROS graph and what each topic did."""
+
+    robot: str
+    domain_id: Int
+    node: str
+    zid: str
+    node_token: str
+    topics: list[TopicAnswer]
+    queue_dropped: Int

@@ -1,0 +1,225 @@
+"""A ROS 2 robot as rmw_zenoh puts it on the wire, played by a plain zenoh-python session
+(no ROS installed): the tests' counterpart of the bridge.
+
+It flies the simulated vehicle (:class:`services.sim.vehicle.SimVehicle`, real time) and
+speaks only ROS: ``nav_msgs/msg/Odometry`` (CDR, ENU pose in ``map``, the twist in the body
+frame, as REP 105 says) with the 33-byte attachment on the odometry topic's data key; its
+camera's frames as a ``std_msgs/msg/String`` scene and a ``vision_msgs/msg/Detection2DArray``
+(class ids: the indices of the detector's queries, the config's ``classes``); it reads the
+set-point topic (``AccelStamped``: its flight controller tracks the acceleration, holding
+past ``HOLD_S`` without a newer one, as PX4 leaves offboard mode) and the String topics.
+The CDR is written with ``rosbags`` from the message definitions, never from the bridge's
+own conversions, so a mistake in those cannot cancel out here.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from services.control.scenario import Scenario
+from services.ros2 import convert, wire
+from services.ros2.config import BridgeConfig
+from services.sim.vehicle import Reporting, SimVehicle
+from shared.bus import zenoh_config
+from shared.frames import rotate
+from shared.messages import Mode, VehicleSetpoint, VehicleState
+from shared.settings import BusSettings
+from tools.scenes.hardware import DemoScenario, observation_text
+
+HOLD_S = 0.5  # PX4's offboard loss timeout, roughly: past it the vehicle holds
+CAMERA_PERIOD_S = 0.05
+NODE = "quadrotor"
+
+
+@dataclass
+class Heard:
+    """What the robot read from the bridge."""
+
+    setpoints: int = 0
+    attachments: list[int] = field(default_factory=list)  # sizes
+    strings: dict[str, list[dict[str, Any]]] = field(default_factory=dict)  # role -> JSON
+    first_setpoint_at: float | None = None  # time.time()
+
+
+def odometry_cdr(state: VehicleState, frame_id: str = "map") -> bytes:
+    """``state`` as a ``nav_msgs/msg/Odometry`` in CDR: the pose in ``frame_id``, the twist
+    in the body frame (REP 105), covariances unknown (zero)."""
+    types = convert.typestore().types
+    w, x, y, z = state.attitude
+    body_v = rotate((w, -x, -y, -z), state.velocity)
+    v3 = types["geometry_msgs/msg/Vector3"]
+    msg = types["nav_msgs/msg/Odometry"](
+        header=convert.header(state.stamp, frame_id), child_frame_id="base_link",
+        pose=types["geometry_msgs/msg/PoseWithCovariance"](
+            pose=types["geometry_msgs/msg/Pose"](
+                position=types["geometry_msgs/msg/Point"](*state.position),
+                orientation=types["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w)),
+            covariance=np.zeros(36)),
+        twist=types["geometry_msgs/msg/TwistWithCovariance"](
+            twist=types["geometry_msgs/msg/Twist"](linear=v3(*body_v),
+                                                    angular=v3(*state.body_rates)),
+            covariance=np.zeros(36)))
+    return convert.serialize(msg, "nav_msgs/msg/Odometry")
+
+
+def detections_cdr(hypotheses: list[tuple[str, float]], stamp: float = 0.0) -> bytes:
+    """A ``vision_msgs/msg/Detection2DArray`` in CDR: one detection per ``(class id,
+    score)``."""
+    types = convert.typestore().types
+    header = convert.header(stamp, "camera")
+    pose = types["geometry_msgs/msg/PoseWithCovariance"](
+        pose=types["geometry_msgs/msg/Pose"](
+            position=types["geometry_msgs/msg/Point"](0.0, 0.0, 0.0),
+            orientation=types["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.0, 1.0)),
+        covariance=np.zeros(36))
+    box = types["vision_msgs/msg/BoundingBox2D"](
+        center=types["vision_msgs/msg/Pose2D"](
+            position=types["vision_msgs/msg/Point2D"](x=320.0, y=240.0), theta=0.0),
+        size_x=40.0, size_y=40.0)
+    found = [types["vision_msgs/msg/Detection2D"](
+        header=header, results=[types["vision_msgs/msg/ObjectHypothesisWithPose"](
+            hypothesis=types["vision_msgs/msg/ObjectHypothesis"](class_id=c, score=s),
+            pose=pose)], bbox=box, id=str(i)) for i, (c, s) in enumerate(hypotheses)]
+    return convert.serialize(types["vision_msgs/msg/Detection2DArray"](
+        header=header, detections=found), "vision_msgs/msg/Detection2DArray")
+
+
+def string_cdr(text: str) -> bytes:
+    return convert.serialize(convert.typestore().types["std_msgs/msg/String"](data=text),
+                             "std_msgs/msg/String")
+
+
+class RosRobot:
+    """Flies ``scene``'s vehicle from ``x0`` and shows ``demo``'s camera, over ``config``'s
+    topics, as a client of the router ``settings`` name (the ``ros2`` user)."""
+
+    def __init__(self, settings: BusSettings, config: BridgeConfig, scene: Scenario,
+                 demo: DemoScenario, x0: np.ndarray) -> None:
+        self.config, self.scene, self.demo = config, scene, demo
+        self.session = zenoh.open(zenoh_config(settings))
+        self.zid = str(self.session.zid())
+        self.lock = threading.Lock()
+        self.vehicle = SimVehicle(scene, x0, Reporting(rate_hz=100.0), now=time.time(),
+                                  robot=config.robot)
+        self.heard = Heard()
+        self.mapped = {m.role: m for m in config.topics()}
+        self.node = wire.Node(config.domain_id, self.zid, NODE)
+        self.ids = {phrase: class_id for class_id, phrase in
+                    (config.inputs.detections.classes.items() if config.inputs.detections
+                     else ())}
+        self._seq: dict[str, int] = {}
+        self._publishers: dict[str, Any] = {}
+        self._declared: list[Any] = []
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self.frame_id = config.inputs.odometry.frame_id if config.inputs.odometry else "map"
+
+    # ------------------------------------------------------------------ wire
+
+    def key(self, role: str) -> str:
+        m = self.mapped[role]
+        return wire.data_key(self.config.domain_id, m.name, m.ros_type,
+                             convert.type_hash(m.ros_type))
+
+    def put(self, role: str, payload: bytes, *, key: str | None = None,
+            attachment: bytes | None | bool = True) -> None:
+        """``payload`` on ``role``'s data key (or ``key``) with the attachment rmw_zenoh
+        writes (``attachment``: False for none, bytes for those)."""
+        key = key or self.key(role)
+        if key not in self._publishers:
+            self._publishers[key] = self.session.declare_publisher(key)
+        self._seq[role] = self._seq.get(role, 0) + 1
+        if attachment is True:
+            attachment = wire.Attachment(self._seq[role], time.time_ns(),
+                                         wire.gid(self.zid, self.mapped[role].entity_id)
+                                         ).encode()
+        self._publishers[key].put(payload, attachment=attachment or None)
+
+    # ------------------------------------------------------------------ running
+
+    def start(self) -> None:
+        liveliness = self.session.liveliness()
+        self._declared.append(liveliness.declare_token(self.node.token()))
+        for role, m in self.mapped.items():
+            kind = "MP" if m.direction == "in" else "MS"  # the robot's side of each topic
+            self._declared.append(liveliness.declare_token(self.node.entity_token(
+                m.entity_id, kind, m.name, m.ros_type, convert.type_hash(m.ros_type),
+                wire.qos_keyexpr())))
+            if m.direction == "out":
+                self._declared.append(self.session.declare_subscriber(
+                    self.key(role), self._on_output(role)))
+        for target in (self._fly, self._camera):
+            thread = threading.Thread(target=target, daemon=True)
+            thread.start()
+            self._threads.append(thread)
+
+    def _on_output(self, role: str) -> Any:
+        def on_sample(sample: zenoh.Sample) -> None:
+            raw = sample.payload.to_bytes()
+            size = 0 if sample.attachment is None else len(sample.attachment.to_bytes())
+            with self.lock:
+                self.heard.attachments.append(size)
+                if role == "setpoint":
+                    self._take_setpoint(raw)
+                else:
+                    text = convert.typestore().deserialize_cdr(raw, "std_msgs/msg/String").data
+                    self.heard.strings.setdefault(role, []).append(json.loads(text))
+        return on_sample
+
+    def _take_setpoint(self, raw: bytes) -> None:
+        msg = convert.typestore().deserialize_cdr(raw, "geometry_msgs/msg/AccelStamped")
+        t = convert.seconds(msg.header.stamp)
+        a = msg.accel.linear
+        self.heard.setpoints += 1
+        if self.heard.first_setpoint_at is None:
+            self.heard.first_setpoint_at = time.time()
+        sp = VehicleSetpoint(robot=self.config.robot, seq=self.heard.setpoints, state_seq=0,
+                             state_stamp=t, t=t, valid_until=t + HOLD_S, mode=Mode.NOMINAL,
+                             acceleration=(a.x, a.y, a.z), position=(0.0, 0.0, 0.0),
+                             velocity=(0.0, 0.0, 0.0))
+        self.vehicle.receive(sp, time.time())
+
+    def _fly(self) -> None:
+        while not self._stop.is_set():
+            with self.lock:
+                due = self.vehicle.next_event()
+            self._stop.wait(max(0.0, min(due - time.time(), 0.01)))
+            with self.lock:
+                reports = self.vehicle.advance(time.time())
+            for report in reports:
+                self.put("odometry", odometry_cdr(report.state, self.frame_id))
+
+    def _camera(self) -> None:
+        while not self._stop.wait(CAMERA_PERIOD_S):
+            with self.lock:
+                seen = self.demo.detections(self.vehicle.truth[0:3])
+            if "scene" in self.mapped:
+                self.put("scene", string_cdr(observation_text(seen)))
+            self.put("detections", detections_cdr([(self.ids[p], 0.9) for p in seen]))
+
+    @property
+    def truth(self) -> np.ndarray:
+        with self.lock:
+            return self.vehicle.truth.copy()
+
+    def close(self) -> None:
+        self._stop.set()
+        for thread in self._threads:
+            thread.join(timeout=5.0)
+        for declared in [*self._declared, *self._publishers.values()]:
+            declared.undeclare()
+        self.session.close()  # type: ignore[no-untyped-call]
+
+    def __enter__(self) -> RosRobot:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,104 @@
+"""rmw_zenoh's wire format (services/ros2/wire.py) against the examples of its design
+document, ros2/rmw_zenoh ``docs/design.md`` (rolling, the sections "Topic keys",
+"Graph Cache" and "Publishers"), and its sources (``rmw_zenoh_cpp/src/detail/qos.cpp``,
+``liveliness_utils.cpp``, ``attachment_helpers.cpp``)."""
+
+from __future__ import annotations
+
+import struct
+
+import pytest
+
+from services.ros2 import convert, wire
+
+STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+
+
+def test_the_data_key_is_the_design_documents():
+    # design.md, "Topic keys", examples using demo_nodes_cpp
+    assert wire.data_key(0, "/chatter", "std_msgs/msg/String", STRING_HASH) == \
+        f"0/chatter/std_msgs::msg::dds_::String_/{STRING_HASH}"
+    assert wire.data_key(0, "/robot1/chatter", "std_msgs/msg/String", STRING_HASH) == \
+        f"0/robot1/chatter/std_msgs::msg::dds_::String_/{STRING_HASH}"
+    adds = "RIHS01_e118de6bf5eeb66a2491b5bda11202e7b68f198d6f67922cf30364858239c81a"
+    assert wire.data_key(2, "/add_two_ints", "example_interfaces/srv/AddTwoInts", adds) == \
+        f"2/add_two_ints/example_interfaces::srv::dds_::AddTwoInts_/{adds}"
+
+
+def test_the_type_hash_is_the_one_ros_computes():
+    # the hash in every std_msgs/msg/String example of design.md
+    assert convert.type_hash("std_msgs/msg/String") == STRING_HASH
+
+
+def test_node_and_entity_tokens_are_the_design_documents():
+    # design.md, "Graph Cache", examples using demo_nodes_cpp (all on domain 2)
+    zid = "aac3178e146ba6f1fc6e6a4085e77f21"
+    listener = wire.Node(2, zid, "listener")
+    assert listener.token() == f"@ros2_lv/2/{zid}/0/0/NN/%/%/listener"
+    # the listener's subscription on chatter (rclcpp's QoS: reliable, volatile, keep last 10)
+    assert listener.entity_token(10, "MS", "/chatter", "std_msgs/msg/String", STRING_HASH,
+                                 wire.qos_keyexpr(depth=10)) == \
+        f"@ros2_lv/2/{zid}/0/10/MS/%/%/listener/%chatter/std_msgs::msg::dds_::String_/" \
+        f"{STRING_HASH}/::,10:,:,:,,"
+    # the talker's publisher on chatter (demo_nodes_cpp's talker: depth 7)
+    talker = wire.Node(2, "8b20917502ee955ac4476e0266340d5c", "talker")
+    assert talker.entity_token(10, "MP", "chatter", "std_msgs/msg/String", STRING_HASH,
+                               wire.qos_keyexpr(depth=7)) == \
+        "@ros2_lv/2/8b20917502ee955ac4476e0266340d5c/0/10/MP/%/%/talker/%chatter/" \
+        f"std_msgs::msg::dds_::String_/{STRING_HASH}/::,7:,:,:,,"
+
+
+def test_names_are_mangled_and_namespaces_resolved():
+    node = wire.Node(0, "z", "bridge", namespace="/robot1")
+    assert node.token() == "@ros2_lv/0/z/0/0/NN/%/%robot1/bridge"
+    assert "/%robot1%odom/" in node.entity_token(1, "MS", "odom", "nav_msgs/msg/Odometry",
+                                                  STRING_HASH, wire.qos_keyexpr())
+    assert wire.fully_qualified("odom", "/robot1") == "/robot1/odom"
+    assert wire.fully_qualified("/odom", "/robot1") == "/odom"
+    for bad in ("", "a//b", "/a/", "1abc", "/a b"):
+        with pytest.raises(wire.WireError):
+            wire.fully_qualified(bad)
+
+
+def test_qos_is_written_as_its_differences_from_rmw_zenohs_defaults():
+    assert wire.qos_keyexpr(depth=42) == "::,:,:,:,,"  # qos.cpp: keep last 42
+    assert wire.qos_keyexpr(reliability=wire.BEST_EFFORT, durability=wire.TRANSIENT_LOCAL,
+                            depth=1) == "2:1:,1:,:,:,,"
+
+
+def test_the_attachment_is_33_bytes_positional():
+    # design.md, "Publishers": sequence number int64 LE, timestamp ns int64 LE, the GID's
+    # length (one byte, 16), the 16-byte GID
+    gid = bytes(range(16))
+    raw = wire.Attachment(7, 1_700_000_000_123_456_789, gid).encode()
+    assert len(raw) == 33
+    assert raw == struct.pack("<qqB", 7, 1_700_000_000_123_456_789, 16) + gid
+    assert wire.parse_attachment(raw) == wire.Attachment(7, 1_700_000_000_123_456_789, gid)
+
+
+def test_the_older_keyed_attachment_is_read_too():
+    att = wire.Attachment(3, 42, b"\xab" * 16)
+    keyed = wire.keyed_attachment(att)
+    assert len(keyed) == 77
+    assert keyed.startswith(b"\x0fsequence_number") and b"\x0asource_gid\x10" in keyed
+    assert wire.parse_attachment(keyed) == att
+
+
+@pytest.mark.parametrize("raw", [None, b"", b"\x00" * 32, b"\x00" * 34,
+                                 wire.keyed_attachment(wire.Attachment(1, 2, b"x" * 16))[:-1]])
+def test_no_or_a_bad_attachment_is_refused(raw: bytes | None):
+    with pytest.raises(wire.WireError):
+        wire.parse_attachment(raw)
+
+
+def test_type_names_and_hashes_are_checked():
+    assert wire.dds_type_name("nav_msgs/msg/Odometry") == "nav_msgs::msg::dds_::Odometry_"
+    with pytest.raises(wire.WireError):
+        wire.dds_type_name("nav_msgs/Odometry")
+    with pytest.raises(wire.WireError):
+        wire.data_key(0, "/a", "std_msgs/msg/String", "TypeHashNotSupported")  # Humble's
+
+
+def test_gids_differ_per_entity_and_session():
+    assert len(wire.gid("z", 1)) == 16
+    assert len({wire.gid("z", 1), wire.gid("z", 2), wire.gid("y", 1)}) == 3
