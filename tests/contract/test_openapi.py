@@ -26,8 +26,9 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 TOKEN = "contract-token-0123456789"
 CONFIG = Path(__file__).with_name("schemathesis.toml")
 SCHEMATHESIS = Path(sys.executable).with_name("st")
-EXAMPLES = 30  # per operation and phase: about 2,500 requests over the five services
+EXAMPLES = 30  # per operation and phase: about 2,500 requests over the six services
 SEED = 1
+QUADROTOR = Path(__file__).resolve().parents[2] / "deploy" / "ros2" / "quadrotor.yaml"
 
 
 def service_args(service: str, tmp_path: Path) -> tuple[list[str], dict[str, str]]:
@@ -38,10 +39,13 @@ def service_args(service: str, tmp_path: Path) -> tuple[list[str], dict[str, str
         env["AESOP_EMBEDDING_ZENOH_WORKER"] = "false"
     if service == "reasoner":  # nothing listens there: every backend call fails fast
         env["AESOP_REASONER_LLM_BASE_URL"] = f"http://127.0.0.1:{free_port()}/v1"
+    if service == "ros2":
+        env["AESOP_ROS2_CONFIG"] = str(QUADROTOR)
     return args, env
 
 
-@pytest.mark.parametrize("service", ["embedding", "reasoner", "control", "dashboard", "sim"])
+@pytest.mark.parametrize("service", ["embedding", "reasoner", "control", "dashboard", "sim",
+                                     "ros2"])
 def test_the_service_keeps_its_published_contract(service: str, tmp_path: Path) -> None:
     args, env = service_args(service, tmp_path)
     port = free_port()
@@ -90,6 +94,7 @@ def test_published_schemas_use_json_schema_keywords_only() -> None:
     from services.embedding.settings import EmbeddingSettings
     from services.reasoner.api import create_app as reasoner_app
     from services.reasoner.settings import ReasonerSettings
+    from services.ros2.schemas import BridgeAnswer
     from services.sim.api import create_app as sim_app
     from services.sim.settings import SimSettings
 
@@ -98,7 +103,8 @@ def test_published_schemas_use_json_schema_keywords_only() -> None:
         "reasoner": reasoner_app(ReasonerSettings()).openapi(),
         "sim": sim_app(SimSettings(), load_scenario()).openapi(),
         **{m.__name__: m.model_json_schema() for m in
-           (RegionsBody, ResetBody, State, RegionsAnswer, ResetAnswer, Snapshot)},
+           (RegionsBody, ResetBody, State, RegionsAnswer, ResetAnswer, Snapshot,
+            BridgeAnswer)},
     }
     assert keywords_json_schema_lacks(schemas) == []
     assert keywords_json_schema_lacks({"k": {"anyOf": [{"ge": 1}]}}) == ["/k/anyOf/0/ge"]

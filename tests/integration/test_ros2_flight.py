@@ -22,13 +22,13 @@ import pytest
 from services.control.scenario import load_scenario
 from services.embedding.client import EmbeddingClient
 from services.ros2.config import load_config
+from shared.settings import BusSettings
 from tests.demo_stack import running_stack
 from tests.ros2_robot import RosRobot
 from tests.zenoh_peers import wait_until
 from tools.demo.flights import demo_scenario
 from tools.demo.report import ended_in
 from tools.scenes.hardware import build_scene_cache
-from tools.stack.acl import ROS2
 from tools.stack.up import DETECTOR_CACHE, hardware_scenario
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
@@ -53,7 +53,9 @@ def test_a_ros2_robot_flies_the_hardware_scenario_through_the_bridge(tmp_path: P
         url = up.plan.url("embedding")
         assert url is not None and up.plan.url("sim") is None  # no simulated vehicle
         asyncio.run(build_cache(url))
-        with RosRobot(up.plan.bus_settings(ROS2), config, SCENE, demo, x0) as robot:
+        # the robot joins as its rmw_zenoh nodes would: with the session config aesop up wrote
+        session = BusSettings(zenoh_config=up.plan.ros2_session)
+        with RosRobot(session, config, SCENE, demo, x0) as robot:
             wait_until(lambda: robot.heard.first_setpoint_at is not None,
                        "the first set-point on the ROS topic", timeout=60.0)
             start = robot.heard.first_setpoint_at

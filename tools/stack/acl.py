@@ -139,6 +139,18 @@ def ros_keys(config: BridgeConfig) -> list[str]:
     return [*keys, f"{wire.LIVELINESS}/{domain}/**"]
 
 
+def ros2_session_config(endpoint: str, password: str) -> str:
+    """A Zenoh session config for the ROS 2 robot's rmw_zenoh nodes
+    (``ZENOH_SESSION_CONFIG_URI``): a client of the router at ``endpoint`` as the ``ros2``
+    user (the password inline: keep the file private)."""
+    config = {"mode": "client", "connect": {"endpoints": [endpoint]},
+              "scouting": {"multicast": {"enabled": False}},
+              "transport": {"auth": {"usrpwd": {"user": ROS2, "password": password}}}}
+    return ("// rmw_zenoh's session config for the robot's nodes, written by aesop up --ros2:\n"
+            "// export ZENOH_SESSION_CONFIG_URI=<this file>\n" + json.dumps(config, indent=2)
+            + "\n")
+
+
 def ros2_acl(config: BridgeConfig) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """The ``ros2`` user's rules and policy: the ROS keys both ways, its robot's inputs."""
     robot, keys = config.robot, ros_keys(config)

@@ -57,7 +57,15 @@ from shared.settings import BusSettings, ServiceSettings, read_settings, to_env
 from tools.fakes.llm import FakeLLMServiceSettings, FakeLLMSettings
 from tools.local_llm import REASONER_SETTINGS, STACK_THREADS, LocalModel, server_argv
 
-from .acl import ROS2, new_passwords, robot_user, users_of, write_credentials, write_private
+from .acl import (
+    ROS2,
+    new_passwords,
+    robot_user,
+    ros2_session_config,
+    users_of,
+    write_credentials,
+    write_private,
+)
 
 DETECTOR_CACHE = "quadrotor"
 LOCAL_LLM = "llm"  # the name of --llm local's server among the children
@@ -133,6 +141,11 @@ class StackPlan:
     @property
     def endpoint(self) -> str:
         return f"tcp/127.0.0.1:{self.hub.port}"
+
+    @property
+    def ros2_session(self) -> Path:
+        """With ``--ros2``: the Zenoh session config of the robot's rmw_zenoh nodes."""
+        return self.zenoh_dir / "ros2-session.json5"
 
     def bus_settings(self, user: str, **fields: Any) -> BusSettings:
         """How a session of ``user`` (``monitor``, ``robot-<id>``, a service) joins the
@@ -266,6 +279,9 @@ class Stack:
         """The Zenoh credentials, the hub, then every service at once; returns when all
         are ready."""
         write_credentials(self.plan.zenoh_dir, self.plan.passwords)
+        if ROS2 in self.plan.passwords:  # the robot's rmw_zenoh nodes join as the ros2 user
+            write_private(self.plan.ros2_session,
+                          ros2_session_config(self.plan.endpoint, self.plan.passwords[ROS2]))
         self.hub.start()
         self._await_ready([self.hub])
         for child in self.children:
@@ -346,6 +362,10 @@ def urls_text(plan: StackPlan, token_file: Path | None) -> str:
     lines.append(f"  watch it: AESOP_ZENOH_MODE=client AESOP_ZENOH_USER=monitor "
                  f"AESOP_ZENOH_PASSWORD_FILE={plan.zenoh_dir / 'monitor.password'} "
                  f"aesop watch --connect {plan.endpoint}")
+    if plan.url(ROS2):
+        lines.append(f"  ROS 2: start the robot's nodes with RMW_IMPLEMENTATION=rmw_zenoh_cpp "
+                     f"ZENOH_SESSION_CONFIG_URI={plan.ros2_session} (the ros2 user); "
+                     f"its topics: aesop ros2 keys --config <the --ros2 file>")
     if plan.fake_llm:
         lines.append("  LLM: the fake OpenAI-compatible server (--llm local for a trained "
                      "model here, or AESOP_REASONER_LLM_BASE_URL for any server)")

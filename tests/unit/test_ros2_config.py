@@ -1,0 +1,119 @@
+"""The ROS 2 bridge's config (services/ros2/config.py), ``aesop ros2 keys``, the ``ros2``
+user's ACL and ``aesop up --ros2``'s plan."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from services.ros2 import convert, wire
+from services.ros2.config import ConfigError, load_config, parse_config
+from tools import cli
+from tools.stack.acl import ROS2, ros_keys, stack_acl, users_of
+from tools.stack.up import Ports, StackOptions, plan_stack
+
+QUADROTOR = Path(__file__).resolve().parents[2] / "deploy" / "ros2" / "quadrotor.yaml"
+
+
+def test_the_shipped_quadrotor_config_maps_odometry_in_and_the_setpoint_out():
+    config = load_config(QUADROTOR)
+    roles = {m.role: m for m in config.topics()}
+    assert roles["odometry"].ros_type == "nav_msgs/msg/Odometry"
+    assert roles["setpoint"].ros_type == "geometry_msgs/msg/AccelStamped"
+    assert [m.entity_id for m in config.topics()] == list(range(1, len(roles) + 1))
+    assert [m.direction for m in config.topics()] == \
+        ["in"] * 3 + ["out"] * 4  # inputs first
+    detections = config.inputs.detections
+    assert detections is not None
+    assert detections.classes["10"] == "a quadrotor on the red box"
+
+
+@pytest.mark.parametrize(("text", "names"), [
+    ("robot: r1\n", "maps no topic"),
+    ("inputs: {odometry: {topic: /odom, fram_id: map}}", "inputs.odometry.fram_id"),
+    ("inputs: {odometry: {topic: 'a//b'}}", "inputs.odometry.topic"),
+    ("inputs: {odometry: {topic: /odom, type: std_msgs/msg/String}}", "inputs.odometry.type"),
+    ("outputs: {setpoint: {topic: /sp, type: geometry_msgs/msg/Twist}}",
+     "outputs.setpoint.type"),
+    ("inputs: {odometry: {topic: /odom, type_hash: TypeHashNotSupported}}",
+     "inputs.odometry.type_hash"),
+    ("inputs: {detections: {topic: /d, classes: {'1': ''}}}", "inputs.detections.classes"),
+    ("domain_id: 300\ninputs: {odometry: {topic: /odom}}", "domain_id"),
+    ("robot: 'a b'\ninputs: {odometry: {topic: /odom}}", "robot"),
+    ("[1, 2]", "a mapping"),
+    ("inputs: {", "not YAML"),
+])
+def test_a_bad_config_names_what_is_wrong(text: str, names: str):
+    with pytest.raises(ConfigError, match=names.replace(".", r"\.")):
+        parse_config(text, "f.yaml")
+
+
+def test_a_type_hash_in_the_config_overrides_the_type_stores():
+    given = "RIHS01_" + "ab" * 32
+    config = parse_config(f"inputs: {{odometry: {{topic: odom, type_hash: {given}}}}}\n"
+                          "namespace: /robot1")
+    [odom] = config.topics()
+    assert odom.name == "/robot1/odom" and odom.settings.type_hash == given
+
+
+def test_keys_prints_data_keys_first_then_the_liveliness_tokens(
+        capsys: pytest.CaptureFixture[str]):
+    assert cli.main(["ros2", "keys", "--config", str(QUADROTOR)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    config = load_config(QUADROTOR)
+    n = len(list(config.topics()))
+    assert len(lines) == 2 * n + 1
+    odometry = "nav_msgs/msg/Odometry"
+    assert lines[0] == wire.data_key(0, "/mavros/local_position/odom", odometry,
+                                     convert.type_hash(odometry))
+    assert all(not line.startswith("@") for line in lines[:n])
+    assert lines[n] == "@ros2_lv/0/*/0/0/NN/%/%/aesop_bridge"
+    assert lines[n + 1].startswith("@ros2_lv/0/*/0/1/MS/%/%/aesop_bridge/"
+                                   "%mavros%local_position%odom/nav_msgs::msg::dds_::Odometry_/")
+    assert lines[-1].split("/")[5] == "MP"  # the last output
+
+
+def test_keys_with_a_bad_or_missing_config_is_a_usage_error(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("inputs: {odometry: {topic: /odom, typo: 1}}\n")
+    assert cli.main(["ros2", "keys", "--config", str(bad)]) == 2
+    assert "inputs.odometry.typo" in capsys.readouterr().err
+    assert cli.main(["ros2", "keys", "--config", str(tmp_path / "none.yaml")]) == 2
+    assert "cannot read" in capsys.readouterr().err
+
+
+def test_the_ros2_user_may_use_its_topics_and_its_robots_inputs_only():
+    config = load_config(QUADROTOR)
+    acl = stack_acl(["robot0"], config)
+    assert ROS2 in users_of(["robot0"], ros2=True) and ROS2 not in users_of(["robot0"])
+    [policy] = [p for p in acl["policies"] if p["id"] == ROS2]
+    rules = {r["id"]: r for r in acl["rules"] if r["id"] in policy["rules"]}
+    keys = ros_keys(config)
+    assert "0/mavros/local_position/odom/*/*" in keys
+    assert "0/mavros/local_position/odom/*/*/@adv/**" in keys  # advanced pub/sub
+    assert keys[-1] == "@ros2_lv/0/**"  # the graph
+    assert all(k.startswith(("0/", "@ros2_lv/0/")) for k in keys)  # its domain only
+    puts = rules["ros2-puts"]["key_exprs"]
+    assert set(puts) == {"aesop/robot0/observation", "aesop/robot0/vehicle/state",
+                         "aesop/robot0/event/ros2"}
+    assert rules["ros2-health"]["key_exprs"] == ["aesop/health/ros2"]
+    assert ROS2 not in {u for s in stack_acl(["robot0"])["subjects"] for u in s["usernames"]}
+
+
+def test_up_with_ros2_runs_the_bridge_instead_of_the_simulated_vehicle(tmp_path: Path):
+    options = StackOptions(data_dir=tmp_path, ports=Ports(1, 2, 3, 4, 5, 6, 7), rate_hz=5.0,
+                           python="py", ros2=QUADROTOR)
+    plan = plan_stack(options, {}, "t" * 24)
+    names = [s.name for s in plan.services]
+    assert names == ["fake-llm", "embedding", "reasoner", "ros2", "control", "dashboard"]
+    bridge = plan.services[3]
+    assert bridge.argv[-2:] == ("serve", "ros2") and bridge.port == 7  # the vehicle's port
+    assert bridge.env["AESOP_ROS2_CONFIG"] == str(QUADROTOR)
+    assert bridge.env["AESOP_ZENOH_USER"] == ROS2 and ROS2 in plan.passwords
+    assert plan.hub.argv[-2:] == ("--ros2", str(QUADROTOR))
+    other = tmp_path / "other.yaml"
+    other.write_text("robot: robot7\ninputs: {odometry: {topic: /odom}}\n")
+    with pytest.raises(ValueError, match="robot7"):
+        plan_stack(StackOptions(data_dir=tmp_path, ros2=other), {}, "t" * 24)
