@@ -97,9 +97,8 @@ class _Out:
 class Bridge:
     """The bridge between ``config``'s topics and the stack, on ``bus``'s session."""
 
-    def __init__(self, config: BridgeConfig, bus: Bus, metrics: BridgeMetrics,
-                 clock: Callable[[], float] = time.time) -> None:
-        self.config, self.bus, self.metrics, self.clock = config, bus, metrics, clock
+    def __init__(self, config: BridgeConfig, bus: Bus, metrics: BridgeMetrics) -> None:
+        self.config, self.bus, self.metrics = config, bus, metrics
         self.robot = config.robot
         self.zid = str(bus.session.zid())
         self.node = wire.Node(config.domain_id, self.zid, config.node, config.namespace)
@@ -124,6 +123,7 @@ class Bridge:
         self._requests: deque[ReasonerRequest] = deque(maxlen=REQUESTS_KEPT)
         self._thread: threading.Thread | None = None
         self.queue_dropped = 0
+        self._attitude: tuple[float, float, float, float] | None = None  # the newest odometry's
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -234,6 +234,7 @@ class Bridge:
             state = convert.vehicle_state(item.payload, robot=self.robot,
                                           seq=self._seq["state"], frame_id=settings.frame_id,
                                           frame=settings.frame)
+            self._attitude = state.attitude
             self._publish_stack(role, topics.vehicle_state(self.robot), state)
         elif role == "scene":
             text = convert.scene_text(item.payload)
@@ -262,8 +263,14 @@ class Bridge:
         message, outputs = item.message, self.config.outputs
         if item.role == "setpoint" and outputs.setpoint is not None:
             assert isinstance(message, VehicleSetpoint)
+            body = None
+            if outputs.setpoint.body:
+                if self._attitude is None:
+                    raise convert.BadSample("unsupported", "no odometry yet: no attitude to "
+                                                           "turn the set-point into the body")
+                body = self._attitude
             self._send("setpoint", convert.setpoint(message, outputs.setpoint.type,
-                                                    outputs.setpoint.frame_id))
+                                                    outputs.setpoint.frame_id, body))
         elif item.role == "mode":
             assert isinstance(message, ControlState)
             self._send_mode(message)
@@ -320,6 +327,10 @@ class Bridge:
             self._logged.add((role, reason))
             log.warning("ros2 bridge: dropped a sample on %s (%s); further ones for this "
                         "reason are only counted", name, detail, exc_info=trace)
+            self.bus.publish(topics.event(self.robot, SERVICE), Event(
+                robot=self.robot, source=SERVICE, kind="ros2_dropped", severity="warning",
+                message=f"dropped a sample on {name} ({detail}); further ones are counted "
+                        "on the bridge's /metrics", data={"topic": name, "reason": reason}))
 
 
 def _role(item: _In | _Out) -> str:

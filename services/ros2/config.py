@@ -119,6 +119,9 @@ class Inputs(_Strict):
 class SetpointOut(Topic):
     type: Literal["geometry_msgs/msg/AccelStamped", "geometry_msgs/msg/TwistStamped"] = ACCEL
     frame_id: str = Field(default="map", min_length=1, max_length=64)
+    # the vector in the vehicle's body frame (by the newest odometry's attitude), not the
+    # world's: for a base that takes cmd_vel in base_link (set frame_id to match)
+    body: bool = False
 
 
 class StringOut(Topic):

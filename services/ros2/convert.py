@@ -266,10 +266,12 @@ def observation(*, robot: str, seq: int, text: str | None,
 # --------------------------------------------------------------------------- out
 
 
-def setpoint(sp: VehicleSetpoint, ros_type: str, frame_id: str) -> bytes:
+def setpoint(sp: VehicleSetpoint, ros_type: str, frame_id: str,
+             body: tuple[float, float, float, float] | None = None) -> bytes:
     """A set-point as ``AccelStamped`` (its acceleration; a thrust/torque one has none:
     :class:`BadSample` ``unsupported``) or ``TwistStamped`` (the plan's velocity), stamped
-    ``sp.t`` on the vehicle's clock."""
+    ``sp.t`` on the vehicle's clock; in the world frame, or with ``body`` (the vehicle's
+    attitude) in its body frame (a ground robot's base takes ``cmd_vel`` there)."""
     types = typestore().types
     vector = types["geometry_msgs/msg/Vector3"]
     zero = vector(x=0.0, y=0.0, z=0.0)
@@ -277,15 +279,21 @@ def setpoint(sp: VehicleSetpoint, ros_type: str, frame_id: str) -> bytes:
         if sp.acceleration is None:
             raise BadSample("unsupported", "an AccelStamped set-point needs the point-mass "
                                            "model (the scene commands thrust and torques)")
-        ax, ay, az = sp.acceleration
-        msg = types[ACCEL](header=header(sp.t, frame_id), accel=types["geometry_msgs/msg/Accel"](
-            linear=vector(x=ax, y=ay, z=az), angular=zero))
+        value = sp.acceleration
     elif ros_type == TWIST:
-        vx, vy, vz = sp.velocity
-        msg = types[TWIST](header=header(sp.t, frame_id), twist=types["geometry_msgs/msg/Twist"](
-            linear=vector(x=vx, y=vy, z=vz), angular=zero))
+        value = sp.velocity
     else:
         raise BadSample("unsupported", f"no set-point as {ros_type}")
+    if body is not None:
+        w, x, y, z = body
+        value = rotate((w, -x, -y, -z), value)
+    linear = vector(x=value[0], y=value[1], z=value[2])
+    if ros_type == ACCEL:
+        msg = types[ACCEL](header=header(sp.t, frame_id), accel=types["geometry_msgs/msg/Accel"](
+            linear=linear, angular=zero))
+    else:
+        msg = types[TWIST](header=header(sp.t, frame_id), twist=types["geometry_msgs/msg/Twist"](
+            linear=linear, angular=zero))
     return serialize(msg, ros_type)
 
 

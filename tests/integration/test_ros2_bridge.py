@@ -18,6 +18,8 @@ import json
 import logging
 import math
 import secrets
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -122,6 +124,8 @@ def status(bridge: TestClient) -> dict[str, dict[str, Any]]:
 def test_bad_samples_are_dropped_counted_logged_once_and_the_next_good_one_passes(
         bridge: TestClient, stack: Bus, robot: Robot, caplog: pytest.LogCaptureFixture) -> None:
     states = stack.latest(topics.vehicle_state(ROBOT), VehicleState)
+    events: list[Event] = []
+    stack.each(topics.event(ROBOT, "ros2"), Event, lambda got: events.append(got.message))
     observations = stack.latest(topics.observation(ROBOT), Observation)
     good = odometry_cdr(state(1))
     wait_until(lambda: robot.put("odometry", good) or states.get() is not None,
@@ -158,6 +162,10 @@ def test_bad_samples_are_dropped_counted_logged_once_and_the_next_good_one_passe
     warned = [r.getMessage() for r in caplog.records if "dropped a sample" in r.getMessage()]
     assert len(warned) == 6  # once per topic and reason
     assert any("99" in w for w in warned) and any("no attachment" in w for w in warned)
+    wait_until(lambda: len(events) == 6, "an event per topic and reason")
+    assert {(e.data["topic"], e.data["reason"]) for e in events} >= {
+        ("/mavros/local_position/odom", "attachment"), ("/camera/detections", "unknown_class")}
+    assert {e.kind for e in events} == {"ros2_dropped"}
     metrics = bridge.get("/metrics").text
     assert 'aesop_ros2_dropped_total{reason="attachment",topic="/mavros/local_position/odom"}' \
         ' 2.0' in metrics
@@ -221,3 +229,21 @@ def test_ros_tools_see_the_bridges_node_and_endpoints(bridge: TestClient, robot:
 
     wait_until(lambda: graph() >= expected, "the bridge's liveliness tokens")
     assert f"{wire.LIVELINESS}/0/{zid}/0/0/NN/%/%/aesop_bridge" in seen
+
+
+def test_bench_ros2_reports_both_ways_and_loses_nothing() -> None:
+    """``aesop bench ros2 --json``, small: a real bridge process. Shape and consistency
+    only; the numbers are for docs/benchmarks.md."""
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "bench", "ros2", "--json",
+                        "--seconds", "1", "--rate", "50"], capture_output=True, text=True,
+                       timeout=120, stdin=subprocess.DEVNULL)
+    assert r.returncode == 0, r.stderr[-3000:]
+    result = json.loads(r.stdout)
+    for way in ("in", "out"):
+        stats = result[way]
+        assert stats["sent"] == 50 and stats["n"] + stats["lost"] == 50, stats
+        assert stats["lost"] == 0, stats  # loopback, 50 Hz: nothing may be lost
+        assert 0 <= stats["p50"] <= stats["p99"] <= stats["max"], stats
+    bad = subprocess.run([sys.executable, "-m", "tools.cli", "bench", "ros2", "--rate", "0"],
+                         capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+    assert bad.returncode == 2 and "--rate" in bad.stderr

@@ -16,6 +16,12 @@ from tools.stack.up import Ports, StackOptions, plan_stack
 QUADROTOR = Path(__file__).resolve().parents[2] / "deploy" / "ros2" / "quadrotor.yaml"
 
 
+@pytest.mark.parametrize("path", sorted(QUADROTOR.parent.glob("*.yaml")), ids=lambda p: p.name)
+def test_every_shipped_config_loads_and_maps_odometry(path: Path):
+    config = load_config(path)
+    assert any(m.ros_type == "nav_msgs/msg/Odometry" for m in config.topics())
+
+
 def test_the_shipped_quadrotor_config_maps_odometry_in_and_the_setpoint_out():
     config = load_config(QUADROTOR)
     roles = {m.role: m for m in config.topics()}

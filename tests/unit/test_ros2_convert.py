@@ -146,6 +146,12 @@ def test_a_setpoint_as_accel_stamped_and_as_twist_stamped():
         "geometry_msgs/msg/TwistStamped")
     v = twist.twist.linear
     assert (v.x, v.y, v.z) == (0.1, 0.2, 0.3) and twist.header.frame_id == "odom"
+    facing_y = quaternion_from_euler(0.0, 0.0, math.pi / 2)  # yaw 90 deg: body x is world y
+    in_body = convert.typestore().deserialize_cdr(
+        convert.setpoint(setpoint(velocity=(0.0, 0.4, 0.0)), "geometry_msgs/msg/TwistStamped",
+                         "base_link", body=facing_y), "geometry_msgs/msg/TwistStamped")
+    v = in_body.twist.linear
+    assert (v.x, v.y, v.z) == pytest.approx((0.4, 0.0, 0.0), abs=1e-12)  # straight ahead
     motors = setpoint(acceleration=None, thrust=9.8, torque=(0.0, 0.0, 0.0))
     with pytest.raises(convert.BadSample) as err:
         convert.setpoint(motors, "geometry_msgs/msg/AccelStamped", "map")

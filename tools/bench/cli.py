@@ -1,5 +1,5 @@
-"""``aesop bench detector|reasoner|mpc|closed-loop|loop|bus|fairness``: the benchmarks, as tables or
-one JSON object (``--json``). They need the ``bench`` extra."""
+"""``aesop bench detector|reasoner|mpc|closed-loop|loop|bus|fairness|ros2``: the benchmarks, as
+tables or one JSON object (``--json``). They need the ``bench`` extra."""
 
 from __future__ import annotations
 
@@ -119,6 +119,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     _model_option(bf)
     bf.add_argument("--json", action="store_true")
     bf.set_defaults(func=cmd_bench_fairness)
+    br = bsub.add_parser("ros2", help="the ROS 2 bridge's latency both ways (aesop serve ros2 "
+                         "as a process, this one playing the robot and the stack)")
+    br.add_argument("--seconds", type=float, default=20.0, help="each way (default 20)")
+    br.add_argument("--rate", type=float, default=100.0,
+                    help="samples per second (100: odometry's usual rate)")
+    br.add_argument("--json", action="store_true")
+    br.set_defaults(func=cmd_bench_ros2)
     bench.set_defaults(needs_bench_extra=True)
 
 
@@ -276,6 +283,15 @@ def cmd_bench_fairness(args: argparse.Namespace) -> int:
     return _with_processes("fairness", lambda: run_fairness_bench(
         seconds=args.seconds, rate_hz=args.rate, flood_hz=args.flood_hz, direct=args.direct,
         model=args.model, table_out=not args.json), args.json)
+
+
+def cmd_bench_ros2(args: argparse.Namespace) -> int:
+    from tools.bench.ros2 import run_ros2_bench
+
+    if not (args.seconds > 0 and args.rate > 0):
+        raise CliError("--seconds and --rate must be positive")
+    return _with_processes("ros2", lambda: run_ros2_bench(
+        seconds=args.seconds, rate_hz=args.rate, table_out=not args.json), args.json)
 
 
 def _with_processes(name: str, run: Callable[[], dict[str, Any]], as_json: bool) -> int:
