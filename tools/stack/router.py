@@ -77,6 +77,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"hub: cannot listen on {args.listen}: {exc}", file=sys.stderr)
         return 2
     guard = (f"users from {args.users}, access control for robots {', '.join(args.robot)}"
+             + (f" and the ROS 2 topics of {args.ros2}" if ros2 is not None else "")
              if args.users else "no authentication")
     print(f"zenoh router {session.zid()} listening on {args.listen} ({guard}; messages "
           f"up to {args.max_message_bytes} bytes)", file=sys.stderr, flush=True)
