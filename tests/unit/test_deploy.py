@@ -625,17 +625,20 @@ def test_the_ros2_user_uses_only_its_mapped_ros_topics_and_its_robots_inputs(
     with Bus.open(settings, BRIDGE) as bridge, zenoh.open(zenoh_config(robot)) as node:
         for key in [wire.topic_keys(0, odom.name), *refused]:  # the refused: not declared
             bridge.session.declare_subscriber(key, lambda s: got.append(str(s.key_expr)))
-        tokens: list[str] = []
-        bridge.session.liveliness().declare_subscriber(
-            f"{wire.LIVELINESS}/0/**", lambda s: tokens.append(str(s.key_expr)), history=True)
         token = wire.Node(0, str(node.zid()), "talker").token()
-        node.liveliness().declare_token(token)
+
+        def graph() -> set[str]:  # as `ros2 node list` starts: a liveliness query
+            replies = bridge.session.liveliness().get(f"{wire.LIVELINESS}/0/**", timeout=2.0)
+            return {str(r.ok.key_expr) for r in replies if r.ok is not None}
+
+        alive = node.liveliness().declare_token(token)  # kept: dropping it undeclares it
         wait_until(lambda: node.put(ok, b"x") or ok in got, "the mapped topic, through")
         for key in [*refused, other_type]:  # sent first: they would arrive first
             node.put(key, b"x")
         node.put(ok, b"last")
         wait_until(lambda: got.count(ok) >= 2, "the last sample")
-        wait_until(lambda: token in tokens, "the ROS node's liveliness token")
+        wait_until(lambda: token in graph(), "the ROS node's liveliness token")
+        alive.undeclare()
         wait_until(lambda: other_type in got, "a mapped topic's sample of another type")
         assert not set(refused) & set(got)
         tap = stack["dashboard"][1]
