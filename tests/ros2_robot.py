@@ -98,7 +98,7 @@ def string_cdr(text: str) -> bytes:
 
 class RosRobot:
     """Flies ``scene``'s vehicle from ``x0`` and shows ``demo``'s camera, over ``config``'s
-    topics, as a client of the router ``settings`` name (the ``ros2`` user)."""
+    topics, joining the router as ``settings`` say (as the robot's nodes would: ``ros2``)."""
 
     def __init__(self, settings: BusSettings, config: BridgeConfig, scene: Scenario,
                  demo: DemoScenario, x0: np.ndarray) -> None:
@@ -128,19 +128,15 @@ class RosRobot:
         return wire.data_key(self.config.domain_id, m.name, m.ros_type,
                              convert.type_hash(m.ros_type))
 
-    def put(self, role: str, payload: bytes, *, key: str | None = None,
-            attachment: bytes | None | bool = True) -> None:
-        """``payload`` on ``role``'s data key (or ``key``) with the attachment rmw_zenoh
-        writes (``attachment``: False for none, bytes for those)."""
-        key = key or self.key(role)
+    def put(self, role: str, payload: bytes) -> None:
+        """``payload`` on ``role``'s data key with the attachment rmw_zenoh writes."""
+        key = self.key(role)
         if key not in self._publishers:
             self._publishers[key] = self.session.declare_publisher(key)
         self._seq[role] = self._seq.get(role, 0) + 1
-        if attachment is True:
-            attachment = wire.Attachment(self._seq[role], time.time_ns(),
-                                         wire.gid(self.zid, self.mapped[role].entity_id)
-                                         ).encode()
-        self._publishers[key].put(payload, attachment=attachment or None)
+        attachment = wire.Attachment(self._seq[role], time.time_ns(),
+                                     wire.gid(self.zid, self.mapped[role].entity_id))
+        self._publishers[key].put(payload, attachment=attachment.encode())
 
     # ------------------------------------------------------------------ running
 
