@@ -34,7 +34,7 @@ def key_lines(config) -> list[str]:
     from services.ros2 import convert, wire
 
     mapped = list(config.topics())
-    hashes = [m.settings.type_hash or convert.type_hash(m.ros_type) for m in mapped]
+    hashes = [convert.topic_hash(m) for m in mapped]
     node = wire.Node(config.domain_id, "*", config.node, config.namespace)
     lines = [wire.data_key(config.domain_id, m.name, m.ros_type, h)
              for m, h in zip(mapped, hashes, strict=True)]

@@ -103,8 +103,7 @@ class Bridge:
         self.zid = str(bus.session.zid())
         self.node = wire.Node(config.domain_id, self.zid, config.node, config.namespace)
         self.mapped = {m.role: m for m in config.topics()}
-        self.hashes = {m.role: m.settings.type_hash or convert.type_hash(m.ros_type)
-                       for m in self.mapped.values()}
+        self.hashes = {m.role: convert.topic_hash(m) for m in self.mapped.values()}
         self.keys = {role: wire.data_key(config.domain_id, m.name, m.ros_type,
                                          self.hashes[role]) for role, m in self.mapped.items()}
         self.status = {role: TopicStatus(role, m.direction, m.name, m.ros_type, self.keys[role])

@@ -27,7 +27,7 @@ from rosbags.typesys.store import Typestore
 from shared.frames import rotate
 from shared.messages import MAX_DETECTIONS, Detection, Observation, VehicleSetpoint, VehicleState
 
-from .config import ACCEL, DETECTIONS, ODOMETRY, STRING, TWIST, DetectionsIn
+from .config import ACCEL, DETECTIONS, ODOMETRY, STRING, TWIST, DetectionsIn, Mapped
 
 # why a sample was dropped: in (the first eight), out (the set-point cannot be written as
 # the configured type), or a fault of the bridge's own (logged with its traceback)
@@ -73,6 +73,11 @@ def typestore() -> Typestore:
 def type_hash(ros_type: str) -> str:
     """The RIHS01 hash of ``ros_type`` (as ``ros2 topic info -v`` prints it)."""
     return str(typestore().hash_rihs01(ros_type))
+
+
+def topic_hash(mapped: Mapped) -> str:
+    """A mapped topic's hash: the config's, else its type's."""
+    return mapped.settings.type_hash or type_hash(mapped.ros_type)
 
 
 def serialize(msg: Any, ros_type: str) -> bytes:
@@ -273,28 +278,21 @@ def setpoint(sp: VehicleSetpoint, ros_type: str, frame_id: str,
     ``sp.t`` on the vehicle's clock; in the world frame, or with ``body`` (the vehicle's
     attitude) in its body frame (a ground robot's base takes ``cmd_vel`` there)."""
     types = typestore().types
-    vector = types["geometry_msgs/msg/Vector3"]
-    zero = vector(x=0.0, y=0.0, z=0.0)
     if ros_type == ACCEL:
         if sp.acceleration is None:
             raise BadSample("unsupported", "an AccelStamped set-point needs the point-mass "
                                            "model (the scene commands thrust and torques)")
-        value = sp.acceleration
+        value, field, inner = sp.acceleration, "accel", "geometry_msgs/msg/Accel"
     elif ros_type == TWIST:
-        value = sp.velocity
+        value, field, inner = sp.velocity, "twist", "geometry_msgs/msg/Twist"
     else:
         raise BadSample("unsupported", f"no set-point as {ros_type}")
     if body is not None:
         w, x, y, z = body
         value = rotate((w, -x, -y, -z), value)
-    linear = vector(x=value[0], y=value[1], z=value[2])
-    if ros_type == ACCEL:
-        msg = types[ACCEL](header=header(sp.t, frame_id), accel=types["geometry_msgs/msg/Accel"](
-            linear=linear, angular=zero))
-    else:
-        msg = types[TWIST](header=header(sp.t, frame_id), twist=types["geometry_msgs/msg/Twist"](
-            linear=linear, angular=zero))
-    return serialize(msg, ros_type)
+    vector = types["geometry_msgs/msg/Vector3"]
+    both = types[inner](linear=vector(*value), angular=vector(0.0, 0.0, 0.0))
+    return serialize(types[ros_type](header=header(sp.t, frame_id), **{field: both}), ros_type)
 
 
 def string(data: Mapping[str, Any]) -> bytes:

@@ -200,10 +200,3 @@ def _parse_keyed(raw: bytes) -> Attachment:
     assert isinstance(seq, int) and isinstance(stamp, int)
     return Attachment(seq, stamp, source)
 
-
-def keyed_attachment(att: Attachment) -> bytes:
-    """The 0.2.0-0.2.3 form of ``att`` (what those releases wrote; for tests)."""
-    seq, stamp, source = _KEYED_NAMES
-    return (bytes([len(seq)]) + seq + struct.pack("<q", att.sequence_number)
-            + bytes([len(stamp)]) + stamp + struct.pack("<q", att.source_timestamp_ns)
-            + bytes([len(source)]) + source + bytes([len(att.gid)]) + att.gid)

@@ -46,8 +46,8 @@ from shared.messages import (
     VehicleState,
 )
 from shared.settings import BusSettings
-from tests.ros2_robot import detections_cdr, odometry_cdr, string_cdr
 from tests.zenoh_peers import endpoint, wait_until  # noqa: F401  (a fixture)
+from tools.fakes.ros2 import detections_cdr, odometry_cdr, string_cdr
 
 QUADROTOR = Path(__file__).resolve().parents[2] / "deploy" / "ros2" / "quadrotor.yaml"
 CONFIG = load_config(QUADROTOR)

@@ -25,7 +25,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import psutil
 import zenoh
 
@@ -36,7 +35,9 @@ from shared.messages import Mode, VehicleSetpoint, VehicleState
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
 from shared.tables import table
+from tools.bench.bus import BenchError
 from tools.bench.fairness import spread
+from tools.fakes.ros2 import odometry_cdr
 
 ROBOT = "robot0"
 ODOMETRY, SETPOINT = "/bench/odom", "/bench/accel"
@@ -46,23 +47,6 @@ outputs: {{setpoint: {{topic: {SETPOINT}, type: geometry_msgs/msg/AccelStamped}}
 """
 SETTLE_S = 10.0  # after the last sample, the most a late one is waited for (then: lost)
 WAIT_S = 30.0
-
-
-def odometry(stamp: float) -> bytes:
-    types = convert.typestore().types
-    v3, zero36 = types["geometry_msgs/msg/Vector3"], [0.0] * 36
-    msg = types["nav_msgs/msg/Odometry"](
-        header=convert.header(stamp, "map"), child_frame_id="base_link",
-        pose=types["geometry_msgs/msg/PoseWithCovariance"](
-            pose=types["geometry_msgs/msg/Pose"](
-                position=types["geometry_msgs/msg/Point"](1.0, 2.0, 3.0),
-                orientation=types["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.0, 1.0)),
-            covariance=np.array(zero36)),
-        twist=types["geometry_msgs/msg/TwistWithCovariance"](
-            twist=types["geometry_msgs/msg/Twist"](linear=v3(0.5, 0.0, 0.0),
-                                                    angular=v3(0.0, 0.0, 0.0)),
-            covariance=np.array(zero36)))
-    return convert.serialize(msg, "nav_msgs/msg/Odometry")
 
 
 class Timed:
@@ -145,7 +129,9 @@ def run_ros2_bench(*, seconds: float, rate_hz: float, table_out: bool) -> dict[s
 
             def put_odometry(i: int) -> None:
                 stamp = 1000.0 + i * 0.001  # its tag: a whole number of ms
-                payload = odometry(stamp)
+                payload = odometry_cdr(VehicleState(robot=ROBOT, seq=i, stamp=stamp,
+                                                    position=(1.0, 2.0, 3.0),
+                                                    velocity=(0.5, 0.0, 0.0)))
                 ins.sent[round(stamp * 1000)] = time.monotonic()
                 publisher.put(payload, attachment=wire.Attachment(
                     i + 1, time.time_ns(), gid).encode())
@@ -177,8 +163,6 @@ def _wait_through(put: Any, timed: Timed) -> None:
     i = 1_000_000  # tags of their own
     while not timed.arrived:
         if time.monotonic() > deadline:
-            from tools.bench.bus import BenchError
-
             raise BenchError("the bridge passed no odometry on")
         put(i)
         i += 1

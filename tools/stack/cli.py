@@ -116,12 +116,7 @@ def stack_options(args: argparse.Namespace, data_dir: Path):
     rate = None if control.rate_hz is not None else 1.0 / scenario.dt
     ros2 = getattr(args, "ros2", None)
     if ros2 is not None:
-        from shared.settings import BusSettings
-
-        mapped, robot = ros2_config(ros2).robot, BusSettings().robot  # a bad file stops here
-        if mapped != robot:
-            raise CliError(f"--ros2 {ros2} maps the topics of robot {mapped!r}, the stack "
-                           f"serves {robot!r} (AESOP_ROBOT)")
+        ros2_config(ros2)  # a bad file stops here, naming the field
         ros2 = ros2.resolve()
     return StackOptions(data_dir=data_dir, ports=ports, scenario=scenario_path.resolve(),
                         rate_hz=rate, dashboard=dashboard, local_model=local_model(args),
@@ -129,6 +124,9 @@ def stack_options(args: argparse.Namespace, data_dir: Path):
 
 
 def cmd_up(args: argparse.Namespace) -> int:
-    from tools.stack.up import run_up
+    from tools.stack.up import PlanError, run_up
 
-    return run_up(stack_options(args, args.data_dir.resolve()), os.environ)
+    try:
+        return run_up(stack_options(args, args.data_dir.resolve()), os.environ)
+    except PlanError as exc:
+        raise CliError(str(exc)) from None

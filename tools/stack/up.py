@@ -110,6 +110,10 @@ class Ports:
         return out
 
 
+class PlanError(ValueError):
+    """Options that contradict each other or the environment (the message says how)."""
+
+
 @dataclass(frozen=True)
 class StackOptions:
     data_dir: Path
@@ -176,7 +180,7 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
                               "zenoh_config": None, "admin_token": given or token}
     robot = read_settings(BusSettings, environ).robot
     if options.ros2 is not None and (mapped := load_config(options.ros2).robot) != robot:
-        raise ValueError(f"{options.ros2} maps the topics of robot {mapped!r}, the stack "
+        raise PlanError(f"{options.ros2} maps the topics of robot {mapped!r}, the stack "
                          f"serves {robot!r} (AESOP_ROBOT)")
     secret = passwords(users_of([robot], ros2=options.ros2 is not None))
 
