@@ -16,13 +16,22 @@ from prometheus_client import CollectorRegistry
 from shared.http import error_response, service_app
 
 from .embedders import EmbedderError
-from .errors import Busy, Conflict, DetectorError, InvalidInput, NotCalibrated, NotFound
+from .errors import (
+    Busy,
+    Conflict,
+    DetectorError,
+    InvalidInput,
+    NotCalibrated,
+    NotFound,
+    StorageCorrupt,
+    StorageError,
+    StorageFull,
+)
 from .metrics import EmbeddingMetrics
 from .routes import router
 from .scoring import ScoringError
 from .service import CacheService
 from .settings import EmbeddingSettings
-from .store import StorageCorrupt, StorageError, StorageFull
 
 log = logging.getLogger(__name__)
 

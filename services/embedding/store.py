@@ -7,13 +7,8 @@ and the history of its versions. A write is one transaction; the service answers
 fails (a full disk: ``StorageFull``) is rolled back whole, in the file and in
 memory alike.
 
-A cache's FAISS index is derived data, saved now and then to
-``<data_dir>/indexes/<cache>/v<version>.faiss`` (and its HNSW graph, once built,
-to ``v<version>.hnsw``), written to a temporary file, fsync'd and renamed. On
-open, a file at the cache's version is loaded as it is (an HNSW graph over a
-million vectors is not rebuilt); an older one is loaded and caught up from the
-database; with none, or one that does not fit, the index is built from the
-stored vectors. A failed index save loses nothing.
+A cache's FAISS index is derived data, saved now and then to index files
+(:mod:`.indexfiles`) and caught up from the database on open.
 
 Schema (``PRAGMA user_version`` = 3; a database of another version is refused, naming
 it)::
@@ -70,14 +65,15 @@ from .cache import (
     Op,
 )
 from .calibration import Calibration
+from .errors import StorageCorrupt, StorageError, StorageFull
 from .index import VectorIndex
+from .indexfiles import IndexFiles
 from .proposals import Proposal
 
 log = logging.getLogger(__name__)
 
 DB_NAME = "embedding.sqlite3"
 LOCK_NAME = "embedding.lock"
-INDEX_DIR = "indexes"
 SCHEMA_VERSION = 3
 
 _SCHEMA = """
@@ -112,22 +108,6 @@ CREATE TABLE proposals (
 """
 
 
-class StorageError(Exception):
-    """A write that did not happen (rolled back), or a lock held by another process."""
-
-
-class StorageFull(StorageError):
-    """The disk (or the database's size limit) is full; the write was rolled back."""
-
-
-class StorageCorrupt(StorageError):
-    """A file that cannot be trusted; it is left as it is for inspection."""
-
-    def __init__(self, path: Path, detail: str) -> None:
-        super().__init__(f"{path}: {detail}")
-        self.path = path
-
-
 class Store:
     """The service's database and index files under ``data_dir``.
 
@@ -144,6 +124,7 @@ class Store:
         self.root.chmod(0o700)  # the service's alone, an existing directory too
         self.path = self.root / DB_NAME
         self._fsync = fsync
+        self.indexes = IndexFiles(self.root, fsync=fsync)
         self._max_bytes = max_bytes
         self._mutex = threading.Lock()
         self._lock_fd = _take_lock(self.root / LOCK_NAME)
@@ -234,25 +215,9 @@ class Store:
 
     def _index(self, header: Header, labels: set[int]) -> VectorIndex:
         config = header.config
-        for version, vectors, graph in self._index_files(config.name):
-            if version > header.version:
-                continue
-            try:
-                index = VectorIndex.read(config.dim, config.index, vectors,
-                                         graph if graph.exists() else None)
-                if version < header.version:
-                    self._catch_up(index, config, version)
-                if set(index.labels().tolist()) != labels:
-                    raise ValueError("its labels differ from the stored experiences")
-            except (RuntimeError, ValueError) as exc:
-                log.warning("cache %s: not using %s (%s)", config.name, vectors, exc)
-                continue
-            log.info("cache %s: index loaded from %s%s", config.name, vectors.name,
-                     f", caught up from version {version}" if version < header.version else "")
-            return index
-        index = VectorIndex(config.dim, config.index)
-        self._add_stored(index, config, "")
-        return index
+        return self.indexes.restore(
+            header, labels, lambda index, since: self._catch_up(index, config, since),
+            lambda index: self._add_stored(index, config, ""))
 
     def _catch_up(self, index: VectorIndex, config: CacheConfig, since: int) -> None:
         """Bring an index saved at version ``since`` to the stored experiences."""
@@ -327,67 +292,11 @@ class Store:
     # -- index files -------------------------------------------------------------
 
     def save_index(self, cache: Cache) -> Path:
-        """Write ``cache``'s index as of its version; older files are removed after.
-        The caller keeps the cache from changing meanwhile. Raises StorageError."""
-        name, version = cache.name, cache.version
-        directory = self.root / INDEX_DIR / name
-        vectors, graph = _index_paths(directory, version)
-        tmp_vectors, tmp_graph = (p.with_name(p.name + ".tmp") for p in (vectors, graph))
-        try:
-            directory.mkdir(mode=0o700, parents=True, exist_ok=True)
-            for folder in (directory.parent, directory):
-                folder.chmod(0o700)
-            with_graph = cache.index.write(tmp_vectors, tmp_graph)
-            for tmp, final in [(tmp_vectors, vectors)] + ([(tmp_graph, graph)] * with_graph):
-                tmp.chmod(0o600)
-                self._sync_file(tmp)
-                os.replace(tmp, final)
-            self._sync_dir(directory)
-        except (OSError, RuntimeError) as exc:
-            for tmp in (tmp_vectors, tmp_graph):
-                with contextlib.suppress(OSError):
-                    tmp.unlink(missing_ok=True)
-            raise StorageError(f"{vectors}: index not saved ({exc}); the database has it all"
-                               ) from exc
-        for old, old_vectors, old_graph in self._index_files(name):
-            if old != version:
-                old_vectors.unlink(missing_ok=True)
-                old_graph.unlink(missing_ok=True)
-        return vectors
+        """Write ``cache``'s index file (:mod:`.indexfiles`). Raises StorageError."""
+        return self.indexes.save(cache)
 
     def saved_index(self, name: str) -> tuple[int, bool] | None:
-        """(version, has the HNSW graph) of the newest index file of ``name``, if any."""
-        files = self._index_files(name)
-        return None if not files else (files[0][0], files[0][2].exists())
-
-    def _index_files(self, name: str) -> list[tuple[int, Path, Path]]:
-        """(version, vectors file, graph file) of the saved indexes, newest first."""
-        directory = self.root / INDEX_DIR / name
-        if not directory.is_dir():
-            return []
-        found = []
-        for path in directory.glob("v*.faiss"):
-            if path.stem[1:].isdigit():
-                found.append((int(path.stem[1:]), *_index_paths(directory, int(path.stem[1:]))))
-        for leftover in directory.glob("*.tmp"):
-            leftover.unlink(missing_ok=True)
-        return sorted(found, reverse=True)
-
-    def _sync_file(self, path: Path) -> None:
-        if self._fsync:
-            fd = os.open(path, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-
-    def _sync_dir(self, directory: Path) -> None:
-        if self._fsync:
-            fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
+        return self.indexes.saved(name)
 
     # -- lifecycle -----------------------------------------------------------------
 
@@ -408,10 +317,6 @@ class Store:
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
         self.close()
-
-
-def _index_paths(directory: Path, version: int) -> tuple[Path, Path]:
-    return directory / f"v{version}.faiss", directory / f"v{version}.hnsw"
 
 
 def _header_row(header: Header) -> tuple[str, int, int, str | None, int]:

@@ -15,7 +15,7 @@ from services.embedding.schemas import CacheInfo
 from services.embedding.store import DB_NAME, StorageCorrupt, StorageError, StorageFull, Store
 from shared.messages import Detection
 
-LOGGER = "services.embedding.store"
+LOGGER = "services.embedding"  # the store and its index files (.indexfiles)
 
 
 def vectors(n: int, dim: int = 4, seed: int = 0) -> np.ndarray:

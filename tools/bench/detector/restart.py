@@ -26,7 +26,8 @@ def bench_restart(sizes: Sizes, seed: int) -> dict[str, Any]:
     commit it, build its graph, save its index, and open it again with the index file
     (loaded, graph included) and without it (built from the stored vectors)."""
     from services.embedding.cache import Cache, CacheConfig
-    from services.embedding.store import INDEX_DIR, Store
+    from services.embedding.indexfiles import INDEX_DIR
+    from services.embedding.store import Store
 
     n, dim, batch = sizes.restart_cache, 384, 50_000
     x = np.random.default_rng(seed).standard_normal((n, dim)).astype(np.float32)
