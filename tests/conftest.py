@@ -1,3 +1,4 @@
-"""Fixtures shared by the suites: two real Zenoh peers on loopback (tests/zenoh_peers.py)."""
+"""Fixtures shared by the suites: two real Zenoh peers on loopback (tests/zenoh_peers.py), a
+real PostgreSQL server (tests/postgres.py)."""
 
-pytest_plugins = ("tests.zenoh_peers",)
+pytest_plugins = ("tests.zenoh_peers", "tests.postgres")

@@ -50,7 +50,8 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
-        svc = service or CacheService(settings, on_batch=lambda n: metrics.batch_size.observe(n))
+        svc = service or CacheService(settings, on_batch=lambda n: metrics.batch_size.observe(n),
+                                      on_follow=lambda s: metrics.follow_lag.observe(s))
         app.state.service = svc
         metrics.service = svc
         try:

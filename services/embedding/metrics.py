@@ -19,6 +19,10 @@ class EmbeddingMetrics:
         self.batch_size = Histogram(
             "aesop_embedding_batch_size", "Texts per micro-batched embedding call",
             registry=registry, buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256))
+        self.follow_lag = Histogram(
+            "aesop_embedding_follow_lag_seconds", "With a shared store: from another "
+            "replica's commit to its change applied here",
+            registry=registry, buckets=(.005, .01, .025, .05, .1, .25, .5, 1, 2.5, 5, 10))
         self.verdicts = Counter("aesop_embedding_verdicts", "Anomaly verdicts published",
                                 ["anomaly"], registry=registry)
         self.bus_rejected = Counter(

@@ -119,7 +119,7 @@ class Review:
                          "request_id": proposal.request_id, "model": proposal.model}})
         vectors = await self.caches.vectors_for(config, [item], None)
         found = await self.caches.new_phrases(entry, item.detections)
-        async with entry.writer:
+        async with self.caches.writing(entry):
             proposal = self._pending(entry, ident).decided("accepted", now)
             op = entry.cache.plan_add(vectors, ids=[ident], texts=[item.text],
                                       metadata=[item.metadata], detections=[item.detections],
@@ -132,7 +132,7 @@ class Review:
         adapt = self.settings.adapt
         if adapt.recalibrate != "window":
             return
-        async with entry.writer:
+        async with self.caches.writing(entry):
             op = await asyncio.to_thread(self._planned, entry, adapt.window)
             if op is not None:
                 await self.caches.commit(entry, op)

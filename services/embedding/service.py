@@ -11,8 +11,9 @@ from __future__ import annotations
 import asyncio
 import logging
 import re
-from collections.abc import Callable, Sequence
-from functools import partial
+import time
+from collections.abc import AsyncIterator, Callable, Sequence
+from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any
 
@@ -27,9 +28,11 @@ from .cache import Add, Cache, CacheConfig, Delete, Labelled, Op, ScoreKind, uni
 from .calibration import Method, roc_curve
 from .detections import embedded_form, floats
 from .entries import Entry, Item, on_fresh_thread
-from .errors import Conflict, InvalidInput, NotFound
+from .errors import Behind, Conflict, InvalidInput, NotFound
+from .follow import Follower
 from .index import IndexKind
 from .loading import EmbedderPool
+from .pgstore import PostgresStore
 from .policy import Components, Evidence
 from .proposals import Policy, Proposal
 from .review import Review
@@ -57,7 +60,10 @@ class CacheService:
         settings: EmbeddingSettings,
         embedders: EmbedderPool | None = None,
         on_batch: Callable[[int], None] | None = None,
+        on_follow: Callable[[float], None] | None = None,
     ) -> None:
+        """``on_batch``: each embedding batch's size; ``on_follow``: with a shared store,
+        each change of another replica's as it is applied here, with its age (s)."""
         self.settings = settings
         self.embedders = embedders or EmbedderPool(
             openai_base_url=settings.openai_base_url,
@@ -71,13 +77,15 @@ class CacheService:
         self._entries: dict[str, Entry] = {}
         self._create_lock = asyncio.Lock()
         self._thread = ComputeThread()
-        self._store: Store | None = None
+        self._store: Store | PostgresStore | None = None
+        self._on_follow = on_follow
+        self._follower: Follower | None = None
         self.scorer = Scorer(settings, self.embedders, self.entry, self._thread.lane(NORMAL),
                              self._thread.lane(URGENT), on_batch)
         self.review = Review(self)
 
     @property
-    def store(self) -> Store:
+    def store(self) -> Store | PostgresStore:
         if self._store is None:
             raise RuntimeError("the cache service is not started")
         return self._store
@@ -86,16 +94,24 @@ class CacheService:
 
     async def start(self) -> None:
         """Open the database and load every cache (raises StorageCorrupt naming a file)."""
-        self._store = await asyncio.to_thread(
-            partial(Store, Path(self.settings.data_dir), fsync=self.settings.fsync,
-                    max_bytes=self.settings.max_db_bytes))
-        for name in self.store.names():
-            cache = await asyncio.to_thread(self.store.load, name)
-            self._entries[name] = Entry(cache, saved=self.store.saved_index(name), proposals={
-                p.id: p for p in await asyncio.to_thread(self.store.proposals, name)})
-            log.info("cache %s: %d experiences, version %d", name, cache.size, cache.version)
+        self._store = await asyncio.to_thread(open_store, self.settings)
+        for name in await asyncio.to_thread(self.store.names):
+            await self._load(name)
+        if self.store.shared:
+            self._follower = Follower(self, poll_s=self.settings.follow_poll_s)
+            self._follower.start()
+
+    async def _load(self, name: str) -> Entry:
+        cache = await asyncio.to_thread(self.store.load, name)
+        entry = self._entries[name] = Entry(
+            cache, saved=self.store.saved_index(name),
+            proposals={p.id: p for p in await asyncio.to_thread(self.store.proposals, name)})
+        log.info("cache %s: %d experiences, version %d", name, cache.size, cache.version)
+        return entry
 
     async def close(self) -> None:
+        if self._follower is not None:
+            await self._follower.stop()
         for entry in self._entries.values():
             await self.scorer.close(entry)
             async with entry.writer:
@@ -174,7 +190,12 @@ class CacheService:
                 raise InvalidInput("a cache without a model needs 'dim'", field="dim")
             config = CacheConfig(name, model, int(dim), k, score, index,
                                  proposals=proposals or "review")
-            entry = await asyncio.to_thread(self._create_entry, config)
+            try:
+                entry = await asyncio.to_thread(self._create_entry, config)
+            except Behind:  # another replica created it meanwhile
+                await self._load(name)
+                return await self._reconcile(name, model=model, k=k, score=score,
+                                             proposals=proposals), False
             self._entries[name] = entry
             return CacheInfo.of(entry.cache), True
 
@@ -191,7 +212,7 @@ class CacheService:
             if resolved != pinned:
                 raise Conflict(f"cache {name!r} is pinned to model {pinned!r}; create another "
                                f"cache for {resolved!r}", field="model")
-        async with entry.writer:
+        async with self.writing(entry):
             op = entry.cache.plan_configure(k=k, score=score, proposals=proposals)
             if op is not None:
                 await self.commit(entry, op)
@@ -204,7 +225,7 @@ class CacheService:
         config = entry.cache.config
         vectors = await self.vectors_for(config, items, job)
         found = await self.new_phrases(entry, [d for it in items for d in it.detections])
-        async with entry.writer:
+        async with self.writing(entry):
             op = entry.cache.plan_add(
                 vectors, ids=[it.id for it in items], texts=[it.text for it in items],
                 metadata=[it.metadata for it in items],
@@ -259,7 +280,7 @@ class CacheService:
 
     async def delete(self, name: str, ident: str) -> Deleted:
         entry = self.entry(name)
-        async with entry.writer:
+        async with self.writing(entry):
             await self.commit(entry, entry.cache.plan_delete(ident))
             return Deleted(id=ident, size=entry.cache.size, version=entry.cache.version)
 
@@ -278,7 +299,7 @@ class CacheService:
         curve (at most 201 points). ``pairs``: keep pair scores too (:mod:`.detections`)."""
         entry = self.entry(name)
         policy.check(method, pairs)
-        async with entry.writer:
+        async with self.writing(entry):
             if pairs and not entry.cache.pair_counts:
                 raise Conflict(f"cache {name!r} has no experience with two or more "
                                "detections: it has no pair to score against", field="pairs")
@@ -312,16 +333,104 @@ class CacheService:
                 cache.loo_detection_scores() if cache.has_detections else np.zeros(0),
                 cache.loo_pair_scores() if pairs else None)
 
+    @asynccontextmanager
+    async def writing(self, entry: Entry) -> AsyncIterator[None]:
+        """Hold the cache's writer lock; with a shared store, the cache is first caught up
+        with the other replicas' writes, so what is planned here is planned on the newest."""
+        async with entry.writer:
+            if self.store.shared:
+                await self._catch_up(entry)
+            yield
+
     async def commit(self, entry: Entry, op: Op, proposal: Proposal | None = None) -> None:
         """Commit ``op`` (with the ``proposal`` it accepts) to the database, then apply
-        it: a 2xx after this is durable."""
+        it: a 2xx after this is durable. Under :meth:`writing`. ``Behind`` (another
+        replica wrote first: nothing was written) after catching up with it."""
         cache = entry.cache
-        await asyncio.to_thread(self.store.commit, cache.name, op, cache.header.after(op),
-                                proposal)
+        try:
+            await asyncio.to_thread(self.store.commit, cache.name, op, cache.header.after(op),
+                                    proposal)
+        except Behind:
+            await self._catch_up(entry)
+            raise
         with entry.rw.write():
             cache.apply(op)
-        if isinstance(op, Add | Delete):
-            entry.changed += len(op.labels) if isinstance(op, Add) else 1
+        self._changed(entry, op)
         limit = self.settings.tuning.index_save_changes
         if limit and entry.changed >= limit:
             await asyncio.to_thread(self._save_index, entry)
+
+    def _changed(self, entry: Entry, op: Op) -> None:
+        if isinstance(op, Add | Delete):
+            entry.changed += len(op.labels) if isinstance(op, Add) else 1
+
+    # -- following the other replicas (a shared store) -----------------------------
+
+    async def follow(self, name: str) -> None:
+        """Bring cache ``name`` up to the shared store: load it if it is new here."""
+        entry = self._entries.get(name)
+        if entry is None:
+            async with self._create_lock:
+                if name not in self._entries:
+                    await self._load(name)
+            return
+        async with entry.writer:
+            await self._catch_up(entry)
+
+    async def follow_proposal(self, name: str, ident: str) -> None:
+        """Read proposal ``ident`` of cache ``name`` as another replica wrote it."""
+        entry = self._entries.get(name)
+        if entry is None:
+            return
+        proposal = await asyncio.to_thread(self.shared_store().proposal, name, ident)
+        if proposal is not None:
+            entry.proposals[ident] = proposal
+
+    async def sync(self, *, proposals: bool) -> None:
+        """Catch up every cache and load new ones; ``proposals``: read every proposal
+        again too (after the replica was not listening)."""
+        stored = await asyncio.to_thread(self.shared_store().versions)
+        for name, version in stored.items():
+            entry = self._entries.get(name)
+            if entry is None or entry.cache.version != version:
+                await self.follow(name)
+            if proposals:
+                self._entries[name].proposals = {
+                    p.id: p for p in await asyncio.to_thread(self.store.proposals, name)}
+
+    def shared_store(self) -> PostgresStore:
+        if not isinstance(self.store, PostgresStore):
+            raise RuntimeError("only a shared store has other replicas to follow")
+        return self.store
+
+    async def _catch_up(self, entry: Entry) -> None:
+        """Apply the changes other replicas wrote since this copy's version (under the
+        cache's writer lock)."""
+        cache = entry.cache
+        ops, header = await asyncio.to_thread(self.shared_store().changes_since, cache.name,
+                                              cache.version)
+        if not ops and header == cache.header:
+            return
+        with entry.rw.write():
+            for op, _ in ops:
+                # an experience added and deleted after this copy's version: never held
+                if not (isinstance(op, Delete) and op.label not in cache.experiences):
+                    cache.apply(op)
+                    self._changed(entry, op)
+            cache.header = header
+        now = time.time()
+        for _, at in ops:
+            if self._on_follow is not None:
+                self._on_follow(max(0.0, now - at))
+        log.info("cache %s: caught up to version %d (%d changes of other replicas)",
+                 cache.name, cache.version, len(ops))
+
+
+def open_store(settings: EmbeddingSettings) -> Store | PostgresStore:
+    """The store ``settings`` name: PostgreSQL (``AESOP_EMBEDDING_STORE``), shared by
+    replicas, or the SQLite file in the data directory."""
+    if settings.store is not None:
+        return PostgresStore(settings.store.get_secret_value(), Path(settings.data_dir),
+                             fsync=settings.fsync)
+    return Store(Path(settings.data_dir), fsync=settings.fsync,
+                 max_bytes=settings.max_db_bytes)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pydantic import AliasChoices, Field, SecretStr
+from pydantic import AliasChoices, Field, SecretStr, field_validator
 from pydantic_settings import SettingsConfigDict
 
 from shared.settings import Group, ServiceSettings
@@ -102,6 +102,23 @@ class EmbeddingSettings(ServiceSettings):
     # it is answered 507 and nothing of it is stored, as on a full disk
     max_db_bytes: int = Field(default=0, ge=0)
     fsync: bool = True
+    # the durable record: unset, the SQLite file in data_dir (one replica); a PostgreSQL
+    # URL (postgresql://user:password@host:port/database) shared by detector replicas,
+    # each with its own data_dir for its index files (docs/embedding.md)
+    store: SecretStr | None = None
+    # with a shared store: how often a replica compares the stored versions with its own
+    # besides following the others' notices (the most a lost notice delays a change)
+    follow_poll_s: float = Field(default=5.0, gt=0.0, le=3600.0)
     limits: EmbeddingLimits = EmbeddingLimits()
     tuning: EmbeddingTuning = EmbeddingTuning()
     adapt: EmbeddingAdapt = EmbeddingAdapt()
+
+    @field_validator("store")
+    @classmethod
+    def _postgresql(cls, v: SecretStr | None) -> SecretStr | None:
+        if v is None or not v.get_secret_value():
+            return None
+        if not v.get_secret_value().startswith(("postgresql://", "postgres://")):
+            raise ValueError("AESOP_EMBEDDING_STORE is a PostgreSQL URL, postgresql://..."
+                             " (unset: the SQLite file in the data directory)")
+        return v

@@ -116,6 +116,8 @@ class Store:
     then survives only a process crash, not a power cut.
     """
 
+    shared = False  # the only writer of its database: nothing to follow
+
     def __init__(self, data_dir: Path, *, fsync: bool = True, max_bytes: int = 0) -> None:
         """``max_bytes``: the most the database may grow to (0: the disk's size); a write
         past it is refused with ``StorageFull``, as on a full disk."""
@@ -127,7 +129,7 @@ class Store:
         self.indexes = IndexFiles(self.root, fsync=fsync)
         self._max_bytes = max_bytes
         self._mutex = threading.Lock()
-        self._lock_fd = _take_lock(self.root / LOCK_NAME)
+        self._lock_fd = take_lock(self.root / LOCK_NAME)
         try:
             self._db = self._connect()
         except BaseException:
@@ -384,7 +386,7 @@ def _from_blob(blob: bytes) -> np.ndarray:
     return np.frombuffer(blob, dtype="<f8").astype(np.float64)
 
 
-def _take_lock(path: Path) -> int:
+def take_lock(path: Path) -> int:
     """An fd holding an exclusive flock on ``path``, or ``StorageError`` if it is held."""
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
     os.fchmod(fd, 0o600)

@@ -1,0 +1,119 @@
+"""A PostgreSQL server of the stack's own, in one directory: the shared record of detector
+replicas on one machine (``aesop up --replicas``), the fleet benchmark and the tests.
+
+Debian's PostgreSQL binaries (``/usr/lib/postgresql/<major>/bin``) run it: ``initdb``
+once, then ``pg_ctl start``. The server listens on 127.0.0.1 only, its socket in the
+directory; its one role ``aesop`` logs in with a password (SCRAM) written to
+``<dir>/password`` (0600), and ``url`` says how to reach it. PostgreSQL refuses to run as
+root: as root, the directory is given to the ``postgres`` system user and every command
+runs as that user.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import pwd
+import secrets
+import shutil
+import subprocess
+from pathlib import Path
+
+import psycopg
+
+DATABASE = "aesop"
+ROLE = "aesop"
+
+
+class PostgresError(RuntimeError):
+    """The server could not be set up or started; the message says why (its log's tail)."""
+
+
+def _binary(name: str) -> str:
+    found = sorted(glob.glob(f"/usr/lib/postgresql/*/bin/{name}"), reverse=True)
+    if found:
+        return found[0]
+    path = shutil.which(name)
+    if path is None:
+        raise PostgresError(f"{name} not found: install PostgreSQL (Debian: apt-get install "
+                            "postgresql)")
+    return path
+
+
+class PostgresServer:
+    """One server in ``root`` on ``port``. ``fsync=False`` (tests, benchmarks of the
+    stack rather than of the disk) survives a crash of the server but not of the machine."""
+
+    def __init__(self, root: Path, port: int, *, fsync: bool = True) -> None:
+        self.root = Path(root).absolute()
+        self.port = port
+        self.fsync = fsync
+        self.data = self.root / "data"
+        self.log = self.root / "server.log"
+        self._as_postgres = os.geteuid() == 0
+
+    @property
+    def password(self) -> str:
+        return (self.root / "password").read_text().strip()
+
+    @property
+    def url(self) -> str:
+        """The connection string of the stack's database (it holds the password)."""
+        return self.url_of(DATABASE)
+
+    def url_of(self, database: str) -> str:
+        return f"postgresql://{ROLE}:{self.password}@127.0.0.1:{self.port}/{database}"
+
+    def create_database(self, name: str) -> str:
+        """A new, empty database ``name`` (letters, digits, '_'); its URL."""
+        if not name.replace("_", "").isalnum():
+            raise PostgresError(f"database names here are letters, digits and '_': {name!r}")
+        with psycopg.connect(self.url_of("postgres"), autocommit=True) as db:
+            db.execute(f"CREATE DATABASE {name}")
+        return self.url_of(name)
+
+    def _run(self, *args: str) -> subprocess.CompletedProcess[str]:
+        command = [*(["runuser", "-u", "postgres", "--"] if self._as_postgres else []), *args]
+        return subprocess.run(command, capture_output=True, text=True, check=False,
+                              stdin=subprocess.DEVNULL)
+
+    def init(self) -> None:
+        """Create the cluster, its role and database, unless ``root`` already holds one."""
+        if (self.data / "PG_VERSION").exists():
+            return
+        self.root.mkdir(mode=0o700, parents=True, exist_ok=True)
+        secret = self.root / "password"
+        secret.write_text(secrets.token_urlsafe(24) + "\n")
+        secret.chmod(0o600)
+        if self._as_postgres:
+            user = pwd.getpwnam("postgres")
+            for path in (self.root, secret):
+                os.chown(path, user.pw_uid, user.pw_gid)
+            if self._run("test", "-r", str(secret)).returncode != 0:
+                raise PostgresError(f"the postgres user cannot reach {self.root}: every "
+                                    "folder above it must be searchable by others (o+x)")
+        done = self._run(_binary("initdb"), "-D", str(self.data), "-U", ROLE,
+                         f"--pwfile={secret}", "--auth=scram-sha-256", "-E", "UTF8",
+                         "--locale=C.UTF-8", *([] if self.fsync else ["--no-sync"]))
+        if done.returncode != 0:
+            raise PostgresError(f"initdb in {self.data} failed: {done.stderr.strip()}")
+        self.start()
+        self.create_database(DATABASE)
+
+    def start(self, timeout: float = 60.0) -> None:
+        options = (f"-p {self.port} -k {self.root} -c listen_addresses=127.0.0.1"
+                   + ("" if self.fsync else " -c fsync=off -c full_page_writes=off"))
+        done = self._run(_binary("pg_ctl"), "-D", str(self.data), "-l", str(self.log),
+                         "-o", options, "-w", "-t", str(int(timeout)), "start")
+        if done.returncode != 0:
+            tail = self.log.read_text()[-2000:] if self.log.exists() else done.stderr
+            raise PostgresError(f"PostgreSQL in {self.data} did not start: {tail.strip()}")
+
+    def stop(self, *, immediate: bool = False) -> None:
+        """Stop the server: cleanly, or as a crash would (``immediate``: no checkpoint,
+        the next start replays the write-ahead log)."""
+        self._run(_binary("pg_ctl"), "-D", str(self.data), "-m",
+                  "immediate" if immediate else "fast", "-w", "stop")
+
+    def running(self) -> bool:
+        return self._run(_binary("pg_ctl"), "-D", str(self.data), "status").returncode == 0
