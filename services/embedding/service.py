@@ -98,7 +98,7 @@ class CacheService:
         for name in await asyncio.to_thread(self.store.names):
             await self._load(name)
         if self.store.shared:
-            self._follower = Follower(self, poll_s=self.settings.follow_poll_s)
+            self._follower = Follower(self, poll_s=self.settings.tuning.follow_poll_s)
             self._follower.start()
 
     async def _load(self, name: str) -> Entry:

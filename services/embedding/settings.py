@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import socket
 from pathlib import Path
 
 from pydantic import AliasChoices, Field, SecretStr, field_validator
@@ -64,6 +66,9 @@ class EmbeddingTuning(Group):
     # not to spin, so a second thread costs nothing while idle; measured with
     # `aesop bench detector --only latency` and `aesop bench bus` (docs/benchmarks.md)
     onnx_threads: int = Field(default=1, ge=1, le=256)
+    # with a shared store: how often a replica compares the stored versions with its own
+    # besides following the others' notices (the most a lost notice delays a change)
+    follow_poll_s: float = Field(default=5.0, gt=0.0, le=3600.0)
 
 
 class EmbeddingAdapt(Group):
@@ -106,12 +111,23 @@ class EmbeddingSettings(ServiceSettings):
     # URL (postgresql://user:password@host:port/database) shared by detector replicas,
     # each with its own data_dir for its index files (docs/embedding.md)
     store: SecretStr | None = None
-    # with a shared store: how often a replica compares the stored versions with its own
-    # besides following the others' notices (the most a lost notice delays a change)
-    follow_poll_s: float = Field(default=5.0, gt=0.0, le=3600.0)
+    # this replica's name among detector replicas (one Zenoh key chunk): robots are shared
+    # among the live ones by rendezvous hashing (docs/embedding.md); default <host>-<pid>
+    replica: str = ""
     limits: EmbeddingLimits = EmbeddingLimits()
     tuning: EmbeddingTuning = EmbeddingTuning()
     adapt: EmbeddingAdapt = EmbeddingAdapt()
+
+    def replica_name(self) -> str:
+        return self.replica or f"{socket.gethostname()}-{os.getpid()}"
+
+    @field_validator("replica")
+    @classmethod
+    def _one_chunk(cls, v: str) -> str:
+        if any(c in v for c in "/*$#? "):
+            raise ValueError("AESOP_EMBEDDING_REPLICA is one Zenoh key chunk: no '/', '*', "
+                             "'$', '#', '?' or spaces")
+        return v
 
     @field_validator("store")
     @classmethod

@@ -4,7 +4,9 @@ Subscribes ``aesop/*/observation``; every observation is scored against the
 detector cache through the service's micro-batcher (concurrent observations
 share one embedding call) and answered with an ``AnomalyVerdict`` on
 ``aesop/{robot}/anomaly``. An uncalibrated cache answers "anomaly" (fail-safe).
-Observations wait per robot and are scored in turn (:mod:`.fairness`): a robot past
+With detector replicas sharing a PostgreSQL store, each scores only its own robots
+(rendezvous hashing over the live replicas, :mod:`.replicas`), so an observation is
+answered once. Observations wait per robot and are scored in turn (:mod:`.fairness`): a robot past
 its rate is refused before its message is decoded, so one robot's flood neither
 delays nor drops another's verdicts; refusals are counted per robot
 (``aesop_embedding_observations_dropped_total``) and said, at most every 10 s, in an
@@ -44,6 +46,7 @@ from .drift import DriftMonitor, DriftReport
 from .errors import DetectorError
 from .fairness import OTHER, DropReports, FairInbox, Reason
 from .proposals import Proposal, scene_id
+from .replicas import Replicas
 from .scorer import ScoreBatch
 from .service import CacheService
 from .settings import EmbeddingSettings
@@ -81,8 +84,12 @@ class DetectorWorker:
     def __init__(self, service: CacheService, bus: Bus, *, cache: str,
                  max_in_flight: int = 256, metrics: Any = None, owns_bus: bool = False,
                  max_text_chars: int = 4000, robot_hz: float = 25.0,
-                 max_robots: int = 256, drift: DriftMonitor | None = None) -> None:
+                 max_robots: int = 256, drift: DriftMonitor | None = None,
+                 replicas: Replicas | None = None) -> None:
+        """``replicas``: this replica among others, scoring only its own robots
+        (:mod:`.replicas`); None: every robot."""
         self.service = service
+        self.replicas = replicas
         # as over HTTP (AESOP_EMBEDDING_LIMITS__MAX_TEXT_CHARS)
         self.max_text_chars = max_text_chars
         self.bus = bus
@@ -123,11 +130,14 @@ class DetectorWorker:
                        owns_bus=True, max_text_chars=limits.max_text_chars,
                        robot_hz=limits.robot_hz, max_robots=limits.max_robots,
                        drift=DriftMonitor(adapt.drift_window, adapt.drift_significance,
-                                          limits.max_robots))
+                                          limits.max_robots),
+                       replicas=Replicas(settings.replica_name()))
 
         return make
 
     async def run(self) -> None:
+        if self.replicas is not None:
+            self.replicas.join(self.bus.session)
         reporting = asyncio.create_task(self._report_drops())
         try:
             await asyncio.gather(self._receive(), *(pump.run() for pump in self._learning))
@@ -141,17 +151,21 @@ class DetectorWorker:
             await asyncio.gather(*self._scoring, return_exceptions=True)
         for pump in self._learning:
             await pump.stop()
+        if self.replicas is not None:
+            self.replicas.leave()
         if self._proposal_event in self.service.review.listeners:
             self.service.review.listeners.remove(self._proposal_event)
         if self.owns_bus:
             self.bus.close()
 
     def _admit(self, key: str) -> bool:
-        """On a Zenoh thread, before decoding: within the robot's rate?"""
+        """On a Zenoh thread, before decoding: this replica's robot, within its rate?"""
         try:
             robot = topics.robot_of(key)
         except ValueError:
             return False
+        if self.replicas is not None and not self.replicas.owns(robot):
+            return False  # another replica's: it answers
         return self.inbox.admit(robot) is None
 
     async def _receive(self) -> None:

@@ -4,30 +4,40 @@ scoring."""
 
 from __future__ import annotations
 
+import asyncio
 import time
-from collections.abc import Iterator
+from collections.abc import AsyncIterator, Iterator
 from contextlib import ExitStack
 from pathlib import Path
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
 from services.embedding.api import create_app
+from services.embedding.entries import Item
 from services.embedding.loading import EmbedderPool
+from services.embedding.replicas import Replicas
 from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingSettings
-from shared.messages import Detection, Observation
+from services.embedding.sharding import assignment
+from services.embedding.worker import DetectorWorker
+from shared import topics
+from shared.bus import Bus
+from shared.messages import AnomalyVerdict, Detection, Observation
+from shared.settings import BusSettings
+from tests.fakes.hash_embedder import HashEmbedder
 from tests.integration.test_api import AUTH, NOMINAL, TOKEN, loader
-from tests.zenoh_peers import wait_until
+from tests.zenoh_peers import DEADLINE_S, async_wait_until, routed, wait_until
 from tools.stack.postgres import PostgresServer
 
 
 class Replica:
     """One replica's app on the shared database, and the ages of the changes it followed."""
 
-    def __init__(self, url: str, data_dir: Path, poll_s: float = 5.0) -> None:
+    def __init__(self, url: str, data_dir: Path) -> None:
         settings = EmbeddingSettings(data_dir=data_dir, admin_token=TOKEN, zenoh_worker=False,
-                                     fsync=False, store=url, follow_poll_s=poll_s)
+                                     fsync=False, store=url)
         self.lags: list[float] = []
         self.service = CacheService(settings, embedders=EmbedderPool(loader=loader),
                                     on_follow=self.lags.append)
@@ -126,3 +136,84 @@ def test_postgresql_down_stops_writes_with_503_not_scoring_and_writes_resume(
         postgres_server.start()
     add(a, NOMINAL[12:14])  # the replica connects again by itself
     wait_until(lambda: b.size() == 14, "b following again after the restart", 15)
+
+
+class Recording(HashEmbedder):
+    """The hash embedder, keeping every text it embedded."""
+
+    def __init__(self) -> None:
+        super().__init__(name="test/hash")
+        self.texts: list[str] = []
+
+    def _encode(self, batch: list[str]) -> np.ndarray:
+        self.texts += batch
+        return super()._encode(batch)
+
+
+@pytest.fixture
+async def two_replicas(postgres_url: str, tmp_path: Path
+                       ) -> AsyncIterator[list[tuple[CacheService, Recording]]]:
+    made = []
+    for name in ("a", "b"):
+        embedder = Recording()
+        settings = EmbeddingSettings(data_dir=tmp_path / name, fsync=False, store=postgres_url,
+                                     zenoh_worker=False)
+        svc = CacheService(settings, embedders=EmbedderPool(loader=lambda _, e=embedder: e))
+        await svc.start()
+        made.append((svc, embedder))
+    a = made[0][0]
+    await a.create("scene", model="hash", k=1)
+    await a.add("scene", [Item(text=t) for t in NOMINAL])
+    await a.calibrate("scene", "loo-quantile", alpha=0.9)
+    await made[1][0].follow("scene")
+    yield made
+    for svc, _ in made:
+        await svc.close()
+
+
+async def test_robots_are_shared_among_live_replicas_and_move_when_one_dies(
+        two_replicas: list[tuple[CacheService, Recording]], endpoint: str, listener: Bus,
+        connector: Bus) -> None:
+    (svc_a, seen_a), (svc_b, seen_b) = two_replicas
+    bus_b = Bus.open(BusSettings(zenoh_connect=[endpoint]), "replica-b")
+    workers = [DetectorWorker(svc_a, listener, cache="scene", replicas=Replicas("a")),
+               DetectorWorker(svc_b, bus_b, cache="scene", replicas=Replicas("b"),
+                              owns_bus=True)]
+    tasks = [asyncio.create_task(w.run()) for w in workers]
+    sub = connector.subscribe(topics.anomaly(topics.ANY_ROBOT), AnomalyVerdict, maxsize=256)
+    for bus in (listener, bus_b):
+        await routed(connector, bus)
+        await routed(bus, connector)
+    await async_wait_until(lambda: all(w.replicas is not None and w.replicas.live == {"a", "b"}
+                                       for w in workers), "each replica seeing the other")
+    robots = [f"r{i}" for i in range(8)]
+    shares = assignment(robots, ["a", "b"])
+    assert shares["a"] and shares["b"]  # both score some of the 8
+
+    async def one_round(seq: int) -> list[tuple[str, int]]:
+        seen_a.texts.clear()
+        seen_b.texts.clear()
+        for robot in robots:
+            connector.publish(topics.observation(robot), Observation(
+                robot=robot, seq=seq, text=f"{NOMINAL[0]} seen by {robot}"))
+        got = []
+        for _ in robots:
+            received = await asyncio.wait_for(anext(sub), DEADLINE_S)
+            got.append((received.message.robot, received.message.seq))
+        return sorted(got)
+
+    assert await one_round(0) == sorted((r, 0) for r in robots)
+    # each observation was scored by its robot's replica alone
+    assert {t.rsplit(" ", 1)[-1] for t in seen_a.texts} == set(shares["a"])
+    assert {t.rsplit(" ", 1)[-1] for t in seen_b.texts} == set(shares["b"])
+
+    await workers[1].stop()  # b goes away: its token with its session
+    await async_wait_until(lambda: workers[0].replicas is not None
+                           and workers[0].replicas.live == {"a"}, "a alone")
+    assert await one_round(1) == sorted((r, 1) for r in robots)
+    assert {t.rsplit(" ", 1)[-1] for t in seen_a.texts} == set(robots)
+    assert seen_b.texts == []
+    await workers[0].stop()
+    for task in tasks:
+        task.cancel()
+    await asyncio.gather(*tasks, return_exceptions=True)

@@ -149,7 +149,8 @@ def test_a_group_is_set_as_json_or_one_knob_at_a_time() -> None:
         read_settings(SimSettings, {"AESOP_SIM_REPORTS__DROP_RATE": "1.5"})
 
 
-@pytest.mark.parametrize(("cls", "most"), [(EmbeddingSettings, 15), (ReasonerSettings, 13),
+# the detector's two past 15: its shared store and its name among replicas (issue 30)
+@pytest.mark.parametrize(("cls", "most"), [(EmbeddingSettings, 17), (ReasonerSettings, 13),
                                            (ControlSettings, 11), (SimSettings, 10),
                                            (DashboardSettings, 5)], ids=lambda c: str(c))
 def test_each_service_reads_few_variables_of_its_own(cls: type[BaseSettings], most: int) -> None:
@@ -157,3 +158,16 @@ def test_each_service_reads_few_variables_of_its_own(cls: type[BaseSettings], mo
     prefix = str(cls.model_config["env_prefix"])
     own = {env_names(cls, name)[0] for name in cls.model_fields}
     assert len({n for n in own if n.startswith(prefix)}) <= most
+
+
+def test_the_detectors_store_is_a_postgresql_url_and_its_replica_one_key_chunk() -> None:
+    with pytest.raises(ValidationError, match="AESOP_EMBEDDING_STORE is a PostgreSQL URL"):
+        read_settings(EmbeddingSettings, {"AESOP_EMBEDDING_STORE": "mysql://db/aesop"})
+    with pytest.raises(ValidationError, match="AESOP_EMBEDDING_REPLICA is one Zenoh key chunk"):
+        read_settings(EmbeddingSettings, {"AESOP_EMBEDDING_REPLICA": "site/a"})
+    url = "postgresql://aesop:secret@db:5432/aesop"
+    settings = read_settings(EmbeddingSettings, {"AESOP_EMBEDDING_STORE": url,
+                                                 "AESOP_EMBEDDING_REPLICA": "site-a"})
+    assert settings.store is not None and settings.store.get_secret_value() == url
+    assert "secret" not in repr(settings) and settings.replica_name() == "site-a"
+    assert read_settings(EmbeddingSettings, {"AESOP_EMBEDDING_STORE": ""}).store is None

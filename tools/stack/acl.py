@@ -90,9 +90,11 @@ def stack_acl(robots: Sequence[str], ros2: BridgeConfig | None = None) -> dict[s
         {"id": "everyone", "rules": ["subscribe", "receive", "clock-relay"],
          "subjects": users}]
     for service, keys in SERVICE_PUTS.items():
+        # a detector replica also announces itself as one of the replicas (its own name)
+        health = [f"aesop/health/{service}", *([f"aesop/health/{service}/*"]
+                                               if service == "embedding" else [])]
         rules += [_rule(f"{service}-puts", "ingress", ["put", "delete"], list(keys)),
-                  _rule(f"{service}-health", "ingress", ["liveliness_token"],
-                        [f"aesop/health/{service}"])]
+                  _rule(f"{service}-health", "ingress", ["liveliness_token"], health)]
         extra = ["control-clock"] if service == "control" else []
         policies.append({"id": service, "rules": [f"{service}-puts", f"{service}-health",
                                                   *extra], "subjects": [service]})
