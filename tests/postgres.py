@@ -25,6 +25,7 @@ def postgres_server() -> Iterator[PostgresServer]:
     server = PostgresServer(root / "pg", free_port(), fsync=False)
     try:
         server.init()
+        server.start()
         yield server
     finally:
         server.stop(immediate=True)

@@ -125,7 +125,11 @@ def test_a_free_port_is_outside_the_range_outgoing_connections_take_theirs_from(
     low, high = ephemeral_range()
     ports = [free_port() for _ in range(50)]
     assert not [p for p in ports if low <= p <= high]
-    assert len(set(vars(Ports.free()).values())) == 7  # a stack's ports are distinct
+    more = Ports.free(["control-robot1", "sim-robot1"])
+    mine = [v for k, v in vars(more).items() if k != "more"] + [p for _, p in more.more]
+    assert len(set(mine)) == 10  # a stack's ports are distinct
+    assert more.of("control-robot1", "control", 1) == dict(more.more)["control-robot1"]
+    assert Ports().of("control-robot2", "control", 2) == 8203  # the default: 100 apart
 
 
 def test_a_spread_is_its_median_p99_and_max_or_none_without_values() -> None:

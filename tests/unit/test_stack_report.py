@@ -16,7 +16,14 @@ from tools.demo.flights import add_time_lost
 from tools.demo.report import ended_in, flight_measures, judge, summary_table
 from tools.local_llm import LocalModel
 from tools.scenes.hardware import GOAL, SCENARIOS, observation_text
-from tools.stack.up import Ports, StackOptions, hardware_scenario, plan_stack
+from tools.stack.up import (
+    PlanError,
+    Ports,
+    StackOptions,
+    fleet,
+    hardware_scenario,
+    plan_stack,
+)
 
 SCENE = load_scenario(hardware_scenario())
 BY_NAME = {s.name: s for s in SCENARIOS}
@@ -227,3 +234,45 @@ def test_plan_serves_a_local_model_and_asks_it_as_its_server_wants(tmp_path: Pat
     request = json.loads(reasoner["AESOP_REASONER_REQUEST"])
     assert request["json_schema"] is True and request["response_format"] == "json_object"
     assert request["max_reasoning_chars"] == 200 and request["max_tokens"] == 123
+
+
+def test_a_fleet_plan_gives_each_robot_its_loop_vehicle_and_user_and_replicas_a_store(
+        tmp_path: Path) -> None:
+    fleet_options = replace(options(tmp_path), robots=3, replicas=2)
+    plan = plan_stack(fleet_options, {"AESOP_ROBOT": "drone7"}, "t" * 24)
+    names = [s.name for s in plan.services]
+    assert names == ["postgres", "fake-llm", "embedding", "embedding-2", "reasoner",
+                     "sim-drone7", "control-drone7", "sim-drone8", "control-drone8",
+                     "sim-drone9", "control-drone9", "dashboard"]
+    assert plan.robots == ("drone7", "drone8", "drone9") and plan.robot == "drone7"
+    env = {s.name: s.env for s in plan.services}
+    for i, robot in enumerate(plan.robots):
+        control, sim = env[f"control-{robot}"], env[f"sim-{robot}"]
+        assert control["AESOP_ROBOT"] == sim["AESOP_ROBOT"] == robot
+        assert sim["AESOP_ZENOH_USER"] == f"robot-{robot}"
+        assert sim["AESOP_ZENOH_PASSWORD"] == plan.passwords[f"robot-{robot}"]
+        # the first robot's ports are the stack's; the others' 100 apart
+        assert control["AESOP_CONTROL_PORT"] == str(4 + 100 * i)
+        assert sim["AESOP_SIM_PORT"] == str(7 + 100 * i)
+        assert plan.robot_urls(robot) == (f"http://127.0.0.1:{4 + 100 * i}",
+                                          f"http://127.0.0.1:{7 + 100 * i}")
+    assert plan.hub.argv.count("--robot") == 3
+    # the replicas: one store (the stack's PostgreSQL, by its socket), a name each
+    assert plan.postgres is not None and plan.postgres.root == tmp_path / "postgres"
+    for name in ("embedding", "embedding-2"):
+        assert env[name]["AESOP_EMBEDDING_STORE"] == plan.postgres.socket_url
+        assert env[name]["AESOP_EMBEDDING_REPLICA"] == name
+        assert env[name]["AESOP_DATA_DIR"] == str(tmp_path / name)
+    assert env["embedding-2"]["AESOP_EMBEDDING_PORT"] == "102"
+    assert plan.services[0].ready == "tcp" and "-D" in plan.services[0].argv
+    assert "postgresql://aesop@/aesop?host=" in plan.postgres.socket_url  # no password
+
+
+def test_a_fleet_cannot_be_one_ros2_robot_and_counts_from_one(tmp_path: Path) -> None:
+    with pytest.raises(PlanError, match="--ros2 flies the one robot"):
+        plan_stack(replace(options(tmp_path), robots=2,
+                           ros2=Path("deploy/ros2/quadrotor.yaml")), {}, "t" * 24)
+    with pytest.raises(PlanError, match="count from 1"):
+        plan_stack(replace(options(tmp_path), replicas=0), {}, "t" * 24)
+    assert fleet("robot0", 3) == ("robot0", "robot1", "robot2")
+    assert fleet("drone", 2) == ("drone0", "drone1") and fleet("x9", 1) == ("x9",)

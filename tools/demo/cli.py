@@ -7,7 +7,7 @@ import json
 import os
 from pathlib import Path
 
-from tools.stack.cli import add_llm_options
+from tools.stack.cli import add_fleet_options, add_llm_options
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -21,6 +21,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                       help="leave the stack running after the scenarios (Ctrl-C stops it)")
     demo.add_argument("--model", default=None,
                       help="embedding model (default: onnx:all-MiniLM-L6-v2, the service's)")
+    add_fleet_options(demo)  # --robots 3: three scenarios flown at once, one per robot
     add_llm_options(demo)  # --llm local: a trained model, K measured on it first
     demo.set_defaults(func=cmd_demo, needs_bench_extra=True)
 

@@ -106,8 +106,15 @@ def run_stack_demo(options: StackOptions, environ: Mapping[str, str], out: Path,
         dashboard = plan.url("dashboard")
         if dashboard:
             _say(f"dashboard: {dashboard}  (watch the flights live)")
-        result, flights = fly_scenarios(plan, scenario=scenario, model=model,
-                                        robot=plan.robot, record_dir=out / "recordings")
+        if len(plan.robots) > 1:
+            _say(f"flying {len(plan.robots)} robots at once: "
+                 + ", ".join(f"{r} {FLEET_ORDER[i % len(FLEET_ORDER)]}"
+                             for i, r in enumerate(plan.robots)))
+            result, flights = fly_fleet(plan, scenario=scenario, model=model,
+                                        record_dir=out / "recordings")
+        else:
+            result, flights = fly_scenarios(plan, scenario=scenario, model=model,
+                                            robot=plan.robot, record_dir=out / "recordings")
         result.update(scene=scenario.name, rate_hz=1.0 / scenario.dt, llm=llm_line(plan, k),
                       wall_s=round(time.monotonic() - started, 1), dashboard=dashboard)
         if k is not None:
@@ -247,6 +254,40 @@ def fly_scenarios(plan: StackPlan, names: Sequence[str] | None = None, *,
                              real_model=plan.local_model is not None, until=until))
 
 
+# what each robot of a fleet flies, in turn (aesop demo --robots N): the anomalies first
+FLEET_ORDER = ("2a", "2b", "3", "1")
+
+
+def fly_fleet(plan: StackPlan, *, scenario: Scenario, model: str | None = None,
+              record_dir: Path | None = None) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """``aesop demo --robots N``: build and calibrate the cache once, then every robot of
+    ``plan`` flies its scenario (:data:`FLEET_ORDER`, one each) at the same time, with
+    its own control loop, vehicle and camera; the detector replicas share the robots. The
+    rows carry their robot; the flights are keyed ``<robot>: <scenario>``."""
+    jobs = [(robot, demo_scenario(FLEET_ORDER[i % len(FLEET_ORDER)]))
+            for i, robot in enumerate(plan.robots)]
+
+    async def fleet() -> list[tuple[dict[str, Any], dict[str, np.ndarray]]]:
+        detector = await _scene_cache(plan.url("embedding"), plan.token, model)
+        return await asyncio.gather(*(
+            _demo(None, *plan.robot_urls(robot), plan.token,
+                  plan.bus_settings(robot_user(robot), robot=robot), scenario, model, [demo],
+                  None if record_dir is None else Recorders(
+                      plan.bus_settings(MONITOR, robot=robot), record_dir, robot,
+                      prefix=f"{robot}-"),
+                  real_model=plan.local_model is not None, detector=detector)
+            for robot, demo in jobs))
+
+    flown = asyncio.run(fleet())
+    rows = [{"robot": robot, **row} for (robot, _), (result, _) in zip(jobs, flown, strict=True)
+            for row in result["scenarios"]]
+    flights = {f"{robot}: {name}": states for (robot, _), (_, theirs) in
+               zip(jobs, flown, strict=True) for name, states in theirs.items()}
+    return {"ok": all(r["outcome"] == "ok" for r in rows), "scenarios": rows,
+            "detector": flown[0][0]["detector"], "state_rate_hz": flown[0][0]["state_rate_hz"],
+            "robots": list(plan.robots)}, flights
+
+
 @dataclass(frozen=True)
 class Recorders:
     """Where and as whom each flight is recorded."""
@@ -254,10 +295,12 @@ class Recorders:
     settings: BusSettings
     folder: Path
     robot: str
+    prefix: str = ""  # of the files' names: a fleet's robots record into one folder
 
     def of(self, demo: DemoScenario) -> Background:
         self.folder.mkdir(parents=True, exist_ok=True)
-        return Background(self.settings, self.folder / f"{demo.name}.mcap", robot=self.robot)
+        return Background(self.settings, self.folder / f"{self.prefix}{demo.name}.mcap",
+                          robot=self.robot)
 
 
 @dataclass
@@ -276,15 +319,26 @@ class Recorder:
         return self.states[-1].t if self.states else 0.0
 
 
+async def _scene_cache(embedding_url: str | None, token: str, model: str | None
+                       ) -> dict[str, Any]:
+    """Build and calibrate the detector's cache of the scene; what it is."""
+    assert embedding_url
+    async with EmbeddingClient(embedding_url, token=token, timeout_s=60) as client:
+        info, cal = await build_scene_cache(client, DETECTOR_CACHE, model=model, say=_say)
+    return {"size": info.size, "k": info.k, "calibration": cal.model_dump(mode="json")}
+
+
 async def _demo(embedding_url: str | None, control_url: str | None, sim_url: str | None,
                 token: str, settings: BusSettings, scenario: Scenario, model: str | None,
                 demos: Sequence[DemoScenario] = SCENARIOS, recorders: Recorders | None = None,
-                *, real_model: bool = False, until: threading.Event | None = None
+                *, real_model: bool = False, until: threading.Event | None = None,
+                detector: dict[str, Any] | None = None
                 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    assert embedding_url and control_url and sim_url
-    async with EmbeddingClient(embedding_url, token=token, timeout_s=60) as client:
-        info, cal = await build_scene_cache(client, DETECTOR_CACHE, model=model, say=_say)
-    detector = {"size": info.size, "k": info.k, "calibration": cal.model_dump(mode="json")}
+    """One robot's flights (``settings.robot``), the cache built first unless
+    ``detector`` says it is."""
+    assert control_url and sim_url
+    if detector is None:
+        detector = await _scene_cache(embedding_url, token, model)
     rows, flights = [], {}
     state_rate_hz: float | None = None
     with Bus.open(settings, "demo") as bus:

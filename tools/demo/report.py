@@ -159,12 +159,18 @@ def _cell(value: Any) -> str:
     return str(value)
 
 
+def columns(rows: Sequence[dict[str, Any]]) -> tuple[tuple[str, str], ...]:
+    """The table's columns: a fleet's rows (``aesop demo --robots``) name their robot."""
+    return ((("robot", "robot"),) if any("robot" in r for r in rows) else ()) + COLUMNS
+
+
 def summary_table(rows: Sequence[dict[str, Any]]) -> str:
     """A fixed-width text table of the scenario rows."""
-    cells = [[_cell(r.get(key)) for key, _ in COLUMNS] for r in rows]
+    shown = columns(rows)
+    cells = [[_cell(r.get(key)) for key, _ in shown] for r in rows]
     widths = [max([len(title)] + [len(c[i]) for c in cells]) for i, (_, title) in
-              enumerate(COLUMNS)]
-    line = "  ".join(title.ljust(w) for (_, title), w in zip(COLUMNS, widths, strict=True))
+              enumerate(shown)]
+    line = "  ".join(title.ljust(w) for (_, title), w in zip(shown, widths, strict=True))
     out = [line, "-" * len(line)]
     out += ["  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)) for row in cells]
     return "\n".join(out)
@@ -289,9 +295,10 @@ def write_report(out: Path, result: dict[str, Any], flights: dict[str, np.ndarra
     out.mkdir(parents=True, exist_ok=True)
     plot_flights(flights, scenario, out / "flights.png")
     (out / "result.json").write_text(json.dumps(result, indent=2, allow_nan=False))
-    head = "".join(f"<th>{html.escape(title)}</th>" for _, title in COLUMNS)
+    shown = columns(result["scenarios"])
+    head = "".join(f"<th>{html.escape(title)}</th>" for _, title in shown)
     body = "".join(
-        "<tr>" + "".join(f"<td>{html.escape(_cell(r.get(key)))}</td>" for key, _ in COLUMNS)
+        "<tr>" + "".join(f"<td>{html.escape(_cell(r.get(key)))}</td>" for key, _ in shown)
         + "</tr>" for r in result["scenarios"])
     cal = result.get("detector", {})
     detector = html.escape(json.dumps(cal, indent=1))

@@ -40,8 +40,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     up.add_argument("--ros2", type=Path, default=None, metavar="CONFIG",
                     help="fly a ROS 2 robot through the bridge (aesop ros2) with this config "
                          "(deploy/ros2/quadrotor.yaml) instead of the simulated vehicle")
+    add_fleet_options(up)
     add_llm_options(up)
     up.set_defaults(func=cmd_up)
+
+
+def add_fleet_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--robots", type=int, default=1, metavar="N",
+                        help="robots flown at once, each with its control loop and simulated "
+                             "vehicle (ids from AESOP_ROBOT: robot0, robot1, ...; default 1)")
+    parser.add_argument("--replicas", type=int, default=1, metavar="M",
+                        help="detector replicas sharing the robots; from 2 on they share a "
+                             "PostgreSQL server the stack starts (default 1: SQLite)")
 
 
 def add_llm_options(parser: argparse.ArgumentParser) -> None:
@@ -98,7 +108,8 @@ def stack_options(args: argparse.Namespace, data_dir: Path):
 
     from services.control.scenario import resolve_scenario
     from services.control.settings import ControlSettings
-    from tools.stack.up import Ports, StackOptions, hardware_scenario
+    from shared.settings import BusSettings
+    from tools.stack.up import Ports, StackOptions, child_names, fleet, hardware_scenario
 
     control = ControlSettings()  # what the environment asks of the control loop
     scenario_path = resolve_scenario(args.scenario or control.scenario or hardware_scenario())
@@ -108,7 +119,12 @@ def stack_options(args: argparse.Namespace, data_dir: Path):
         print("aesop: the dashboard is not in this checkout (services/dashboard): starting "
               "without it", file=sys.stderr)
         dashboard = False
-    ports = Ports.free() if args.random_ports else Ports()
+    robots, replicas = getattr(args, "robots", 1), getattr(args, "replicas", 1)
+    if robots < 1 or replicas < 1:
+        raise CliError("--robots and --replicas count from 1")
+    names = child_names(fleet(BusSettings().robot, robots), replicas)
+    more = [n for kind in names.values() for n in kind[1:]]
+    ports = Ports.free(more) if args.random_ports else Ports()
     busy = ports.busy()
     if busy:
         raise CliError(f"ports already in use: {', '.join(busy)} (is `aesop up` running?); "
@@ -120,7 +136,7 @@ def stack_options(args: argparse.Namespace, data_dir: Path):
         ros2 = ros2.resolve()
     return StackOptions(data_dir=data_dir, ports=ports, scenario=scenario_path.resolve(),
                         rate_hz=rate, dashboard=dashboard, local_model=local_model(args),
-                        ros2=ros2)
+                        ros2=ros2, robots=robots, replicas=replicas)
 
 
 def cmd_up(args: argparse.Namespace) -> int:

@@ -2,11 +2,13 @@
 replicas on one machine (``aesop up --replicas``), the fleet benchmark and the tests.
 
 Debian's PostgreSQL binaries (``/usr/lib/postgresql/<major>/bin``) run it: ``initdb``
-once, then ``pg_ctl start``. The server listens on 127.0.0.1 only, its socket in the
-directory; its one role ``aesop`` logs in with a password (SCRAM) written to
-``<dir>/password`` (0600), and ``url`` says how to reach it. PostgreSQL refuses to run as
-root: as root, the directory is given to the ``postgres`` system user and every command
-runs as that user.
+once (:meth:`PostgresServer.init`), then the server in the foreground as a child of
+``aesop up`` (:meth:`PostgresServer.argv`) or in the background (``start``/``stop``). It
+listens on 127.0.0.1 only, and on its socket in the directory (0700). Its one role
+``aesop`` logs in over TCP with a password (SCRAM, written to ``<dir>/password``, 0600:
+``url``) and over the socket without one (``socket_url``): reaching the socket already takes
+the directory's owner. PostgreSQL refuses to run as root: as root, the directory is given
+to the ``postgres`` system user and every command runs as that user.
 """
 
 from __future__ import annotations
@@ -61,6 +63,11 @@ class PostgresServer:
         """The connection string of the stack's database (it holds the password)."""
         return self.url_of(DATABASE)
 
+    @property
+    def socket_url(self) -> str:
+        """The stack's database over the server's socket (no password)."""
+        return f"postgresql://{ROLE}@/{DATABASE}?host={self.root}&port={self.port}"
+
     def url_of(self, database: str) -> str:
         return f"postgresql://{ROLE}:{self.password}@127.0.0.1:{self.port}/{database}"
 
@@ -72,13 +79,25 @@ class PostgresServer:
             db.execute(f"CREATE DATABASE {name}")
         return self.url_of(name)
 
+    def _as_owner(self, *args: str) -> tuple[str, ...]:
+        return (*(("runuser", "-u", "postgres", "--") if self._as_postgres else ()), *args)
+
     def _run(self, *args: str) -> subprocess.CompletedProcess[str]:
-        command = [*(["runuser", "-u", "postgres", "--"] if self._as_postgres else []), *args]
-        return subprocess.run(command, capture_output=True, text=True, check=False,
-                              stdin=subprocess.DEVNULL)
+        return subprocess.run(self._as_owner(*args), capture_output=True, text=True,
+                              check=False, stdin=subprocess.DEVNULL)
+
+    def _options(self) -> tuple[str, ...]:
+        return ("-p", str(self.port), "-k", str(self.root), "-c", "listen_addresses=127.0.0.1",
+                *(() if self.fsync else ("-c", "fsync=off", "-c", "full_page_writes=off")))
+
+    def argv(self) -> tuple[str, ...]:
+        """The server in the foreground (after :meth:`init`): stopped by SIGTERM once its
+        clients are gone, by SIGINT at once."""
+        return self._as_owner(_binary("postgres"), "-D", str(self.data), *self._options())
 
     def init(self) -> None:
-        """Create the cluster, its role and database, unless ``root`` already holds one."""
+        """Create the cluster, its role and database, unless ``root`` already holds one;
+        the server is left stopped."""
         if (self.data / "PG_VERSION").exists():
             return
         self.root.mkdir(mode=0o700, parents=True, exist_ok=True)
@@ -93,18 +112,22 @@ class PostgresServer:
                 raise PostgresError(f"the postgres user cannot reach {self.root}: every "
                                     "folder above it must be searchable by others (o+x)")
         done = self._run(_binary("initdb"), "-D", str(self.data), "-U", ROLE,
-                         f"--pwfile={secret}", "--auth=scram-sha-256", "-E", "UTF8",
+                         f"--pwfile={secret}", "--auth-host=scram-sha-256",
+                         "--auth-local=trust", "-E", "UTF8",
                          "--locale=C.UTF-8", *([] if self.fsync else ["--no-sync"]))
         if done.returncode != 0:
             raise PostgresError(f"initdb in {self.data} failed: {done.stderr.strip()}")
         self.start()
-        self.create_database(DATABASE)
+        try:
+            self.create_database(DATABASE)
+        finally:
+            self.stop()
 
     def start(self, timeout: float = 60.0) -> None:
-        options = (f"-p {self.port} -k {self.root} -c listen_addresses=127.0.0.1"
-                   + ("" if self.fsync else " -c fsync=off -c full_page_writes=off"))
+        """The server in the background (``pg_ctl``), once it accepts connections."""
         done = self._run(_binary("pg_ctl"), "-D", str(self.data), "-l", str(self.log),
-                         "-o", options, "-w", "-t", str(int(timeout)), "start")
+                         "-o", " ".join(self._options()), "-w", "-t", str(int(timeout)),
+                         "start")
         if done.returncode != 0:
             tail = self.log.read_text()[-2000:] if self.log.exists() else done.stderr
             raise PostgresError(f"PostgreSQL in {self.data} did not start: {tail.strip()}")

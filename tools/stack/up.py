@@ -66,10 +66,13 @@ from .acl import (
     write_credentials,
     write_private,
 )
+from .postgres import PostgresServer
 
 DETECTOR_CACHE = "quadrotor"
 LOCAL_LLM = "llm"  # the name of --llm local's server among the children
-RESTARTED = ("fake-llm", LOCAL_LLM)  # children started again when they die, like the hub
+POSTGRES = "postgres"  # the detector replicas' PostgreSQL server among the children
+# children started again when they die, like the hub
+RESTARTED = ("fake-llm", LOCAL_LLM, POSTGRES)
 FAKE_LLM_LATENCY_S = 3.1  # the paper's mean GPT-3.5-turbo CoT latency (Table "jetson timings")
 # Environment a child must not inherit: each service listens on its own port
 # and joins the hub, whatever the calling shell says.
@@ -83,31 +86,64 @@ def hardware_scenario() -> Path:
 @dataclass(frozen=True)
 class Ports:
     hub: int = 7447
-    embedding: int = 8001
+    embedding: int = 8001  # the first detector replica's
     reasoner: int = 8002
-    control: int = 8003
+    control: int = 8003  # the first robot's
     dashboard: int = 8080
     fake_llm: int = 8010  # the LLM server the stack starts: the fake, or --llm local's
     sim: int = 8004  # the vehicle's: the simulator, or with --ros2 the bridge to the robot
+    postgres: int = 8432  # with --replicas: the detectors' PostgreSQL
+    # the ports of the children past the first robot and replica, by child name; one not
+    # named here is its kind's port + 100 per robot (or replica) before it
+    more: tuple[tuple[str, int], ...] = ()
 
     @classmethod
-    def free(cls) -> Ports:
-        """Seven distinct free ports."""
+    def free(cls, more: Sequence[str] = ()) -> Ports:
+        """Distinct free ports: the eight, and one for each child named in ``more``."""
         ports: list[int] = []
-        while len(ports) < 7:
+        while len(ports) < 8 + len(more):
             port = free_port()
             if port not in ports:
                 ports.append(port)
-        return cls(*ports)
+        hub, embedding, reasoner, control, dashboard, llm, sim, postgres = ports[:8]
+        return cls(hub, embedding, reasoner, control, dashboard, llm, sim, postgres,
+                   more=tuple(zip(more, ports[8:], strict=True)))
+
+    def of(self, child: str, kind: str, index: int) -> int:
+        """The port of ``child``, the ``index``-th (0: the first) of its ``kind``."""
+        base = int(getattr(self, kind))
+        return base if index == 0 else dict(self.more).get(child, base + 100 * index)
 
     def busy(self) -> list[str]:
         """``name:port`` of every port something on loopback already listens on."""
         out = []
-        for name, port in vars(self).items():
+        named = [(k, v) for k, v in vars(self).items() if k != "more"] + list(self.more)
+        for name, port in named:
             with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
                 if sock.connect_ex(("127.0.0.1", port)) == 0:
                     out.append(f"{name}:{port}")
         return out
+
+
+def fleet(robot: str, n: int) -> tuple[str, ...]:
+    """The ids of ``n`` robots named after ``robot`` (itself when alone): its trailing
+    number counted on ("robot0" -> robot0, robot1, robot2; "drone" -> drone0, drone1)."""
+    if n == 1:
+        return (robot,)
+    stem = robot.rstrip("0123456789")
+    first = int(robot[len(stem):] or 0)
+    return tuple(f"{stem}{first + i}" for i in range(n))
+
+
+def child_names(robots: Sequence[str], replicas: int, *, ros2: bool = False
+                ) -> dict[str, list[str]]:
+    """The children of each kind that come in numbers: the detector replicas, the control
+    loops and the vehicles (one of each per robot); plain names for one."""
+    vehicle = ROS2 if ros2 else "sim"
+    alone = len(robots) == 1
+    return {"embedding": ["embedding", *(f"embedding-{j + 1}" for j in range(1, replicas))],
+            "control": ["control" if alone else f"control-{r}" for r in robots],
+            vehicle: [vehicle if alone else f"{vehicle}-{r}" for r in robots]}
 
 
 class PlanError(ValueError):
@@ -124,6 +160,8 @@ class StackOptions:
     python: str = sys.executable
     local_model: LocalModel | None = None  # served by llama.cpp instead of the fake LLM
     ros2: Path | None = None  # a ROS 2 robot through the bridge with this config, not the sim
+    robots: int = 1  # robots flown at once, each with its control loop and simulated vehicle
+    replicas: int = 1  # detector replicas; from 2 on they share the stack's PostgreSQL
 
 
 @dataclass(frozen=True)
@@ -134,13 +172,27 @@ class StackPlan:
     token_generated: bool
     fake_llm: bool
     local_model: LocalModel | None  # the model the stack serves, if any
-    robot: str  # the robot the services serve
+    robot: str  # the (first) robot the services serve
     scenario: Path  # the scene the control loop flies
     zenoh_dir: Path  # the hub's user dictionary and each user's password file
     passwords: Mapping[str, str] = field(repr=False)  # Zenoh user -> password
+    # every robot flown (``robot`` first): its id, its control loop's and vehicle's child
+    fleet: tuple[tuple[str, str, str], ...] = ()
+    postgres: PostgresServer | None = None  # the detector replicas' store, with --replicas
 
     def url(self, name: str) -> str | None:
         return next((s.url for s in self.services if s.name == name), None)
+
+    @property
+    def robots(self) -> tuple[str, ...]:
+        return tuple(robot for robot, _, _ in self.fleet)
+
+    def robot_urls(self, robot: str) -> tuple[str, str]:
+        """The URLs of ``robot``'s control loop and vehicle."""
+        _, control, vehicle = next(f for f in self.fleet if f[0] == robot)
+        found = self.url(control), self.url(vehicle)
+        assert found[0] is not None and found[1] is not None
+        return found[0], found[1]
 
     @property
     def endpoint(self) -> str:
@@ -170,7 +222,12 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
     the field (``pydantic.ValidationError``), not in a child. Each child's
     environment is the caller's without any ``AESOP_*`` variable, plus its settings;
     each service is a Zenoh client of the hub with its own user (``passwords`` makes
-    one per user: the services, ``monitor`` and the robot's ``robot-<id>``).
+    one per user: the services, ``monitor`` and each robot's ``robot-<id>``).
+
+    ``options.robots``: that many robots (ids from ``AESOP_ROBOT``, :func:`fleet`), each
+    with its control loop and simulated vehicle as its own user; ``options.replicas``:
+    that many detector replicas sharing the robots, on a PostgreSQL server of the stack's
+    (``<data-dir>/postgres``, reached on its socket in that 0700 folder).
     """
     ports, py = options.ports, options.python
     given = environ.get("AESOP_ADMIN_TOKEN", "")
@@ -178,11 +235,8 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
     common: dict[str, Any] = {"zenoh_connect": [endpoint], "zenoh_listen": [],
                               "zenoh_mode": "client", "zenoh_multicast": False,
                               "zenoh_config": None, "admin_token": given or token}
-    robot = read_settings(BusSettings, environ).robot
-    if options.ros2 is not None and (mapped := load_config(options.ros2).robot) != robot:
-        raise PlanError(f"{options.ros2} maps the topics of robot {mapped!r}, the stack "
-                         f"serves {robot!r} (AESOP_ROBOT)")
-    secret = passwords(users_of([robot], ros2=options.ros2 is not None))
+    robots = _check_fleet(options, read_settings(BusSettings, environ).robot)
+    secret = passwords(users_of(robots, ros2=options.ros2 is not None))
 
     def user(name: str) -> dict[str, Any]:  # a service's Zenoh credentials
         return {"zenoh_user": name, "zenoh_password": secret[name]}
@@ -192,46 +246,26 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
 
     local = options.local_model
     fake = local is None and "AESOP_REASONER_LLM_BASE_URL" not in environ
-    llm: dict[str, Any] = {}  # how the reasoner reaches the LLM server the stack starts
-    if fake or local is not None:
-        llm["llm_base_url"] = f"http://127.0.0.1:{ports.fake_llm}/v1"
-    if local is not None:  # its model, asked as that server wants (the environment's knobs win)
-        asked = read_settings(ReasonerSettings, environ).request.model_dump(exclude_unset=True)
-        llm |= {"llm_model": local.alias, "request": {**REASONER_SETTINGS["request"], **asked}}
-    defaults = ({"llm_model": "fake"} if fake else
-                {"variant": REASONER_SETTINGS["variant"]} if local is not None else None)
-    reasoner = read_settings(
-        ReasonerSettings, environ, defaults=defaults, **common,
-        **user("reasoner"), port=ports.reasoner, data_dir=data("reasoner"), **llm)
-    embedding = read_settings(EmbeddingSettings, environ,
-                              defaults={"detector_cache": DETECTOR_CACHE}, **common,
-                              **user("embedding"), port=ports.embedding,
-                              data_dir=data("embedding"))
-    forced: dict[str, Any] = {**common, **user("control"), "port": ports.control,
-                              "data_dir": data("control")}
-    if options.rate_hz is not None:
-        forced["rate_hz"] = options.rate_hz
-    control = read_settings(ControlSettings, environ, **forced)
-    scenario = options.scenario or resolve_scenario(control.scenario or hardware_scenario())
-    control = control.model_copy(update={"scenario": scenario})  # a resolved, existing path
-    # the vehicle: the simulator as the robot's own user, as fast as the loop flies the scene
-    # (real time at the scene's 1/dt); or the bridge to a ROS 2 robot, as the ros2 user
-    dt = load_scenario(scenario).dt
-    vehicle: tuple[str, ServiceSettings] = (
-        ("sim", read_settings(SimSettings, environ, **common, **user(robot_user(robot)),
-                              port=ports.sim, data_dir=data("sim"), scenario=scenario,
-                              time_scale=dt / control.period_s(dt)))
-        if options.ros2 is None else
-        (ROS2, read_settings(Ros2Settings, environ, **common, **user(ROS2), port=ports.sim,
-                             data_dir=data(ROS2), config=options.ros2)))
-    settings: list[tuple[str, ServiceSettings]] = []
+    reasoner = _reasoner(environ, local, fake, ports,
+                         {**common, **user("reasoner"), "data_dir": data("reasoner")})
+    names = child_names(robots, options.replicas, ros2=options.ros2 is not None)
+    postgres = (PostgresServer(data("postgres"), ports.postgres)
+                if options.replicas > 1 else None)
+    settings: list[tuple[str, str, ServiceSettings]] = []
     if fake:
-        settings.append(("fake-llm", read_settings(FakeLLMServiceSettings, environ, **common,
-                                                   port=ports.fake_llm)))
-    settings += [("embedding", embedding), ("reasoner", reasoner), vehicle,
-                 ("control", control)]
+        settings.append(("fake-llm", "fake-llm", read_settings(
+            FakeLLMServiceSettings, environ, **common, port=ports.fake_llm)))
+    for j, name in enumerate(names["embedding"]):
+        store = {} if postgres is None else {"store": postgres.socket_url, "replica": name}
+        settings.append((name, "embedding", read_settings(
+            EmbeddingSettings, environ, defaults={"detector_cache": DETECTOR_CACHE}, **common,
+            **user("embedding"), port=ports.of(name, "embedding", j), data_dir=data(name),
+            **store)))
+    settings.append(("reasoner", "reasoner", reasoner))
+    fleet_children, scenario = _robots(options, environ, robots, names, common, user, data,
+                                       settings)
     if options.dashboard:
-        settings.append(("dashboard", read_settings(
+        settings.append(("dashboard", "dashboard", read_settings(
             DashboardSettings, environ, **common, **user("dashboard"), port=ports.dashboard,
             data_dir=data("dashboard"),
             embedding_url=f"http://127.0.0.1:{ports.embedding}")))
@@ -239,23 +273,94 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
     fake_llm = to_env(read_settings(FakeLLMSettings, environ, defaults={
         "profile": "fixed", "fixed_s": FAKE_LLM_LATENCY_S}))
 
-    def child(name: str, service: ServiceSettings) -> ChildSpec:
-        argv = (py, "-m", "tools.cli", "serve", name)
-        env = {**inherited, **to_env(service), **(fake_llm if name == "fake-llm" else {})}
+    def child(name: str, kind: str, service: ServiceSettings) -> ChildSpec:
+        argv = (py, "-m", "tools.cli", "serve", kind)
+        env = {**inherited, **to_env(service), **(fake_llm if kind == "fake-llm" else {})}
         return ChildSpec(name, argv, service.port, env)
 
     zenoh_dir = options.data_dir / "zenoh"
     hub = ChildSpec("hub", (py, "-m", "tools.stack.router", "--users",
-                            str(zenoh_dir / "users.txt"), "--robot", robot, "--listen", endpoint,
+                            str(zenoh_dir / "users.txt"),
+                            *(a for r in robots for a in ("--robot", r)), "--listen", endpoint,
                             *(("--ros2", str(options.ros2)) if options.ros2 else ())),
                     ports.hub, inherited, ready="tcp")
-    children = tuple(child(n, s) for n, s in settings)
+    children = tuple(child(*spec) for spec in settings)
+    if postgres is not None:  # before the replicas: they open their store as they start
+        children = (ChildSpec(POSTGRES, postgres.argv(), ports.postgres, inherited,
+                              ready="tcp"), *children)
     if local is not None:  # it accepts connections once the model is loaded
         argv = server_argv(local, ports.fake_llm, threads=STACK_THREADS)
         children = (ChildSpec(LOCAL_LLM, argv, ports.fake_llm, inherited, ready="tcp"),
                     *children)
-    return StackPlan(hub, children, given or token, not given, fake, local, control.robot,
-                     scenario, zenoh_dir, secret)
+    return StackPlan(hub, children, given or token, not given, fake, local, robots[0],
+                     scenario, zenoh_dir, secret, fleet_children, postgres)
+
+
+def _check_fleet(options: StackOptions, robot: str) -> tuple[str, ...]:
+    if options.robots < 1 or options.replicas < 1:
+        raise PlanError("--robots and --replicas count from 1")
+    if options.ros2 is not None:
+        if options.robots > 1:
+            raise PlanError("--ros2 flies the one robot its config maps; --robots > 1 flies "
+                            "simulated vehicles")
+        if (mapped := load_config(options.ros2).robot) != robot:
+            raise PlanError(f"{options.ros2} maps the topics of robot {mapped!r}, the stack "
+                            f"serves {robot!r} (AESOP_ROBOT)")
+    return fleet(robot, options.robots)
+
+
+def _reasoner(environ: Mapping[str, str], local: LocalModel | None, fake: bool, ports: Ports,
+              forced: dict[str, Any]) -> ReasonerSettings:
+    """The reasoner's settings: how it reaches the LLM server the stack starts, if any."""
+    llm: dict[str, Any] = {}
+    if fake or local is not None:
+        llm["llm_base_url"] = f"http://127.0.0.1:{ports.fake_llm}/v1"
+    if local is not None:  # its model, asked as that server wants (the environment's knobs win)
+        asked = read_settings(ReasonerSettings, environ).request.model_dump(exclude_unset=True)
+        llm |= {"llm_model": local.alias, "request": {**REASONER_SETTINGS["request"], **asked}}
+    defaults = ({"llm_model": "fake"} if fake else
+                {"variant": REASONER_SETTINGS["variant"]} if local is not None else None)
+    return read_settings(ReasonerSettings, environ, defaults=defaults, **forced,
+                         port=ports.reasoner, **llm)
+
+
+def _robots(options: StackOptions, environ: Mapping[str, str], robots: Sequence[str],
+            names: Mapping[str, Sequence[str]], common: dict[str, Any],
+            user: Callable[[str], dict[str, Any]], data: Callable[[str], Path],
+            settings: list[tuple[str, str, ServiceSettings]]
+            ) -> tuple[tuple[tuple[str, str, str], ...], Path]:
+    """Each robot's control loop and vehicle (the simulator as the robot's own user, as
+    fast as the loop flies the scene: real time at the scene's 1/dt; or the bridge to a
+    ROS 2 robot, as the ros2 user), appended to ``settings``; (robot, control, vehicle)
+    child names, and the scene flown."""
+    ports = options.ports
+    vehicle_kind = ROS2 if options.ros2 is not None else "sim"
+    out = []
+    scenario = options.scenario
+    for i, robot in enumerate(robots):
+        control_name, vehicle_name = names["control"][i], names[vehicle_kind][i]
+        forced: dict[str, Any] = {**common, **user("control"), "robot": robot,
+                                  "port": ports.of(control_name, "control", i),
+                                  "data_dir": data(control_name)}
+        if options.rate_hz is not None:
+            forced["rate_hz"] = options.rate_hz
+        control = read_settings(ControlSettings, environ, **forced)
+        scenario = scenario or resolve_scenario(control.scenario or hardware_scenario())
+        control = control.model_copy(update={"scenario": scenario})  # resolved, existing
+        vehicle_port = ports.of(vehicle_name, "sim", i)
+        vehicle: ServiceSettings = (
+            read_settings(SimSettings, environ, **common, **user(robot_user(robot)),
+                          robot=robot, port=vehicle_port, data_dir=data(vehicle_name),
+                          scenario=scenario,
+                          time_scale=load_scenario(scenario).dt / control.period_s(
+                              load_scenario(scenario).dt))
+            if options.ros2 is None else
+            read_settings(Ros2Settings, environ, **common, **user(ROS2), port=vehicle_port,
+                          data_dir=data(vehicle_name), config=options.ros2))
+        settings += [(vehicle_name, vehicle_kind, vehicle), (control_name, "control", control)]
+        out.append((robot, control_name, vehicle_name))
+    assert scenario is not None
+    return tuple(out), scenario
 
 
 # --------------------------------------------------------------------------- processes
@@ -286,11 +391,21 @@ class Stack:
         if ROS2 in self.plan.passwords:  # the robot's rmw_zenoh nodes join as the ros2 user
             write_private(self.plan.ros2_session,
                           ros2_session_config(self.plan.endpoint, self.plan.passwords[ROS2]))
-        self.hub.start()
-        self._await_ready([self.hub])
-        for child in self.children:
+        if self.plan.postgres is not None:
+            self.plan.postgres.init()  # once per data directory
+        first = [self.hub, *self._infrastructure]
+        for child in first:
             child.start()
-        self._await_ready(self.children)
+        self._await_ready(first)
+        rest = [c for c in self.children if c not in first]
+        for child in rest:
+            child.start()
+        self._await_ready(rest)
+
+    @property
+    def _infrastructure(self) -> list[Child]:
+        """What the services need as they start and stop: PostgreSQL, with the hub."""
+        return [c for c in self.children if c.name == POSTGRES]
 
     def _await_ready(self, children: Sequence[Child]) -> None:
         await_ready(children, self.ready_timeout_s, stopping=self.stopping,
@@ -331,8 +446,10 @@ class Stack:
         return self.restarts.get("hub", 0)
 
     def stop(self, grace_s: float = 10.0) -> None:
-        """SIGTERM every service group, SIGKILL what is left after ``grace_s``; hub last."""
-        for group in (self.children, [self.hub]):
+        """SIGTERM every service group, SIGKILL what is left after ``grace_s``; the hub
+        and PostgreSQL last."""
+        last = [*self._infrastructure, self.hub]
+        for group in ([c for c in self.children if c not in last], last):
             for child in group:
                 child.signal(signal.SIGTERM)
             deadline = time.monotonic() + grace_s
@@ -357,7 +474,13 @@ def write_token(data_dir: Path, token: str) -> Path:
 
 def urls_text(plan: StackPlan, token_file: Path | None) -> str:
     lines = ["", "AESOP stack is up:"]
-    lines += [f"  {s.name:<10} {s.url}" for s in plan.services]
+    lines += [f"  {s.name:<10} " + (s.url if s.name != POSTGRES else f"PostgreSQL on port "
+                                    f"{s.port}, its socket in {plan.postgres.root}"
+                                    if plan.postgres else "")
+              for s in plan.services]
+    if len(plan.robots) > 1:
+        lines.append(f"  robots     {', '.join(plan.robots)} (each with its control loop and "
+                     "simulated vehicle)")
     if plan.url("dashboard"):
         lines.append("  (open the dashboard once as <its url>/?token=<admin token>: "
                      "the browser keeps it as a cookie)")
