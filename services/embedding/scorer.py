@@ -46,10 +46,13 @@ class Query:
         return cls(text, tuple(dict.fromkeys(d.phrase for d in detections)))
 
 
-class PhraseMemo:
-    """The vectors of detection phrases no cache holds, the most recent ``size`` of them
-    by (model, phrase): a camera reports an odd object ten times a second, and embedding
-    it beside every observation's text made the bus's verdicts ~6 ms slower (p50)."""
+class VectorMemo:
+    """The most recent ``size`` vectors by (model, text). For detection phrases no cache
+    holds: a camera reports an odd object ten times a second, and embedding it beside every
+    observation's text made the bus's verdicts ~6 ms slower (p50). For whole observations:
+    a robot's camera describes the same scene frame after frame, and a fleet's robots see
+    the same places; a model gives one text one vector, so a text seen again is not
+    embedded again (``aesop bench fleet``: what a core buys with and without it)."""
 
     def __init__(self, size: int = 4096) -> None:
         self.size = size
@@ -107,7 +110,8 @@ class Scorer:
         self._urgent = urgent
         self._on_batch = on_batch
         self._rest_pending = 0  # REST texts being scored or waiting (max_pending_texts)
-        self._phrases = PhraseMemo()
+        self._phrases = VectorMemo()
+        self._texts = VectorMemo(settings.tuning.text_memo)
 
     async def score_texts(self, name: str, texts: Sequence[str], k: int | None = None, *,
                           urgent: bool = False,
@@ -189,12 +193,22 @@ class Scorer:
                      if p in entry.cache.detection_vectors}
         known |= self._phrases.recall(config.model, [p for p in phrases if p not in known])
         unknown = [p for p in phrases if p not in known]
+        texts = list(dict.fromkeys(q.text for q in queries))
+        seen = self._texts.recall(config.model, texts) if self._texts.size else {}
+        fresh = [t for t in texts if t not in seen]
         rows = self.embedders.get(config.model).embed(
-            [q.text for q in queries] + [embedded_form(p) for p in unknown],
-            batch_size=self.settings.tuning.embed_batch_size)
-        vectors = rows[:len(queries)]
+            fresh + [embedded_form(p) for p in unknown],
+            batch_size=self.settings.tuning.embed_batch_size) if fresh or unknown else None
+        if fresh:
+            assert rows is not None
+            embedded = dict(zip(fresh, rows[:len(fresh)], strict=True))
+            if self._texts.size:
+                self._texts.keep(config.model, embedded)
+            seen |= embedded
+        vectors = np.stack([seen[q.text] for q in queries])
         if unknown:
-            new = dict(zip(unknown, unit_vectors(rows[len(queries):]), strict=True))
+            assert rows is not None
+            new = dict(zip(unknown, unit_vectors(rows[len(fresh):]), strict=True))
             self._phrases.keep(config.model, new)
             known |= new
         found = [Detections(q.phrases, np.stack([known[p] for p in q.phrases]))

@@ -66,6 +66,9 @@ class EmbeddingTuning(Group):
     # not to spin, so a second thread costs nothing while idle; measured with
     # `aesop bench detector --only latency` and `aesop bench bus` (docs/benchmarks.md)
     onnx_threads: int = Field(default=1, ge=1, le=256)
+    # observation texts whose vectors are kept (the most recent; 0: none): a text seen again
+    # is scored without embedding it again (a camera's scene repeats frame after frame)
+    text_memo: int = Field(default=4096, ge=0, le=1_000_000)
     # with a shared store: how often a replica compares the stored versions with its own
     # besides following the others' notices (the most a lost notice delays a change)
     follow_poll_s: float = Field(default=5.0, gt=0.0, le=3600.0)

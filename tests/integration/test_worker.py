@@ -42,7 +42,9 @@ NOMINAL = [f"a {c} box on the ground near a {t}" for c in ("red", "blue", "green
 async def service(tmp_path: Path) -> AsyncIterator[tuple[CacheService, HashEmbedder]]:
     embedder = HashEmbedder()
     settings = EmbeddingSettings(data_dir=tmp_path, fsync=False,
-                                 tuning=EmbeddingTuning(microbatch_window_ms=200),
+                                 # every text embedded, seen before or not: these tests count
+                                 # embedding calls (the memo of texts has its own test)
+                                 tuning=EmbeddingTuning(microbatch_window_ms=200, text_memo=0),
                                  zenoh_worker=False)
     svc = CacheService(settings, embedders=EmbedderPool(loader=lambda _: embedder))
     await svc.start()
@@ -85,8 +87,9 @@ async def test_verdicts_for_observations(service: tuple[CacheService, HashEmbedd
         assert v.is_anomaly == (v.score > v.threshold) and v.reason is None
     assert got[0].neighbors[0].text == NOMINAL[3]
     assert got[0].neighbors[0].similarity == pytest.approx(1.0, abs=1e-5)
-    # 20 observations published in a burst inside a 200 ms window share embedding calls
-    assert sum(embedder.calls) == 20 and len(embedder.calls) < 20
+    # 20 observations published in a burst inside a 200 ms window share embedding calls,
+    # and a text twice in one call is embedded once
+    assert len(embedder.calls) < 20 and all(n <= 2 for n in embedder.calls)
     await worker.stop()
     await asyncio.wait_for(task, DEADLINE_S)
 
@@ -216,10 +219,28 @@ async def test_an_odd_detection_is_embedded_once_however_often_it_is_seen(
                             for i in range(3)])
     text, odd = flagged_scene("a keyboard")
     embedder.calls.clear()
+    scores = [(await svc.scorer.score_texts("scene", [text], urgent=True, detections=[odd])
+               ).results[0].score for _ in range(3)]
+    # the text and the keyboard once; then both are remembered (the red box is the cache's)
+    assert embedder.calls == [2] and len(set(scores)) == 1
+    other = f"{text} Seen again from the left."
+    await svc.scorer.score_texts("scene", [other, text], urgent=True, detections=[odd, odd])
+    assert embedder.calls == [2, 1]  # only the new text
+    await svc.close()
+
+
+async def test_without_the_memo_every_text_is_embedded_every_time(tmp_path: Path) -> None:
+    embedder = HashEmbedder()
+    settings = EmbeddingSettings(data_dir=tmp_path, fsync=False, zenoh_worker=False,
+                                 tuning=EmbeddingTuning(text_memo=0))
+    svc = CacheService(settings, embedders=EmbedderPool(loader=lambda _: embedder))
+    await svc.start()
+    await svc.create("scene", model="hash", k=1)
+    await svc.add("scene", [Item(text=t) for t in NOMINAL])
+    embedder.calls.clear()
     for _ in range(3):
-        await svc.scorer.score_texts("scene", [text], urgent=True, detections=[odd])
-    # the text and the keyboard, then the text alone (the red box is the cache's own)
-    assert embedder.calls == [2, 1, 1]
+        await svc.scorer.score_texts("scene", [NOMINAL[0]], urgent=True)
+    assert embedder.calls == [1, 1, 1]
     await svc.close()
 
 

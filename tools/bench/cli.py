@@ -126,6 +126,18 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="samples per second (100: odometry's usual rate)")
     br.add_argument("--json", action="store_true")
     br.set_defaults(func=cmd_bench_ros2)
+    bfl = bsub.add_parser("fleet", help="1 to 64 robots' verdicts on one and two detector "
+                          "replicas sharing PostgreSQL; replica lag; PostgreSQL vs SQLite")
+    bfl.add_argument("--seconds", type=float, default=15.0,
+                     help="each fleet size on each replica count (default 15)")
+    bfl.add_argument("--rate", type=float, default=10.0, help="per robot per second (10)")
+    bfl.add_argument("--lags", type=int, default=100, help="adds timed for the lag (100)")
+    bfl.add_argument("--adds", type=int, default=50,
+                     help="commits per store for its cost (default 50)")
+    bfl.add_argument("--batch", type=int, default=100, help="experiences per commit (100)")
+    _model_option(bfl)
+    bfl.add_argument("--json", action="store_true")
+    bfl.set_defaults(func=cmd_bench_fleet)
     bench.set_defaults(needs_bench_extra=True)
 
 
@@ -292,6 +304,17 @@ def cmd_bench_ros2(args: argparse.Namespace) -> int:
         raise CliError("--seconds and --rate must be positive")
     return _with_processes("ros2", lambda: run_ros2_bench(
         seconds=args.seconds, rate_hz=args.rate, table_out=not args.json), args.json)
+
+
+def cmd_bench_fleet(args: argparse.Namespace) -> int:
+    from tools.bench.fleet import run_fleet_bench
+
+    if not (args.seconds > 0 and args.rate > 0) or min(args.lags, args.adds, args.batch) < 1:
+        raise CliError("--seconds and --rate must be positive, --lags, --adds and --batch "
+                       "at least 1")
+    return _with_processes("fleet", lambda: run_fleet_bench(
+        seconds=args.seconds, rate_hz=args.rate, lags=args.lags, adds=args.adds,
+        batch=args.batch, model=args.model, table_out=not args.json), args.json)
 
 
 def _with_processes(name: str, run: Callable[[], dict[str, Any]], as_json: bool) -> int:
