@@ -13,8 +13,19 @@ from pathlib import Path
 
 from services.control.scenario import load_scenario
 from shared.process import file_sink
+from shared.settings import BusSettings, read_settings
 from tools.local_llm import LocalModel
-from tools.stack.up import Ports, Stack, StackOptions, StackPlan, hardware_scenario, plan_stack
+from tools.stack.up import (
+    Ports,
+    Stack,
+    StackOptions,
+    StackPlan,
+    child_names,
+    fleet,
+    hardware_scenario,
+    loop_rate,
+    plan_stack,
+)
 
 
 @dataclass(frozen=True)
@@ -30,18 +41,24 @@ class Running:
 @contextlib.contextmanager
 def running_stack(tmp_path: Path, token: str, *, local_model: LocalModel | None = None,
                   environ: Mapping[str, str] | None = None,
-                  ros2: Path | None = None) -> Iterator[Running]:
-    """Up with its data in ``tmp_path/data`` and logs in ``tmp_path/logs`` (``environ``:
-    variables over this process's); stopped whatever happens. The control loop runs at
-    the scene's rate unless ``AESOP_CONTROL_RATE_HZ`` says otherwise; ``ros2``: the
-    bridge with this config instead of the simulated vehicle."""
+                  ros2: Path | None = None, robots: int = 1, replicas: int = 1,
+                  data_dir: Path | None = None) -> Iterator[Running]:
+    """Up with its data in ``tmp_path/data`` (or ``data_dir``) and logs in
+    ``tmp_path/logs`` (``environ``: variables over this process's); stopped whatever
+    happens. The control loop runs at the scene's rate unless ``AESOP_CONTROL_RATE_HZ``
+    says otherwise; ``ros2``: the bridge with this config instead of the simulated
+    vehicle; ``robots``, ``replicas``: a fleet (a ``data_dir`` PostgreSQL's user can
+    reach, with replicas)."""
     path = hardware_scenario()
     scene = load_scenario(path)
     env = {k: v for k, v in {**os.environ, **(environ or {})}.items()
            if k != "AESOP_ADMIN_TOKEN"}
-    rate = None if env.get("AESOP_CONTROL_RATE_HZ") else 1.0 / scene.dt
-    options = StackOptions(data_dir=tmp_path / "data", ports=Ports.free(), scenario=path,
-                           rate_hz=rate, local_model=local_model, ros2=ros2)
+    rate = None if env.get("AESOP_CONTROL_RATE_HZ") else loop_rate(1.0 / scene.dt, robots)
+    names = child_names(fleet(read_settings(BusSettings, env).robot, robots), replicas)
+    options = StackOptions(data_dir=data_dir or tmp_path / "data",
+                           ports=Ports.free([n for kind in names.values() for n in kind[1:]]),
+                           scenario=path, rate_hz=rate, local_model=local_model, ros2=ros2,
+                           robots=robots, replicas=replicas)
     plan = plan_stack(options, env, token)
     running = Stack(plan, file_sink(tmp_path / "logs"))
     try:

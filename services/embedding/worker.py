@@ -137,12 +137,30 @@ class DetectorWorker:
 
     async def run(self) -> None:
         if self.replicas is not None:
+            await self._warm_up()  # before it takes any robot from the others
             self.replicas.join(self.bus.session)
         reporting = asyncio.create_task(self._report_drops())
         try:
             await asyncio.gather(self._receive(), *(pump.run() for pump in self._learning))
         finally:
             reporting.cancel()
+
+    async def _warm_up(self) -> None:
+        """Load the detector cache's model (the service's default before the cache
+        exists) and embed once: a replica that joins, or takes a dead one's robots, answers
+        its first observations as fast as the next ones (exporting and loading the model
+        took 10-60 s, and the robots' loops saw their verdicts go stale meanwhile)."""
+        try:
+            model = self.service.entry(self.cache).cache.config.model
+        except DetectorError:
+            model = self.service.settings.model
+        if model is None:
+            return
+        try:
+            embedder = await self.service.scorer.embedder(model)
+            await self.service.scorer.on_compute(embedder.embed, ["warming up"])
+        except DetectorError as exc:
+            log.warning("model %s not loaded before taking robots: %s", model, exc.message)
 
     async def stop(self) -> None:
         if self._observations is not None:

@@ -195,7 +195,7 @@ async def test_robots_are_shared_among_live_replicas_and_move_when_one_dies(
         seen_b.texts.clear()
         for robot in robots:
             connector.publish(topics.observation(robot), Observation(
-                robot=robot, seq=seq, text=f"{NOMINAL[0]} seen by {robot}"))
+                robot=robot, seq=seq, text=f"{NOMINAL[0]} frame {seq} seen by {robot}"))
         got = []
         for _ in robots:
             received = await asyncio.wait_for(anext(sub), DEADLINE_S)

@@ -29,6 +29,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -259,13 +260,21 @@ FLEET_ORDER = ("2a", "2b", "3", "1")
 
 
 def fly_fleet(plan: StackPlan, *, scenario: Scenario, model: str | None = None,
-              record_dir: Path | None = None) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+              record_dir: Path | None = None, airborne: threading.Event | None = None
+              ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """``aesop demo --robots N``: build and calibrate the cache once, then every robot of
     ``plan`` flies its scenario (:data:`FLEET_ORDER`, one each) at the same time, with
     its own control loop, vehicle and camera; the detector replicas share the robots. The
-    rows carry their robot; the flights are keyed ``<robot>: <scenario>``."""
+    rows carry their robot; the flights are keyed ``<robot>: <scenario>``. ``airborne`` is
+    set once every robot's flight has started."""
     jobs = [(robot, demo_scenario(FLEET_ORDER[i % len(FLEET_ORDER)]))
             for i, robot in enumerate(plan.robots)]
+    started: set[str] = set()
+
+    def on_start(robot: str) -> None:
+        started.add(robot)
+        if airborne is not None and len(started) == len(jobs):
+            airborne.set()
 
     async def fleet() -> list[tuple[dict[str, Any], dict[str, np.ndarray]]]:
         detector = await _scene_cache(plan.url("embedding"), plan.token, model)
@@ -275,7 +284,8 @@ def fly_fleet(plan: StackPlan, *, scenario: Scenario, model: str | None = None,
                   None if record_dir is None else Recorders(
                       plan.bus_settings(MONITOR, robot=robot), record_dir, robot,
                       prefix=f"{robot}-"),
-                  real_model=plan.local_model is not None, detector=detector)
+                  real_model=plan.local_model is not None, detector=detector,
+                  on_start=partial(on_start, robot))
             for robot, demo in jobs))
 
     flown = asyncio.run(fleet())
@@ -332,10 +342,11 @@ async def _demo(embedding_url: str | None, control_url: str | None, sim_url: str
                 token: str, settings: BusSettings, scenario: Scenario, model: str | None,
                 demos: Sequence[DemoScenario] = SCENARIOS, recorders: Recorders | None = None,
                 *, real_model: bool = False, until: threading.Event | None = None,
-                detector: dict[str, Any] | None = None
+                detector: dict[str, Any] | None = None,
+                on_start: Callable[[], None] | None = None
                 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """One robot's flights (``settings.robot``), the cache built first unless
-    ``detector`` says it is."""
+    ``detector`` says it is; ``on_start``: called as each flight starts."""
     assert control_url and sim_url
     if detector is None:
         detector = await _scene_cache(embedding_url, token, model)
@@ -369,7 +380,7 @@ async def _demo(embedding_url: str | None, control_url: str | None, sim_url: str
                         break
                     row, states = await fly(pilots, camera, verdicts, rec, demo, scenario,
                                             None if recorders is None else recorders.of(demo),
-                                            real_model=real_model)
+                                            real_model=real_model, on_start=on_start)
                     rows.append(row)
                     flights[demo.name] = states
                     if until is None:
@@ -447,15 +458,16 @@ class Pilots:
 
 async def fly(pilots: Pilots, camera: Camera, verdicts: Subscription[AnomalyVerdict],
               rec: Recorder, demo: DemoScenario, scenario: Scenario,
-              recorder: Background | None = None, *, real_model: bool = False
+              recorder: Background | None = None, *, real_model: bool = False,
+              on_start: Callable[[], None] | None = None
               ) -> tuple[dict[str, Any], np.ndarray]:
     camera.scene, camera.flying = demo, False
     await _calm(camera, verdicts)
     if recorder is None:
-        return await _fly(pilots, camera, rec, demo, scenario, real_model)
+        return await _fly(pilots, camera, rec, demo, scenario, real_model, on_start)
     await asyncio.to_thread(recorder.start)
     try:
-        row, states = await _fly(pilots, camera, rec, demo, scenario, real_model)
+        row, states = await _fly(pilots, camera, rec, demo, scenario, real_model, on_start)
     finally:  # a failed flight's recording is finished (indexed) too
         totals = await asyncio.to_thread(recorder.stop)
     row["recording"] = recording_row(totals, recorder.out)
@@ -463,7 +475,9 @@ async def fly(pilots: Pilots, camera: Camera, verdicts: Subscription[AnomalyVerd
 
 
 async def _fly(pilots: Pilots, camera: Camera, rec: Recorder, demo: DemoScenario,
-               scenario: Scenario, real_model: bool) -> tuple[dict[str, Any], np.ndarray]:
+               scenario: Scenario, real_model: bool,
+               on_start: Callable[[], None] | None = None
+               ) -> tuple[dict[str, Any], np.ndarray]:
     rec.recording = False
     rec.states, rec.requests, rec.decisions, rec.events = [], [], [], []
     rec.detector_alarms = 0
@@ -471,6 +485,8 @@ async def _fly(pilots: Pilots, camera: Camera, rec: Recorder, demo: DemoScenario
     await pilots.new_flight(camera, start)
     rec.recording = True
     camera.flying = True
+    if on_start is not None:
+        on_start()
     wall = time.monotonic()
     deadline = wall + 3 * FLIGHT_S + 30
     while rec.t < flight_end(rec, scenario):

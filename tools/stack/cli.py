@@ -109,7 +109,14 @@ def stack_options(args: argparse.Namespace, data_dir: Path):
     from services.control.scenario import resolve_scenario
     from services.control.settings import ControlSettings
     from shared.settings import BusSettings
-    from tools.stack.up import Ports, StackOptions, child_names, fleet, hardware_scenario
+    from tools.stack.up import (
+        Ports,
+        StackOptions,
+        child_names,
+        fleet,
+        hardware_scenario,
+        loop_rate,
+    )
 
     control = ControlSettings()  # what the environment asks of the control loop
     scenario_path = resolve_scenario(args.scenario or control.scenario or hardware_scenario())
@@ -129,7 +136,7 @@ def stack_options(args: argparse.Namespace, data_dir: Path):
     if busy:
         raise CliError(f"ports already in use: {', '.join(busy)} (is `aesop up` running?); "
                        "stop it or pass --random-ports")
-    rate = None if control.rate_hz is not None else 1.0 / scenario.dt
+    rate = None if control.rate_hz is not None else loop_rate(1.0 / scenario.dt, robots)
     ros2 = getattr(args, "ros2", None)
     if ros2 is not None:
         ros2_config(ros2)  # a bad file stops here, naming the field

@@ -8,7 +8,7 @@ listens on 127.0.0.1 only, and on its socket in the directory (0700). Its one ro
 ``aesop`` logs in over TCP with a password (SCRAM, written to ``<dir>/password``, 0600:
 ``url``) and over the socket without one (``socket_url``): reaching the socket already takes
 the directory's owner. PostgreSQL refuses to run as root: as root, the directory is given
-to the ``postgres`` system user and every command runs as that user.
+to the ``postgres`` system user and every command runs as that user (``setpriv``).
 """
 
 from __future__ import annotations
@@ -80,7 +80,13 @@ class PostgresServer:
         return self.url_of(name)
 
     def _as_owner(self, *args: str) -> tuple[str, ...]:
-        return (*(("runuser", "-u", "postgres", "--") if self._as_postgres else ()), *args)
+        """``args`` as the ``postgres`` user when this is root: ``setpriv`` executes the
+        command in its own place (no process in between, so the server is the child that is
+        signalled and reaped, and nothing is orphaned when it is killed)."""
+        if not self._as_postgres:
+            return args
+        return ("setpriv", "--reuid=postgres", "--regid=postgres", "--init-groups",
+                "--reset-env", "--", *args)
 
     def _run(self, *args: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run(self._as_owner(*args), capture_output=True, text=True,

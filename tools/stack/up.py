@@ -125,6 +125,18 @@ class Ports:
         return out
 
 
+# a fleet's control loops on one machine, unless AESOP_CONTROL_RATE_HZ says otherwise: three
+# at the hardware scene's 20 Hz took a quarter of a core each on 2 cores, the vehicles'
+# states came up to 160 ms late (stale: an anomaly each time) and the flights went astray;
+# at 10 Hz (the simulated vehicles at half speed) all three scenarios ended as expected
+FLEET_RATE_HZ = 10.0
+
+
+def loop_rate(scene_rate_hz: float, robots: int) -> float:
+    """The control loops' rate for ``robots`` robots flying a scene made for ``scene_rate_hz``."""
+    return scene_rate_hz if robots == 1 else min(scene_rate_hz, FLEET_RATE_HZ)
+
+
 def fleet(robot: str, n: int) -> tuple[str, ...]:
     """The ids of ``n`` robots named after ``robot`` (itself when alone): its trailing
     number counted on ("robot0" -> robot0, robot1, robot2; "drone" -> drone0, drone1)."""
