@@ -3,7 +3,9 @@
 One line per state at most every ``state_every_s`` seconds (and at every mode
 change), every anomaly flag and the return to nominal, every reasoner request
 and decision, every event, and services appearing and vanishing. Plans are
-left to the dashboard. :class:`Terminal` is the pure part; :func:`watch` the I/O.
+left to the dashboard. ``--robot all`` follows every robot of a fleet, each line
+led by its robot (each robot's states throttled and its flags followed on their own).
+:class:`Terminal` is the pure part; :func:`watch` the I/O.
 """
 
 from __future__ import annotations
@@ -11,10 +13,12 @@ from __future__ import annotations
 import math
 import time
 from collections import OrderedDict
+from dataclasses import dataclass
 from typing import Any, TextIO
 
 import zenoh
 
+from shared import topics
 from shared.bus import zenoh_config
 from shared.settings import BusSettings
 
@@ -22,16 +26,26 @@ from .feed import Update, follow
 
 Json = dict[str, Any]
 _KEEP_REQUESTS = 32
+_KEEP_ROBOTS = 1024
+
+
+@dataclass
+class _Seen:
+    """What one robot's lines depend on."""
+
+    last_state: float | None = None  # received time of the last printed state
+    last_mode: str | None = None
+    flagged: bool = False
 
 
 class Terminal:
-    """Turns updates into lines (or None: nothing worth a line)."""
+    """Turns updates into lines (or None: nothing worth a line); ``fleet``: every robot's,
+    each line led by its robot."""
 
-    def __init__(self, state_every_s: float = 1.0) -> None:
+    def __init__(self, state_every_s: float = 1.0, *, fleet: bool = False) -> None:
         self.state_every_s = state_every_s
-        self._last_state: float | None = None  # received time of the last printed state
-        self._last_mode: str | None = None
-        self._flagged = False
+        self.fleet = fleet
+        self._robots: OrderedDict[str, _Seen] = OrderedDict()
         self._labels: OrderedDict[str, dict[int, str]] = OrderedDict()
 
     def line(self, update: Update) -> str | None:
@@ -43,14 +57,26 @@ class Terminal:
             return None
         clock = time.strftime("%H:%M:%S", time.localtime(update.received))
         millis = int(math.modf(update.received)[0] * 1000)
-        return f"{clock}.{millis:03d} {update.kind:<8} {text}"
+        who = ""
+        if self.fleet:
+            who = f"{'-' if update.kind == 'health' else topics.robot_of(update.topic):<10} "
+        return f"{clock}.{millis:03d} {who}{update.kind:<8} {text}"
+
+    def _seen(self, update: Update) -> _Seen:
+        robot = topics.robot_of(update.topic)
+        seen = self._robots.pop(robot, None) or _Seen()
+        self._robots[robot] = seen  # the most recent last; the oldest forgotten past 1024
+        while len(self._robots) > _KEEP_ROBOTS:
+            self._robots.popitem(last=False)
+        return seen
 
     def _state(self, m: Json, update: Update) -> str | None:
-        due = (self._last_state is None
-               or update.received - self._last_state >= self.state_every_s)
-        if not due and m["mode"] == self._last_mode:
+        seen = self._seen(update)
+        due = (seen.last_state is None
+               or update.received - seen.last_state >= self.state_every_s)
+        if not due and m["mode"] == seen.last_mode:
             return None
-        self._last_state, self._last_mode = update.received, m["mode"]
+        seen.last_state, seen.last_mode = update.received, m["mode"]
         x = m["x"]
         speed = math.sqrt(sum(v * v for v in x[3:6]))
         text = (f"t={m['t']:7.2f} s  {m['mode']:<15} pos=({x[0]:6.2f}, {x[1]:6.2f}, "
@@ -59,8 +85,9 @@ class Terminal:
             text += f"  y={m['chosen']}"
         return text
 
-    def _anomaly(self, m: Json, _u: Update) -> str | None:
-        was, self._flagged = self._flagged, bool(m["is_anomaly"])
+    def _anomaly(self, m: Json, update: Update) -> str | None:
+        seen = self._seen(update)
+        was, seen.flagged = seen.flagged, bool(m["is_anomaly"])
         if not m["is_anomaly"] and not was:
             return None
         tau = "none (uncalibrated)" if m["threshold"] is None else f"{m['threshold']:.3f}"
@@ -99,9 +126,11 @@ def _short(text: str, width: int) -> str:
     return text if len(text) <= width else text[: width - 1] + "…"
 
 
-async def watch(settings: BusSettings, out: TextIO, state_every_s: float = 1.0) -> None:
-    """Print the robot's stream to ``out`` until cancelled (no liveliness token of its own)."""
-    terminal = Terminal(state_every_s)
+async def watch(settings: BusSettings, out: TextIO, state_every_s: float = 1.0, *,
+                fleet: bool = False) -> None:
+    """Print the robot's stream to ``out`` until cancelled (no liveliness token of its own);
+    ``fleet``: every robot's."""
+    terminal = Terminal(state_every_s, fleet=fleet)
 
     def sink(update: Update) -> None:
         text = terminal.line(update)
@@ -109,4 +138,4 @@ async def watch(settings: BusSettings, out: TextIO, state_every_s: float = 1.0) 
             print(text, file=out, flush=True)
 
     with zenoh.open(zenoh_config(settings)) as session:
-        await follow(session, settings.robot, sink)
+        await follow(session, topics.ANY_ROBOT if fleet else settings.robot, sink)

@@ -97,3 +97,31 @@ def test_watch_prints_the_flight_and_exits_0_on_ctrl_c(
             proc.kill()
             proc.wait(10)
     assert "Traceback" not in (tmp_path / "watch.err").read_text()
+
+
+def test_watch_all_follows_every_robot_of_a_fleet(listener: Bus, endpoint: str,
+                                                  tmp_path: Path) -> None:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("AESOP_ZENOH")}
+    with open(tmp_path / "watch.err", "w") as err:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "tools.cli", "watch", "--robot", "all", "--connect",
+             endpoint], stdout=subprocess.PIPE, stderr=err, stdin=subprocess.DEVNULL,
+            text=True, env=env)
+    try:
+        lines = Lines(proc)
+
+        def greeted() -> bool:
+            for robot in ("drone1", "rover2"):
+                listener.publish(topics.event(robot, "test"), Event(robot=robot, source="test",
+                                                                    kind="hello"))
+            return all(lines.having(f" {robot} ", "[info] test/hello")
+                       for robot in ("drone1", "rover2"))
+
+        wait_until(greeted, "watch to follow both robots", 20.0)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    assert "every robot" in (tmp_path / "watch.err").read_text()

@@ -74,3 +74,27 @@ def test_events_services_and_nothing_for_plans() -> None:
     gone = term.line(at("health", {"service": "reasoner", "alive": False}, 1.0))
     assert gone is not None and gone.endswith("health   reasoner gone")
     assert term.line(at("plan", {"nominal": []}, 1.0)) is None
+
+
+def test_a_fleet_is_watched_robot_by_robot_each_line_led_by_its_robot() -> None:
+    term = Terminal(state_every_s=1.0, fleet=True)
+
+    def of(robot: str, kind: str, message: dict, received: float) -> Update:
+        return Update(kind, f"aesop/{robot}/{kind}", message, received)
+
+    x = [1.0, 2.0, 3.0] + [0.0] * 9
+    first = term.line(of("robot0", "state", {"t": 0.0, "x": x, "mode": "nominal"}, 100.0))
+    other = term.line(of("robot1", "state", {"t": 0.0, "x": x, "mode": "nominal"}, 100.1))
+    # each robot's states throttled on their own: robot1's first state shows
+    assert first is not None and " robot0     state " in first
+    assert other is not None and " robot1     state " in other
+    assert term.line(of("robot0", "state", {"t": 0.2, "x": x, "mode": "nominal"}, 100.2)) is None
+    flagged = {"seq": 1, "score": -0.5, "threshold": -0.7, "is_anomaly": True, "reason": None}
+    calm = {**flagged, "is_anomaly": False, "score": -0.9}
+    assert "robot1     anomaly  ANOMALY" in str(term.line(of("robot1", "anomaly", flagged, 101)))
+    assert term.line(of("robot0", "anomaly", calm, 101.1)) is None  # robot0 never flagged
+    back = term.line(of("robot1", "anomaly", calm, 101.2))
+    assert back is not None and "nominal again" in back
+    gone = term.line(Update("health", "aesop/health/embedding", {"service": "embedding",
+                                                                  "alive": False}, 102.0))
+    assert gone is not None and " -          health   embedding gone" in gone
