@@ -1,7 +1,8 @@
 """The robot's bus traffic as one stream of :class:`Update`s (the Zenoh side of the dashboard).
 
 Both the dashboard service and ``aesop watch`` follow the same seven topics of
-one robot plus the liveliness of every service. Each message arrives through
+one robot (or of every robot) plus the liveliness of every service; the dashboard's fleet
+overview follows five of them for every robot. Each message arrives through
 the shared bridge (``shared.bus``) and is handed on as a JSON-ready dict.
 """
 
@@ -12,7 +13,7 @@ import json
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -70,24 +71,28 @@ def message_update(kind: str, got: Received[Message], now: float) -> Update:
 
 
 async def follow(session: zenoh.Session, robot: str, sink: Sink, *,
-                 clock: Callable[[], float] = time.time) -> None:
-    """Call ``sink`` with every update of ``robot`` until cancelled.
+                 clock: Callable[[], float] = time.time, kinds: Sequence[str] | None = None,
+                 health: bool = True) -> None:
+    """Call ``sink`` with every update of ``robot`` (``*``: every robot's) until cancelled;
+    ``kinds``: only these of :data:`SOURCES`; ``health``: the services' liveliness too.
 
     A sink that raises loses that one update (logged), not the stream.
     """
     subs = {kind: Subscription(session, key(robot), model, maxsize=256)
-            for kind, (key, model) in SOURCES.items()}
-    health = LivelinessWatch(session, HEALTH_ALL)
+            for kind, (key, model) in SOURCES.items() if kinds is None or kind in kinds}
+    alive = LivelinessWatch(session, HEALTH_ALL) if health else None
     guarded = _guard(sink)
     try:
         async with asyncio.TaskGroup() as group:
             for kind, sub in subs.items():
                 group.create_task(_pump(kind, sub, guarded, clock))
-            group.create_task(_pump_health(health, guarded, clock))
+            if alive is not None:
+                group.create_task(_pump_health(alive, guarded, clock))
     finally:
         for sub in subs.values():
             sub.close()
-        health.close()
+        if alive is not None:
+            alive.close()
 
 
 async def _pump(kind: str, sub: Subscription[Any], sink: Sink,

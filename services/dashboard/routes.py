@@ -1,5 +1,6 @@
 """The dashboard's routes: ``GET /`` (the page), ``GET /ws`` (the live stream),
-``GET /v1/snapshot`` (the aggregated state), all read-only, and one write:
+``GET /v1/snapshot`` (the aggregated state), ``GET /v1/fleet`` (every robot, a line each), all
+read-only, and one write:
 ``POST /v1/proposals/accept|reject``, a batch review of the detector's proposals forwarded
 to the embedding service. With a token configured the page is public and the flight is
 not: a browser opened with ``/?token=`` keeps a read-only session cookie derived from the
@@ -33,6 +34,7 @@ from shared.http import (
     session_value,
 )
 
+from .fleet import FleetSnapshot
 from .hub import ClientQueue
 from .model import Snapshot
 from .service import DashboardService
@@ -80,6 +82,12 @@ async def page(request: Request, token: str | None = None) -> Response:
 @router.get("/v1/snapshot", responses=errors(503))
 async def snapshot(service: RunningDep) -> Snapshot:
     return Snapshot.model_validate(service.snapshot())
+
+
+@router.get("/v1/fleet", responses=errors(503))
+async def fleet(service: RunningDep) -> FleetSnapshot:
+    """Every robot heard from: mode, newest verdict, the request it waits on, alarms."""
+    return service.fleet.snapshot(service.settings.robot)
 
 
 class Review(BaseModel):

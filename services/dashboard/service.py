@@ -1,12 +1,14 @@
 """The dashboard as a service: the robot's bus stream folded into the model and fanned out.
 
 It follows the robot's topics (the recovery regions and the goal included) and
-the services' liveliness (``feed.follow``). The bus declares
+the services' liveliness (``feed.follow``), and every robot's state, verdicts, requests,
+decisions and events for the fleet overview (:mod:`.fleet`). The bus declares
 ``aesop/health/dashboard``.
 """
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import time
@@ -15,7 +17,10 @@ from collections.abc import Callable
 import zenoh
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
+from shared import topics
+
 from .feed import Update, follow
+from .fleet import KINDS, FleetModel
 from .hub import Hub
 from .model import FlightModel, Limits
 from .settings import DashboardSettings
@@ -44,6 +49,7 @@ class DashboardService:
         kept = settings.limits
         limits = Limits(kept.trail, kept.scores, kept.log)
         self.model = FlightModel(settings.robot, limits)
+        self.fleet = FleetModel()
         self.hub = Hub(kept.client_queue)
 
     def on_update(self, update: Update) -> None:
@@ -57,7 +63,11 @@ class DashboardService:
         return {**self.model.snapshot(), "review_token": self.settings.admin_token is not None}
 
     async def run(self) -> None:
-        await follow(self.session, self.settings.robot, self.on_update, clock=self.clock)
+        async with asyncio.TaskGroup() as group:
+            group.create_task(follow(self.session, self.settings.robot, self.on_update,
+                                     clock=self.clock))
+            group.create_task(follow(self.session, topics.ANY_ROBOT, self.fleet.apply,
+                                     clock=self.clock, kinds=KINDS, health=False))
 
     def refresh_metrics(self) -> None:
         self.metrics.clients.set(len(self.hub.clients))

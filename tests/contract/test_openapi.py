@@ -89,6 +89,7 @@ def keywords_json_schema_lacks(schema: object, path: str = "") -> list[str]:
 def test_published_schemas_use_json_schema_keywords_only() -> None:
     from services.control.scenario import load_scenario
     from services.control.schemas import RegionsAnswer, RegionsBody, ResetAnswer, ResetBody, State
+    from services.dashboard.fleet import FleetSnapshot
     from services.dashboard.model import Snapshot
     from services.embedding.api import create_app as embedding_app
     from services.embedding.settings import EmbeddingSettings
@@ -104,7 +105,7 @@ def test_published_schemas_use_json_schema_keywords_only() -> None:
         "sim": sim_app(SimSettings(), load_scenario()).openapi(),
         **{m.__name__: m.model_json_schema() for m in
            (RegionsBody, ResetBody, State, RegionsAnswer, ResetAnswer, Snapshot,
-            BridgeAnswer)},
+            FleetSnapshot, BridgeAnswer)},
     }
     assert keywords_json_schema_lacks(schemas) == []
     assert keywords_json_schema_lacks({"k": {"anyOf": [{"ge": 1}]}}) == ["/k/anyOf/0/ge"]

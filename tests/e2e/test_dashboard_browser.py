@@ -17,6 +17,7 @@ from playwright.sync_api import Browser, expect
 
 from shared import topics
 from shared.bus import Bus
+from shared.messages import Event
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
 from tests.e2e.browser import canvas_count, screenshot
@@ -34,6 +35,7 @@ from tests.zenoh_peers import wait_until
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
 ROBOT = "e2e"
+OTHER = "e2e-2"  # another robot of the fleet, seen in the overview
 WAIT_MS = 15_000
 
 
@@ -81,6 +83,15 @@ def test_the_page_draws_the_live_flight_and_shows_the_decision(
     request = page.locator("#requests li").first
     expect(request).to_have_attribute("data-status", re.compile("pending|expired"))
     expect(request.locator(".countdown")).to_have_text(re.compile(r"K in \d+\.\d s|past K"))
+    # the fleet overview: this robot waits on the reasoner; another robot raised an alarm
+    live.bus.publish(topics.event(OTHER, "control"), Event(
+        robot=OTHER, source="control", kind="state_stale", severity="alarm", message="late"))
+    mine = page.locator(f'#fleet-rows tr[data-robot="{ROBOT}"]')
+    expect(mine.locator("td").nth(3)).to_have_text(re.compile(r"K in \d+\.\d s|past K"),
+                                                   timeout=WAIT_MS)
+    expect(mine).to_have_attribute("data-mine", "true")
+    expect(page.locator(f'#fleet-rows tr[data-robot="{OTHER}"] td').nth(5)).to_have_text(
+        "1: control/state_stale", timeout=WAIT_MS)
     screenshot(page, tmp_path, "dashboard-pending.png")
 
     flight.fly(until=TICKS)  # the decision, then the recovery toward the rooftop
@@ -94,6 +105,8 @@ def test_the_page_draws_the_live_flight_and_shows_the_decision(
     expect(page.locator("#mode")).to_have_attribute("data-mode", "recovering")
     assert canvas_count(page, "top", "branches") == 1  # committed: the chosen branch
     expect(page.locator('#events li[data-kind="mode_change"]')).to_have_count(2)
+    expect(mine.locator("td").nth(4)).to_have_text("y=3 rooftop (llm)", timeout=WAIT_MS)
+    expect(mine.locator("td").nth(3)).to_have_text("–")  # answered: waiting for nothing
     shot = screenshot(page, tmp_path, "dashboard.png")
     assert shot.stat().st_size > 10_000
     assert errors == []

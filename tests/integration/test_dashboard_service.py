@@ -195,3 +195,29 @@ def test_a_review_the_embedding_service_cannot_take_is_answered_naming_why(
     r = dashboard.http.post(path, json=body)
     assert r.status_code == status, r.text
     assert r.json()["error"]["field"] == field
+
+
+def test_the_fleet_overview_has_a_line_for_every_robot(dashboard: Dashboard) -> None:
+    """Every robot on the bus, not only the one the page draws: its mode, newest verdict,
+    the request it waits on until a decision answers it, its last decision, its alarms."""
+    other = "dash2"
+    fly(dashboard.bus, ROBOT, period_s=0.0)
+    dashboard.bus.publish(topics.event(other, "control"), Event(
+        robot=other, source="control", kind="verdict_stale", severity="alarm",
+        message="no verdict for 0.6 s"))
+
+    def lines() -> dict[str, dict[str, Any]]:
+        got = dashboard.http.get("/v1/fleet")
+        assert got.status_code == 200, got.text
+        return {r["robot"]: r for r in got.json()["robots"]}
+
+    wait_until(lambda: other in lines() and lines()[ROBOT]["mode"] == "recovering"
+               and lines()[ROBOT]["decision"] is not None, "both robots in the overview",
+               RECV_S)
+    mine, theirs = lines()[ROBOT], lines()[other]
+    assert mine["decision"]["label"] == "rooftop" and mine["decision"]["source"] == "llm"
+    assert mine["pending"] is None  # answered
+    assert mine["verdict"]["threshold"] == -0.7 and len(mine["position"]) == 3
+    assert theirs["alarms"] == 1 and theirs["last_alarm"]["kind"] == "verdict_stale"
+    assert theirs["mode"] is None  # nothing but its alarm heard yet
+    assert dashboard.http.get("/v1/fleet").json()["robot"] == ROBOT

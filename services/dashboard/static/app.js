@@ -553,8 +553,58 @@
     return `${list.length}:${last ? last.stamp : ""}`;
   }
 
+  // ---- the fleet overview (GET /v1/fleet, once a second) ---------------------------------
+
+  let fleet = null;
+
+  async function pollFleet() {
+    try {
+      const answer = await fetch("/v1/fleet", { cache: "no-store" });
+      if (answer.ok) fleet = await answer.json();
+    } catch (err) {
+      // the service is away: the stream's status says so; the next poll tries again
+    }
+    renderFleet();
+  }
+
+  function cell(text, data) {
+    const td = document.createElement("td");
+    td.textContent = text;
+    Object.assign(td.dataset, data || {});
+    return td;
+  }
+
+  function renderFleet() {
+    if (!fleet) return;
+    $("fleet-robot").textContent = fleet.robot;
+    const now = Date.now() / 1000;
+    const rows = fleet.robots.map((r) => {
+      const tr = document.createElement("tr");
+      tr.dataset.robot = r.robot;
+      tr.dataset.mine = String(r.robot === fleet.robot);
+      const v = r.verdict;
+      const verdict = v ? `${v.is_anomaly ? "ANOMALY" : "nominal"} (seq ${v.seq})` : "–";
+      const p = r.pending;
+      const left = p ? p.received + p.deadline_s - now : null;
+      const waiting = p ? (left > 0 ? `K in ${left.toFixed(1)} s` : "past K") : "–";
+      const d = r.decision;
+      const decided = d ? `y=${d.choice} ${d.label || "?"} (${d.source})` : "–";
+      const alarm = r.last_alarm ? `${r.alarms}: ${r.last_alarm.source}/${r.last_alarm.kind}` : "0";
+      tr.replaceChildren(
+        cell(r.robot), cell(r.mode || "–", { mode: r.mode || "" }),
+        cell(verdict, { anomaly: String(Boolean(v && v.is_anomaly)) }),
+        cell(waiting, { pending: String(Boolean(p)) }), cell(decided),
+        cell(alarm, { alarms: String(r.alarms > 0) }),
+        cell(`${Math.max(0, now - r.seen).toFixed(1)} s ago`));
+      return tr;
+    });
+    $("fleet-rows").replaceChildren(...rows);
+  }
+
   window.addEventListener("resize", () => { dirty = true; });
   setInterval(tickCountdowns, 100);
+  setInterval(pollFleet, 1000);
+  pollFleet();
   connect();
   requestAnimationFrame(render);
 })();
