@@ -119,6 +119,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     _model_option(bf)
     bf.add_argument("--json", action="store_true")
     bf.set_defaults(func=cmd_bench_fairness)
+    _ros2_parser(bsub)
+    _fleet_parser(bsub)
+    bench.set_defaults(needs_bench_extra=True)
+
+
+def _ros2_parser(bsub: argparse._SubParsersAction) -> None:
     br = bsub.add_parser("ros2", help="the ROS 2 bridge's latency both ways (aesop serve ros2 "
                          "as a process, this one playing the robot and the stack)")
     br.add_argument("--seconds", type=float, default=20.0, help="each way (default 20)")
@@ -126,6 +132,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="samples per second (100: odometry's usual rate)")
     br.add_argument("--json", action="store_true")
     br.set_defaults(func=cmd_bench_ros2)
+
+
+def _fleet_parser(bsub: argparse._SubParsersAction) -> None:
     bfl = bsub.add_parser("fleet", help="1 to 64 robots' verdicts on one and two detector "
                           "replicas sharing PostgreSQL; replica lag; PostgreSQL vs SQLite")
     bfl.add_argument("--seconds", type=float, default=15.0,
@@ -138,7 +147,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     _model_option(bfl)
     bfl.add_argument("--json", action="store_true")
     bfl.set_defaults(func=cmd_bench_fleet)
-    bench.set_defaults(needs_bench_extra=True)
 
 
 def _model_option(parser: argparse.ArgumentParser) -> None:
