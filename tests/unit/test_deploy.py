@@ -647,3 +647,79 @@ def test_the_ros2_user_uses_only_its_mapped_ros_topics_and_its_robots_inputs(
         bridge.publish(state_key, Event(source=BRIDGE, kind="own"))
         wait_until(lambda: tap.has(state_key, BRIDGE, "own"), "the robot's input, through")
         assert not tap.has(forged, BRIDGE, "forged")
+
+
+# --------------------------------------------------------------------------- a fleet
+
+FLEET = ROOT / "deploy" / "compose.fleet.yml"
+FLEET_ROUTER = ROOT / "deploy" / "zenoh" / "router.fleet.json5"
+FLEET_ROBOTS = ["robot0", "robot1", "robot2"]
+
+
+def fleet_services() -> dict[str, dict[str, Any]]:
+    """The fleet file's services over the base ones, as compose merges them for these
+    (a service only the fleet file has is whole; the base's embedding gains the store)."""
+    merged = {name: dict(svc) for name, svc in compose()["services"].items()}
+    for name, svc in yaml.safe_load(FLEET.read_text())["services"].items():
+        base = merged.setdefault(name, {})
+        for key, value in svc.items():
+            if isinstance(value, dict) and isinstance(base.get(key), dict):
+                base[key] = {**base[key], **value}
+            elif key in ("depends_on", "volumes") and key in base and name != "zenoh":
+                base[key] = list(dict.fromkeys([*base[key], *value]))
+            else:
+                base[key] = value
+    return merged
+
+
+def test_the_shipped_fleet_files_are_what_aesop_writes_for_three_robots_and_two_replicas(
+) -> None:
+    from tools.stack.compose import fleet_override_text
+
+    assert FLEET.read_text() == fleet_override_text(compose(), FLEET_ROBOTS, 2)
+    assert FLEET_ROUTER.read_text() == router_config_text(FLEET_ROBOTS)
+
+
+def test_each_robot_of_the_fleet_has_its_loop_vehicle_user_secret_and_ports(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    services = fleet_services()
+    fleet = yaml.safe_load(FLEET.read_text())
+    write_credentials(tmp_path, new_passwords([*STACK, "monitor", *(f"robot-{r}" for r in
+                                                                     FLEET_ROBOTS)]))
+    hosts = [p.split(":")[1] for svc in services.values() if not svc.get("profiles")
+             for p in svc.get("ports", [])]
+    assert len(hosts) == len(set(hosts)), f"a host port twice: {sorted(hosts)}"
+    for robot in FLEET_ROBOTS[1:]:
+        control, sim = services[f"control-{robot}"], services[f"sim-{robot}"]
+        for name, svc in ((f"control-{robot}", control), (f"sim-{robot}", sim)):
+            known = set().union(*(env_names(c) for c in
+                                  settings_classes(serve_args(svc)[0].service)))
+            assert set(svc["environment"]) <= known, name
+        settings = settings_in_container(sim, monkeypatch)
+        assert isinstance(settings, BusSettings) and settings.robot == robot
+        assert settings.zenoh_user == f"robot-{robot}"
+        (secret,) = sim["secrets"]
+        assert Path(fleet["secrets"][secret]["file"]).name == f"robot-{robot}.password"
+        assert (tmp_path / f"robot-{robot}.password").exists()  # what credentials writes
+        assert settings_in_container(control, monkeypatch).robot == robot  # type: ignore[attr-defined]
+    assert host_path(services["zenoh"], "/etc/zenoh/router.json5") == FLEET_ROUTER
+    rules = json.loads(zenoh.Config.from_file(str(FLEET_ROUTER)).get_json("access_control"))
+    assert {r["id"] for r in rules["rules"]} >= {f"robot-{r}-puts" for r in FLEET_ROBOTS}
+
+
+def test_the_fleets_detector_replicas_share_one_postgresql_each_with_its_own_data(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    services = fleet_services()
+    replicas = [services["embedding"], services["embedding-2"]]
+    given = {"AESOP_POSTGRES_PASSWORD": "pg-secret"}
+    stores = []
+    for name, svc in (("embedding", replicas[0]), ("embedding-2", replicas[1])):
+        settings = settings_in_container(svc, monkeypatch, given)
+        assert settings.replica == name  # type: ignore[attr-defined]
+        stores.append(settings.store.get_secret_value())  # type: ignore[attr-defined]
+        assert "postgres" in svc["depends_on"]
+    assert stores[0] == stores[1] == "postgresql://aesop:pg-secret@postgres:5432/aesop"
+    assert [v for v in replicas[1]["volumes"] if v.endswith(":/data")] == ["embedding-2-data:/data"]
+    postgres = services["postgres"]
+    assert postgres["image"] == "postgres:15" and not postgres.get("ports")  # not published
+    assert interpolate(postgres["environment"]["POSTGRES_PASSWORD"], given) == "pg-secret"

@@ -27,6 +27,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     cr.add_argument("--robot", action="append", default=None,
                     help="a robot to make a user for (repeatable; robot0)")
     cr.set_defaults(func=cmd_zenoh_credentials)
+    fc = zsub.add_parser("fleet-compose", help="a docker compose override for a fleet: a "
+                         "control loop and simulated vehicle per robot, detector replicas "
+                         "on PostgreSQL (deploy/compose.fleet.yml)")
+    fc.add_argument("--robots", type=int, default=3, metavar="N",
+                    help="robots (ids from AESOP_ROBOT: robot0, robot1, ...; default 3)")
+    fc.add_argument("--replicas", type=int, default=1, metavar="M",
+                    help="detector replicas; from 2 on with PostgreSQL (default 1)")
+    fc.add_argument("--base", type=Path, default=Path("docker-compose.yml"),
+                    help="the compose file it adds to (default ./docker-compose.yml)")
+    fc.set_defaults(func=cmd_zenoh_fleet_compose)
 
     up = sub.add_parser("up", help="the whole stack on this machine as processes (Ctrl-C stops)")
     up.add_argument("--data-dir", type=Path, default=Path("aesop-data"),
@@ -87,6 +97,28 @@ def cmd_zenoh_router_config(args: argparse.Namespace) -> int:
 
     ros2 = None if args.ros2 is None else ros2_config(args.ros2)
     print(router_config_text(args.robot or ["robot0"], ros2=ros2), end="")
+    return 0
+
+
+def cmd_zenoh_fleet_compose(args: argparse.Namespace) -> int:
+    import yaml
+
+    from shared.settings import BusSettings
+    from tools.stack.compose import fleet_override_text
+    from tools.stack.up import fleet
+
+    if args.robots < 1 or args.replicas < 1:
+        raise CliError("--robots and --replicas count from 1")
+    try:
+        base = yaml.safe_load(args.base.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise CliError(f"cannot read the compose file {args.base}: {exc}") from None
+    if not isinstance(base, dict) or not {"control", "sim", "embedding"} <= set(
+            base.get("services") or {}):
+        raise CliError(f"{args.base} is not the stack's compose file (no control, sim and "
+                       "embedding services)")
+    print(fleet_override_text(base, fleet(BusSettings().robot, args.robots), args.replicas),
+          end="")
     return 0
 
 
