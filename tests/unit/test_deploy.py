@@ -17,6 +17,8 @@ import json
 import os
 import re
 import shlex
+import subprocess
+import sys
 import threading
 import tomllib
 import uuid
@@ -723,3 +725,21 @@ def test_the_fleets_detector_replicas_share_one_postgresql_each_with_its_own_dat
     postgres = services["postgres"]
     assert postgres["image"] == "postgres:15" and not postgres.get("ports")  # not published
     assert interpolate(postgres["environment"]["POSTGRES_PASSWORD"], given) == "pg-secret"
+
+
+def test_fleet_compose_refuses_a_fleet_of_none_and_a_file_that_is_not_the_stacks(
+        tmp_path: Path) -> None:
+    def aesop(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([sys.executable, "-m", "tools.cli", "zenoh", "fleet-compose",
+                               *args], capture_output=True, text=True, cwd=ROOT, timeout=60)
+
+    other = tmp_path / "other.yml"
+    other.write_text("services: {web: {image: nginx}}\n")
+    for args, said in ((("--robots", "0"), "count from 1"),
+                       (("--base", str(other)), "not the stack's compose file"),
+                       (("--base", str(tmp_path / "missing.yml")), "cannot read")):
+        done = aesop(*args)
+        assert done.returncode == 2 and said in done.stderr, done.stderr
+    one = aesop("--robots", "1")  # one robot, one replica: only the fleet's router
+    assert one.returncode == 0 and yaml.safe_load(one.stdout)["services"] == {
+        "zenoh": {"volumes": ["./deploy/zenoh/router.fleet.json5:/etc/zenoh/router.json5:ro"]}}
