@@ -17,6 +17,8 @@ import logging
 import os
 from collections.abc import Callable
 from pathlib import Path
+from types import TracebackType
+from typing import Self
 
 from .cache import Cache, Header
 from .errors import StorageError
@@ -119,3 +121,26 @@ class IndexFiles:
 
 def _paths(directory: Path, version: int) -> tuple[Path, Path]:
     return directory / f"v{version}.faiss", directory / f"v{version}.hnsw"
+
+
+class WithIndexFiles:
+    """What both stores share: their replica's index files, and closing by ``with``."""
+
+    indexes: IndexFiles
+
+    def save_index(self, cache: Cache) -> Path:
+        """Write ``cache``'s index file. Raises StorageError."""
+        return self.indexes.save(cache)
+
+    def saved_index(self, name: str) -> tuple[int, bool] | None:
+        return self.indexes.saved(name)
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()

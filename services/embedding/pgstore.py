@@ -45,31 +45,27 @@ import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import asdict
 from pathlib import Path
-from types import TracebackType
 from typing import Any
 
 import numpy as np
 import psycopg
 from psycopg import errors as pgerrors
 
-from shared.messages import Detection
-
+from . import records as rec
 from .cache import (
     Add,
     Cache,
     CacheConfig,
     Calibrate,
     CalibrationScores,
-    Configure,
     Delete,
-    Experience,
     Header,
     Op,
 )
 from .calibration import Calibration
 from .errors import Behind, StorageCorrupt, StorageError, StorageFull
 from .index import VectorIndex
-from .indexfiles import IndexFiles
+from .indexfiles import IndexFiles, WithIndexFiles
 from .proposals import Proposal
 from .store import LOCK_NAME, take_lock
 
@@ -116,7 +112,7 @@ CREATE TABLE proposals (
 Notice = dict[str, Any]
 
 
-class PostgresStore:
+class PostgresStore(WithIndexFiles):
     """The replica's view of the shared database at ``url`` and its own index files under
     ``data_dir`` (one process per data directory, as with SQLite). Thread-safe: one
     connection, used under a lock, opened again after a failure."""
@@ -195,8 +191,7 @@ class PostgresStore:
             db.execute("SET TRANSACTION ISOLATION LEVEL REPEATABLE READ")
             header = _header(db, name)
             experiences = {
-                int(label): Experience(ident, text, json.loads(meta), _detections(found))
-                for label, ident, text, meta, found in db.execute(
+                int(label): rec.experience_of(*row) for label, *row in db.execute(
                     "SELECT label, id, text, metadata, detections FROM experiences "
                     "WHERE cache = %s ORDER BY label", (name,))}
             config = header.config
@@ -204,7 +199,7 @@ class PostgresStore:
                 header, set(experiences),
                 lambda idx, since: _catch_up(db, idx, config, since),
                 lambda idx: _add_stored(db, idx, config, -1))
-            phrases = {p: _f4(v) for p, v in db.execute(
+            phrases = {p: rec.f4(v) for p, v in db.execute(
                 "SELECT phrase, vector FROM detection_vectors WHERE cache = %s", (name,))}
             scores = _scores(db, name)
         return Cache.restored(header, experiences, index, phrases, scores)
@@ -229,18 +224,14 @@ class PostgresStore:
             rows = db.execute(
                 "SELECT id, state, count, first_at, last_at, decided_at, detail FROM proposals "
                 "WHERE cache = %s ORDER BY first_at", (name,)).fetchall()
-        return [Proposal.stored(i, s, int(c), f, last, d, json.loads(detail))
-                for i, s, c, f, last, d, detail in rows]
+        return [rec.proposal_of(row) for row in rows]
 
     def proposal(self, name: str, ident: str) -> Proposal | None:
         with self._session(f"reading proposal {ident!r}") as db:
             row = db.execute(
                 "SELECT id, state, count, first_at, last_at, decided_at, detail FROM proposals "
                 "WHERE cache = %s AND id = %s", (name, ident)).fetchone()
-        if row is None:
-            return None
-        i, s, c, f, last, d, detail = row
-        return Proposal.stored(i, s, int(c), f, last, d, json.loads(detail))
+        return None if row is None else rec.proposal_of(row)
 
     # -- writes --------------------------------------------------------------------
 
@@ -250,7 +241,7 @@ class PostgresStore:
         with self._session(f"creating cache {config.name!r}") as db:
             done = db.execute("INSERT INTO caches VALUES (%s, %s, %s, %s, %s, %s) "
                               "ON CONFLICT (name) DO NOTHING",
-                              (config.name, *_header_row(header)))
+                              (config.name, *rec.header_row(header)))
             if done.rowcount == 0:
                 stored = db.execute("SELECT version FROM caches WHERE name = %s",
                                     (config.name,)).fetchone()
@@ -306,14 +297,6 @@ class PostgresStore:
                     said = True
                 stop.wait(retry_s)
 
-    # -- index files ---------------------------------------------------------------
-
-    def save_index(self, cache: Cache) -> Path:
-        return self.indexes.save(cache)
-
-    def saved_index(self, name: str) -> tuple[int, bool] | None:
-        return self.indexes.saved(name)
-
     # -- lifecycle -----------------------------------------------------------------
 
     def close(self) -> None:
@@ -327,13 +310,6 @@ class PostgresStore:
                     self._db.close()
             finally:
                 os.close(self._lock_fd)
-
-    def __enter__(self) -> PostgresStore:
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.close()
 
 
 def _first_line(exc: BaseException) -> str:
@@ -353,40 +329,17 @@ def _ensure_schema(db: psycopg.Connection[Any]) -> None:
                                                   f"reads {SCHEMA_VERSION}")
 
 
-def _f4(blob: bytes) -> np.ndarray:
-    return np.frombuffer(blob, dtype="<f4").astype(np.float32)
-
-
-def _f8(blob: bytes) -> np.ndarray:
-    return np.frombuffer(blob, dtype="<f8").astype(np.float64)
-
-
-def _detections(found: str) -> tuple[Detection, ...]:
-    return tuple(Detection(**d) for d in json.loads(found))
-
-
 def _header(db: psycopg.Connection[Any], name: str) -> Header:
     row = db.execute("SELECT config, version, next_label, calibration, stale FROM caches "
                      "WHERE name = %s", (name,)).fetchone()
     if row is None:
         raise KeyError(name)
-    config, version, next_label, calibration, stale = row
-    cal = None if calibration is None else Calibration(**json.loads(calibration))
-    return Header(CacheConfig(**json.loads(config)), int(version), int(next_label), cal,
-                  bool(stale))
-
-
-def _header_row(header: Header) -> tuple[str, int, int, str | None, bool]:
-    cal = None if header.calibration is None else json.dumps(header.calibration.to_dict())
-    return (json.dumps(asdict(header.config)), header.version, header.next_label, cal,
-            header.stale)
+    return rec.header_of(*row)
 
 
 def _scores(db: psycopg.Connection[Any], name: str) -> CalibrationScores | None:
-    row = db.execute("SELECT observation, detection, pair FROM calibration_scores "
-                     "WHERE cache = %s", (name,)).fetchone()
-    return None if row is None else CalibrationScores(
-        _f8(row[0]), _f8(row[1]), None if row[2] is None else _f8(row[2]))
+    return rec.scores_of(db.execute("SELECT observation, detection, pair FROM "
+                                    "calibration_scores WHERE cache = %s", (name,)).fetchone())
 
 
 def _catch_up(db: psycopg.Connection[Any], index: VectorIndex, config: CacheConfig,
@@ -417,25 +370,24 @@ def _op(db: psycopg.Connection[Any], name: str, dim: int, version: int, op: str,
         rows = db.execute("SELECT label, id, text, metadata, detections, vector FROM "
                           "experiences WHERE cache = %s AND version = %s ORDER BY label",
                           (name, version)).fetchall()
-        phrases = {p: _f4(v) for p, v in db.execute(
+        phrases = {p: rec.f4(v) for p, v in db.execute(
             "SELECT phrase, vector FROM detection_vectors WHERE cache = %s AND version = %s",
             (name, version))}
-        vectors = np.array([_f4(r[5]) for r in rows], dtype=np.float32).reshape(len(rows), dim)
+        vectors = np.array([rec.f4(r[5]) for r in rows], dtype=np.float32).reshape(len(rows), dim)
         return Add(tuple(int(r[0]) for r in rows),
-                   tuple(Experience(r[1], r[2], json.loads(r[3]), _detections(r[4]))
-                         for r in rows), vectors, version, phrases)
+                   tuple(rec.experience_of(*r[1:5]) for r in rows), vectors, version, phrases)
     if op == "delete":
-        return Delete(detail["id"], int(detail["label"]), version)
+        return rec.delete_op(detail, version)
     if op == "calibrate":
         return Calibrate(Calibration(**detail), version, _scores(db, name))
     if op == "configure":
-        return Configure(int(detail["k"]), detail["score"], version, detail["proposals"])
+        return rec.configure_op(detail, version)
     raise StorageCorrupt(Path("postgresql"), f"cache {name!r} version {version}: unknown "
                                              f"change {op!r}")
 
 
 def _update_header(db: psycopg.Connection[Any], name: str, header: Header) -> None:
-    config, version, next_label, cal, stale = _header_row(header)
+    config, version, next_label, cal, stale = rec.header_row(header)
     db.execute("UPDATE caches SET config = %s, version = %s, next_label = %s, "
                "calibration = %s, stale = %s WHERE name = %s",
                (config, version, next_label, cal, stale, name))
@@ -457,39 +409,21 @@ def _write_proposal(db: psycopg.Connection[Any], name: str, proposal: Proposal) 
         "ON CONFLICT (cache, id) DO UPDATE SET state = EXCLUDED.state, count = "
         "EXCLUDED.count, first_at = EXCLUDED.first_at, last_at = EXCLUDED.last_at, "
         "decided_at = EXCLUDED.decided_at, detail = EXCLUDED.detail",
-        (name, proposal.id, proposal.state, proposal.count, proposal.first_at,
-         proposal.last_at, proposal.decided_at, json.dumps(proposal.detail())))
+        rec.proposal_row(name, proposal))
 
 
 def _write_op(db: psycopg.Connection[Any], name: str, op: Op) -> None:
     if isinstance(op, Add):
-        little = np.ascontiguousarray(op.vectors, dtype="<f4")
         with db.cursor() as cur:
-            cur.executemany(
-                "INSERT INTO experiences VALUES (%s, %s, %s, %s, %s, %s, %s, %s)",
-                [(name, label, e.id, e.text, json.dumps(dict(e.metadata)), row.tobytes(),
-                  op.version, json.dumps([d.model_dump(exclude_none=True)
-                                          for d in e.detections]))
-                 for label, e, row in zip(op.labels, op.experiences, little, strict=True)])
-            cur.executemany(
-                "INSERT INTO detection_vectors VALUES (%s, %s, %s, %s)",
-                [(name, phrase, np.ascontiguousarray(v, dtype="<f4").tobytes(), op.version)
-                 for phrase, v in op.detection_vectors.items()])
-        detail: dict[str, Any] = {"count": len(op.labels)}
-        if op.labels:
-            detail |= {"first_label": op.labels[0], "last_label": op.labels[-1]}
-        _change(db, name, op.version, "add", detail)
+            cur.executemany("INSERT INTO experiences VALUES (%s, %s, %s, %s, %s, %s, %s, %s)",
+                            rec.experience_rows(name, op))
+            cur.executemany("INSERT INTO detection_vectors VALUES (%s, %s, %s, %s)",
+                            [(name, *row, op.version) for row in rec.phrase_rows(op)])
     elif isinstance(op, Delete):
         db.execute("DELETE FROM experiences WHERE cache = %s AND label = %s", (name, op.label))
-        _change(db, name, op.version, "delete", {"id": op.id, "label": op.label})
     elif isinstance(op, Calibrate):
-        _change(db, name, op.version, "calibrate", op.calibration.to_dict())
         db.execute("DELETE FROM calibration_scores WHERE cache = %s", (name,))
         if op.scores is not None:
-            db.execute("INSERT INTO calibration_scores VALUES (%s, %s, %s, %s)", (
-                name, *(None if x is None else np.ascontiguousarray(x, dtype="<f8").tobytes()
-                        for x in (op.scores.observation, op.scores.detection,
-                                  op.scores.pair))))
-    elif isinstance(op, Configure):
-        _change(db, name, op.version, "configure", {"k": op.k, "score": op.score,
-                                                     "proposals": op.proposals})
+            db.execute("INSERT INTO calibration_scores VALUES (%s, %s, %s, %s)",
+                       (name, *rec.score_blobs(op.scores)))
+    _change(db, name, op.version, *rec.change_of(op))

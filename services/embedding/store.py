@@ -45,29 +45,23 @@ import time
 from collections.abc import Iterator
 from dataclasses import asdict
 from pathlib import Path
-from types import TracebackType
 from typing import Any
 
 import numpy as np
 
-from shared.messages import Detection
-
+from . import records as rec
 from .cache import (
     Add,
     Cache,
     CacheConfig,
     Calibrate,
-    CalibrationScores,
-    Configure,
     Delete,
-    Experience,
     Header,
     Op,
 )
-from .calibration import Calibration
 from .errors import StorageCorrupt, StorageError, StorageFull
 from .index import VectorIndex
-from .indexfiles import IndexFiles
+from .indexfiles import IndexFiles, WithIndexFiles
 from .proposals import Proposal
 
 log = logging.getLogger(__name__)
@@ -108,7 +102,7 @@ CREATE TABLE proposals (
 """
 
 
-class Store:
+class Store(WithIndexFiles):
     """The service's database and index files under ``data_dir``.
 
     Thread-safe: one connection, used under a lock. ``fsync=False`` runs SQLite
@@ -189,21 +183,16 @@ class Store:
         with self._mutex:
             header = self._header(name)
             experiences = {
-                label: Experience(ident, text, json.loads(meta),
-                                  tuple(Detection(**d) for d in json.loads(found)))
-                for label, ident, text, meta, found in self._db.execute(
+                label: rec.experience_of(*row) for label, *row in self._db.execute(
                     "SELECT label, id, text, metadata, detections FROM experiences "
                     "WHERE cache = ? ORDER BY label", (name,))
             }
             index = self._index(header, set(experiences))
-            phrases = {phrase: np.frombuffer(vector, dtype="<f4").astype(np.float32)
-                       for phrase, vector in self._db.execute(
-                           "SELECT phrase, vector FROM detection_vectors WHERE cache = ?",
-                           (name,))}
-            row = self._db.execute("SELECT observation, detection, pair FROM "
-                                   "calibration_scores WHERE cache = ?", (name,)).fetchone()
-        scores = None if row is None else CalibrationScores(
-            _from_blob(row[0]), _from_blob(row[1]), None if row[2] is None else _from_blob(row[2]))
+            phrases = {phrase: rec.f4(vector) for phrase, vector in self._db.execute(
+                "SELECT phrase, vector FROM detection_vectors WHERE cache = ?", (name,))}
+            scores = rec.scores_of(self._db.execute(
+                "SELECT observation, detection, pair FROM calibration_scores WHERE cache = ?",
+                (name,)).fetchone())
         return Cache.restored(header, experiences, index, phrases, scores)
 
     def _header(self, name: str) -> Header:
@@ -211,9 +200,7 @@ class Store:
                                "FROM caches WHERE name = ?", (name,)).fetchone()
         if row is None:
             raise KeyError(name)
-        config, version, next_label, calibration, stale = row
-        cal = None if calibration is None else Calibration(**json.loads(calibration))
-        return Header(CacheConfig(**json.loads(config)), version, next_label, cal, bool(stale))
+        return rec.header_of(*row)
 
     def _index(self, header: Header, labels: set[int]) -> VectorIndex:
         config = header.config
@@ -268,8 +255,7 @@ class Store:
             rows = self._db.execute(
                 "SELECT id, state, count, first_at, last_at, decided_at, detail FROM proposals "
                 "WHERE cache = ? ORDER BY first_at", (name,)).fetchall()
-        return [Proposal.stored(ident, state, count, first, last, decided, json.loads(detail))
-                for ident, state, count, first, last, decided, detail in rows]
+        return [rec.proposal_of(row) for row in rows]
 
     @contextlib.contextmanager
     def _transaction(self, what: str) -> Iterator[sqlite3.Connection]:
@@ -291,15 +277,6 @@ class Store:
                     self._db.execute("ROLLBACK")
                 raise
 
-    # -- index files -------------------------------------------------------------
-
-    def save_index(self, cache: Cache) -> Path:
-        """Write ``cache``'s index file (:mod:`.indexfiles`). Raises StorageError."""
-        return self.indexes.save(cache)
-
-    def saved_index(self, name: str) -> tuple[int, bool] | None:
-        return self.indexes.saved(name)
-
     # -- lifecycle -----------------------------------------------------------------
 
     def close(self) -> None:
@@ -313,18 +290,10 @@ class Store:
             finally:
                 os.close(self._lock_fd)
 
-    def __enter__(self) -> Store:
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
-        self.close()
-
 
 def _header_row(header: Header) -> tuple[str, int, int, str | None, int]:
-    cal = None if header.calibration is None else json.dumps(header.calibration.to_dict())
-    return (json.dumps(asdict(header.config)), header.version, header.next_label, cal,
-            int(header.stale))
+    config, version, next_label, cal, stale = rec.header_row(header)
+    return config, version, next_label, cal, int(stale)
 
 
 def _update_header(db: sqlite3.Connection, name: str, header: Header) -> None:
@@ -339,51 +308,25 @@ def _change(db: sqlite3.Connection, name: str, version: int, op: str,
                (name, version, op, json.dumps(detail), time.time()))
 
 
-def _insert_experiences(db: sqlite3.Connection, name: str, labels: list[int],
-                        experiences: list[Experience], vectors: np.ndarray, version: int) -> None:
-    little = np.ascontiguousarray(vectors, dtype="<f4")
-    db.executemany(
-        "INSERT INTO experiences VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-        ((name, label, e.id, e.text, json.dumps(dict(e.metadata)), row.tobytes(), version,
-          json.dumps([d.model_dump(exclude_none=True) for d in e.detections]))
-         for label, e, row in zip(labels, experiences, little, strict=True)))
-
-
 def _write_proposal(db: sqlite3.Connection, name: str, proposal: Proposal) -> None:
-    db.execute("INSERT OR REPLACE INTO proposals VALUES (?, ?, ?, ?, ?, ?, ?, ?)", (
-        name, proposal.id, proposal.state, proposal.count, proposal.first_at,
-        proposal.last_at, proposal.decided_at, json.dumps(proposal.detail())))
+    db.execute("INSERT OR REPLACE INTO proposals VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+               rec.proposal_row(name, proposal))
 
 
 def _write_op(db: sqlite3.Connection, name: str, op: Op) -> None:
     if isinstance(op, Add):
-        _insert_experiences(db, name, list(op.labels), list(op.experiences), op.vectors,
-                            op.version)
+        db.executemany("INSERT INTO experiences VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                       rec.experience_rows(name, op))
         db.executemany("INSERT INTO detection_vectors VALUES (?, ?, ?)",
-                       ((name, phrase, np.ascontiguousarray(v, dtype="<f4").tobytes())
-                        for phrase, v in op.detection_vectors.items()))
-        detail: dict[str, Any] = {"count": len(op.labels)}
-        if op.labels:
-            detail |= {"first_label": op.labels[0], "last_label": op.labels[-1]}
-        _change(db, name, op.version, "add", detail)
+                       ((name, *row) for row in rec.phrase_rows(op)))
     elif isinstance(op, Delete):
         db.execute("DELETE FROM experiences WHERE cache = ? AND label = ?", (name, op.label))
-        _change(db, name, op.version, "delete", {"id": op.id, "label": op.label})
     elif isinstance(op, Calibrate):
-        _change(db, name, op.version, "calibrate", op.calibration.to_dict())
         db.execute("DELETE FROM calibration_scores WHERE cache = ?", (name,))
         if op.scores is not None:
-            db.execute("INSERT INTO calibration_scores VALUES (?, ?, ?, ?)", (
-                name, *(None if x is None else np.ascontiguousarray(x, dtype="<f8").tobytes()
-                        for x in (op.scores.observation, op.scores.detection,
-                                  op.scores.pair))))
-    elif isinstance(op, Configure):
-        _change(db, name, op.version, "configure", {"k": op.k, "score": op.score,
-                                                     "proposals": op.proposals})
-
-
-def _from_blob(blob: bytes) -> np.ndarray:
-    return np.frombuffer(blob, dtype="<f8").astype(np.float64)
+            db.execute("INSERT INTO calibration_scores VALUES (?, ?, ?, ?)",
+                       (name, *rec.score_blobs(op.scores)))
+    _change(db, name, op.version, *rec.change_of(op))
 
 
 def take_lock(path: Path) -> int:
