@@ -28,6 +28,7 @@ from .settings import DashboardSettings
 log = logging.getLogger(__name__)
 
 SERVICE = "dashboard"
+OWN_ONLY = ("plan", "regions")  # followed for the dashboard's own robot only
 
 
 class DashboardMetrics:
@@ -63,11 +64,19 @@ class DashboardService:
         return {**self.model.snapshot(), "review_token": self.settings.admin_token is not None}
 
     async def run(self) -> None:
+        """Every robot's state, verdicts, requests, decisions and events once (the fleet
+        table; its own robot's also into the model), and the services' liveliness; its own
+        robot's plans and regions."""
         async with asyncio.TaskGroup() as group:
+            group.create_task(follow(self.session, topics.ANY_ROBOT, self._on_any,
+                                     clock=self.clock, kinds=KINDS))
             group.create_task(follow(self.session, self.settings.robot, self.on_update,
-                                     clock=self.clock))
-            group.create_task(follow(self.session, topics.ANY_ROBOT, self.fleet.apply,
-                                     clock=self.clock, kinds=KINDS, health=False))
+                                     clock=self.clock, kinds=OWN_ONLY, health=False))
+
+    def _on_any(self, update: Update) -> None:
+        self.fleet.apply(update)
+        if update.kind == "health" or topics.robot_of(update.topic) == self.settings.robot:
+            self.on_update(update)
 
     def refresh_metrics(self) -> None:
         self.metrics.clients.set(len(self.hub.clients))

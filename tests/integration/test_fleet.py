@@ -40,6 +40,9 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
 TOKEN = "fleet-test-token-0123456789"
 REPLICAS = ["embedding", "embedding-2"]
+# a verdict gap the loop must have seen: verdict_stale_s (0.5 s), a tick at the fleet's 10 Hz
+# and the verdict's own way
+STALE_SEEN_S = 0.8
 
 
 async def _write(url: str, ident: str) -> int:
@@ -77,8 +80,12 @@ def test_three_robots_fly_through_a_killed_replica_and_a_postgresql_restart(
                                  airborne=airborne)
             assert airborne.wait(240), "the robots' flights did not all start"
             assert asyncio.run(_write(str(urls[victim]), "acknowledged-before-the-kill")) == 200
-            os.kill(stack.pids[victim], signal.SIGKILL)
-            verdicts_return(plan, moved)
+            with Arrivals(plan, moved) as arrivals:
+                wait_until(lambda: all(arrivals.times.values()), "their verdicts watched", 30)
+                killed = time.monotonic()
+                os.kill(stack.pids[victim], signal.SIGKILL)
+                verdicts_return(plan, moved)
+            gaps = arrivals.gaps_around(killed)
             # PostgreSQL killed mid-flight: writes 503, scoring on; started again: writes
             postgres = next(c for c in stack.children if c.name == POSTGRES)
             postgres.signal(signal.SIGKILL)
@@ -97,8 +104,13 @@ def test_three_robots_fly_through_a_killed_replica_and_a_postgresql_restart(
             said = json.dumps(row)
             assert row["constraint_violations"] == 0, said
             assert row["ended_in"] is not None, said  # at rest in a region, not in the air
-        for robot in moved:  # their detector fell silent: the loop's own anomaly
-            assert with_rows[robot]["stale_verdict_alarms"] >= 1, with_rows[robot]
+        for robot in moved:
+            # their detector fell silent until the survivor took them: when that outlasted
+            # the loop's verdict_stale_s (0.5 s) and a tick, the loop raised it as an anomaly
+            # (a handover faster than that leaves the loop nothing to see)
+            assert gaps[robot] < 10.0, gaps
+            if gaps[robot] > STALE_SEEN_S:
+                assert with_rows[robot]["stale_verdict_alarms"] >= 1, (gaps, with_rows[robot])
         assert [with_rows[r]["name"].split("-")[0] for r in plan.robots] == \
             list(FLEET_ORDER[:3])
         # the write the killed replica acknowledged is on the survivor
@@ -108,6 +120,33 @@ def test_three_robots_fly_through_a_killed_replica_and_a_postgresql_restart(
                 assert got.text == "a acknowledged-before-the-kill on the ground"
 
         asyncio.run(kept())
+
+
+class Arrivals:
+    """When each of ``robots``' verdicts arrived here (``time.monotonic``)."""
+
+    def __init__(self, plan: StackPlan, robots: Sequence[str]) -> None:
+        self.times: dict[str, list[float]] = {r: [] for r in robots}
+        self._bus = Bus.open(plan.bus_settings(MONITOR), "fleet-arrivals")
+        for robot in robots:
+            self._bus.each(topics.anomaly(robot), AnomalyVerdict,
+                           lambda got, r=robot: self.times[r].append(got.received_at))
+
+    def __enter__(self) -> Arrivals:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._bus.close()
+
+    def gaps_around(self, at: float) -> dict[str, float]:
+        """Each robot's wait from its last verdict before ``at`` to its first after."""
+        out = {}
+        for robot, times in self.times.items():
+            before = [t for t in times if t <= at]
+            after = [t for t in times if t > at]
+            assert before and after, f"{robot}: verdicts before and after the kill"
+            out[robot] = round(after[0] - before[-1], 3)
+        return out
 
 
 def verdicts_return(plan: StackPlan, robots: Sequence[str]) -> None:
