@@ -349,6 +349,7 @@ def _robots(options: StackOptions, environ: Mapping[str, str], robots: Sequence[
     vehicle_kind = ROS2 if options.ros2 is not None else "sim"
     out = []
     scenario = options.scenario
+    dt: float | None = None
     for i, robot in enumerate(robots):
         control_name, vehicle_name = names["control"][i], names[vehicle_kind][i]
         forced: dict[str, Any] = {**common, **user("control"), "robot": robot,
@@ -359,13 +360,13 @@ def _robots(options: StackOptions, environ: Mapping[str, str], robots: Sequence[
         control = read_settings(ControlSettings, environ, **forced)
         scenario = scenario or resolve_scenario(control.scenario or hardware_scenario())
         control = control.model_copy(update={"scenario": scenario})  # resolved, existing
+        dt = dt or load_scenario(scenario).dt  # the one scene, read once
         vehicle_port = ports.of(vehicle_name, "sim", i)
         vehicle: ServiceSettings = (
             read_settings(SimSettings, environ, **common, **user(robot_user(robot)),
                           robot=robot, port=vehicle_port, data_dir=data(vehicle_name),
                           scenario=scenario,
-                          time_scale=load_scenario(scenario).dt / control.period_s(
-                              load_scenario(scenario).dt))
+                          time_scale=dt / control.period_s(dt))
             if options.ros2 is None else
             read_settings(Ros2Settings, environ, **common, **user(ROS2), port=vehicle_port,
                           data_dir=data(vehicle_name), config=options.ros2))
