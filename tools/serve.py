@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -13,6 +14,9 @@ if TYPE_CHECKING:
     from shared.settings import ServiceSettings
 
 ExposedSettings = TypeVar("ExposedSettings", bound="ServiceSettings")
+# those on the robot's clock: the control loop, the vehicle and the bridge to a ROS 2 one (the
+# reasoner favours itself for its deadline, services/reasoner/deciding.py)
+FAVOURED = ("control", "sim", "ros2")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -46,6 +50,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if args.scenario is not None and args.service not in ("control", "sim"):
         raise CliError("--scenario: only `aesop serve control` and `aesop serve sim` take a "
                        "scenario")
+    if args.service in FAVOURED:
+        favour(args.service)
     if args.service == "sim":
         return serve_sim(overrides, args.scenario)
     if args.service == "ros2":
@@ -84,6 +90,17 @@ def serve_reasoner(overrides: dict[str, Any]) -> int:
     serve(create_app(settings, worker_factory=ReasonerWorker.factory(settings),
                      on_started=settle), settings)
     return 0
+
+
+def favour(service: str) -> None:
+    """A process that must act on time (the control loop, the vehicle, the bus) asks for a
+    larger share of a busy machine's cores before it starts a thread: its threads inherit
+    it (:func:`shared.realtime.favoured`). Without ``CAP_SYS_NICE`` it says so once."""
+    from shared.realtime import favoured
+
+    if not favoured():
+        print(f"{service}: runs at normal priority (no CAP_SYS_NICE): on a busy machine its "
+              "ticks and states may come late", file=sys.stderr, flush=True)
 
 
 def serve_control(overrides: dict[str, Any], scenario: str | None = None) -> int:

@@ -267,6 +267,16 @@ def test_commands_parse_and_listen_on_every_interface(name: str) -> None:
         assert fake.profile in {"fixed", "normal", "bimodal", "stall"}
 
 
+def test_the_services_that_ask_for_priority_may_have_it() -> None:
+    """The processes on the robot's clock (and the reasoner, for its deadline) raise their
+    priority: compose grants them CAP_SYS_NICE, and no other service."""
+    from tools.serve import FAVOURED
+
+    granted = {serve_args(svc)[0].service for svc in aesop_services().values()
+               if "SYS_NICE" in svc.get("cap_add", [])}
+    assert granted == {*FAVOURED, "reasoner"}
+
+
 @pytest.mark.parametrize("name", sorted([*STACK, VEHICLE, BRIDGE, "fake-llm"]))
 def test_every_environment_variable_is_a_setting_of_that_service(name: str) -> None:
     svc = aesop_services()[name]

@@ -7,7 +7,8 @@ authenticate (a ``user:password`` dictionary) and the access-control list of
 :mod:`.acl` applies (``--robot`` names the robots it lets publish observations,
 ``--ros2`` the ROS 2 bridge's config whose topics the ``ros2`` user may use);
 a message past ``--max-message-bytes`` is dropped, and observations past
-``--max-observation-hz`` per session. It serves until SIGINT/SIGTERM.
+``--max-observation-hz`` per session. It serves until SIGINT/SIGTERM, with a larger share
+of a busy machine's cores where allowed (:func:`shared.realtime.favoured`).
 
     python -m tools.stack.router --listen tcp/127.0.0.1:7447 \
         --users aesop-data/zenoh/users.txt --robot robot0
@@ -26,6 +27,7 @@ from pathlib import Path
 import zenoh
 
 from services.ros2.config import BridgeConfig, ConfigError, load_config
+from shared.realtime import favoured
 
 from .acl import MAX_MESSAGE_BYTES, MAX_OBSERVATION_HZ, rate_cap, size_cap, stack_acl
 
@@ -68,6 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"hub: {exc}", file=sys.stderr)
         return 2
+    favoured()  # every message of the stack passes here: its threads inherit the share
     try:
         session = zenoh.open(hub_config(args.listen, users=args.users, robots=args.robot,
                                         ros2=ros2,
