@@ -42,6 +42,11 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
     if args.command in ("serve", "up", "demo"):
+        # before numpy loads (the settings load it): the services' matrices are small, and
+        # OpenBLAS's pool of a thread per core spins between calls, which on a shared
+        # machine takes the cores the other loops need (three fleet control loops: half a
+        # core each with the pool, a fifth without). OPENBLAS_NUM_THREADS given is kept.
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
         warn_unknown_settings(os.environ)
     try:
         if getattr(args, "needs_bench_extra", False):
