@@ -58,8 +58,9 @@ $(LLAMA_STAMP):
 	rm -f $(LLAMA_VENV)/.installed-*
 	touch $@
 
-# the four setups at once (the llama build is CPU-bound, the rest mostly downloads): about
-# 3 minutes less on a fresh clone than one after the other
+# the three setups at once (the llama build is CPU-bound, the rest mostly downloads and
+# apt-get): 4 min 51 s for the venv and the llama build on a fresh clone here, where the
+# build alone took about 4.5
 test:
 	$(MAKE) -j4 --output-sync=target $(STAMP) system llama
 	$(VENV)/bin/ruff check shared services tools tests
