@@ -543,7 +543,10 @@ class Bus:
         """Names of the services whose liveliness tokens under ``prefix`` are alive now.
 
         Blocks until the query completes (at most ``timeout`` s); from async code
-        prefer ``await asyncio.to_thread(bus.alive)``.
+        prefer ``await asyncio.to_thread(bus.alive)``. Ask from a session that does not
+        also watch liveliness (:meth:`watch_alive`): under load Zenoh 1.10.2 can answer
+        such a session's query with nothing at once (41 of 150 tries with three busy
+        processes on two cores; none of 150 from a session without the watch).
         """
         alive: set[str] = set()
         for reply in self._open_session().liveliness().get(prefix, timeout=timeout):
