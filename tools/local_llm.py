@@ -108,12 +108,15 @@ def server_argv(model: LocalModel, port: int, *, python: Path = LLAMA_PYTHON,
 
 
 @contextmanager
-def served(model: LocalModel, logs: Path, *, ready_timeout_s: float = 120.0) -> Iterator[str]:
-    """llama.cpp's server on ``model`` on a free port (its output in ``logs``), for the
-    block; its ``/v1`` URL once it accepts connections (after the model has loaded)."""
+def served(model: LocalModel, logs: Path, *, threads: int = THREADS,
+           ready_timeout_s: float = 120.0) -> Iterator[str]:
+    """llama.cpp's server on ``model`` on a free port (its output in ``logs``) with
+    ``threads`` threads, for the block; its ``/v1`` URL once it accepts connections (after
+    the model has loaded)."""
     port = free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("AESOP_")}
-    child = Child(ChildSpec("llm", server_argv(model, port), port, env, ready="tcp"),
+    child = Child(ChildSpec("llm", server_argv(model, port, threads=threads), port, env,
+                            ready="tcp"),
                   file_sink(logs))
     child.start()
     try:

@@ -22,7 +22,7 @@ from services.reasoner.api import build_decider
 from services.reasoner.backends import OpenAIChatBackend
 from services.reasoner.settings import ReasonerSettings
 from shared.messages import Observation, Option, ReasonerRequest
-from tools.local_llm import REASONER_SETTINGS, LocalModel, bundled_model, served
+from tools.local_llm import REASONER_SETTINGS, STACK_THREADS, LocalModel, bundled_model, served
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
@@ -40,7 +40,10 @@ def model() -> LocalModel:
 
 @pytest.fixture(scope="module")
 def server(model: LocalModel, tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
-    with served(model, Path(tmp_path_factory.mktemp("smollm2"))) as url:
+    # one thread, as the stack serves it: on two cores that anything else uses, two of
+    # llama.cpp's threads wait for each other at every token (a first answer in 16.5 s and
+    # one past its 60 s deadline beside two busy processes; 4.4 s with one thread)
+    with served(model, Path(tmp_path_factory.mktemp("smollm2")), threads=STACK_THREADS) as url:
         yield url
 
 
@@ -106,7 +109,7 @@ async def test_usage_is_counted_when_not_streamed(server: str, model: LocalModel
 def test_the_template_bench_asks_the_real_model_and_prints_one_object() -> None:
     r = subprocess.run([sys.executable, "-m", "tools.cli", "bench", "reasoner", "--llm", "local",
                         "--repeats", "1", "--domain-samples", "1", "--template", "single-json",
-                        "--json"],
+                        "--threads", "1", "--json"],
                        capture_output=True, text=True, timeout=280, stdin=subprocess.DEVNULL)
     assert r.returncode == 0, r.stderr[-3000:]
     result = json.loads(r.stdout)

@@ -60,3 +60,9 @@ def test_services_run_one_blas_thread_unless_told_otherwise(
                        capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode == 0, r.stderr
     assert int(r.stdout.split()[-1]) == threads
+
+
+def test_the_template_bench_refuses_a_server_without_threads(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli.main(["bench", "reasoner", "--llm", "local", "--threads", "0"]) == 2
+    assert "--threads" in capsys.readouterr().err

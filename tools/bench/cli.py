@@ -22,6 +22,9 @@ def _add_template_options(br: argparse.ArgumentParser) -> None:
                     help="--llm local: each decision's deadline in s (60)")
     br.add_argument("--domain-samples", type=int, default=2,
                     help="--llm local: anomalies, nominal scenes per synthetic domain (2)")
+    br.add_argument("--threads", type=int, default=None,
+                    help="--llm local: the server's threads (default 2, the model alone on "
+                         "the cores; 1 where anything runs beside it, as the stack serves it)")
     br.add_argument("--template", action="append", default=None,
                     choices=["cot", "single", "cot-json", "single-json", "single-json-first"],
                     help="--llm local: only these templates (repeatable; default all)")
@@ -192,13 +195,17 @@ def bench_templates(args: argparse.Namespace, model: Any) -> int:
     import tempfile
 
     from tools.bench.templates import TEMPLATES, render, run_templates_bench
+    from tools.local_llm import THREADS
 
-    if args.repeats < 1 or not args.deadline > 0 or args.domain_samples < 0:
-        raise CliError("--repeats must be >= 1, --deadline > 0 and --domain-samples >= 0")
+    threads = THREADS if args.threads is None else args.threads
+    if args.repeats < 1 or not args.deadline > 0 or args.domain_samples < 0 or threads < 1:
+        raise CliError("--repeats and --threads must be >= 1, --deadline > 0 and "
+                       "--domain-samples >= 0")
     with tempfile.TemporaryDirectory(prefix="aesop-bench-templates-") as logs:
         result = run_templates_bench(model, repeats=args.repeats, deadline_s=args.deadline,
                                      templates=args.template or tuple(TEMPLATES),
-                                     logs=Path(logs), domain_samples=args.domain_samples)
+                                     logs=Path(logs), domain_samples=args.domain_samples,
+                                     threads=threads)
     if args.json:
         emit(result, True)
     else:

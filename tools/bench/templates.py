@@ -44,7 +44,7 @@ from services.reasoner.backends import Completion
 from services.reasoner.settings import ReasonerSettings
 from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
 from shared.tables import table
-from tools.local_llm import REASONER_SETTINGS, LocalModel, served
+from tools.local_llm import REASONER_SETTINGS, THREADS, LocalModel, served
 from tools.scenes.hardware import SCENARIOS, observation_text
 from tools.scenes.registry import generate
 from tools.stack.up import hardware_scenario
@@ -185,9 +185,9 @@ def summarise(answers: Sequence[Answer]) -> dict[str, Any]:
 
 def run_templates_bench(model: LocalModel, *, repeats: int = 3, deadline_s: float = 60.0,
                         templates: Sequence[str] = tuple(TEMPLATES), logs: Path,
-                        domain_samples: int = 2) -> dict[str, Any]:
+                        domain_samples: int = 2, threads: int = THREADS) -> dict[str, Any]:
     cases = hardware_cases(deadline_s) + domain_cases(domain_samples, deadline_s)
-    with served(model, logs) as url:
+    with served(model, logs, threads=threads) as url:
         httpx.get(f"{url}/models", timeout=30).raise_for_status()
         answers = [a for t in templates
                    for a in asyncio.run(ask(url, model, t, cases, repeats))]
