@@ -114,6 +114,7 @@ def test_the_template_bench_asks_the_real_model_and_prints_one_object() -> None:
     assert r.returncode == 0, r.stderr[-3000:]
     result = json.loads(r.stdout)
     t = result["templates"]["single-json"]
+    assert result["threads"] == 1
     assert t["n"] == 9 and {"2a-quadrotor-on-red-box", "2b-both-boxes-occupied",
                             "3-keyboard-on-ground"} < set(result["cases"])
     assert set(t["right_by_set"]) == {"hardware", *(f"{d} {kind}" for d in (

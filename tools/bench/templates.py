@@ -191,7 +191,7 @@ def run_templates_bench(model: LocalModel, *, repeats: int = 3, deadline_s: floa
         httpx.get(f"{url}/models", timeout=30).raise_for_status()
         answers = [a for t in templates
                    for a in asyncio.run(ask(url, model, t, cases, repeats))]
-    return {"model": model.alias, "path": str(model.path), "repeats": repeats,
+    return {"model": model.alias, "path": str(model.path), "threads": threads, "repeats": repeats,
             "deadline_s": deadline_s, "domain_samples": domain_samples,
             "cases": {c.name: c.expected for c in cases},
             "templates": summarise(answers),
