@@ -30,6 +30,7 @@ from shared.messages import (
 from shared.process import free_port
 from shared.settings import BusSettings
 from tools.stack.acl import (
+    control_user,
     new_passwords,
     robot_user,
     users_of,
@@ -190,7 +191,7 @@ def setpoint(robot: str, seq: int) -> VehicleSetpoint:
 
 def test_a_robot_publishes_only_its_own_vehicle_state(hub: Hub) -> None:
     with hub.session("monitor") as monitor, hub.session(robot_user("robot-a")) as robot_a, \
-            hub.session("control") as control:
+            hub.session(control_user("robot-a")) as control:
         heard = Heard(monitor, "aesop/*/vehicle/state")
         own = topics.vehicle_state("robot-a")
         routed(lambda: robot_a.publish(own, vehicle_state("robot-a", 1)), heard, "its own")
@@ -202,7 +203,7 @@ def test_a_robot_publishes_only_its_own_vehicle_state(hub: Hub) -> None:
 
 
 def test_only_control_publishes_set_points(hub: Hub) -> None:
-    with hub.session("monitor") as monitor, hub.session("control") as control, \
+    with hub.session("monitor") as monitor, hub.session(control_user("robot-a")) as control, \
             hub.session(robot_user("robot-a")) as robot_a, hub.session("dashboard") as dashboard:
         heard = Heard(monitor, "aesop/*/vehicle/setpoint")
         key = topics.vehicle_setpoint("robot-a")
@@ -220,7 +221,8 @@ def ask_clock(bus: Bus, robot: str) -> list[float]:
 
 
 def test_control_asks_a_robot_its_clock_and_no_one_else_may_answer_or_ask(hub: Hub) -> None:
-    with hub.session("control") as control, hub.session(robot_user("robot-a")) as robot_a, \
+    with hub.session(control_user("robot-a")) as control, \
+            hub.session(robot_user("robot-a")) as robot_a, \
             hub.session(robot_user("robot-b")) as robot_b, \
             hub.session("dashboard") as dashboard:
         robot_a.answer(topics.vehicle_clock("robot-a"),
@@ -279,3 +281,46 @@ def test_each_publisher_puts_events_on_its_own_key_only(hub: Hub) -> None:
         routed(lambda: robot_a.publish(own, said), heard, "the robot's own events again")
     assert set(heard.keys) == {own, detector}
     assert heard.keys.count(detector) >= 1
+
+
+def test_a_robots_control_loop_cannot_put_another_robots_set_points(hub: Hub) -> None:
+    """Issue 41 (and 43, finding 1): every robot's control loop logged in as one user
+    ``control``; with it, one forged set-point moved another robot's vehicle. Each loop is
+    now ``control-<robot>`` and may put its own robot's keys only."""
+    with hub.session("monitor") as monitor, \
+            hub.session(control_user("robot-a")) as control_a, \
+            hub.session(control_user("robot-b")) as control_b:
+        heard = Heard(monitor, "aesop/robot-b/**")
+        key = topics.vehicle_setpoint("robot-b")
+        routed(lambda: control_b.publish(key, setpoint("robot-b", 1)), heard, "b's set-point")
+        control_a.publish(key, setpoint("robot-b", 2**62))  # robot-a's loop: refused
+        control_a.publish(topics.plan("robot-b"), setpoint("robot-b", 2**62))
+        control_a.publish(topics.event("robot-b", "control"), setpoint("robot-b", 2**62))
+        routed(lambda: control_b.publish(key, setpoint("robot-b", 2)), heard, "b's set-point")
+    assert set(heard.keys) == {key}
+    assert max(VehicleSetpoint.decode(p).seq for p in heard.payloads) < 2**62
+
+
+def test_a_robots_sessions_receive_only_its_own_robots_messages(hub: Hub) -> None:
+    """A robot's credentials cannot reach another robot's keys, reading included: robot-a's
+    vehicle and control loop hear robot-a's verdicts, never robot-b's set-points or
+    verdicts; the monitor hears both."""
+    with hub.session("monitor") as monitor, hub.session("embedding") as embedding, \
+            hub.session(robot_user("robot-a")) as robot_a, \
+            hub.session(control_user("robot-a")) as control_a, \
+            hub.session(control_user("robot-b")) as control_b:
+        everything = Heard(monitor, "aesop/**")
+        heard = {name: Heard(bus, "aesop/**") for name, bus in
+                 (("robot", robot_a), ("control", control_a))}
+        own, other = topics.anomaly("robot-a"), topics.anomaly("robot-b")
+        for who in heard.values():
+            routed(lambda: embedding.publish(own, verdict("robot-a", True)), who, "a's verdict")
+        embedding.publish(other, verdict("robot-b", True))
+        control_b.publish(topics.vehicle_setpoint("robot-b"), setpoint("robot-b", 1))
+        routed(lambda: embedding.publish(other, verdict("robot-b", True)), everything,
+               "b's verdict at the monitor")
+        for who in heard.values():
+            routed(lambda: embedding.publish(own, verdict("robot-a", True)), who, "a's verdict")
+    assert other in everything.keys
+    for name, who in heard.items():
+        assert {k for k in who.keys if k.startswith("aesop/robot-b/")} == set(), name

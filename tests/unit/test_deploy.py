@@ -42,7 +42,7 @@ from shared.process import free_port
 from shared.settings import BusSettings, ServiceSettings
 from tests.zenoh_peers import wait_until
 from tools.cli import build_parser
-from tools.stack.acl import new_passwords, router_config_text, write_credentials
+from tools.stack.acl import new_passwords, router_config_text, users_of, write_credentials
 
 ROOT = Path(__file__).resolve().parents[2]
 COMPOSE = ROOT / "docker-compose.yml"
@@ -310,7 +310,8 @@ def test_services_are_zenoh_clients_of_the_router(
     assert container_port(compose()["services"]["zenoh"]) == router_port
     # it authenticates as itself (the vehicle as the robot), with the password compose
     # mounts as its secret
-    user, secret_name = (f"robot-{ROBOT}", "robot") if name == VEHICLE else (name, name)
+    user, secret_name = ((f"robot-{ROBOT}", "robot") if name == VEHICLE else
+                         (f"control-{ROBOT}", "control") if name == "control" else (name, name))
     assert settings.zenoh_user == user and user in acl_users()
     assert settings.zenoh_password_file == Path(f"/run/secrets/zenoh-{secret_name}")
     assert svc["secrets"] == [f"zenoh-{secret_name}"]
@@ -511,7 +512,8 @@ def test_the_router_is_the_hubs_acl_and_denies_by_default() -> None:
         "/run/secrets/zenoh-users"
     rules = acl()
     assert rules["enabled"] is True and rules["default_permission"] == "deny"
-    assert acl_users() == {*STACK, "monitor", f"robot-{ROBOT}", BRIDGE}
+    assert acl_users() == {*(STACK - {"control"}), f"control-{ROBOT}", "monitor",
+                           f"robot-{ROBOT}", BRIDGE}
     rule_ids = {r["id"] for r in rules["rules"]}
     for policy in rules["policies"]:
         assert set(policy["rules"]) <= rule_ids and set(policy["subjects"]) <= acl_users()
@@ -569,7 +571,7 @@ def stack(router: str, credentials: tuple[Path, dict[str, str]]
     opened: dict[str, tuple[Bus, Tap]] = {}
     try:
         for name in (*sorted(STACK), "robot"):
-            user = f"robot-{ROBOT}" if name == "robot" else name
+            user = {"robot": f"robot-{ROBOT}", "control": f"control-{ROBOT}"}.get(name, name)
             settings = BusSettings(zenoh_config=CLIENTS / f"{name}.json5", zenoh_mode="client",
                                    zenoh_connect=[router], zenoh_user=user,
                                    zenoh_password_file=credentials[0] / f"{user}.password")
@@ -695,8 +697,7 @@ def test_each_robot_of_the_fleet_has_its_loop_vehicle_user_secret_and_ports(
         monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     services = fleet_services()
     fleet = yaml.safe_load(FLEET.read_text())
-    write_credentials(tmp_path, new_passwords([*STACK, "monitor", *(f"robot-{r}" for r in
-                                                                     FLEET_ROBOTS)]))
+    write_credentials(tmp_path, new_passwords(users_of(FLEET_ROBOTS)))
     hosts = [p.split(":")[1] for svc in services.values() if not svc.get("profiles")
              for p in svc.get("ports", [])]
     assert len(hosts) == len(set(hosts)), f"a host port twice: {sorted(hosts)}"
@@ -712,7 +713,12 @@ def test_each_robot_of_the_fleet_has_its_loop_vehicle_user_secret_and_ports(
         (secret,) = sim["secrets"]
         assert Path(fleet["secrets"][secret]["file"]).name == f"robot-{robot}.password"
         assert (tmp_path / f"robot-{robot}.password").exists()  # what credentials writes
-        assert settings_in_container(control, monkeypatch).robot == robot  # type: ignore[attr-defined]
+        loop = settings_in_container(control, monkeypatch)
+        assert isinstance(loop, BusSettings) and loop.robot == robot
+        assert loop.zenoh_user == f"control-{robot}"  # each robot's loop its own user
+        (secret,) = control["secrets"]
+        assert Path(fleet["secrets"][secret]["file"]).name == f"control-{robot}.password"
+        assert (tmp_path / f"control-{robot}.password").exists()
     assert host_path(services["zenoh"], "/etc/zenoh/router.json5") == FLEET_ROUTER
     rules = json.loads(zenoh.Config.from_file(str(FLEET_ROUTER)).get_json("access_control"))
     assert {r["id"] for r in rules["rules"]} >= {f"robot-{r}-puts" for r in FLEET_ROBOTS}

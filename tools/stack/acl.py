@@ -1,24 +1,30 @@
 """Who may do what on the stack's Zenoh router: users, and the access-control list.
 
-Every session authenticates with a user name and password (Zenoh ``usrpwd``); the
-router's ACL then allows, per user, only what that part of the stack does
-(docs/architecture.md, "Zenoh key expressions"). Everything else is denied:
+Every session authenticates, by user name and password (Zenoh ``usrpwd``: ``aesop up`` on
+one machine, compose) or by a certificate of the stack's CA (mutual TLS: ``aesop up --role
+server``, :mod:`.certs`); the router's ACL then allows, per subject, only what that part of
+the stack does (docs/architecture.md, "Zenoh key expressions"). Everything else is denied:
 
-- everyone may subscribe to ``aesop/**`` (messages, liveliness) and receive it;
+- everyone may subscribe to ``aesop/**`` (messages, liveliness) and learns of every
+  subscriber and health token; the services and ``monitor`` receive every robot's messages,
+  a robot's sessions only their own robot's (``aesop/<id>/**``);
 - each service may publish only its own keys (its events on ``aesop/*/event/<service>``)
   and declare only its own health token;
-- a robot ``robot-<id>`` may publish only its own observations, events and vehicle
-  state (``aesop/<id>/observation``, ``aesop/<id>/event/robot``,
-  ``aesop/<id>/vehicle/state``),
-  answer queries of its own clock (``aesop/<id>/vehicle/clock``) and declare a
-  vehicle's health token (``aesop/health/sim`` or ``aesop/health/vehicle``); only control
-  publishes set-points and asks the clock;
+- a robot's control loop ``control-<id>`` may publish only its own robot's plan, state,
+  regions, requests, events and set-points, and ask its own vehicle's clock;
+- a robot ``robot-<id>`` (its vehicle, its camera) may publish only its own observations,
+  events and vehicle state (``aesop/<id>/observation``, ``aesop/<id>/event/robot``,
+  ``aesop/<id>/vehicle/state``), answer queries of its own clock
+  (``aesop/<id>/vehicle/clock``) and declare a vehicle's health token (``aesop/health/sim``
+  or ``aesop/health/vehicle``); so no user may put two robots' vehicle keys;
+- a robot linked through a router of its own (``aesop up --role robot``) is one subject
+  ``robot-<id>`` at the server: what its control loop, vehicle and ROS 2 bridge may do;
 - ``monitor`` (``aesop watch``, a recorder) only reads;
-- ``ros2`` (``aesop ros2``, the bridge, and the ROS 2 robot's rmw_zenoh sessions), when a
-  bridge config is given: the ROS keys of its domain and mapped topics (data keys of any
-  type, rmw_zenoh's ``@adv`` keys under them, the graph's ``@ros2_lv/<domain>/**``
-  tokens) both ways, and of the stack's keys only its robot's inputs (observations,
-  vehicle state, its events) and its health token.
+- ``ros2`` (``aesop ros2``, the bridge, and the ROS 2 robot's rmw_zenoh sessions on one
+  machine), when a bridge config is given: the ROS keys of its domain and mapped topics
+  (data keys of any type, rmw_zenoh's ``@adv`` keys under them, the graph's
+  ``@ros2_lv/<domain>/**`` tokens) both ways, and of the stack's keys only its robot's
+  inputs (observations, vehicle state, its events) and its health token.
 
 The router also passes on at most ``max_observation_hz`` observations per second
 from each session (its ``downsampling``), so a robot flooding its own key loads the
@@ -36,21 +42,27 @@ import os
 import secrets
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from services.ros2 import wire
 from services.ros2.config import BridgeConfig
 from shared import topics
 
 ALL = "aesop/**"
+HEALTH = "aesop/health/**"
+Identity = Literal["usrpwd", "tls"]  # how the router knows a session: user name, or certificate
+# what each service puts, for every robot (its robot-wide keys)
 SERVICE_PUTS: Mapping[str, tuple[str, ...]] = {
     "embedding": ("aesop/*/anomaly", "aesop/*/event/embedding"),
     "reasoner": ("aesop/*/reasoner/decision", "aesop/*/event/reasoner"),
-    "control": ("aesop/*/state", "aesop/*/plan", "aesop/*/reasoner/request",
-                "aesop/*/regions", "aesop/*/event/control", "aesop/*/vehicle/setpoint"),
     "dashboard": ("aesop/*/event/dashboard",),
 }
-CLOCK = "aesop/*/vehicle/clock"  # the vehicle answers, control asks
+# what a robot's control loop (``control-<id>``) and vehicle (``robot-<id>``) put, under
+# ``aesop/<id>/``: their own robot's keys and no other's
+CONTROL_PUTS = ("state", "plan", "reasoner/request", "regions", "event/control",
+                "vehicle/setpoint")
+ROBOT_PUTS = ("observation", f"event/{topics.ROBOT_SOURCE}", "vehicle/state")
+CONTROL = "control"  # the control loops' health token and the stem of their users
 MONITOR = "monitor"
 MAX_MESSAGE_BYTES = 1024 * 1024  # the largest message the router passes on
 # observations per second the router passes on from one session (a robot): a floor of
@@ -61,67 +73,121 @@ MAX_OBSERVATION_HZ = 50.0
 
 
 def robot_user(robot: str) -> str:
-    """The user a robot's session authenticates as."""
+    """The user a robot's session authenticates as (its vehicle, its camera); with
+    certificates, also the robot's own router linked to the server."""
     return f"robot-{robot}"
 
 
+def control_user(robot: str) -> str:
+    """The user of ``robot``'s control loop: it may put that robot's keys only."""
+    return f"{CONTROL}-{robot}"
+
+
 def users_of(robots: Iterable[str], *, ros2: bool = False) -> list[str]:
-    return [*SERVICE_PUTS, MONITOR, *(robot_user(r) for r in robots),
-            *([ROS2] if ros2 else [])]
+    robots = list(robots)
+    return [*SERVICE_PUTS, MONITOR, *(control_user(r) for r in robots),
+            *(robot_user(r) for r in robots), *([ROS2] if ros2 else [])]
 
 
-def stack_acl(robots: Sequence[str], ros2: BridgeConfig | None = None) -> dict[str, Any]:
-    """The router's ``access_control`` block for the four services, ``monitor``,
-    ``robots`` and the ROS 2 bridge of ``ros2`` (a rule names its message kinds and the
-    flows as the router sees them: ingress from a session, egress to it)."""
+def server_users() -> list[str]:
+    """The sessions of a server (``aesop up --role server``): its services and the monitor;
+    its robots come linked, each as ``robot-<id>``."""
+    return [*SERVICE_PUTS, MONITOR]
+
+
+def stack_acl(robots: Sequence[str], ros2: BridgeConfig | None = None, *,
+              identity: Identity = "usrpwd", linked: Sequence[str] = ()) -> dict[str, Any]:
+    """The router's ``access_control`` block: the services, ``monitor``, each robot's
+    control loop (``control-<id>``) and vehicle (``robot-<id>``) of ``robots``, the ROS 2
+    bridge of ``ros2``, and the ``linked`` robots, each reaching this router through a
+    router of its own (``aesop up --role robot``) as one subject ``robot-<id>`` that may do
+    what its control loop, vehicle and bridge do, for itself. A rule names its message kinds
+    and the flows as the router sees them (ingress from a session, egress to it).
+
+    ``identity``: subjects are user names (``usrpwd``), or certificates' common names
+    (``tls``: mutual TLS, each session presenting a certificate of the stack's CA).
+    Everyone may declare subscribers and liveliness subscribers on ``aesop/**`` and learns of
+    every subscriber and health token; the services and the monitor receive every robot's
+    messages, a robot's sessions only their own robot's."""
     rules: list[dict[str, Any]] = [
         _rule("subscribe", "ingress", ["declare_subscriber", "declare_liveliness_subscriber",
                                        "liveliness_query"], [ALL]),
         # subscriber declarations must reach the publishers too: a session drops a
         # put for which it knows no subscriber
-        _rule("receive", "egress", ["put", "delete", "declare_subscriber", "liveliness_token"],
-              [ALL]),
-        # the clock query: to the vehicle and its answer back, whoever asked
-        _rule("clock-relay", "egress", ["query", "reply", "declare_queryable"], [CLOCK]),
-        _rule("control-clock", "ingress", ["query"], [CLOCK]),
+        _rule("announce", "egress", ["declare_subscriber", "liveliness_token"], [ALL]),
+        _rule("receive", "egress", ["put", "delete"], [ALL]),
     ]
-    users = users_of(robots, ros2=ros2 is not None)
+    readers = [*SERVICE_PUTS, MONITOR]
     policies: list[dict[str, Any]] = [
-        {"id": "everyone", "rules": ["subscribe", "receive", "clock-relay"],
-         "subjects": users}]
+        {"id": "everyone", "rules": ["subscribe", "announce"],
+         "subjects": [*readers, *(u for r in robots for u in (control_user(r), robot_user(r))),
+                      *([ROS2] if ros2 is not None else []), *map(robot_user, linked)]},
+        {"id": "readers", "rules": ["receive"], "subjects": readers}]
     for service, keys in SERVICE_PUTS.items():
         # a detector replica also announces itself as one of the replicas (its own name)
         health = [f"aesop/health/{service}", *([f"aesop/health/{service}/*"]
                                                if service == "embedding" else [])]
         rules += [_rule(f"{service}-puts", "ingress", ["put", "delete"], list(keys)),
                   _rule(f"{service}-health", "ingress", ["liveliness_token"], health)]
-        extra = ["control-clock"] if service == "control" else []
-        policies.append({"id": service, "rules": [f"{service}-puts", f"{service}-health",
-                                                  *extra], "subjects": [service]})
-    for robot in robots:
-        user = robot_user(robot)
-        rules += [
-            _rule(f"{user}-puts", "ingress", ["put", "delete"],
-                  [f"aesop/{robot}/observation", f"aesop/{robot}/event/{topics.ROBOT_SOURCE}",
-                   f"aesop/{robot}/vehicle/state"]),
-            _rule(f"{user}-clock", "ingress", ["declare_queryable", "reply"],
-                  [f"aesop/{robot}/vehicle/clock"]),
-            _rule(f"{user}-health", "ingress", ["liveliness_token"],
-                  ["aesop/health/sim", "aesop/health/vehicle"]),
-        ]
-        policies.append({"id": user, "rules": [f"{user}-puts", f"{user}-clock",
-                                               f"{user}-health"], "subjects": [user]})
+        policies.append({"id": service, "rules": [f"{service}-puts", f"{service}-health"],
+                         "subjects": [service]})
+    for robot in dict.fromkeys([*robots, *linked]):
+        control, vehicle, shared = _robot_rules(robot)
+        rules += [*control, *vehicle, *shared]
+        control_ids, vehicle_ids, shared_ids = ([r["id"] for r in group]
+                                                for group in (control, vehicle, shared))
+        if robot in robots:
+            policies += [{"id": control_user(robot), "rules": [*control_ids, *shared_ids],
+                          "subjects": [control_user(robot)]},
+                         {"id": robot_user(robot), "rules": [*vehicle_ids, *shared_ids],
+                          "subjects": [robot_user(robot)]}]
+        if robot in linked:  # its router: the robot's loop, vehicle and bridge, as one
+            rules.append(_rule(f"{robot}-bridge", "ingress", ["put", "delete"],
+                               [f"aesop/{robot}/event/{ROS2}"]))
+            policies.append({"id": f"{robot}-linked",
+                             "rules": [*control_ids, *vehicle_ids, *shared_ids,
+                                       f"{robot}-bridge", "ros2-health"],
+                             "subjects": [robot_user(robot)]})
+    if linked:
+        rules.append(_rule("ros2-health", "ingress", ["liveliness_token"],
+                           [f"aesop/health/{ROS2}"]))
     if ros2 is not None:
         ros_rules, ros_policy = ros2_acl(ros2)
-        rules += ros_rules
+        rules += [r for r in ros_rules if r["id"] not in {x["id"] for x in rules}]
+        ros_policy["rules"].append(f"{ros2.robot}-receive")
         policies.append(ros_policy)
+    users = [*readers, *(u for r in robots for u in (control_user(r), robot_user(r))),
+             *([ROS2] if ros2 is not None else []),
+             *(robot_user(r) for r in linked if r not in robots)]
+    field = "usernames" if identity == "usrpwd" else "cert_common_names"
     return {
         "enabled": True,
         "default_permission": "deny",
         "rules": rules,
-        "subjects": [{"id": user, "usernames": [user]} for user in users],
+        "subjects": [{"id": user, field: [user]} for user in users],
         "policies": policies,
     }
+
+
+def _robot_rules(robot: str) -> tuple[list[dict[str, Any]], ...]:
+    """One robot's rules: what its control loop and its vehicle may put (each its own
+    list), and what both share: the clock query between them (control asks, the vehicle
+    answers) and what its sessions receive."""
+    control, vehicle, mine = control_user(robot), robot_user(robot), f"aesop/{robot}"
+    clock = topics.vehicle_clock(robot)
+    return ([_rule(f"{control}-puts", "ingress", ["put", "delete"],
+                   [f"{mine}/{key}" for key in CONTROL_PUTS]),
+             _rule(f"{control}-ask", "ingress", ["query"], [clock]),
+             _rule(f"{control}-health", "ingress", ["liveliness_token"],
+                   [topics.health(CONTROL)])],
+            [_rule(f"{vehicle}-puts", "ingress", ["put", "delete"],
+                   [f"{mine}/{key}" for key in ROBOT_PUTS]),
+             _rule(f"{vehicle}-answer", "ingress", ["declare_queryable", "reply"], [clock]),
+             _rule(f"{vehicle}-health", "ingress", ["liveliness_token"],
+                   ["aesop/health/sim", "aesop/health/vehicle"])],
+            [_rule(f"{robot}-receive", "egress", ["put", "delete"], [f"{mine}/**"]),
+             _rule(f"{robot}-clock", "egress", ["query", "reply", "declare_queryable"],
+                   [clock])])
 
 
 ROS2 = "ros2"  # the user of the ROS 2 bridge and of the robot's rmw_zenoh sessions

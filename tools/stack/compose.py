@@ -3,10 +3,11 @@ override out).
 
 The base ``docker-compose.yml`` runs one robot (``control`` and ``sim``, ``AESOP_ROBOT``) and
 one detector. The override adds, for every further robot, its control loop and simulated
-vehicle (``control-<id>``, ``sim-<id>``: the base services with that robot's id, its own
-Zenoh user and secret, the host ports 100 apart), and from two detector replicas on, the
-replicas (``embedding-<j>``, each with its own volume) and PostgreSQL (``postgres:15``, the
-password from ``AESOP_POSTGRES_PASSWORD``) they share; the router mounts the fleet's ACL::
+vehicle (``control-<id>``, ``sim-<id>``: the base services with that robot's id, their own
+Zenoh users, ``control-<id>`` and ``robot-<id>``, and secrets, the host ports 100 apart), and
+from two detector replicas on, the replicas (``embedding-<j>``, each with its own volume)
+and PostgreSQL (``postgres:15``, the password from ``AESOP_POSTGRES_PASSWORD``) they
+share; the router mounts the fleet's ACL::
 
     aesop zenoh fleet-compose --robots 3 --replicas 2 > deploy/compose.fleet.yml
     aesop zenoh router-config --robot robot0 --robot robot1 --robot robot2 \\
@@ -43,7 +44,10 @@ def fleet_override(base: Mapping[str, Any], robots: Sequence[str], replicas: int
     volumes: dict[str, Any] = {}
     for i, robot in enumerate(robots[1:], start=1):
         control = copy.deepcopy(services["control"])
-        control["environment"]["AESOP_ROBOT"] = robot
+        control["environment"] |= {
+            "AESOP_ROBOT": robot, "AESOP_ZENOH_USER": f"control-{robot}",
+            "AESOP_ZENOH_PASSWORD_FILE": f"/run/secrets/zenoh-control-{robot}"}
+        control["secrets"] = [f"zenoh-control-{robot}"]
         control["ports"] = _published(8003 + STEP * i, 8003)
         sim = copy.deepcopy(services["sim"])
         secret = f"zenoh-robot-{robot}"
@@ -53,6 +57,7 @@ def fleet_override(base: Mapping[str, Any], robots: Sequence[str], replicas: int
         sim["ports"] = _published(8004 + STEP * i, 8004)
         out |= {f"control-{robot}": control, f"sim-{robot}": sim}
         secrets[secret] = {"file": f"./deploy/secrets/robot-{robot}.password"}
+        secrets[f"zenoh-control-{robot}"] = {"file": f"./deploy/secrets/control-{robot}.password"}
     if replicas > 1:
         shared = {"AESOP_EMBEDDING_STORE": STORE}
         out["embedding"] = {"depends_on": ["zenoh", "postgres"],

@@ -59,6 +59,7 @@ from tools.local_llm import REASONER_SETTINGS, STACK_THREADS, LocalModel, server
 
 from .acl import (
     ROS2,
+    control_user,
     new_passwords,
     robot_user,
     ros2_session_config,
@@ -352,7 +353,7 @@ def _robots(options: StackOptions, environ: Mapping[str, str], robots: Sequence[
     dt: float | None = None
     for i, robot in enumerate(robots):
         control_name, vehicle_name = names["control"][i], names[vehicle_kind][i]
-        forced: dict[str, Any] = {**common, **user("control"), "robot": robot,
+        forced: dict[str, Any] = {**common, **user(control_user(robot)), "robot": robot,
                                   "port": ports.of(control_name, "control", i),
                                   "data_dir": data(control_name)}
         if options.rate_hz is not None:
