@@ -45,7 +45,7 @@ RECONNECT = {"period_init_ms": 100, "period_max_ms": 1000, "period_increase_fact
 
 def zenoh_config(settings: BusSettings) -> zenoh.Config:
     """A Zenoh config: the JSON5 file if any, then mode, endpoints, multicast, the
-    reconnection backoff and the user/password from settings.
+    reconnection backoff, the TLS files and the user/password from settings.
 
     With a file, only settings given explicitly (init or ``AESOP_*``) override it;
     without one, all apply (multicast scouting off by default, and a peer with no
@@ -70,6 +70,10 @@ def zenoh_config(settings: BusSettings) -> zenoh.Config:
         conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.zenoh_multicast))
     if settings.zenoh_connect:  # back within a second of the router's return
         conf.insert_json5("connect/retry", json.dumps(RECONNECT))
+    tls = settings.zenoh_tls()
+    if tls is not None:
+        for key, value in tls.items():
+            conf.insert_json5(f"transport/link/tls/{key}", json.dumps(value))
     secret = settings.zenoh_secret()
     if settings.zenoh_user is not None and secret is not None:
         conf.insert_json5("transport/auth/usrpwd", json.dumps(

@@ -78,6 +78,7 @@ class ChildSpec:
     port: int
     env: Mapping[str, str]
     ready: Literal["http", "tcp"] = "http"
+    host: str = "127.0.0.1"  # where it is ready: the address its port accepts on
 
     @property
     def url(self) -> str:
@@ -141,9 +142,10 @@ class Child:
 
     def is_ready(self) -> bool:
         if self.spec.ready == "tcp":
-            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+            family = socket.AF_INET6 if ":" in self.spec.host else socket.AF_INET
+            with socket.socket(family, socket.SOCK_STREAM) as sock:
                 sock.settimeout(0.5)
-                return sock.connect_ex(("127.0.0.1", self.spec.port)) == 0
+                return sock.connect_ex((self.spec.host, self.spec.port)) == 0
         try:
             return httpx.get(f"{self.spec.url}/readyz", timeout=1.0).status_code == 200
         except httpx.TransportError:

@@ -87,6 +87,12 @@ class BusSettings(BaseSettings):
                                              validation_alias=shared("zenoh_password"))
     zenoh_password_file: Path | None = Field(default=None,
                                              validation_alias=shared("zenoh_password_file"))
+    # mutual TLS on tls/ endpoints (a link that leaves the host): the CA the router's
+    # certificate must chain to, and this session's own certificate and key, whose common
+    # name the router's access-control list knows it by (``aesop zenoh certs``)
+    zenoh_tls_ca: Path | None = Field(default=None, validation_alias=shared("zenoh_tls_ca"))
+    zenoh_tls_cert: Path | None = Field(default=None, validation_alias=shared("zenoh_tls_cert"))
+    zenoh_tls_key: Path | None = Field(default=None, validation_alias=shared("zenoh_tls_key"))
 
     _split_listen = field_validator("zenoh_listen", "zenoh_connect", mode="before")(_split)
 
@@ -98,7 +104,33 @@ class BusSettings(BaseSettings):
         if self.zenoh_user is not None and not has_password:
             raise ValueError("AESOP_ZENOH_USER needs AESOP_ZENOH_PASSWORD or "
                              "AESOP_ZENOH_PASSWORD_FILE")
+        if (self.zenoh_tls_cert is None) != (self.zenoh_tls_key is None):
+            raise ValueError("AESOP_ZENOH_TLS_CERT and AESOP_ZENOH_TLS_KEY go together")
+        if self.zenoh_tls_cert is not None and self.zenoh_tls_ca is None:
+            raise ValueError("AESOP_ZENOH_TLS_CERT needs AESOP_ZENOH_TLS_CA (the CA the "
+                             "router's certificate chains to)")
         return self
+
+    def zenoh_tls(self) -> dict[str, Any] | None:
+        """Zenoh's ``transport/link/tls`` block for these settings (None: no TLS), each
+        file checked readable first, so a missing one is named here rather than by a TLS
+        handshake that fails."""
+        if self.zenoh_tls_ca is None:
+            return None
+        files = {"root_ca_certificate": ("AESOP_ZENOH_TLS_CA", self.zenoh_tls_ca)}
+        if self.zenoh_tls_cert is not None and self.zenoh_tls_key is not None:
+            files |= {"connect_certificate": ("AESOP_ZENOH_TLS_CERT", self.zenoh_tls_cert),
+                      "connect_private_key": ("AESOP_ZENOH_TLS_KEY", self.zenoh_tls_key)}
+        for variable, path in files.values():
+            try:
+                with open(path, "rb"):
+                    pass
+            except OSError as exc:
+                raise ValueError(f"{variable}: cannot read {path}: {exc.strerror}") from None
+        block: dict[str, Any] = {key: str(path) for key, (_, path) in files.items()}
+        if self.zenoh_tls_cert is not None:
+            block["enable_mtls"] = True
+        return block
 
     def zenoh_secret(self) -> str | None:
         """The password to the router: the variable, else the file's first line."""

@@ -3,6 +3,7 @@ the environment ``aesop up`` writes for a child reading back what it was given."
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -15,7 +16,8 @@ from services.dashboard.settings import DashboardLimits, DashboardSettings
 from services.embedding.settings import EmbeddingLimits, EmbeddingSettings, EmbeddingTuning
 from services.reasoner.settings import Hedge, ReasonerSettings
 from services.sim.settings import SimSettings
-from shared.settings import env_names, read_settings, to_env
+from shared.bus import zenoh_config
+from shared.settings import BusSettings, env_names, read_settings, to_env
 from tools.fakes.llm import FakeLLMServiceSettings
 
 SERVICES: list[type[BaseSettings]] = [EmbeddingSettings, ReasonerSettings, ControlSettings,
@@ -62,7 +64,7 @@ def test_every_field_has_one_name_of_its_service_or_a_shared_one(cls: type[BaseS
                                                                  ) -> None:
     shared = {"robot", "zenoh_mode", "zenoh_listen", "zenoh_connect", "zenoh_multicast",
               "zenoh_config", "zenoh_user", "zenoh_password", "zenoh_password_file",
-              "admin_token", "data_dir", "log_level"}
+              "zenoh_tls_ca", "zenoh_tls_cert", "zenoh_tls_key", "admin_token", "data_dir", "log_level"}
     prefix = str(cls.model_config["env_prefix"])
     assert prefix.startswith("AESOP_") and prefix != "AESOP_"
     for name in cls.model_fields:
@@ -171,3 +173,38 @@ def test_the_detectors_store_is_a_postgresql_url_and_its_replica_one_key_chunk()
     assert settings.store is not None and settings.store.get_secret_value() == url
     assert "secret" not in repr(settings) and settings.replica_name() == "site-a"
     assert read_settings(EmbeddingSettings, {"AESOP_EMBEDDING_STORE": ""}).store is None
+
+
+def test_mutual_tls_files_become_zenohs_tls_block(tmp_path: Path) -> None:
+    """Issue 41: a session that leaves its host presents a certificate of the stack's CA."""
+    for name in ("ca.pem", "me.pem", "me-key.pem"):
+        (tmp_path / name).write_text("-----BEGIN-----\n")
+    settings = read_settings(BusSettings, {
+        "AESOP_ZENOH_CONNECT": "tls/server.lan:7447", "AESOP_ZENOH_MODE": "client",
+        "AESOP_ZENOH_TLS_CA": str(tmp_path / "ca.pem"),
+        "AESOP_ZENOH_TLS_CERT": str(tmp_path / "me.pem"),
+        "AESOP_ZENOH_TLS_KEY": str(tmp_path / "me-key.pem")})
+    conf = zenoh_config(settings)
+    assert json.loads(conf.get_json("transport/link/tls/connect_certificate")) == \
+        str(tmp_path / "me.pem")
+    assert json.loads(conf.get_json("transport/link/tls/root_ca_certificate")) == \
+        str(tmp_path / "ca.pem")
+    assert json.loads(conf.get_json("transport/link/tls/enable_mtls")) is True
+
+
+@pytest.mark.parametrize(("given", "says"), [
+    ({"AESOP_ZENOH_TLS_CERT": "c.pem"}, "AESOP_ZENOH_TLS_KEY"),
+    ({"AESOP_ZENOH_TLS_CERT": "c.pem", "AESOP_ZENOH_TLS_KEY": "k.pem"}, "AESOP_ZENOH_TLS_CA"),
+])
+def test_tls_files_that_cannot_work_are_refused_naming_the_variable(
+        given: dict[str, str], says: str) -> None:
+    with pytest.raises(ValidationError, match=says):
+        read_settings(BusSettings, given)
+
+
+def test_a_missing_tls_file_is_named_before_any_handshake(tmp_path: Path) -> None:
+    (tmp_path / "ca.pem").write_text("x")
+    settings = BusSettings(zenoh_tls_ca=tmp_path / "ca.pem", zenoh_tls_cert=tmp_path / "gone.pem",
+                           zenoh_tls_key=tmp_path / "gone-key.pem")
+    with pytest.raises(ValueError, match="AESOP_ZENOH_TLS_CERT: cannot read .*gone.pem"):
+        zenoh_config(settings)

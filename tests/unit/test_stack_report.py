@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -165,13 +166,13 @@ def test_plan_starts_the_fake_llm_without_a_backend_and_generates_the_token(
     assert plan.services[1].env["AESOP_EMBEDDING_DETECTOR_CACHE"] == "quadrotor"
     # every service is a client of the hub with a user of its own; the hub checks them
     for spec in plan.services[1:]:
-        user = "robot-robot0" if spec.name == "sim" else spec.name
+        user = {"sim": "robot-robot0", "control": "control-robot0"}.get(spec.name, spec.name)
         assert spec.env["AESOP_ZENOH_MODE"] == "client", spec.name
         assert spec.env["AESOP_ZENOH_USER"] == user
         assert spec.env["AESOP_ZENOH_PASSWORD"] == plan.passwords[user]
     assert len(set(plan.passwords.values())) == len(plan.passwords)  # one each
-    assert set(plan.passwords) == {"embedding", "reasoner", "control", "dashboard", "monitor",
-                                   "robot-robot0"}
+    assert set(plan.passwords) == {"embedding", "reasoner", "control-robot0", "dashboard",
+                                   "monitor", "robot-robot0"}
     assert plan.hub.argv[plan.hub.argv.index("--users") + 1] == str(plan.zenoh_dir / "users.txt")
     assert plan.hub.argv[plan.hub.argv.index("--robot") + 1] == "robot0"
     assert "AESOP_ZENOH_USER" not in plan.services[0].env  # the fake LLM has no bus
@@ -276,3 +277,65 @@ def test_a_fleet_cannot_be_one_ros2_robot_and_counts_from_one(tmp_path: Path) ->
         plan_stack(replace(options(tmp_path), replicas=0), {}, "t" * 24)
     assert fleet("robot0", 3) == ("robot0", "robot1", "robot2")
     assert fleet("drone", 2) == ("drone0", "drone1") and fleet("x9", 1) == ("x9",)
+
+
+def test_a_server_plan_runs_the_detector_reasoner_and_dashboard_behind_a_tls_router(
+        tmp_path: Path) -> None:
+    """Issue 41: ``aesop up --role server``: the parts robots share, each session with its
+    certificate; the robots link in, each as one subject."""
+    certs = tmp_path / "certs"
+    plan = plan_stack(replace(options(tmp_path), role="server", tls=certs,
+                              linked=("robot0", "robot1")),
+                      {"AESOP_ZENOH_USER": "someone", "AESOP_ZENOH_PASSWORD": "x"}, "t" * 24)
+    assert [s.name for s in plan.services] == ["fake-llm", "embedding", "reasoner", "dashboard"]
+    assert plan.hub.name == "router" and plan.passwords == {} and plan.fleet == ()
+    argv = plan.hub.argv
+    assert argv[argv.index("--role") + 1] == "server" and argv[argv.index("--tls") + 1] == \
+        str(certs)
+    assert argv[argv.index("--listen") + 1] == "tls/[::]:1"
+    assert [argv[i + 1] for i, a in enumerate(argv) if a == "--linked"] == ["robot0", "robot1"]
+    assert plan.endpoint == "tls/localhost:1" and plan.robots == ()
+    assert plan.linked == ("robot0", "robot1")
+    for spec in plan.services[1:]:
+        assert spec.env["AESOP_ZENOH_CONNECT"] == "tls/localhost:1"
+        assert spec.env["AESOP_ZENOH_TLS_CA"] == str(certs / "ca.pem")
+        assert spec.env["AESOP_ZENOH_TLS_CERT"] == str(certs / f"{spec.name}.pem")
+        assert spec.env["AESOP_ZENOH_TLS_KEY"] == str(certs / f"{spec.name}-key.pem")
+        assert "AESOP_ZENOH_USER" not in spec.env and "AESOP_ZENOH_PASSWORD" not in spec.env
+    monitor = plan.bus_settings("monitor")
+    assert monitor.zenoh_tls_cert == certs / "monitor.pem" and monitor.zenoh_user is None
+
+
+def test_a_robot_plan_runs_its_own_router_its_loop_and_its_vehicle(tmp_path: Path) -> None:
+    """``aesop up --role robot``: a router open on the robot's loopback (as rmw_zenohd),
+    linked to the server with the robot's certificate; the loop and the vehicle its
+    clients, with no credentials whatever the environment says."""
+    mine = tmp_path / "robot-robot3"
+    plan = plan_stack(replace(options(tmp_path), role="robot", tls=mine, server="10.9.0.1:7447"),
+                      {"AESOP_ROBOT": "robot3", "AESOP_ZENOH_USER": "someone",
+                       "AESOP_ZENOH_PASSWORD": "x"}, "t" * 24)
+    assert [s.name for s in plan.services] == ["sim", "control"]
+    assert plan.robots == ("robot3",) and plan.passwords == {}
+    argv = plan.hub.argv
+    assert argv[argv.index("--role") + 1] == "robot" and argv[argv.index("--robot") + 1] == \
+        "robot3"
+    assert argv[argv.index("--connect") + 1] == "tls/10.9.0.1:7447"
+    assert [argv[i + 1] for i, a in enumerate(argv) if a == "--listen"] == [
+        "tcp/127.0.0.1:1", "tcp/[::1]:1"]
+    for spec in plan.services:
+        assert spec.env["AESOP_ZENOH_CONNECT"] == "tcp/127.0.0.1:1"
+        assert not {"AESOP_ZENOH_USER", "AESOP_ZENOH_PASSWORD", "AESOP_ZENOH_TLS_CERT"} & set(
+            spec.env), spec.name
+    assert plan.bus_settings("robot-robot3").zenoh_user is None
+
+
+@pytest.mark.parametrize(("change", "says"), [
+    ({"role": "robot", "server": "h:1"}, "--tls"),
+    ({"role": "robot", "tls": Path("r")}, "--server"),
+    ({"role": "server", "tls": Path("c"), "ros2": Path("deploy/ros2/quadrotor.yaml")},
+     "on the robot"),
+])
+def test_a_role_without_what_it_needs_is_a_plan_error(tmp_path: Path, change: dict[str, Any],
+                                                     says: str) -> None:
+    with pytest.raises(PlanError, match=says):
+        plan_stack(replace(options(tmp_path), **change), {}, "t" * 24)

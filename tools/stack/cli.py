@@ -27,6 +27,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     cr.add_argument("--robot", action="append", default=None,
                     help="a robot to make a user for (repeatable; robot0)")
     cr.set_defaults(func=cmd_zenoh_credentials)
+    ce = zsub.add_parser("certs", help="a CA and certificates for mutual TLS between a server "
+                         "and its robots (aesop up --role server | robot): DIR/robot-<id>/ "
+                         "is what to copy onto each robot")
+    ce.add_argument("folder", type=Path, help="e.g. aesop-certs (kept: run it again to add "
+                    "a robot; the CA and what it issued stay valid)")
+    ce.add_argument("--robot", action="append", default=None,
+                    help="a robot to make a certificate for (repeatable; AESOP_ROBOT)")
+    ce.add_argument("--server-name", action="append", default=[], metavar="NAME",
+                    help="a name or address robots reach the server by (repeatable; its "
+                         "certificate also names localhost)")
+    ce.add_argument("--ca-cert", type=Path, default=None, help="your CA's certificate "
+                    "(with --ca-key): issue from it instead of a CA of the folder's own")
+    ce.add_argument("--ca-key", type=Path, default=None, help="your CA's key (read, never "
+                    "copied)")
+    ce.add_argument("--days", type=int, default=825, help="validity of what is issued")
+    ce.set_defaults(func=cmd_zenoh_certs)
     fc = zsub.add_parser("fleet-compose", help="a docker compose override for a fleet: a "
                          "control loop and simulated vehicle per robot, detector replicas "
                          "on PostgreSQL (deploy/compose.fleet.yml)")
@@ -50,6 +66,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     up.add_argument("--ros2", type=Path, default=None, metavar="CONFIG",
                     help="fly a ROS 2 robot through the bridge (aesop ros2) with this config "
                          "(deploy/ros2/quadrotor.yaml) instead of the simulated vehicle")
+    up.add_argument("--role", choices=["all", "server", "robot"], default="all",
+                    help="all (default): everything on this machine; server: the router "
+                         "robots link to, detectors, reasoner, LLM, dashboard; robot: its own "
+                         "router, control loop and vehicle (docs/deployment.md)")
+    up.add_argument("--tls", type=Path, default=None, metavar="DIR",
+                    help="server: the folder `aesop zenoh certs` made; robot: its "
+                         "robot-<id> folder, copied here")
+    up.add_argument("--server", default=None, metavar="HOST[:PORT]",
+                    help="robot: the server's router (port 7447 unless given)")
+    up.add_argument("--robot", action="append", default=None, metavar="ID",
+                    help="robot: this robot; server: a robot that links in (repeatable; "
+                         "default AESOP_ROBOT)")
+    up.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
+                    help="server: where robots reach its router (default tls/[::]:7447)")
     add_fleet_options(up)
     add_llm_options(up)
     up.set_defaults(func=cmd_up)
@@ -122,6 +152,28 @@ def cmd_zenoh_fleet_compose(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_zenoh_certs(args: argparse.Namespace) -> int:
+    from shared.settings import BusSettings
+    from tools.stack.acl import server_users
+    from tools.stack.certs import write_certs
+
+    if (args.ca_cert is None) != (args.ca_key is None):
+        raise CliError("--ca-cert and --ca-key go together")
+    robots = args.robot or [BusSettings().robot]
+    try:
+        layout = write_certs(args.folder, robots=robots, services=server_users(),
+                             server_names=args.server_name, ca_cert=args.ca_cert,
+                             ca_key=args.ca_key, days=args.days)
+    except (ValueError, OSError) as exc:
+        raise CliError(f"aesop zenoh certs: {exc}") from None
+    print(f"{args.folder}: the CA (ca.pem; its key ca-key.pem stays here), the server's "
+          f"router and services' certificates; for each robot, the folder to copy onto it: "
+          + ", ".join(str(layout.robot_folder(r)) for r in robots)
+          + (f" (issued now: {', '.join(layout.issued)})" if layout.issued else
+             " (all kept: nothing issued)"), file=sys.stderr)
+    return 0
+
+
 def cmd_zenoh_credentials(args: argparse.Namespace) -> int:
     from tools.stack.acl import new_passwords, users_of, write_credentials
 
@@ -153,7 +205,8 @@ def stack_options(args: argparse.Namespace, data_dir: Path):
     control = ControlSettings()  # what the environment asks of the control loop
     scenario_path = resolve_scenario(args.scenario or control.scenario or hardware_scenario())
     scenario = control_scenario(scenario_path)
-    dashboard = not getattr(args, "no_dashboard", False)
+    role = getattr(args, "role", "all")
+    dashboard = not getattr(args, "no_dashboard", False) and role != "robot"
     if dashboard and importlib.util.find_spec("services.dashboard") is None:
         print("aesop: the dashboard is not in this checkout (services/dashboard): starting "
               "without it", file=sys.stderr)
@@ -164,7 +217,7 @@ def stack_options(args: argparse.Namespace, data_dir: Path):
     names = child_names(fleet(BusSettings().robot, robots), replicas)
     more = [n for kind in names.values() for n in kind[1:]]
     ports = Ports.free(more) if args.random_ports else Ports()
-    busy = ports.busy()
+    busy = ports.busy(_used_ports(role))
     if busy:
         raise CliError(f"ports already in use: {', '.join(busy)} (is `aesop up` running?); "
                        "stop it or pass --random-ports")
@@ -175,13 +228,77 @@ def stack_options(args: argparse.Namespace, data_dir: Path):
         ros2 = ros2.resolve()
     return StackOptions(data_dir=data_dir, ports=ports, scenario=scenario_path.resolve(),
                         rate_hz=rate, dashboard=dashboard, local_model=local_model(args),
-                        ros2=ros2, robots=robots, replicas=replicas)
+                        ros2=ros2, robots=robots, replicas=replicas,
+                        **_role_options(args, role, ports.hub))
+
+
+def _used_ports(role: str) -> tuple[str, ...] | None:
+    """The ports a role listens on (None: all of them)."""
+    return {"robot": ("hub", "control", "sim"),
+            "server": ("hub", "embedding", "reasoner", "dashboard", "fake_llm", "postgres")
+            }.get(role)
+
+
+def _role_options(args: argparse.Namespace, role: str, port: int) -> dict:
+    """What ``--role server`` and ``--role robot`` add, checked: the certificates are there
+    (a missing one named with the command that makes it), the server's address parses."""
+    from tools.stack.acl import robot_user, server_users
+    from tools.stack.certs import ROUTER, load_identity
+    from tools.stack.router import default_listen
+
+    robot_ids = getattr(args, "robot", None) or []
+    tls, server, listen = getattr(args, "tls", None), getattr(args, "server", None), \
+        getattr(args, "listen", None)
+    if role == "all":
+        if tls or server or listen or robot_ids:
+            raise CliError("--tls, --server, --listen and --robot go with --role server or "
+                           "--role robot")
+        return {}
+    if tls is None:
+        raise CliError(f"--role {role} needs --tls DIR: the certificates `aesop zenoh certs` "
+                       "made (docs/deployment.md)")
+    try:
+        if role == "robot":
+            if len(robot_ids) > 1 or server is None or listen:
+                raise CliError("--role robot flies one --robot and needs --server HOST[:PORT] "
+                               "(no --listen: its router is open on this machine's loopback)")
+            load_identity(tls, robot_user(robot_ids[0] if robot_ids else _env_robot()))
+            return {"role": role, "tls": tls.resolve(), "server": _host_port(server)}
+        if server is not None:
+            raise CliError("--server goes with --role robot")
+        for name in (ROUTER, *server_users()):
+            load_identity(tls, name)
+    except FileNotFoundError as exc:
+        raise CliError(str(exc)) from None
+    return {"role": role, "tls": tls.resolve(), "linked": tuple(robot_ids),
+            "listen": tuple(listen or default_listen(port))}
+
+
+def _env_robot() -> str:
+    from shared.settings import BusSettings
+
+    return BusSettings().robot
+
+
+def _host_port(server: str, default_port: int = 7447) -> str:
+    """``HOST[:PORT]`` as ``host:port`` (an IPv6 address in brackets)."""
+    host, sep, port = server.rpartition(":")
+    if not sep or host.endswith(":") or (host.startswith("[") != host.endswith("]")):
+        host, port = server, str(default_port)  # no port, or a bare IPv6 address
+    if ":" in host and not host.startswith("["):
+        host = f"[{host}]"
+    if not host.strip("[]") or not port.isdigit() or not 0 < int(port) < 65536:
+        raise CliError(f"--server {server!r}: give HOST or HOST:PORT")
+    return f"{host}:{port}"
 
 
 def cmd_up(args: argparse.Namespace) -> int:
     from tools.stack.up import PlanError, run_up
 
+    environ = dict(os.environ)
+    if getattr(args, "role", "all") == "robot" and args.robot:
+        environ["AESOP_ROBOT"] = args.robot[0]
     try:
-        return run_up(stack_options(args, args.data_dir.resolve()), os.environ)
+        return run_up(stack_options(args, args.data_dir.resolve()), environ)
     except PlanError as exc:
         raise CliError(str(exc)) from None

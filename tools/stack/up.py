@@ -34,7 +34,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from services.control.scenario import bundled_path, load_scenario, resolve_scenario
 from services.control.settings import ControlSettings
@@ -115,11 +115,14 @@ class Ports:
         base = int(getattr(self, kind))
         return base if index == 0 else dict(self.more).get(child, base + 100 * index)
 
-    def busy(self) -> list[str]:
-        """``name:port`` of every port something on loopback already listens on."""
+    def busy(self, only: Sequence[str] | None = None) -> list[str]:
+        """``name:port`` of every port (of those named in ``only``, if given) something on
+        loopback already listens on."""
         out = []
         named = [(k, v) for k, v in vars(self).items() if k != "more"] + list(self.more)
         for name, port in named:
+            if only is not None and name not in only:
+                continue
             with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
                 if sock.connect_ex(("127.0.0.1", port)) == 0:
                     out.append(f"{name}:{port}")
@@ -159,6 +162,10 @@ def child_names(robots: Sequence[str], replicas: int, *, ros2: bool = False
             vehicle: [vehicle if alone else f"{vehicle}-{r}" for r in robots]}
 
 
+Role = Literal["all", "server", "robot"]
+ROBOT_LISTEN = ("tcp/127.0.0.1", "tcp/[::1]")  # a robot's router: open on its loopback only
+
+
 class PlanError(ValueError):
     """Options that contradict each other or the environment (the message says how)."""
 
@@ -175,6 +182,14 @@ class StackOptions:
     ros2: Path | None = None  # a ROS 2 robot through the bridge with this config, not the sim
     robots: int = 1  # robots flown at once, each with its control loop and simulated vehicle
     replicas: int = 1  # detector replicas; from 2 on they share the stack's PostgreSQL
+    # where the parts run (docs/deployment.md): "all" on this machine; "server" (router,
+    # detectors, reasoner, LLM, dashboard, PostgreSQL) and "robot" (its own router, its
+    # control loop, its vehicle or ROS 2 bridge) on two machines, linked over mutual TLS
+    role: Role = "all"
+    tls: Path | None = None  # server: the stack's certificates; robot: its own folder of them
+    server: str | None = None  # robot: the server's router, host:port
+    linked: tuple[str, ...] = ()  # server: the robots that link in (none: AESOP_ROBOT)
+    listen: tuple[str, ...] = ()  # server: the router's endpoints (none: tls/[::]:<hub port>)
 
 
 @dataclass(frozen=True)
@@ -192,6 +207,11 @@ class StackPlan:
     # every robot flown (``robot`` first): its id, its control loop's and vehicle's child
     fleet: tuple[tuple[str, str, str], ...] = ()
     postgres: PostgresServer | None = None  # the detector replicas' store, with --replicas
+    role: Role = "all"
+    tls: Path | None = None  # the certificates the sessions present (server, robot roles)
+    endpoint: str = ""  # where this machine's sessions join its router
+    server: str | None = None  # robot: the server's router it links to, host:port
+    linked: tuple[str, ...] = ()  # server: the robots that link in, each through its router
 
     def url(self, name: str) -> str | None:
         return next((s.url for s in self.services if s.name == name), None)
@@ -208,19 +228,17 @@ class StackPlan:
         return found[0], found[1]
 
     @property
-    def endpoint(self) -> str:
-        return f"tcp/127.0.0.1:{self.hub.port}"
-
-    @property
     def ros2_session(self) -> Path:
         """With ``--ros2``: the Zenoh session config of the robot's rmw_zenoh nodes."""
         return self.zenoh_dir / "ros2-session.json5"
 
     def bus_settings(self, user: str, **fields: Any) -> BusSettings:
-        """How a session of ``user`` (``monitor``, ``robot-<id>``, a service) joins the
-        hub: a client with that user's password."""
-        return BusSettings(zenoh_mode="client", zenoh_connect=[self.endpoint], zenoh_user=user,
-                           zenoh_password_file=self.zenoh_dir / f"{user}.password", **fields)
+        """How a session of ``user`` (``monitor``, ``robot-<id>``, a service) joins this
+        machine's router: a client with that user's password (one machine), its
+        certificate (server), or nothing (a robot's own router)."""
+        return BusSettings(zenoh_mode="client", zenoh_connect=[self.endpoint],
+                           **_identity(self.role, user, self.tls,
+                                       self.zenoh_dir / f"{user}.password"), **fields)
 
 
 def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
@@ -229,55 +247,56 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
     """The children of the stack and their environments (pure).
 
     Each service's settings are read from ``environ`` (as that service would read
-    them), with what the stack decides forced on top: the hub's endpoint, the
+    them), with what the stack decides forced on top: the router's endpoint, the
     ports, the data directories, the token (``token`` when ``environ`` has no
     ``AESOP_ADMIN_TOKEN``), the scene and the rate. A bad value fails here, naming
     the field (``pydantic.ValidationError``), not in a child. Each child's
-    environment is the caller's without any ``AESOP_*`` variable, plus its settings;
-    each service is a Zenoh client of the hub with its own user (``passwords`` makes
-    one per user: the services, ``monitor`` and each robot's ``robot-<id>``).
+    environment is the caller's without any ``AESOP_*`` variable, plus its settings.
+
+    ``options.role`` says which parts run here, the same parts whatever the role:
+    ``all`` (one machine: a hub every session joins with a user of its own, ``passwords``
+    making one per user: the services, ``monitor``, each robot's ``control-<id>`` and
+    ``robot-<id>``), ``server`` (its router listening for robots over mutual TLS, the
+    detectors, the reasoner, the LLM server and the dashboard, each session with its
+    certificate in ``options.tls``) or ``robot`` (its own router on its loopback, linked
+    to ``options.server`` with the robot's certificate, and its control loop and vehicle).
 
     ``options.robots``: that many robots (ids from ``AESOP_ROBOT``, :func:`fleet`), each
     with its control loop and simulated vehicle as its own user; ``options.replicas``:
     that many detector replicas sharing the robots, on a PostgreSQL server of the stack's
     (``<data-dir>/postgres``, reached on its socket in that 0700 folder).
     """
-    ports, py = options.ports, options.python
+    role, ports, py = options.role, options.ports, options.python
     given = environ.get("AESOP_ADMIN_TOKEN", "")
-    endpoint = f"tcp/127.0.0.1:{ports.hub}"
+    endpoint = _endpoint(role, ports.hub, options.listen)
     common: dict[str, Any] = {"zenoh_connect": [endpoint], "zenoh_listen": [],
                               "zenoh_mode": "client", "zenoh_multicast": False,
                               "zenoh_config": None, "admin_token": given or token}
     robots = _check_fleet(options, read_settings(BusSettings, environ).robot)
-    secret = passwords(users_of(robots, ros2=options.ros2 is not None))
+    secret = passwords(users_of(robots, ros2=options.ros2 is not None)) if role == "all" else {}
+    zenoh_dir = options.data_dir / "zenoh"
 
-    def user(name: str) -> dict[str, Any]:  # a service's Zenoh credentials
-        return {"zenoh_user": name, "zenoh_password": secret[name]}
+    def user(name: str) -> dict[str, Any]:  # a session's identity at its router
+        return {**_identity(role, name, options.tls, None),
+                **({"zenoh_password": secret[name]} if role == "all" else {})}
 
     def data(name: str) -> Path:
         return options.data_dir / name
 
-    local = options.local_model
-    fake = local is None and "AESOP_REASONER_LLM_BASE_URL" not in environ
-    reasoner = _reasoner(environ, local, fake, ports,
-                         {**common, **user("reasoner"), "data_dir": data("reasoner")})
+    local = options.local_model if role != "robot" else None
+    fake = role != "robot" and local is None and "AESOP_REASONER_LLM_BASE_URL" not in environ
     names = child_names(robots, options.replicas, ros2=options.ros2 is not None)
     postgres = (PostgresServer(data("postgres"), ports.postgres)
-                if options.replicas > 1 else None)
+                if options.replicas > 1 and role != "robot" else None)
     settings: list[tuple[str, str, ServiceSettings]] = []
-    if fake:
-        settings.append(("fake-llm", "fake-llm", read_settings(
-            FakeLLMServiceSettings, environ, **common, port=ports.fake_llm)))
-    for j, name in enumerate(names["embedding"]):
-        store = {} if postgres is None else {"store": postgres.socket_url, "replica": name}
-        settings.append((name, "embedding", read_settings(
-            EmbeddingSettings, environ, defaults={"detector_cache": DETECTOR_CACHE}, **common,
-            **user("embedding"), port=ports.of(name, "embedding", j), data_dir=data(name),
-            **store)))
-    settings.append(("reasoner", "reasoner", reasoner))
-    fleet_children, scenario = _robots(options, environ, robots, names, common, user, data,
-                                       settings)
-    if options.dashboard:
+    if role != "robot":
+        _server(options, environ, names, postgres, fake, common, user, data, settings)
+    fleet_children: tuple[tuple[str, str, str], ...] = ()
+    scenario = options.scenario or hardware_scenario()
+    if role != "server":
+        fleet_children, scenario = _robots(options, environ, robots, names, common, user,
+                                           data, settings)
+    if options.dashboard and role != "robot":
         settings.append(("dashboard", "dashboard", read_settings(
             DashboardSettings, environ, **common, **user("dashboard"), port=ports.dashboard,
             data_dir=data("dashboard"),
@@ -291,12 +310,10 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
         env = {**inherited, **to_env(service), **(fake_llm if kind == "fake-llm" else {})}
         return ChildSpec(name, argv, service.port, env)
 
-    zenoh_dir = options.data_dir / "zenoh"
-    hub = ChildSpec("hub", (py, "-m", "tools.stack.router", "--users",
-                            str(zenoh_dir / "users.txt"),
-                            *(a for r in robots for a in ("--robot", r)), "--listen", endpoint,
-                            *(("--ros2", str(options.ros2)) if options.ros2 else ())),
-                    ports.hub, inherited, ready="tcp")
+    host, port = _ready_at(role, ports.hub, options.listen)
+    hub = ChildSpec("hub" if role == "all" else "router",
+                    (py, "-m", "tools.stack.router", *_router_args(options, robots, zenoh_dir)),
+                    port, inherited, ready="tcp", host=host)
     children = tuple(child(*spec) for spec in settings)
     if postgres is not None:  # before the replicas: they open their store as they start
         children = (ChildSpec(POSTGRES, postgres.argv(), ports.postgres, inherited,
@@ -305,13 +322,106 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
         argv = server_argv(local, ports.fake_llm, threads=STACK_THREADS)
         children = (ChildSpec(LOCAL_LLM, argv, ports.fake_llm, inherited, ready="tcp"),
                     *children)
-    return StackPlan(hub, children, given or token, not given, fake, local, robots[0],
-                     scenario, zenoh_dir, secret, fleet_children, postgres)
+    return StackPlan(hub=hub, services=children, token=given or token,
+                     token_generated=not given, fake_llm=fake, local_model=local,
+                     robot=robots[0], scenario=scenario, zenoh_dir=zenoh_dir,
+                     passwords=secret, fleet=fleet_children, postgres=postgres, role=role,
+                     tls=options.tls, endpoint=endpoint, server=options.server,
+                     linked=tuple(robots) if role == "server" else ())
+
+
+def _ready_at(role: Role, port: int, listen: Sequence[str]) -> tuple[str, int]:
+    """Where this machine's router accepts connections once it is up: the server's first
+    listen endpoint (loopback when it listens on every address)."""
+    if role != "server" or not listen:
+        return "127.0.0.1", port
+    host, _, at = listen[0].split("/", 1)[1].rpartition(":")
+    return ("127.0.0.1" if host in ("[::]", "0.0.0.0") else host.strip("[]")), int(at)
+
+
+def _endpoint(role: Role, port: int, listen: Sequence[str] = ()) -> str:
+    """Where this machine's sessions join its router: the hub's or the robot's router on
+    loopback; the server's router by the name its certificate carries for this machine."""
+    if role != "server":
+        return f"tcp/127.0.0.1:{port}"
+    host, at = _ready_at(role, port, listen)
+    name = "localhost" if host == "127.0.0.1" else f"[{host}]" if ":" in host else host
+    return f"tls/{name}:{at}"
+
+
+def _identity(role: Role, user: str, tls: Path | None, password_file: Path | None
+              ) -> dict[str, Any]:
+    """How ``user``'s session proves who it is to its router: a user name (one machine, the
+    password given apart), a certificate of the stack's CA (the server's), or nothing (a
+    robot's own router, open on its loopback to the robot's own processes); the other ways
+    forced off, whatever the environment says."""
+    out: dict[str, Any] = {"zenoh_user": None, "zenoh_password": None,
+                           "zenoh_password_file": None, "zenoh_tls_ca": None,
+                           "zenoh_tls_cert": None, "zenoh_tls_key": None}
+    if role == "all":
+        out |= {"zenoh_user": user, "zenoh_password_file": password_file}
+    elif role == "server":
+        assert tls is not None
+        out |= {"zenoh_tls_ca": tls / "ca.pem", "zenoh_tls_cert": tls / f"{user}.pem",
+                "zenoh_tls_key": tls / f"{user}-key.pem"}
+    return out
+
+
+def _router_args(options: StackOptions, robots: Sequence[str], zenoh_dir: Path
+                 ) -> tuple[str, ...]:
+    """The arguments of this machine's router (:mod:`.router`) for the role."""
+    port = options.ports.hub
+    if options.role == "server":
+        listen = options.listen or (f"tls/[::]:{port}",)
+        return ("--role", "server", "--tls", str(options.tls),
+                *(a for e in listen for a in ("--listen", e)),
+                *(a for r in robots for a in ("--linked", r)))
+    if options.role == "robot":
+        (robot,) = robots
+        return ("--role", "robot", "--tls", str(options.tls), "--robot", robot,
+                "--connect", f"tls/{options.server}",
+                *(a for e in ROBOT_LISTEN for a in ("--listen", f"{e}:{port}")))
+    return ("--users", str(zenoh_dir / "users.txt"),
+            *(a for r in robots for a in ("--robot", r)), "--listen", f"tcp/127.0.0.1:{port}",
+            *(("--ros2", str(options.ros2)) if options.ros2 else ()))
+
+
+def _server(options: StackOptions, environ: Mapping[str, str],
+            names: Mapping[str, Sequence[str]], postgres: PostgresServer | None, fake: bool,
+            common: dict[str, Any], user: Callable[[str], dict[str, Any]],
+            data: Callable[[str], Path], settings: list[tuple[str, str, ServiceSettings]]
+            ) -> None:
+    """The server's services, appended to ``settings``: the fake LLM (when no other), the
+    detector replicas and the reasoner."""
+    ports = options.ports
+    if fake:
+        settings.append(("fake-llm", "fake-llm", read_settings(
+            FakeLLMServiceSettings, environ, **common, port=ports.fake_llm)))
+    for j, name in enumerate(names["embedding"]):
+        store = {} if postgres is None else {"store": postgres.socket_url, "replica": name}
+        settings.append((name, "embedding", read_settings(
+            EmbeddingSettings, environ, defaults={"detector_cache": DETECTOR_CACHE}, **common,
+            **user("embedding"), port=ports.of(name, "embedding", j), data_dir=data(name),
+            **store)))
+    settings.append(("reasoner", "reasoner", _reasoner(
+        environ, options.local_model, fake, ports,
+        {**common, **user("reasoner"), "data_dir": data("reasoner")})))
 
 
 def _check_fleet(options: StackOptions, robot: str) -> tuple[str, ...]:
+    """The robots this machine flies (all, robot) or serves (server)."""
     if options.robots < 1 or options.replicas < 1:
         raise PlanError("--robots and --replicas count from 1")
+    if options.role != "all":
+        if options.tls is None:
+            raise PlanError(f"--role {options.role} needs --tls DIR (aesop zenoh certs)")
+        if options.role == "robot" and (options.robots > 1 or not options.server):
+            raise PlanError("--role robot flies one robot and needs --server HOST:PORT")
+        if options.role == "server":
+            if options.ros2 is not None:
+                raise PlanError("--ros2 runs on the robot (--role robot): its bridge and its "
+                                "ROS 2 graph stay there")
+            return options.linked or fleet(robot, options.robots)
     if options.ros2 is not None:
         if options.robots > 1:
             raise PlanError("--ros2 flies the one robot its config maps; --robots > 1 flies "
@@ -401,7 +511,8 @@ class Stack:
     def start(self) -> None:
         """The Zenoh credentials, the hub, then every service at once; returns when all
         are ready."""
-        write_credentials(self.plan.zenoh_dir, self.plan.passwords)
+        if self.plan.passwords:  # one machine: a password per user and start
+            write_credentials(self.plan.zenoh_dir, self.plan.passwords)
         if ROS2 in self.plan.passwords:  # the robot's rmw_zenoh nodes join as the ros2 user
             write_private(self.plan.ros2_session,
                           ros2_session_config(self.plan.endpoint, self.plan.passwords[ROS2]))
@@ -457,7 +568,7 @@ class Stack:
 
     @property
     def hub_restarts(self) -> int:
-        return self.restarts.get("hub", 0)
+        return self.restarts.get(self.hub.name, 0)
 
     def stop(self, grace_s: float = 10.0) -> None:
         """SIGTERM every service group, SIGKILL what is left after ``grace_s``; the hub
@@ -498,12 +609,8 @@ def urls_text(plan: StackPlan, token_file: Path | None) -> str:
     if plan.url("dashboard"):
         lines.append("  (open the dashboard once as <its url>/?token=<admin token>: "
                      "the browser keeps it as a cookie)")
-    lines.append(f"  {'zenoh':<10} {plan.endpoint}  (router; services are clients, each with "
-                 f"its own user)")
-    lines.append(f"  watch it: AESOP_ZENOH_MODE=client AESOP_ZENOH_USER=monitor "
-                 f"AESOP_ZENOH_PASSWORD_FILE={plan.zenoh_dir / 'monitor.password'} "
-                 f"aesop watch --connect {plan.endpoint}")
-    if plan.url(ROS2):
+    lines += _zenoh_lines(plan)
+    if plan.url(ROS2) and plan.role == "all":
         lines.append(f"  ROS 2: start the robot's nodes with RMW_IMPLEMENTATION=rmw_zenoh_cpp "
                      f"ZENOH_SESSION_CONFIG_URI={plan.ros2_session} (the ros2 user); "
                      f"its topics: aesop ros2 keys --config <the --ros2 file>")
@@ -520,6 +627,29 @@ def urls_text(plan: StackPlan, token_file: Path | None) -> str:
         lines.append("  admin token: AESOP_ADMIN_TOKEN from the environment")
     lines.append("Ctrl-C stops everything.")
     return "\n".join(lines)
+
+
+def _zenoh_lines(plan: StackPlan) -> list[str]:
+    """What the router is, and how to watch the stack from this machine."""
+    if plan.role == "robot":
+        return [f"  {'zenoh':<10} {plan.endpoint}  (robot {plan.robot}'s own router, open on "
+                f"this machine's loopback: its ROS 2 nodes join it with rmw_zenoh's default "
+                f"config; linked to the server at {plan.server} over mutual TLS)",
+                f"  watch it: AESOP_ZENOH_MODE=client aesop watch --connect {plan.endpoint}"]
+    if plan.role == "server":
+        assert plan.tls is not None
+        monitor = (f"AESOP_ZENOH_TLS_CA={plan.tls / 'ca.pem'} AESOP_ZENOH_TLS_CERT="
+                   f"{plan.tls / 'monitor.pem'} AESOP_ZENOH_TLS_KEY={plan.tls / 'monitor-key.pem'}")
+        return [f"  {'zenoh':<10} {plan.hub.argv[plan.hub.argv.index('--listen') + 1]}  "
+                f"(router: robots {', '.join(plan.linked)} link in over mutual TLS; services "
+                f"join it at {plan.endpoint}, each with its certificate)",
+                f"  watch it: AESOP_ZENOH_MODE=client {monitor} aesop watch --robot all "
+                f"--connect {plan.endpoint}"]
+    return [f"  {'zenoh':<10} {plan.endpoint}  (router; services are clients, each with "
+            f"its own user)",
+            f"  watch it: AESOP_ZENOH_MODE=client AESOP_ZENOH_USER=monitor "
+            f"AESOP_ZENOH_PASSWORD_FILE={plan.zenoh_dir / 'monitor.password'} "
+            f"aesop watch --connect {plan.endpoint}"]
 
 
 def install_stop_handlers(stop: threading.Event) -> None:
