@@ -80,6 +80,13 @@ class RosRobot:
         return wire.data_key(self.config.domain_id, m.name, m.ros_type,
                              convert.type_hash(m.ros_type))
 
+    def token(self, role: str) -> str:
+        """The robot's endpoint of ``role``'s topic: its liveliness token (its GID's source)."""
+        m = self.mapped[role]
+        kind = "MP" if m.direction == "in" else "MS"  # the robot's side of each topic
+        return self.node.entity_token(m.entity_id, kind, m.name, m.ros_type,
+                                      convert.type_hash(m.ros_type), wire.qos_keyexpr())
+
     def put(self, role: str, payload: bytes) -> None:
         """``payload`` on ``role``'s data key with the attachment rmw_zenoh writes."""
         key = self.key(role)
@@ -87,7 +94,7 @@ class RosRobot:
             self._publishers[key] = self.session.declare_publisher(key)
         self._seq[role] = self._seq.get(role, 0) + 1
         attachment = wire.Attachment(self._seq[role], time.time_ns(),
-                                     wire.gid(self.zid, self.mapped[role].entity_id))
+                                     wire.gid(self.token(role)))
         self._publishers[key].put(payload, attachment=attachment.encode())
 
     # ------------------------------------------------------------------ running
@@ -96,10 +103,7 @@ class RosRobot:
         liveliness = self.session.liveliness()
         self._declared.append(liveliness.declare_token(self.node.token()))
         for role, m in self.mapped.items():
-            kind = "MP" if m.direction == "in" else "MS"  # the robot's side of each topic
-            self._declared.append(liveliness.declare_token(self.node.entity_token(
-                m.entity_id, kind, m.name, m.ros_type, convert.type_hash(m.ros_type),
-                wire.qos_keyexpr())))
+            self._declared.append(liveliness.declare_token(self.token(role)))
             if m.direction == "out":
                 self._declared.append(self.session.declare_subscriber(
                     self.key(role), self._on_output(role)))

@@ -132,16 +132,17 @@ class Bridge:
         self._declared.append(liveliness.declare_token(self.node.token()))
         for role, mapped in self.mapped.items():
             kind = "MS" if mapped.direction == "in" else "MP"
-            self._declared.append(liveliness.declare_token(self.node.entity_token(
-                mapped.entity_id, kind, mapped.name, mapped.ros_type, self.hashes[role],
-                wire.qos_keyexpr(depth=mapped.settings.depth))))
+            token = self.node.entity_token(mapped.entity_id, kind, mapped.name, mapped.ros_type,
+                                           self.hashes[role],
+                                           wire.qos_keyexpr(depth=mapped.settings.depth))
+            self._declared.append(liveliness.declare_token(token))
             if mapped.direction == "in":
                 self._declared.append(session.declare_subscriber(
                     wire.topic_keys(self.config.domain_id, mapped.name),
                     self._ros_sample(mapped)))
             else:
                 self._publishers[role] = (session.declare_publisher(self.keys[role]),
-                                          wire.gid(self.zid, mapped.entity_id))
+                                          wire.gid(token))
         self._follow_stack()
         self._thread = threading.Thread(target=self._run, name="ros2-bridge", daemon=True)
         self._thread.start()

@@ -30,10 +30,11 @@ is not supported here.
 
 from __future__ import annotations
 
-import hashlib
 import re
 import struct
 from dataclasses import dataclass
+
+import xxhash
 
 LIVELINESS = "@ros2_lv"
 GID_BYTES = 16
@@ -144,10 +145,12 @@ class Node:
         return f"{mangle(self.enclave)}/{mangle(namespace)}/{self.name}"
 
 
-def gid(zid: str, entity_id: int) -> bytes:
-    """A publisher's 16-byte GID: unique per session and entity (rmw_zenoh derives it
-    from the same two; the bytes are opaque to a subscriber)."""
-    return hashlib.blake2b(f"{zid}/{entity_id}".encode(), digest_size=GID_BYTES).digest()
+def gid(token: str) -> bytes:
+    """An entity's 16-byte GID as rmw_zenoh computes it (``Entity::Entity`` in its
+    liveliness_utils.cpp, every release 0.2.0-0.12.0): XXH3-128 (seed 0) of the entity's
+    liveliness token, the low 64 bits then the high 64 bits, each little-endian. A robot's
+    ``ros2 topic info -v`` rebuilds the token it sees and shows this same hash."""
+    return xxhash.xxh3_128_intdigest(token.encode()).to_bytes(GID_BYTES, "little")
 
 
 @dataclass(frozen=True)

@@ -114,7 +114,9 @@ def run_ros2_bench(*, seconds: float, rate_hz: float, table_out: bool) -> dict[s
         with ServiceProcess(["serve", "ros2", "--port", str(port)], port=port, env=env,
                             log_path=Path(tmp) / "ros2.log") as proc:
             bridge = psutil.Process(proc.pid)
-            gid = wire.gid(str(bus.session.zid()), 1)
+            gid = wire.gid(wire.Node(0, str(bus.session.zid()), "bench").entity_token(
+                1, "MP", ODOMETRY, "nav_msgs/msg/Odometry",
+                convert.type_hash("nav_msgs/msg/Odometry"), wire.qos_keyexpr()))
             ins, outs = Timed(), Timed()
             bus.each(topics.vehicle_state(ROBOT), VehicleState,
                      lambda got: ins.arrive(got.message.stamp))
