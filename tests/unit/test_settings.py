@@ -64,7 +64,8 @@ def test_every_field_has_one_name_of_its_service_or_a_shared_one(cls: type[BaseS
                                                                  ) -> None:
     shared = {"robot", "zenoh_mode", "zenoh_listen", "zenoh_connect", "zenoh_multicast",
               "zenoh_config", "zenoh_user", "zenoh_password", "zenoh_password_file",
-              "zenoh_tls_ca", "zenoh_tls_cert", "zenoh_tls_key", "admin_token", "data_dir", "log_level"}
+              "zenoh_tls_ca", "zenoh_tls_cert", "zenoh_tls_key", "admin_token", "data_dir",
+              "log_level"}
     prefix = str(cls.model_config["env_prefix"])
     assert prefix.startswith("AESOP_") and prefix != "AESOP_"
     for name in cls.model_fields:
