@@ -72,7 +72,7 @@ class Robot:
 
     def __init__(self, session: zenoh.Session) -> None:
         self.session, self.seq = session, 0
-        self.gid = wire.gid(str(session.zid()), 1)
+        self.gid = wire.gid(f"the robot's publisher of {session.zid()}")
         self.heard: dict[str, list[tuple[bytes, bytes | None]]] = {}
         for role in ("setpoint", "mode", "decision", "alarms"):
             session.declare_subscriber(key(role), self._on(role))
@@ -195,8 +195,13 @@ def test_the_stack_comes_out_on_ros_topics_with_rmw_zenohs_attachment(
     assert att is not None and len(att) == 33
     first, last = (wire.parse_attachment(a) for _, a in
                    (robot.heard["setpoint"][0], robot.heard["setpoint"][-1]))
-    assert first.gid == last.gid == wire.gid(bridge.get("/v1/bridge").json()["zid"],
-                                             MAPPED["setpoint"].entity_id)
+    # the GID is the hash of the publisher's graph token, as the robot's graph shows it
+    topic = wire.mangle(wire.fully_qualified(MAPPED["setpoint"].name))
+    publishers = [str(reply.ok.key_expr) for reply in robot.session.liveliness().get(
+        f"{wire.LIVELINESS}/0/**", timeout=5.0) if reply.ok is not None
+        and "/MP/" in str(reply.ok.key_expr) and f"/{topic}/" in str(reply.ok.key_expr)]
+    assert len(publishers) == 1, publishers
+    assert first.gid == last.gid == wire.gid(publishers[0])
     assert last.sequence_number == len(robot.heard["setpoint"])  # from 1, one per sample
     request = ReasonerRequest(
         robot=ROBOT, request_id="r1", deadline_s=4.0,
