@@ -30,14 +30,44 @@ is not supported here.
 
 from __future__ import annotations
 
+import copy
 import re
 import struct
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import xxhash
 
 LIVELINESS = "@ros2_lv"
 GID_BYTES = 16
+# rmw_zenoh's DEFAULT_RMW_ZENOH_SESSION_CONFIG.json5 (jazzy 0.2.10), the keys where it
+# differs from Zenoh's defaults: a session file given to its nodes (ZENOH_SESSION_CONFIG_URI)
+# replaces that file whole, so one that leaves these out turns timestamping off (no
+# BEST_EFFORT + TRANSIENT_LOCAL publisher can then be made), the 10-minute query timeout
+# and the 60 s lease with it; :func:`session_config` keeps them
+SESSION_DEFAULTS: dict[str, Any] = {
+    "mode": "peer",
+    "connect": {"endpoints": ["tcp/localhost:7447"]},
+    "listen": {"endpoints": ["tcp/localhost:0"]},
+    "scouting": {
+        "multicast": {"enabled": False,
+                      "autoconnect_strategy": {"peer": {"to_router": "always",
+                                                        "to_peer": "greater-zid"}}},
+        "gossip": {"target": {"router": ["router", "peer"], "peer": ["router"]},
+                   "autoconnect_strategy": {"peer": {"to_router": "always",
+                                                     "to_peer": "greater-zid"}}}},
+    "timestamping": {"enabled": {"router": True, "peer": True, "client": True}},
+    "queries_default_timeout": 600000,
+    "transport": {
+        "unicast": {"open_timeout": 60000, "accept_timeout": 60000, "accept_pending": 10000,
+                    "max_sessions": 10000},
+        "link": {"tx": {"lease": 60000, "keep_alive": 2,
+                        "queue": {"congestion_control": {
+                            "block": {"wait_before_close": 60000000}}}}},
+        "shared_memory": {"enabled": False}},
+    "adminspace": {"enabled": True, "permissions": {"read": True, "write": False}},
+}
 ATTACHMENT_BYTES = 8 + 8 + 1 + GID_BYTES  # 33
 _POSITIONAL = struct.Struct("<qqB")
 # 0.2.0-0.2.3: zenoh-ext serialised (name, value) pairs; the names as they wrote them
@@ -143,6 +173,22 @@ class Node:
     def _names(self) -> str:
         namespace = "" if self.namespace.strip("/") == "" else self.namespace
         return f"{mangle(self.enclave)}/{mangle(namespace)}/{self.name}"
+
+
+def session_config(overrides: Mapping[str, Any]) -> dict[str, Any]:
+    """rmw_zenoh's default session config with ``overrides`` merged in, key by key (a
+    mapping into a mapping, anything else replaced): what a session file for a robot's
+    nodes must hold."""
+    return _merged(SESSION_DEFAULTS, overrides)
+
+
+def _merged(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    out = copy.deepcopy(dict(base))
+    for key, value in over.items():
+        old = out.get(key)
+        out[key] = (_merged(old, value) if isinstance(old, Mapping) and isinstance(value, Mapping)
+                    else copy.deepcopy(value))
+    return out
 
 
 def gid(token: str) -> bytes:

@@ -5,11 +5,14 @@ document, ros2/rmw_zenoh ``docs/design.md`` (rolling, the sections "Topic keys",
 
 from __future__ import annotations
 
+import json
 import struct
 
 import pytest
+import zenoh
 
 from services.ros2 import convert, wire
+from tools.stack.acl import ros2_session_config
 
 STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
 
@@ -120,3 +123,20 @@ def test_a_gid_is_the_xxh3_128_of_the_entitys_token_as_rmw_zenoh_computes_it():
         wire.qos_keyexpr())
     assert publisher.endswith("/::,10:,:,:,,")
     assert wire.gid(publisher).hex() == "6a583461f8d873ca7fa8d4834a07da90"
+
+
+def test_the_session_file_for_the_robots_nodes_keeps_rmw_zenohs_defaults(tmp_path):
+    """Issue 41: the file replaces rmw_zenoh's default config whole; it held only mode,
+    connect, scouting and auth, so timestamping was off (no BEST_EFFORT + TRANSIENT_LOCAL
+    publisher could be made), and the 10-minute query timeout and 60 s lease were gone."""
+    path = tmp_path / "ros2-session.json5"
+    path.write_text(ros2_session_config("tcp/127.0.0.1:7447", "pw"))
+    conf = zenoh.Config.from_file(str(path))  # what rmw_zenoh's zenoh-c reads
+    got = {key: json.loads(conf.get_json(key)) for key in (
+        "mode", "connect/endpoints", "timestamping/enabled", "queries_default_timeout",
+        "transport/link/tx/lease", "transport/auth/usrpwd/user", "scouting/multicast/enabled")}
+    assert got == {"mode": "client", "connect/endpoints": ["tcp/127.0.0.1:7447"],
+                   "timestamping/enabled": {"router": True, "peer": True, "client": True},
+                   "queries_default_timeout": 600000, "transport/link/tx/lease": 60000,
+                   "transport/auth/usrpwd/user": "ros2", "scouting/multicast/enabled": False}
+    assert wire.SESSION_DEFAULTS["mode"] == "peer"  # the defaults themselves are untouched

@@ -208,15 +208,18 @@ def ros_keys(config: BridgeConfig) -> list[str]:
 
 
 def ros2_session_config(endpoint: str, password: str) -> str:
-    """A Zenoh session config for the ROS 2 robot's rmw_zenoh nodes
-    (``ZENOH_SESSION_CONFIG_URI``): a client of the router at ``endpoint`` as the ``ros2``
-    user (the password inline: keep the file private)."""
-    config = {"mode": "client", "connect": {"endpoints": [endpoint]},
-              "scouting": {"multicast": {"enabled": False}},
-              "transport": {"auth": {"usrpwd": {"user": ROS2, "password": password}}}}
+    """A Zenoh session config for the ROS 2 robot's rmw_zenoh nodes on one machine
+    (``ZENOH_SESSION_CONFIG_URI``): rmw_zenoh's own default (timestamping, its timeouts and
+    lease: the file replaces it whole) with three changes: a client of the hub at
+    ``endpoint``, as the ``ros2`` user (the password inline: keep the file private; logging
+    in needs rmw_zenoh jazzy 0.2.6, kilted 0.6.3, rolling 0.8.2 or later)."""
+    config = wire.session_config({
+        "mode": "client", "connect": {"endpoints": [endpoint]},
+        "transport": {"auth": {"usrpwd": {"user": ROS2, "password": password}}}})
     return ("// rmw_zenoh's session config for the robot's nodes, written by aesop up --ros2:\n"
-            "// export ZENOH_SESSION_CONFIG_URI=<this file>\n" + json.dumps(config, indent=2)
-            + "\n")
+            "// its DEFAULT_RMW_ZENOH_SESSION_CONFIG (jazzy 0.2.10), a client of the hub as\n"
+            "// the ros2 user; export ZENOH_SESSION_CONFIG_URI=<this file>\n"
+            + json.dumps(config, indent=2) + "\n")
 
 
 def ros2_acl(config: BridgeConfig) -> tuple[list[dict[str, Any]], dict[str, Any]]:
