@@ -250,9 +250,9 @@ def fly_scenarios(plan: StackPlan, names: Sequence[str] | None = None, *,
     settings = plan.bus_settings(robot_user(plan.robot), robot=robot)
     recorders = None if record_dir is None else Recorders(
         plan.bus_settings(MONITOR, robot=robot), record_dir, robot)
-    return asyncio.run(_demo(plan.url("embedding"), plan.url("control"), plan.url("sim"),
-                             plan.token, settings, scenario, model, demos, recorders,
-                             real_model=plan.local_model is not None, until=until))
+    return asyncio.run(fly_robot(plan.url("embedding"), plan.url("control"), plan.url("sim"),
+                                 plan.token, settings, scenario, model, demos, recorders,
+                                 real_model=plan.local_model is not None, until=until))
 
 
 # what each robot of a fleet flies, in turn (aesop demo --robots N): the anomalies first
@@ -277,15 +277,15 @@ def fly_fleet(plan: StackPlan, *, scenario: Scenario, model: str | None = None,
             airborne.set()
 
     async def fleet() -> list[tuple[dict[str, Any], dict[str, np.ndarray]]]:
-        detector = await _scene_cache(plan.url("embedding"), plan.token, model)
+        detector = await scene_cache(plan.url("embedding"), plan.token, model)
         return await asyncio.gather(*(
-            _demo(None, *plan.robot_urls(robot), plan.token,
-                  plan.bus_settings(robot_user(robot), robot=robot), scenario, model, [demo],
-                  None if record_dir is None else Recorders(
-                      plan.bus_settings(MONITOR, robot=robot), record_dir, robot,
-                      prefix=f"{robot}-"),
-                  real_model=plan.local_model is not None, detector=detector,
-                  on_start=partial(on_start, robot))
+            fly_robot(None, *plan.robot_urls(robot), plan.token,
+                      plan.bus_settings(robot_user(robot), robot=robot), scenario, model,
+                      [demo], None if record_dir is None else Recorders(
+                          plan.bus_settings(MONITOR, robot=robot), record_dir, robot,
+                          prefix=f"{robot}-"),
+                      real_model=plan.local_model is not None, detector=detector,
+                      on_start=partial(on_start, robot))
             for robot, demo in jobs))
 
     flown = asyncio.run(fleet())
@@ -329,7 +329,7 @@ class Recorder:
         return self.states[-1].t if self.states else 0.0
 
 
-async def _scene_cache(embedding_url: str | None, token: str, model: str | None
+async def scene_cache(embedding_url: str | None, token: str, model: str | None
                        ) -> dict[str, Any]:
     """Build and calibrate the detector's cache of the scene; what it is."""
     assert embedding_url
@@ -338,18 +338,19 @@ async def _scene_cache(embedding_url: str | None, token: str, model: str | None
     return {"size": info.size, "k": info.k, "calibration": cal.model_dump(mode="json")}
 
 
-async def _demo(embedding_url: str | None, control_url: str | None, sim_url: str | None,
-                token: str, settings: BusSettings, scenario: Scenario, model: str | None,
-                demos: Sequence[DemoScenario] = SCENARIOS, recorders: Recorders | None = None,
-                *, real_model: bool = False, until: threading.Event | None = None,
-                detector: dict[str, Any] | None = None,
-                on_start: Callable[[], None] | None = None
-                ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+async def fly_robot(embedding_url: str | None, control_url: str | None, sim_url: str | None,
+                    token: str, settings: BusSettings, scenario: Scenario, model: str | None,
+                    demos: Sequence[DemoScenario] = SCENARIOS,
+                    recorders: Recorders | None = None, *, real_model: bool = False,
+                    until: threading.Event | None = None,
+                    detector: dict[str, Any] | None = None,
+                    on_start: Callable[[], None] | None = None
+                    ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """One robot's flights (``settings.robot``), the cache built first unless
     ``detector`` says it is; ``on_start``: called as each flight starts."""
     assert control_url and sim_url
     if detector is None:
-        detector = await _scene_cache(embedding_url, token, model)
+        detector = await scene_cache(embedding_url, token, model)
     rows, flights = [], {}
     state_rate_hz: float | None = None
     with Bus.open(settings, "demo") as bus:
@@ -557,6 +558,10 @@ def summarize(rec: Recorder, demo: DemoScenario, scenario: Scenario, wall_s: flo
         chosen = fallback.data.get("chosen")
         decision = next((r.label for r in scenario.regions if r.index == chosen), str(chosen))
         source = "control fallback at K"
+    elif decision not in (None, "continue") and rec.states and rec.states[-1].chosen is None:
+        # a region chosen for an episode that had ended before the answer came (the
+        # detector was back from its silence): the loop flew on and never acted on it
+        decision, source = None, f"{source}, late: not acted on"
     ended = ended_in(states[-1], scenario) if len(states) else None
     violations = count_violations(states, inputs, scenario)
     problems = judge(demo, ended=ended, detector_alarms=rec.detector_alarms,

@@ -660,7 +660,7 @@ def install_stop_handlers(stop: threading.Event) -> None:
 
 def run_up(options: StackOptions, environ: Mapping[str, str]) -> int:
     plan = plan_stack(options, environ, secrets.token_urlsafe(24))
-    if not options.dashboard:
+    if not options.dashboard and options.role == "all":
         print("aesop up: the dashboard is off (--no-dashboard)", file=sys.stderr)
     stop = threading.Event()
     install_stop_handlers(stop)

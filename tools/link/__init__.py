@@ -1,0 +1,1 @@
+"""The robot-to-server link as tests and ``aesop bench link`` impair it: :mod:`.proxy`."""
