@@ -1,5 +1,5 @@
-"""``aesop bench detector|reasoner|mpc|closed-loop|loop|bus|fairness|ros2``: the benchmarks, as
-tables or one JSON object (``--json``). They need the ``bench`` extra."""
+"""``aesop bench detector|reasoner|mpc|closed-loop|loop|bus|fairness|ros2|fleet|link``: the
+benchmarks, as tables or one JSON object (``--json``). They need the ``bench`` extra."""
 
 from __future__ import annotations
 
@@ -124,6 +124,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     bf.set_defaults(func=cmd_bench_fairness)
     _ros2_parser(bsub)
     _fleet_parser(bsub)
+    _link_parser(bsub)
     bench.set_defaults(needs_bench_extra=True)
 
 
@@ -150,6 +151,25 @@ def _fleet_parser(bsub: argparse._SubParsersAction) -> None:
     _model_option(bfl)
     bfl.add_argument("--json", action="store_true")
     bfl.set_defaults(func=cmd_bench_fleet)
+
+
+def _link_parser(bsub: argparse._SubParsersAction) -> None:
+    bl = bsub.add_parser("link", help="robot and server on two hosts (network namespaces, "
+                         "needs root) over a lossy link: the hardware scenarios at each "
+                         "delay, cuts, stalls, routers restarted")
+    bl.add_argument("--delays", type=float, nargs="+", default=[0, 20, 50, 100],
+                    metavar="MS", help="one-way delays (default 0 20 50 100)")
+    bl.add_argument("--jitter", type=float, default=20.0, metavar="MS",
+                    help="± jitter at each delay, at most the delay (default 20)")
+    bl.add_argument("--repeats", type=int, default=1, help="the four scenarios per delay (1)")
+    bl.add_argument("--cuts", type=float, nargs="*", default=[3, 30], metavar="S",
+                    help="cuts into the nominal flight (default 3 30)")
+    bl.add_argument("--no-faults", action="store_true",
+                    help="leave out the stall and the routers restarted")
+    bl.add_argument("--out", type=Path, default=None,
+                    help="keep the logs and data here (default: a temporary folder)")
+    bl.add_argument("--json", action="store_true")
+    bl.set_defaults(func=cmd_bench_link)
 
 
 def _model_option(parser: argparse.ArgumentParser) -> None:
@@ -330,6 +350,18 @@ def cmd_bench_fleet(args: argparse.Namespace) -> int:
     return _with_processes("fleet", lambda: run_fleet_bench(
         seconds=args.seconds, rate_hz=args.rate, lags=args.lags, adds=args.adds,
         batch=args.batch, model=args.model, table_out=not args.json), args.json)
+
+
+def cmd_bench_link(args: argparse.Namespace) -> int:
+    from tools.bench.link import run_link_bench
+
+    if args.repeats < 1 or any(d < 0 for d in args.delays) or args.jitter < 0 \
+            or any(c <= 0 for c in args.cuts):
+        raise CliError("--repeats counts from 1; --delays and --jitter are not negative, "
+                       "--cuts positive")
+    return _with_processes("link", lambda: run_link_bench(
+        delays=args.delays, jitter_ms=args.jitter, repeats=args.repeats, cuts=args.cuts,
+        faults=not args.no_faults, out=args.out, table_out=not args.json), args.json)
 
 
 def _with_processes(name: str, run: Callable[[], dict[str, Any]], as_json: bool) -> int:
