@@ -10,6 +10,7 @@ import os
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from services.control.scenario import load_scenario
 from shared.process import file_sink
@@ -42,13 +43,14 @@ class Running:
 def running_stack(tmp_path: Path, token: str, *, local_model: LocalModel | None = None,
                   environ: Mapping[str, str] | None = None,
                   ros2: Path | None = None, robots: int = 1, replicas: int = 1,
-                  data_dir: Path | None = None) -> Iterator[Running]:
+                  data_dir: Path | None = None, **role: Any) -> Iterator[Running]:
     """Up with its data in ``tmp_path/data`` (or ``data_dir``) and logs in
     ``tmp_path/logs`` (``environ``: variables over this process's); stopped whatever
     happens. The control loop runs at the scene's rate unless ``AESOP_CONTROL_RATE_HZ``
     says otherwise; ``ros2``: the bridge with this config instead of the simulated
     vehicle; ``robots``, ``replicas``: a fleet (a ``data_dir`` PostgreSQL's user can
-    reach, with replicas)."""
+    reach, with replicas); ``role``: what ``aesop up --role`` gives (``role``, ``tls``,
+    ``server``, ``linked``, ``listen``)."""
     path = hardware_scenario()
     scene = load_scenario(path)
     env = {k: v for k, v in {**os.environ, **(environ or {})}.items()
@@ -58,7 +60,7 @@ def running_stack(tmp_path: Path, token: str, *, local_model: LocalModel | None 
     options = StackOptions(data_dir=data_dir or tmp_path / "data",
                            ports=Ports.free([n for kind in names.values() for n in kind[1:]]),
                            scenario=path, rate_hz=rate, local_model=local_model, ros2=ros2,
-                           robots=robots, replicas=replicas)
+                           robots=robots, replicas=replicas, **role)
     plan = plan_stack(options, env, token)
     running = Stack(plan, file_sink(tmp_path / "logs"))
     try:
