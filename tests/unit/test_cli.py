@@ -66,3 +66,42 @@ def test_the_template_bench_refuses_a_server_without_threads(
         capsys: pytest.CaptureFixture[str]) -> None:
     assert cli.main(["bench", "reasoner", "--llm", "local", "--threads", "0"]) == 2
     assert "--threads" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("argv", "says"), [
+    (["up", "--role", "robot", "--server", "h"], "--tls DIR"),
+    (["up", "--server", "h"], "go with --role"),
+    (["up", "--role", "robot", "--tls", "nowhere", "--robot", "r0"], "--server"),
+    (["up", "--role", "robot", "--tls", "nowhere", "--server", "h"], "is missing"),
+    (["up", "--role", "server", "--tls", "nowhere"], "aesop zenoh certs"),
+    (["zenoh", "certs", "x", "--ca-cert", "ca.pem"], "go together"),
+])
+def test_the_roles_name_what_they_miss(argv: list[str], says: str, tmp_path: Path,
+                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 41: a robot or server started without what it needs is a usage error (2)
+    naming the flag or the command that makes the missing file, before anything starts."""
+    argv = [a if a != "nowhere" else str(tmp_path / "certs") for a in argv]
+    assert cli.main([*argv, "--random-ports"] if argv[0] == "up" else argv) == 2
+    assert says in capsys.readouterr().err
+
+
+def test_a_robot_given_a_server_address_that_cannot_be_one_is_told(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from tools.stack.certs import write_certs
+
+    write_certs(tmp_path, robots=["robot0"], services=["embedding"])
+    for server in ("h:99999", "h:port", ":7447"):
+        assert cli.main(["up", "--role", "robot", "--robot", "robot0", "--random-ports",
+                         "--tls", str(tmp_path / "robot-robot0"), "--server", server]) == 2
+        assert "give HOST or HOST:PORT" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("given", "endpoint"), [
+    ("server.lan", "server.lan:7447"), ("10.0.0.5:7000", "10.0.0.5:7000"),
+    ("[::1]:7447", "[::1]:7447"), ("::1", "[::1]:7447"), ("[fe80::1]", "[fe80::1]:7447"),
+])
+def test_a_servers_address_takes_the_routers_port_unless_given(given: str,
+                                                               endpoint: str) -> None:
+    from tools.stack.cli import _host_port
+
+    assert _host_port(given) == endpoint

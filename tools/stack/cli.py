@@ -41,6 +41,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "(with --ca-key): issue from it instead of a CA of the folder's own")
     ce.add_argument("--ca-key", type=Path, default=None, help="your CA's key (read, never "
                     "copied)")
+    ce.add_argument("--service", action="append", default=[], metavar="NAME",
+                    help="another session's certificate besides the server's services "
+                         "(repeatable; compose's control-<robot>, for example)")
     ce.add_argument("--days", type=int, default=825, help="validity of what is issued")
     ce.set_defaults(func=cmd_zenoh_certs)
     fc = zsub.add_parser("fleet-compose", help="a docker compose override for a fleet: a "
@@ -161,7 +164,8 @@ def cmd_zenoh_certs(args: argparse.Namespace) -> int:
         raise CliError("--ca-cert and --ca-key go together")
     robots = args.robot or [BusSettings().robot]
     try:
-        layout = write_certs(args.folder, robots=robots, services=server_users(),
+        layout = write_certs(args.folder, robots=robots,
+                             services=list(dict.fromkeys([*server_users(), *args.service])),
                              server_names=args.server_name, ca_cert=args.ca_cert,
                              ca_key=args.ca_key, days=args.days)
     except (ValueError, OSError) as exc:
