@@ -334,6 +334,7 @@ def test_a_robot_plan_runs_its_own_router_its_loop_and_its_vehicle(tmp_path: Pat
     ({"role": "robot", "tls": Path("r")}, "--server"),
     ({"role": "server", "tls": Path("c"), "ros2": Path("deploy/ros2/quadrotor.yaml")},
      "on the robot"),
+    ({"role": "robot", "tls": Path("r"), "server": "h:1", "replicas": 2}, "on the server"),
 ])
 def test_a_role_without_what_it_needs_is_a_plan_error(tmp_path: Path, change: dict[str, Any],
                                                      says: str) -> None:

@@ -1,4 +1,4 @@
-"""``aesop up``: the whole stack on this machine as child processes.
+"""``aesop up``: the stack as child processes, on one machine or in two roles.
 
 A Zenoh hub (:mod:`tools.stack.router`, router mode on loopback), then the LLM server
 (the fake one; with ``--llm local`` llama.cpp's serving a trained GGUF model,
@@ -10,6 +10,12 @@ as ``python -m tools.cli serve ...`` clients of the hub.
 Every Zenoh session authenticates to the hub with its own user and a password
 generated per start (:mod:`.acl`; kept in ``<data-dir>/zenoh``, 0600), and the hub's
 access-control list lets each publish only its own keys.
+
+The same pieces run on two machines (``--role``, docs/deployment.md): ``server`` (its
+router listening for robots over mutual TLS, every session with a certificate of the
+stack's CA, :mod:`.certs`; the LLM server, the detectors, the reasoner, the dashboard,
+PostgreSQL) and ``robot`` (a router of the robot's own, open on its loopback and linked
+to the server's; the control loop and the vehicle or bridge, its clients).
 
 * :func:`plan_stack` is pure: environment and options in, the child specs out.
 * :class:`Stack` starts the children (:class:`shared.process.Child`, each in its
@@ -417,6 +423,8 @@ def _check_fleet(options: StackOptions, robot: str) -> tuple[str, ...]:
             raise PlanError(f"--role {options.role} needs --tls DIR (aesop zenoh certs)")
         if options.role == "robot" and (options.robots > 1 or not options.server):
             raise PlanError("--role robot flies one robot and needs --server HOST:PORT")
+        if options.role == "robot" and (options.replicas > 1 or options.local_model):
+            raise PlanError("--replicas and --llm run on the server (--role server)")
         if options.role == "server":
             if options.ros2 is not None:
                 raise PlanError("--ros2 runs on the robot (--role robot): its bridge and its "
