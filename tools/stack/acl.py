@@ -118,10 +118,11 @@ def stack_acl(robots: Sequence[str], ros2: BridgeConfig | None = None, *,
         _rule("receive", "egress", ["put", "delete"], [ALL]),
     ]
     readers = [*SERVICE_PUTS, MONITOR]
+    users = list(dict.fromkeys([
+        *readers, *(u for r in robots for u in (control_user(r), robot_user(r))),
+        *([ROS2] if ros2 is not None else []), *map(robot_user, linked)]))
     policies: list[dict[str, Any]] = [
-        {"id": "everyone", "rules": ["subscribe", "announce"],
-         "subjects": [*readers, *(u for r in robots for u in (control_user(r), robot_user(r))),
-                      *([ROS2] if ros2 is not None else []), *map(robot_user, linked)]},
+        {"id": "everyone", "rules": ["subscribe", "announce"], "subjects": users},
         {"id": "readers", "rules": ["receive"], "subjects": readers}]
     for service, keys in SERVICE_PUTS.items():
         # a detector replica also announces itself as one of the replicas (its own name)
@@ -156,9 +157,6 @@ def stack_acl(robots: Sequence[str], ros2: BridgeConfig | None = None, *,
         rules += [r for r in ros_rules if r["id"] not in {x["id"] for x in rules}]
         ros_policy["rules"].append(f"{ros2.robot}-receive")
         policies.append(ros_policy)
-    users = [*readers, *(u for r in robots for u in (control_user(r), robot_user(r))),
-             *([ROS2] if ros2 is not None else []),
-             *(robot_user(r) for r in linked if r not in robots)]
     field = "usernames" if identity == "usrpwd" else "cert_common_names"
     return {
         "enabled": True,
