@@ -34,7 +34,7 @@ def fly(rig: Rig, fault: Fault) -> Flight:
     stall, a cut or a restart comes into the nominal flight, where the silence is the
     anomaly."""
     flight = rig.fly(fault, "1" if fault.event else "2a")
-    print(f"{fault.name}: {flight.row}")
+    print(f"{fault.name}: the loop counted {flight.loop}; {flight.row}")
     return flight
 
 
@@ -50,8 +50,9 @@ def test_a_flight_across_the_link_ends_safely_where_it_should(rig: Rig, fault: F
     if not fault.event:  # a delay: the LLM's decision, through the link both ways
         assert row["decision"] == "alternative landing site" and row["ended_in"] == "blue-box"
         return
-    # silence is an anomaly the loop raised, and the link came back without a restart
-    assert row["anomaly_at_s"] is not None, row
+    # silence is an anomaly the loop raised (its own count: what it said on the bus during a
+    # router's outage is lost with it), and the link came back without a restart
+    assert flight.unmonitored_ticks > 0, (flight.loop, row)
     assert flight.reconnect_s is not None, "no verdict after the link came back"
     if fault.cut_s > 10:  # longer than K: committed to the fallback, in its region
         assert flight.fallback, row

@@ -16,7 +16,9 @@ vehicle's truth), and meanwhile:
   ``stop`` arrives on stdin, so that a link that comes back after the flight is seen to.
 
 Then it prints one JSON object (``result <json>``): the flight's row, the verdicts'
-``[observation, verdict]`` arrival times, the acknowledged and failed writes.
+``[observation, verdict]`` arrival times, the acknowledged and failed writes, and what the
+control loop counted meanwhile (``/metrics``: ticks flown unmonitored, requests, fallbacks),
+which no lost message can hide (the bus's events of a router's outage are lost with it).
 
     ip netns exec <ns> python -m tools.link.driver --router tcp/127.0.0.1:7447 \
         --control http://127.0.0.1:8003 --sim http://127.0.0.1:8004 --scenario 2a
@@ -34,6 +36,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import httpx
+from prometheus_client.parser import text_string_to_metric_families
 
 from services.control.scenario import load_scenario
 from shared import topics
@@ -44,6 +47,8 @@ from tools.demo.flights import CAMERA_PERIOD_S, demo_scenario, fly_robot
 from tools.scenes.hardware import SCENARIOS, camera_observation, observation_text
 from tools.stack.up import hardware_scenario
 
+# the loop's counters the flight reads before and after (``aesop_control_<name>_total``)
+LOOP_COUNTERS = ("stale_verdict_ticks", "stale_state_ticks", "reasoner_requests", "fallbacks")
 WRITE_PERIOD_S = 0.25
 WRITE_TIMEOUT_S = 2.0
 LINGER_SEQ = 10**6  # the lingering camera's first seq: after any flight's
@@ -127,6 +132,17 @@ async def _linger(bus: Bus, robot: str) -> None:
         await asyncio.sleep(CAMERA_PERIOD_S)
 
 
+async def loop_counters(control: str) -> dict[str, float]:
+    """The control loop's own counts of :data:`LOOP_COUNTERS`, from its ``/metrics``."""
+    async with httpx.AsyncClient(base_url=control, timeout=10.0) as client:
+        answer = await client.get("/metrics")
+    answer.raise_for_status()
+    found = {f"aesop_control_{name}_total": name for name in LOOP_COUNTERS}
+    return {found[sample.name]: sample.value
+            for family in text_string_to_metric_families(answer.text)
+            for sample in family.samples if sample.name in found}
+
+
 async def run(args: argparse.Namespace, token: str) -> dict[str, Any]:
     scenario = load_scenario(hardware_scenario())
     settings = BusSettings(zenoh_mode="client", zenoh_connect=[args.router], robot=args.robot)
@@ -142,6 +158,7 @@ async def run(args: argparse.Namespace, token: str) -> dict[str, Any]:
         if args.writes:
             background.append(asyncio.create_task(
                 _write(args.writes, args.writes_cache, token, writes, args.tag)))
+        before = await loop_counters(args.control)
         try:
             result, _ = await fly_robot(None, args.control, args.sim, token, settings,
                                         scenario, None, [demo_scenario(args.scenario)],
@@ -151,13 +168,16 @@ async def run(args: argparse.Namespace, token: str) -> dict[str, Any]:
             print("flown", flush=True)
             if args.linger:
                 await _linger(bus, args.robot)
+            after = await loop_counters(args.control)
         finally:
             for task in background:
                 task.cancel()
             await asyncio.gather(*background, return_exceptions=True)
     return {"row": result["scenarios"][0], "anomaly_at": probe.anomaly_at,
             "verdicts": probe.verdicts, "writes": {"acked": writes.acked,
-                                                   "failed": writes.failed}}
+                                                   "failed": writes.failed},
+            "loop": {name: after.get(name, 0.0) - before.get(name, 0.0)
+                     for name in LOOP_COUNTERS}}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -100,6 +100,14 @@ class Flight:
     failed_writes: int = 0
     lost: list[str] = field(default_factory=list)  # acknowledged, then not on the server
     link_kb_s: tuple[float, float] = (0.0, 0.0)  # Zenoh's bytes robot -> server, back, per s
+    loop: dict[str, float] = field(default_factory=dict)  # what the loop counted (driver)
+
+    @property
+    def unmonitored_ticks(self) -> float:
+        """Ticks the loop flew with its verdicts or its vehicle's state stale: each one an
+        anomaly (its own count: events said during a router's outage are lost with it)."""
+        return self.loop.get("stale_verdict_ticks", 0.0) + self.loop.get("stale_state_ticks",
+                                                                          0.0)
 
     @property
     def reconnect_s(self) -> float | None:
@@ -111,7 +119,8 @@ class Flight:
 
     @property
     def fallback(self) -> bool:
-        return self.row.get("decision_source") == "control fallback at K"
+        return self.row.get("decision_source") == "control fallback at K" \
+            or self.loop.get("fallbacks", 0.0) > 0
 
 
 class Up:
@@ -308,6 +317,7 @@ class Rig:
                         result["writes"]["failed"])
         flight.lost = asyncio.run(self._missing(flight.acked))
         flight.link_kb_s = (rates[0], rates[1])
+        flight.loop = {k: float(v) for k, v in result.get("loop", {}).items()}
         return flight
 
     def _drive(self, driver: subprocess.Popen[str], fault: Fault
