@@ -4,11 +4,14 @@ replicas on one machine (``aesop up --replicas``), the fleet benchmark and the t
 Debian's PostgreSQL binaries (``/usr/lib/postgresql/<major>/bin``) run it: ``initdb``
 once (:meth:`PostgresServer.init`), then the server in the foreground as a child of
 ``aesop up`` (:meth:`PostgresServer.argv`) or in the background (``start``/``stop``). It
-listens on 127.0.0.1 only, and on its socket in the directory (0700). Its one role
-``aesop`` logs in over TCP with a password (SCRAM, written to ``<dir>/password``, 0600:
-``url``) and over the socket without one (``socket_url``): reaching the socket already takes
-the directory's owner. PostgreSQL refuses to run as root: as root, the directory is given
-to the ``postgres`` system user and every command runs as that user (``setpriv``).
+listens on 127.0.0.1 only, and on its socket in the directory, which is made 0700 at every
+start whatever it was. The detectors' role ``aesop`` is no superuser (it owns the stack's
+database, nothing more); it logs in over TCP with a password (SCRAM, written to
+``<dir>/password``, 0600: ``url``) and over the socket without one (``socket_url``):
+reaching the socket already takes the directory's owner. The cluster's superuser
+(``postgres``) logs in over the socket only, to create the role and the databases.
+PostgreSQL refuses to run as root: as root, the directory is given to the ``postgres``
+system user and every command runs as that user (``setpriv``).
 """
 
 from __future__ import annotations
@@ -22,9 +25,11 @@ import subprocess
 from pathlib import Path
 
 import psycopg
+from psycopg import sql
 
 DATABASE = "aesop"
-ROLE = "aesop"
+ROLE = "aesop"  # the detectors': no superuser, the stack's database's owner
+ADMIN = "postgres"  # the cluster's superuser: over the socket only
 
 
 class PostgresError(RuntimeError):
@@ -71,12 +76,18 @@ class PostgresServer:
     def url_of(self, database: str) -> str:
         return f"postgresql://{ROLE}:{self.password}@127.0.0.1:{self.port}/{database}"
 
+    @property
+    def _admin_url(self) -> str:
+        return f"postgresql://{ADMIN}@/postgres?host={self.root}&port={self.port}"
+
     def create_database(self, name: str) -> str:
-        """A new, empty database ``name`` (letters, digits, '_'); its URL."""
+        """A new, empty database ``name`` (letters, digits, '_'), the detectors' role its
+        owner; its URL."""
         if not name.replace("_", "").isalnum():
             raise PostgresError(f"database names here are letters, digits and '_': {name!r}")
-        with psycopg.connect(self.url_of("postgres"), autocommit=True) as db:
-            db.execute(f"CREATE DATABASE {name}")
+        with psycopg.connect(self._admin_url, autocommit=True) as db:
+            db.execute(sql.SQL("CREATE DATABASE {} OWNER {}").format(
+                sql.Identifier(name), sql.Identifier(ROLE)))
         return self.url_of(name)
 
     def _as_owner(self, *args: str) -> tuple[str, ...]:
@@ -102,29 +113,41 @@ class PostgresServer:
         return self._as_owner(_binary("postgres"), "-D", str(self.data), *self._options())
 
     def init(self) -> None:
-        """Create the cluster, its role and database, unless ``root`` already holds one;
+        """Make ``root`` private (0700, the server's owner's: whatever it was), then create
+        the cluster, the detectors' role and their database unless it holds one already;
         the server is left stopped."""
+        self.root.mkdir(mode=0o700, parents=True, exist_ok=True)
+        self.root.chmod(0o700)
+        owner = pwd.getpwnam("postgres") if self._as_postgres else None
+        if owner is not None:
+            os.chown(self.root, owner.pw_uid, owner.pw_gid)
         if (self.data / "PG_VERSION").exists():
             return
-        self.root.mkdir(mode=0o700, parents=True, exist_ok=True)
         secret = self.root / "password"
-        secret.write_text(secrets.token_urlsafe(24) + "\n")
-        secret.chmod(0o600)
-        if self._as_postgres:
-            user = pwd.getpwnam("postgres")
-            for path in (self.root, secret):
-                os.chown(path, user.pw_uid, user.pw_gid)
-            if self._run("test", "-r", str(secret)).returncode != 0:
-                raise PostgresError(f"the postgres user cannot reach {self.root}: every "
-                                    "folder above it must be searchable by others (o+x)")
-        done = self._run(_binary("initdb"), "-D", str(self.data), "-U", ROLE,
-                         f"--pwfile={secret}", "--auth-host=scram-sha-256",
-                         "--auth-local=trust", "-E", "UTF8",
-                         "--locale=C.UTF-8", *([] if self.fsync else ["--no-sync"]))
+        admin = self.root / "admin-password"  # initdb's, for the superuser: read once
+        for path in (secret, admin):
+            path.write_text(secrets.token_urlsafe(24) + "\n")
+            path.chmod(0o600)
+            if owner is not None:
+                os.chown(path, owner.pw_uid, owner.pw_gid)
+        if owner is not None and self._run("test", "-r", str(secret)).returncode != 0:
+            raise PostgresError(f"the postgres user cannot reach {self.root}: every "
+                                "folder above it must be searchable by others (o+x)")
+        try:
+            done = self._run(_binary("initdb"), "-D", str(self.data), "-U", ADMIN,
+                             f"--pwfile={admin}", "--auth-host=scram-sha-256",
+                             "--auth-local=trust", "-E", "UTF8",
+                             "--locale=C.UTF-8", *([] if self.fsync else ["--no-sync"]))
+        finally:
+            admin.unlink(missing_ok=True)
         if done.returncode != 0:
             raise PostgresError(f"initdb in {self.data} failed: {done.stderr.strip()}")
         self.start()
         try:
+            with psycopg.connect(self._admin_url, autocommit=True) as db:
+                db.execute(sql.SQL("CREATE ROLE {} LOGIN NOSUPERUSER NOCREATEDB NOCREATEROLE "
+                                   "PASSWORD {}").format(sql.Identifier(ROLE),
+                                                         sql.Literal(self.password)))
             self.create_database(DATABASE)
         finally:
             self.stop()
