@@ -131,6 +131,7 @@ class PostgresStore(WithIndexFiles):
         self._mutex = threading.Lock()
         self._db: psycopg.Connection[Any] | None = None
         self._closed = False
+        self._said_bad_notice = False  # a notice no replica wrote is logged once
         self._lock_fd = take_lock(self.root / LOCK_NAME)
         try:
             with self._session("the schema") as db:
@@ -289,7 +290,13 @@ class PostgresStore(WithIndexFiles):
                     said = False
                     while not stop.is_set():
                         for n in db.notifies(timeout=0.5):
-                            notice(json.loads(n.payload))
+                            parsed = parse_notice(n.payload)
+                            if parsed is not None:
+                                notice(parsed)
+                            elif not self._said_bad_notice:  # once: the poll catches up
+                                log.warning("dropped a notice on %s that no replica wrote: "
+                                            "%.80r", CHANNEL, n.payload)
+                                self._said_bad_notice = True
             except psycopg.Error as exc:
                 if not said:
                     log.warning("not following the other replicas' writes (%s); trying "
@@ -397,6 +404,23 @@ def _change(db: psycopg.Connection[Any], name: str, version: int, op: str,
             detail: dict[str, Any]) -> None:
     db.execute("INSERT INTO changes VALUES (%s, %s, %s, %s, %s)",
                (name, version, op, json.dumps(detail), time.time()))
+
+
+def parse_notice(payload: str) -> Notice | None:
+    """A write's notice as the replicas send it (:func:`_notify`): a JSON object naming its
+    cache and either the version written or the proposal, with its origin; None for
+    anything else (a payload a database role sent by hand must not stop the following)."""
+    try:
+        notice = json.loads(payload)
+    except ValueError:
+        return None
+    if not isinstance(notice, dict) or not isinstance(notice.get("cache"), str) \
+            or not isinstance(notice.get("origin", ""), str):
+        return None
+    version, proposal = notice.get("version"), notice.get("proposal")
+    if (isinstance(version, int) and not isinstance(version, bool)) == isinstance(proposal, str):
+        return None  # exactly one of the two
+    return notice
 
 
 def _notify(db: psycopg.Connection[Any], payload: Notice) -> None:
