@@ -53,6 +53,9 @@ from .settings import ReasonerSettings
 log = logging.getLogger(__name__)
 
 MAX_PENDING = 1024  # requests armed at once; more are refused (field "pending")
+# one robot's requests armed at once (a loop has one out, a re-ask after a silence another):
+# past it that robot's are refused, so its flood takes no other robot's place
+MAX_PENDING_PER_ROBOT = 32
 SWITCH_INTERVAL_S = 0.001  # a thread that wants the GIL waits at most this (default 5 ms)
 
 
@@ -177,12 +180,15 @@ class Keeper:
                  publish: Callable[[str, ReasonerDecision], None],
                  tell: Callable[[Report], None], timer: DeadlineTimer, *,
                  clock: Callable[[], float] = time.monotonic,
-                 max_pending: int = MAX_PENDING) -> None:
+                 max_pending: int = MAX_PENDING,
+                 max_pending_per_robot: int = MAX_PENDING_PER_ROBOT) -> None:
         self._settings, self._policy, self._margin_s = settings, policy, margin_s
         self._publish, self._tell, self._timer = publish, tell, timer
         self._clock, self._max_pending = clock, max_pending
+        self._max_per_robot = max_pending_per_robot
         self._lock = threading.Lock()
         self._armed: dict[tuple[str, str], _Armed] = {}
+        self._per_robot: dict[str, int] = {}  # armed requests of each robot (none: absent)
 
     @property
     def armed(self) -> int:
@@ -208,19 +214,24 @@ class Keeper:
         with self._lock:
             if ident in self._armed:
                 return  # a repeat of a request being decided: one answer
-            if len(self._armed) >= self._max_pending:
+            if self._per_robot.get(robot, 0) >= self._max_per_robot:
+                refused = Refused(received.key, "pending",
+                                  f"{self._max_per_robot} requests of robot {robot} are being "
+                                  "decided")
+            elif len(self._armed) >= self._max_pending:
                 refused = Refused(received.key, "pending",
                                   f"{self._max_pending} requests are being decided")
             else:
                 refused = None
                 handle = self._timer.at(due, lambda: self._expire(ident))
                 self._armed[ident] = _Armed(robot, received.received_at, fallback, handle)
+                self._per_robot[robot] = self._per_robot.get(robot, 0) + 1
         self._tell(refused or received)
 
     def answered(self, answer: Answer) -> None:
         """The service's decision: published unless the fallback left first."""
         with self._lock:
-            armed = self._armed.pop((answer.robot, answer.decision.request_id), None)
+            armed = self._disarm((answer.robot, answer.decision.request_id))
         if armed is None:
             return  # too late (the fallback left), or never armed
         self._timer.cancel(armed.handle)
@@ -228,9 +239,20 @@ class Keeper:
 
     def _expire(self, ident: tuple[str, str]) -> None:
         with self._lock:
-            armed = self._armed.pop(ident, None)
+            armed = self._disarm(ident)
         if armed is not None:
             self._send(armed, armed.fallback)
+
+    def _disarm(self, ident: tuple[str, str]) -> _Armed | None:
+        """Forget ``ident``'s request (under the lock); what was armed for it, if anything."""
+        armed = self._armed.pop(ident, None)
+        if armed is not None:
+            left = self._per_robot[armed.robot] - 1
+            if left:
+                self._per_robot[armed.robot] = left
+            else:
+                del self._per_robot[armed.robot]  # a made-up robot leaves nothing behind
+        return armed
 
     def _send(self, armed: _Armed, decision: ReasonerDecision) -> None:
         decision = decision.model_copy(update={

@@ -298,3 +298,31 @@ def test_the_keeper_refuses_more_than_it_may_arm() -> None:
     assert k.armed == 2 and told.published == []
     assert isinstance(told.told[-1], Refused) and told.told[-1].field == "pending"
     timer.close()
+
+
+def test_one_robots_flood_leaves_another_robots_requests_armed() -> None:
+    """Issue 43, finding 1b: the keeper capped its pending requests for all robots
+    together, so a flood for one robot (a made-up one, or its own) left 17 of 20 real
+    requests of another unanswered. The cap is per robot too: the flooding robot's own
+    are refused past it, every other robot's are armed and answered by their deadline."""
+    told, timer = Told(), DeadlineTimer()
+    k = keeper(told, timer, max_pending=64, max_pending_per_robot=24)
+    for i in range(200):
+        k.arrived(Received(topics.reasoner_request("flood"), request(deadline_s=9.0)
+                           .model_copy(update={"request_id": f"f{i}"}), time.monotonic()))
+    for i in range(20):
+        k.arrived(received(request(deadline_s=9.0).model_copy(update={"request_id": f"r{i}"}),
+                           time.monotonic()))
+    assert k.armed == 24 + 20
+    refused = [r for r in told.told if isinstance(r, Refused)]
+    assert len(refused) == 176 and {r.key for r in refused} == {
+        topics.reasoner_request("flood")}
+    assert all(r.field == "pending" for r in refused)
+    for i in range(20):  # answered: armed no more, and the robot's count goes with them
+        k.answered(Answer("drone7", ReasonerDecision(request_id=f"r{i}", choice=1,
+                                                     source="llm", latency_ms=1.0)))
+    assert k.armed == 24 and len(told.published) == 20
+    k.arrived(received(request(deadline_s=9.0).model_copy(update={"request_id": "again"}),
+                       time.monotonic()))
+    assert k.armed == 25
+    timer.close()
