@@ -65,7 +65,8 @@ class SimState(Answer):
     truth: Truth
     holding: bool  # no valid set-point: the vehicle holds on its own
     setpoint_seq: Int | None
-    setpoints: dict[str, Float | Int | None]  # received, refused, age_p50_ms/p99/max
+    # received, refused (and refused_<reason>: kind, older, future, validity), age_p50_ms/p99/max
+    setpoints: dict[str, Float | Int | None]
     states_published: Int
     reporting: dict[str, Float]
     faults: dict[str, Float | bool | None]

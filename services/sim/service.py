@@ -105,6 +105,16 @@ class SimService:
                     log.exception("simulation step failed")
                 time.sleep(0.01)
 
+    def _say_refused(self, before: dict[str, int], seq: int) -> None:
+        """Log the first set-point refused for a reason no loop should give (a far-future
+        instant, a validity past the bound): a forged or broken sender."""
+        for reason in ("future", "validity"):
+            count = self.vehicle.ages.refusals.get(reason, 0)
+            if count > before.get(reason, 0) and count == 1:
+                log.warning("set-point %d refused (%s): counted in /v1/state's setpoints", seq,
+                            "for an instant past the vehicle's clock" if reason == "future"
+                            else "valid for too long")
+
     def _once(self, shift: float) -> None:
         with self.lock:
             due = self.vehicle.next_event()
@@ -114,9 +124,12 @@ class SimService:
             got = self.setpoints.get() if self.setpoints is not None else None
             if got is not None and got is not self._taken:
                 self._taken = got
+                refusals = dict(self.vehicle.ages.refusals)
                 if self.vehicle.receive(got.message, got.received_at + shift):
                     self.metrics.setpoints.inc()
                     self.metrics.setpoint_age.observe(max(0.0, self.vehicle.ages.ages_s[-1]))
+                else:
+                    self._say_refused(refusals, got.message.seq)
             now = self.clock()
             reports = self.vehicle.advance(now)
             self.metrics.holding.set(1.0 if self.vehicle.holding else 0.0)

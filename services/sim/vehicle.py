@@ -100,12 +100,20 @@ class Report:
 
 @dataclass
 class SetpointAges:
-    """The age of each set-point when it arrived: the vehicle's clock minus its ``t``."""
+    """The age of each set-point when it arrived: the vehicle's clock minus its ``t``; and
+    the set-points refused, by reason."""
 
     window: int = 2000
     ages_s: deque[float] = field(default_factory=deque)
     received: int = 0
-    refused: int = 0  # of a kind this vehicle does not take, or older than the one it has
+    refused: int = 0
+    # "kind" (a command this vehicle does not take), "older" (than the one it follows),
+    # "future" (for an instant past MAX_AHEAD_S of its clock), "validity" (past MAX_VALID_S)
+    refusals: dict[str, int] = field(default_factory=dict)
+
+    def refuse(self, reason: str) -> None:
+        self.refused += 1
+        self.refusals[reason] = self.refusals.get(reason, 0) + 1
 
     def record(self, age: float) -> None:
         self.received += 1
@@ -115,7 +123,31 @@ class SetpointAges:
 
     def summary(self) -> dict[str, float | int | None]:
         return {"received": self.received, "refused": self.refused,
+                **{f"refused_{reason}": n for reason, n in sorted(self.refusals.items())},
                 **spread((age * 1000.0 for age in self.ages_s), "age")}
+
+
+MAX_AHEAD_S = 1.0  # a set-point is for now: one for an instant further ahead is refused
+MAX_VALID_S = 10.0  # a loop's set-point is valid for a few ticks; one valid longer is refused
+
+
+def refusal(sp: VehicleSetpoint, followed: VehicleSetpoint | None, clock: float,
+            accelerations: bool) -> str | None:
+    """Why a vehicle whose clock reads ``clock`` and that follows ``followed`` does not
+    take ``sp`` (None: it does). It must be of the kind the vehicle takes, newer than the one
+    it follows (a higher ``seq``, or a later ``t``: a restarted loop counts again), and
+    bounded: for an instant at most :data:`MAX_AHEAD_S` past the vehicle's clock, valid for at
+    most :data:`MAX_VALID_S`, so that no one set-point, forged or broken, can lock out the
+    loop's next ones by a far-future ``t`` or be flown for ever."""
+    if (sp.acceleration is not None) != accelerations:
+        return "kind"
+    if sp.t > clock + MAX_AHEAD_S:
+        return "future"
+    if not 0.0 <= sp.valid_until - sp.t <= MAX_VALID_S:
+        return "validity"
+    if followed is not None and not (sp.seq > followed.seq or sp.t > followed.t):
+        return "older"
+    return None
 
 
 class SimVehicle:
@@ -175,11 +207,9 @@ class SimVehicle:
         self._integrate(now)
         if self.faults.deaf_until is not None and now < self.faults.deaf_until:
             return False
-        kind_ok = (sp.acceleration is not None) == self.accelerations
-        newer = self._setpoint is None or sp.seq > self._setpoint.seq \
-            or sp.t > self._setpoint.t
-        if not (kind_ok and newer):
-            self.ages.refused += 1
+        reason = refusal(sp, self._setpoint, self.clock(now), self.accelerations)
+        if reason is not None:
+            self.ages.refuse(reason)
             return False
         self.ages.record(self.clock(now) - sp.t)
         self._setpoint = sp

@@ -111,6 +111,22 @@ def test_a_set_point_of_the_wrong_kind_or_an_older_one_is_not_taken() -> None:
     assert hover.receive(motors, 100.0)  # the paper scene's vehicle takes thrust and torques
 
 
+def test_a_set_point_from_the_far_future_is_refused_and_locks_nothing_out() -> None:
+    """Issue 43, finding 1: the vehicle took any set-point whose seq or t was higher, with
+    no bound: one forged with seq 2^62 and t = now + 1e6 was flown, and every real one after
+    it refused as older (13,677 in 25 min). A set-point for an instant more than
+    ``MAX_AHEAD_S`` past the vehicle's clock, or valid for longer than ``MAX_VALID_S``, is
+    refused and counted by reason; the loop's next set-points are taken."""
+    v = vehicle()
+    assert v.receive(accel(7, 100.0), 100.0)
+    assert not v.receive(accel(2**62, 100.0 + 1e6), 100.01)  # the forged one
+    assert not v.receive(accel(2**62, 100.02, valid_s=1e6), 100.02)  # valid for ever
+    assert v.receive(accel(8, 100.05), 100.05)  # the real loop's next: taken
+    assert v.setpoint is not None and v.setpoint.seq == 8
+    assert v.ages.refusals == {"future": 1, "validity": 1} and v.ages.refused == 2
+    assert v.ages.summary()["refused"] == 2
+
+
 def test_faults_a_drop_out_a_stop_lost_set_points_and_a_jump() -> None:
     v = vehicle()
     v.faults.silent_until = 100.5
