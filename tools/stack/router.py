@@ -172,6 +172,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--role {args.role} needs --tls DIR")
     if args.role == "robot" and (len(args.robot) != 1 or not args.connect):
         parser.error("--role robot needs one --robot and the server's --connect endpoint")
+    if args.role == "hub" and len(args.listen) != 1:
+        parser.error("--role hub listens on one --listen endpoint")
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
