@@ -37,10 +37,11 @@ $(STAMP): pyproject.toml
 # what the tests need from Debian, in one apt-get (two at once would race for dpkg's lock):
 # chromium for the browser tests; PostgreSQL for the detector replicas' shared store in
 # tests/integration/test_pgstore.py and test_replicas.py (a real server, started by the
-# tests themselves)
+# tests themselves); iproute2's ip for the robot's network namespace in test_link.py
 system:
 	missing=""; command -v chromium >/dev/null || missing="chromium"; \
 	ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || missing="$$missing postgresql"; \
+	command -v ip >/dev/null || missing="$$missing iproute2"; \
 	[ -z "$$missing" ] || { $(SUDO) apt-get update && \
 		$(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y $$missing; }
 
