@@ -109,6 +109,27 @@ def connect() -> Iterator[Callable[[FaultProxy], socket.socket]]:
         sock.close()
 
 
+Joined = tuple[FaultProxy, socket.socket, socket.socket]
+
+
+@pytest.fixture
+def joined(plain: Upstream, make_proxy: Callable[[Upstream], FaultProxy],
+           connect: Callable[[FaultProxy], socket.socket]) -> Joined:
+    """A proxy to a plain upstream, a client through it and the upstream's side of it."""
+    proxy = make_proxy(plain)
+    client = connect(proxy)
+    return proxy, client, plain.accepted.get(timeout=WAIT_S)
+
+
+def warm(proxy: FaultProxy, client: socket.socket, server: socket.socket) -> None:
+    """A first chunk through, and the proxy holding nothing more: it counts a chunk as held
+    until just after writing it, so a check of what it holds next could otherwise be met by
+    this one before the next is even read."""
+    client.sendall(b"warm")
+    assert recv_exactly(server, 4) == b"warm"
+    assert eventually(lambda: proxy.stats["held_bytes"] == 0)
+
+
 def recv_exactly(sock: socket.socket, n: int) -> bytes:
     sock.settimeout(WAIT_S)
     parts = bytearray()
@@ -156,11 +177,8 @@ def eventually(check: Callable[[], bool]) -> bool:
 
 
 def test_bytes_pass_unchanged_and_in_order_both_ways_at_once(
-        plain: Upstream, make_proxy: Callable[[Upstream], FaultProxy],
-        connect: Callable[[FaultProxy], socket.socket]) -> None:
-    proxy = make_proxy(plain)
-    client = connect(proxy)
-    server = plain.accepted.get(timeout=WAIT_S)
+        joined: Joined) -> None:
+    proxy, client, server = joined
     rng = random.Random(1)
     up, down = rng.randbytes(3 << 20), rng.randbytes(3 << 20)
     got: dict[str, bytes] = {}
@@ -227,16 +245,9 @@ def test_jitter_keeps_order_over_thousands_of_small_chunks(
 
 
 def test_a_new_impairment_never_lets_chunks_overtake_held_ones(
-        plain: Upstream, make_proxy: Callable[[Upstream], FaultProxy],
-        connect: Callable[[FaultProxy], socket.socket]) -> None:
-    proxy = make_proxy(plain)
-    client = connect(proxy)
-    server = plain.accepted.get(timeout=WAIT_S)
-    client.sendall(b"hello")
-    assert recv_exactly(server, 5) == b"hello"
-    # the proxy counts "hello" as held until just after it wrote it: wait for that, or the
-    # next check could be met by "hello" before "slow." is even read
-    assert eventually(lambda: proxy.stats["held_bytes"] == 0)
+        joined: Joined) -> None:
+    proxy, client, server = joined
+    warm(proxy, client, server)
     # long enough that a loaded machine still sees the chunk held before it is due
     proxy.set(Impairment(delay_ms=2000))
     sent = time.monotonic()
@@ -277,13 +288,9 @@ def test_a_stall_holds_every_connection_then_all_flows_in_order(
 
 
 def test_a_cut_holds_everything_silently_until_heal(
-        plain: Upstream, make_proxy: Callable[[Upstream], FaultProxy],
-        connect: Callable[[FaultProxy], socket.socket]) -> None:
-    proxy = make_proxy(plain)
-    client = connect(proxy)
-    server = plain.accepted.get(timeout=WAIT_S)
-    client.sendall(b"warm")
-    assert recv_exactly(server, 4) == b"warm"
+        joined: Joined) -> None:
+    proxy, client, server = joined
+    warm(proxy, client, server)
     delay_s = 0.3
     proxy.set(Impairment(delay_ms=delay_s * 1e3))
     sent = time.monotonic()
@@ -329,13 +336,9 @@ def test_a_connection_made_during_a_cut_reaches_upstream_only_at_heal(
 
 @pytest.mark.parametrize("closer", ["client", "server"])
 def test_an_endpoint_closing_during_a_cut_is_seen_only_at_heal(
-        closer: str, plain: Upstream, make_proxy: Callable[[Upstream], FaultProxy],
-        connect: Callable[[FaultProxy], socket.socket]) -> None:
-    proxy = make_proxy(plain)
-    client = connect(proxy)
-    server = plain.accepted.get(timeout=WAIT_S)
-    client.sendall(b"hi")
-    assert recv_exactly(server, 2) == b"hi"
+        closer: str, joined: Joined) -> None:
+    proxy, client, server = joined
+    warm(proxy, client, server)
     gone, other = (client, server) if closer == "client" else (server, client)
     proxy.cut()
     gone.sendall(b"last words")
