@@ -30,6 +30,7 @@ from services.sim.vehicle import Reporting, SimVehicle
 from shared.bus import zenoh_config
 from shared.messages import Mode, VehicleSetpoint
 from shared.settings import BusSettings
+from tests.zenoh_peers import wait_until
 from tools.fakes.ros2 import detections_cdr, odometry_cdr, string_cdr
 from tools.scenes.hardware import DemoScenario, observation_text
 
@@ -168,6 +169,15 @@ class RosRobot:
         for declared in [*self._declared, *self._publishers.values()]:
             declared.undeclare()
         self.session.close()  # type: ignore[no-untyped-call]
+
+    def until_flown(self, flight_s: float) -> None:
+        """Block until ``flight_s`` have passed since the bridge's first set-point."""
+        wait_until(lambda: self.heard.first_setpoint_at is not None,
+                   "the first set-point on the ROS topic", timeout=60.0)
+        start = self.heard.first_setpoint_at
+        assert start is not None
+        wait_until(lambda: time.time() - start > flight_s, "the flight",
+                   timeout=flight_s + 30.0)
 
     def __enter__(self) -> RosRobot:
         self.start()

@@ -13,7 +13,6 @@ from __future__ import annotations
 import asyncio
 import json
 import secrets
-import time
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +24,6 @@ from services.ros2.config import load_config
 from shared.settings import BusSettings
 from tests.demo_stack import running_stack
 from tests.ros2_robot import RosRobot
-from tests.zenoh_peers import wait_until
 from tools.demo.flights import demo_scenario
 from tools.demo.report import ended_in
 from tools.scenes.hardware import build_scene_cache
@@ -56,12 +54,7 @@ def test_a_ros2_robot_flies_the_hardware_scenario_through_the_bridge(tmp_path: P
         # the robot joins as its rmw_zenoh nodes would: with the session config aesop up wrote
         session = BusSettings(zenoh_config=up.plan.ros2_session)
         with RosRobot(session, config, SCENE, demo, x0) as robot:
-            wait_until(lambda: robot.heard.first_setpoint_at is not None,
-                       "the first set-point on the ROS topic", timeout=60.0)
-            start = robot.heard.first_setpoint_at
-            assert start is not None
-            wait_until(lambda: time.time() - start > FLIGHT_S, "the flight",
-                       timeout=FLIGHT_S + 30.0)
+            robot.until_flown(FLIGHT_S)
             truth, heard = robot.truth, robot.heard
     said = json.dumps(heard.strings, default=str)  # all the robot read, if it fails
     assert ended_in(truth, SCENE) == "blue-box", (truth[0:3], said)

@@ -76,12 +76,7 @@ def test_a_ros2_robot_with_its_own_router_flies_through_the_bridge_on_the_robot(
         with RosRobot(settings, config, SCENE, demo, x0) as robot, \
                 zenoh.open(zenoh.Config.from_file(str(settings.zenoh_config))) as tf_node:
             tf_heard = own_graph(robot.session, tf_node)
-            wait_until(lambda: robot.heard.first_setpoint_at is not None,
-                       "the first set-point on the ROS topic", timeout=60.0)
-            start = robot.heard.first_setpoint_at
-            assert start is not None
-            wait_until(lambda: time.time() - start > FLIGHT_S, "the flight",
-                       timeout=FLIGHT_S + 30.0)
+            robot.until_flown(FLIGHT_S)
             truth, heard = robot.truth, robot.heard
     said = json.dumps(heard.strings, default=str)
     assert tf_heard.is_set(), "the robot's own unmapped topic did not pass its own router"
