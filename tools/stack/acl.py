@@ -267,14 +267,19 @@ def write_credentials(folder: Path, passwords: Mapping[str, str]) -> Path:
 
 
 def write_private(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` readable by the owner only: a new 0600 file (``O_EXCL``,
-    so never through a link) renamed over the old one, whose mode is not kept."""
+    """Write ``text`` to ``path`` readable by the owner only (:func:`write_file`, 0600)."""
+    write_file(path, text.encode(), 0o600)
+
+
+def write_file(path: Path, data: bytes, mode: int) -> None:
+    """Write ``data`` to ``path`` with ``mode``: a new file (``O_EXCL``, so never through a
+    link) renamed over the old one, whose mode is not kept; a reader never sees half of it."""
     fresh = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     fresh.unlink(missing_ok=True)
-    fd = os.open(fresh, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
-    with os.fdopen(fd, "w") as f:
-        os.fchmod(f.fileno(), 0o600)
-        f.write(text)
+    fd = os.open(fresh, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, mode)
+    with os.fdopen(fd, "wb") as f:
+        os.fchmod(f.fileno(), mode)
+        f.write(data)
     os.replace(fresh, path)
 
 

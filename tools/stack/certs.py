@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import datetime
 import ipaddress
-import os
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -38,7 +37,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec, ed25519, rsa
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from tools.stack.acl import write_private
+from tools.stack.acl import write_file, write_private
 
 # the keys a CA may sign with here: ours are EC P-256, an operator's may be RSA or Ed25519
 # too (what rustls verifies; not DSA or Ed448)
@@ -315,13 +314,7 @@ def _write_public(path: Path, data: bytes) -> None:
     and only when it changed, so a kept file stays byte-identical."""
     if path.is_file() and not path.is_symlink() and path.read_bytes() == data:
         return
-    fresh = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    fresh.unlink(missing_ok=True)
-    fd = os.open(fresh, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644)
-    with os.fdopen(fd, "wb") as f:
-        os.fchmod(f.fileno(), 0o644)
-        f.write(data)
-    os.replace(fresh, path)
+    write_file(path, data, 0o644)
 
 
 def _keep_private(key_path: Path) -> None:
