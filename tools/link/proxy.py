@@ -358,6 +358,11 @@ class FaultProxy:
         return self._port
 
     @property
+    def running(self) -> bool:
+        """Its loop's thread is alive (started, and not yet closed)."""
+        return self._thread is not None and self._thread.is_alive()
+
+    @property
     def impairment(self) -> Impairment:
         return self._impairment
 
