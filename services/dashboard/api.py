@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import time
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 
@@ -18,11 +19,14 @@ from shared.http import service_app
 
 from .routes import PUBLIC, STATIC, router
 from .service import SERVICE, DashboardMetrics, DashboardService
+from .sessions import SessionCookies, Sessions
 from .settings import DashboardSettings
 
 
-def create_app(settings: DashboardSettings, bus_factory: Callable[[], Bus]) -> FastAPI:
-    """The app; its lifespan opens the bus (``bus_factory``) and follows the robot."""
+def create_app(settings: DashboardSettings, bus_factory: Callable[[], Bus],
+               clock: Callable[[], float] = time.monotonic) -> FastAPI:
+    """The app; its lifespan opens the bus (``bus_factory``) and follows the robot. The
+    browser sessions (:mod:`.sessions`) expire on ``clock``, and live as long as the app."""
     registry = CollectorRegistry()
     metrics = DashboardMetrics(registry)
 
@@ -54,6 +58,11 @@ def create_app(settings: DashboardSettings, bus_factory: Callable[[], Bus]) -> F
     app.state.service = None
     app.state.feed = None
     app.state.settings = settings
+    sessions = Sessions(settings.session_s, settings.limits.sessions, clock)
+    app.state.sessions = sessions
+    # in front of the guard (added last: outermost), which then lets a live session read
+    app.add_middleware(SessionCookies, sessions=sessions, token=settings.admin_token,
+                       port=settings.port)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     app.include_router(router)
     return app

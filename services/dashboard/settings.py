@@ -2,7 +2,9 @@
 
 The dashboard reads the bus; its one write is a batch review of the detector's proposals,
 forwarded to the embedding service at ``embedding_url`` with the shared admin token (the
-caller must bring it too). Off loopback only with ``AESOP_ADMIN_TOKEN`` set.
+caller must bring it too). Off loopback only with ``AESOP_ADMIN_TOKEN`` set. A browser
+opened with ``/?token=`` reads through a session that lasts ``session_s``
+(``AESOP_DASHBOARD_SESSION_S``), one of at most ``limits.sessions``.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ class DashboardLimits(Group):
     scores: int = Field(default=600, ge=10)  # verdicts kept for the timeline
     log: int = Field(default=50, ge=1)  # requests, decisions and events kept, each
     client_queue: int = Field(default=256, ge=1)  # per page; the oldest is dropped
+    sessions: int = Field(default=64, ge=1, le=10000)  # browser sessions; the oldest ends
 
 
 class DashboardSettings(ServiceSettings):
@@ -29,4 +32,6 @@ class DashboardSettings(ServiceSettings):
     port: int = Field(default=8080, ge=0, le=65535)
     # where a batch review of the detector's proposals goes (POST /v1/proposals/...)
     embedding_url: str = "http://127.0.0.1:8001"
+    # how long a browser session opened with /?token= lasts (s; 12 h); see .sessions
+    session_s: int = Field(default=12 * 3600, ge=1, le=30 * 86400)
     limits: DashboardLimits = DashboardLimits()
