@@ -56,6 +56,7 @@
         flight = Object.assign(emptyFlight(), m);
         retryMs = 500;
         setStatus("connected");
+        $("logout").hidden = !flight.review_token;  // a token: this page reads by a session
         break;
       case "state": {
         const last = flight.trail[flight.trail.length - 1];
@@ -292,6 +293,12 @@
     return fetch(`/v1/proposals/${decision}`, {
       method: "POST", headers, body: JSON.stringify({ cache, ids }) });
   }
+
+  // ---- the session: the cookie /?token= set names a session on the server; logging out
+  // ends it there (another app on this host that got the cookie can replay it no more)
+  $("logout").onclick = () => {
+    fetch("/logout", { method: "POST" }).finally(() => location.replace("/"));
+  };
 
   $("accept-selected").onclick = () => review("accept");
   $("reject-selected").onclick = () => review("reject");
