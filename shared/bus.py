@@ -57,6 +57,8 @@ def zenoh_config(settings: BusSettings) -> zenoh.Config:
     else:
         conf = zenoh.Config()
         given = {"zenoh_mode", "zenoh_multicast"}
+    if settings.zenoh_id is not None:
+        conf.insert_json5("id", json.dumps(settings.zenoh_id))
     if "zenoh_mode" in given:
         conf.insert_json5("mode", json.dumps(settings.zenoh_mode))
     listen = settings.zenoh_listen

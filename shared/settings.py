@@ -76,6 +76,10 @@ class BusSettings(BaseSettings):
     zenoh_connect: Endpoints = Field(default_factory=list,
                                      validation_alias=shared("zenoh_connect"))
     zenoh_multicast: bool = Field(default=False, validation_alias=shared("zenoh_multicast"))
+    # the session's Zenoh ID (hex), which names it in the router's log; one session per ID
+    # at a router, so every process its own (random when unset)
+    zenoh_id: str | None = Field(default=None, pattern=r"^[0-9a-f]{1,32}$",
+                                 validation_alias=shared("zenoh_id"))
     # a zenoh JSON5 config file, applied first
     zenoh_config: Path | None = Field(default=None, validation_alias=shared("zenoh_config"))
     # user/password authentication to the router (its dictionary must list the user);
@@ -152,6 +156,9 @@ class ServiceSettings(BusSettings):
     host: str = "127.0.0.1"
     port: int = Field(default=8000, ge=0, le=65535)
     admin_token: SecretStr | None = Field(default=None, validation_alias=shared("admin_token"))
+    # or its first line from a file (a secret mounted by compose: not in `docker inspect`)
+    admin_token_file: Path | None = Field(default=None,
+                                          validation_alias=shared("admin_token_file"))
     data_dir: Path = Field(default=Path("data"), validation_alias=shared("data_dir"))
     log_level: Literal["debug", "info", "warning", "error"] = Field(
         default="info", validation_alias=shared("log_level"))
@@ -162,6 +169,28 @@ class ServiceSettings(BusSettings):
     @classmethod
     def _empty_token_is_none(cls, v: object) -> object:
         return None if v in ("", None) else v
+
+    @model_validator(mode="before")
+    @classmethod
+    def _token_from_file(cls, data: Any) -> Any:
+        # the sources give a field by its name (init, read_settings) or its variable (env)
+        if not isinstance(data, dict):
+            return data
+        file_keys = [k for k in ("admin_token_file", "AESOP_ADMIN_TOKEN_FILE")
+                     if data.get(k) not in (None, "")]
+        if not file_keys:
+            return data
+        if any(data.get(k) not in (None, "") for k in ("admin_token", "AESOP_ADMIN_TOKEN")):
+            raise ValueError("set AESOP_ADMIN_TOKEN or AESOP_ADMIN_TOKEN_FILE, not both")
+        file = Path(data[file_keys[0]])
+        try:
+            line = file.read_text().strip()
+        except OSError as exc:
+            raise ValueError(f"AESOP_ADMIN_TOKEN_FILE: cannot read {file}: "
+                             f"{exc.strerror}") from None
+        if not line:
+            raise ValueError(f"AESOP_ADMIN_TOKEN_FILE: {file} is empty")
+        return {**data, "admin_token": line}
 
     @field_validator("admin_token")
     @classmethod

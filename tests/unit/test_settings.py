@@ -64,7 +64,8 @@ def test_every_field_has_one_name_of_its_service_or_a_shared_one(cls: type[BaseS
                                                                  ) -> None:
     shared = {"robot", "zenoh_mode", "zenoh_listen", "zenoh_connect", "zenoh_multicast",
               "zenoh_config", "zenoh_user", "zenoh_password", "zenoh_password_file",
-              "zenoh_tls_ca", "zenoh_tls_cert", "zenoh_tls_key", "admin_token", "data_dir",
+              "zenoh_tls_ca", "zenoh_tls_cert", "zenoh_tls_key", "zenoh_id", "admin_token",
+              "admin_token_file", "data_dir",
               "log_level"}
     prefix = str(cls.model_config["env_prefix"])
     assert prefix.startswith("AESOP_") and prefix != "AESOP_"
@@ -209,3 +210,43 @@ def test_a_missing_tls_file_is_named_before_any_handshake(tmp_path: Path) -> Non
                            zenoh_tls_key=tmp_path / "gone-key.pem")
     with pytest.raises(ValueError, match="AESOP_ZENOH_TLS_CERT: cannot read .*gone.pem"):
         zenoh_config(settings)
+
+
+def test_each_process_its_own_zenoh_id_over_the_shared_client_file(tmp_path: Path) -> None:
+    """Issue 42: compose.fleet's robots share a client file; one ID is one session at a
+    router, so the ID comes from AESOP_ZENOH_ID, over the file's."""
+    client = tmp_path / "control.json5"
+    client.write_text('{id: "ae5003", connect: {timeout_ms: 60000}}')
+    settings = read_settings(BusSettings, {"AESOP_ZENOH_CONFIG": str(client),
+                                           "AESOP_ZENOH_ID": "ae5103"})
+    assert json.loads(zenoh_config(settings).get_json("id")) == "ae5103"
+    with pytest.raises(ValidationError, match="zenoh_id|AESOP_ZENOH_ID"):
+        read_settings(BusSettings, {"AESOP_ZENOH_ID": "robot-1"})  # not hex
+
+
+def test_the_admin_token_from_a_file_a_compose_secret(tmp_path: Path) -> None:
+    """Issue 42: compose hands the token as a file, out of `docker inspect`'s environment."""
+    token = tmp_path / "admin-token"
+    token.write_text("t" * 32 + "\n")
+    settings = read_settings(ControlSettings, {"AESOP_ADMIN_TOKEN_FILE": str(token)})
+    assert settings.admin_token is not None and settings.admin_token.get_secret_value() == "t" * 32
+    for env, says in [({"AESOP_ADMIN_TOKEN_FILE": str(tmp_path / "gone")},
+                       "AESOP_ADMIN_TOKEN_FILE: cannot read"),
+                      ({"AESOP_ADMIN_TOKEN_FILE": str(token), "AESOP_ADMIN_TOKEN": "u" * 32},
+                       "not both")]:
+        with pytest.raises(ValidationError, match=says):
+            read_settings(ControlSettings, env)
+    token.write_text("short\n")
+    with pytest.raises(ValidationError, match="at least 16"):
+        read_settings(ControlSettings, {"AESOP_ADMIN_TOKEN_FILE": str(token)})
+
+
+def test_the_admin_token_file_from_the_process_environment(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """As `aesop serve` reads it in a container: the class's own environment source."""
+    token = tmp_path / "admin-token"
+    token.write_text("v" * 32 + "\n")
+    monkeypatch.setenv("AESOP_ADMIN_TOKEN_FILE", str(token))
+    settings = ControlSettings(host="0.0.0.0")
+    assert settings.admin_token is not None and settings.admin_token.get_secret_value() == "v" * 32
+    settings.check_exposure()  # off loopback, with the token from the file
