@@ -156,7 +156,7 @@ def test_a_group_is_set_as_json_or_one_knob_at_a_time() -> None:
 # the detector's two past 15: its shared store and its name among replicas (issue 30)
 @pytest.mark.parametrize(("cls", "most"), [(EmbeddingSettings, 17), (ReasonerSettings, 13),
                                            (ControlSettings, 11), (SimSettings, 10),
-                                           (DashboardSettings, 5)], ids=lambda c: str(c))
+                                           (DashboardSettings, 6)], ids=lambda c: str(c))
 def test_each_service_reads_few_variables_of_its_own(cls: type[BaseSettings], most: int) -> None:
     """Operators set what is theirs; tuning knobs live in groups of one variable each."""
     prefix = str(cls.model_config["env_prefix"])
