@@ -271,7 +271,9 @@ class ControlRuntime:
         self.vehicle = StateInput(
             limit_s=settings.vehicle.state_stale_ticks * self.period_s,
             frame=settings.vehicle.frame, jump_m=settings.vehicle.state_jump_m,
-            reset_s=settings.vehicle.state_reset_s)
+            reset_s=settings.vehicle.state_reset_s, window_s=settings.vehicle.state_window_s,
+            max_delay_s=settings.vehicle.state_max_delay_s,
+            max_speed=settings.vehicle.state_max_speed)
         self._last_x = x0  # the newest state the loop planned from
         self._warm_at = x0[POS].copy()  # where the controller was warmed up
         self._warming: Future[tuple[Controller, np.ndarray]] | None = None

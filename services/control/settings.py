@@ -21,11 +21,19 @@ class VehicleLink(Group):
     # a set-point is valid this many ticks past the instant it is for; then the vehicle holds
     setpoint_valid_ticks: float = Field(default=3.0, gt=0.0, le=100.0)
     frame: str = Field(default="world", min_length=1, max_length=64)  # a state must name it
-    # a state farther than this (m), plus what 5 m/s^2 adds over the time between stamps,
-    # from where the last accepted one was heading is a jump: refused until it has held
-    # state_reset_s
+    # a state farther than this (m), plus what 5 m/s^2 adds over the time between them (their
+    # stamps' span, never more than passed here), from where the last accepted one was
+    # heading is a jump: refused until it has held state_reset_s
     state_jump_m: float = Field(default=0.5, gt=0.0)
+    # s: refused states that hold together this long are taken (a jump, or a run outside
+    # the window: no single state locks the real ones out)
     state_reset_s: float = Field(default=0.5, ge=0.0)
+    # s: a state stamped further ahead of the vehicle's clock as mapped at its arrival, or
+    # valid longer than state_max_delay_s before it, is refused; a clock answer that puts the
+    # states' arrivals outside that is in another time base, refused
+    state_window_s: float = Field(default=0.5, gt=0.0, le=10.0)
+    state_max_delay_s: float = Field(default=30.0, gt=0.0)
+    state_max_speed: float = Field(default=20.0, gt=0.0)  # m/s: a faster state is refused
     # s between queries of the vehicle's clock (aesop/{robot}/vehicle/clock); 0: never ask
     clock_sync_s: float = Field(default=1.0, ge=0.0)
 
