@@ -91,9 +91,12 @@ class ControlMetrics:
         self.state_stale = Counter("aesop_control_stale_state_ticks", "Ticks without a fresh "
                                    "vehicle state (flown blind, counted as anomalies)",
                                    registry=registry)
-        self.state_refused = Counter("aesop_control_state_refusals", "Vehicle states "
-                                     "refused (not finite, another frame, a jump)",
-                                     registry=registry)
+        self.state_refused = Counter(
+            "aesop_control_state_refusals", "Vehicle states refused, by reason (frame, finite, "
+            "attitude, speed, older, seq, future, late, jump)", ["reason"], registry=registry)
+        self.clock_refused = Counter("aesop_control_clock_refusals", "Times the vehicle's "
+                                     "clock answers were refused (another time base than "
+                                     "its states')", registry=registry)
         self.setpoints = Counter("aesop_control_setpoints", "Set-points sent to the vehicle",
                                  registry=registry)
         for mode in Mode:
@@ -123,8 +126,10 @@ class ControlMetrics:
                 self.stale_alarms.inc()
             elif event.kind == "fallback":
                 self.fallbacks.inc()
-            elif event.kind == "state_refused":
-                self.state_refused.inc()
+            elif event.kind == "clock_refused":
+                self.clock_refused.inc()
+        for reason in result.vehicle.refusals:  # every one, where the alarm says a run once
+            self.state_refused.labels(reason).inc()
 
 
 def sync_clock(bus: Bus, robot: str, clock: ClockMap, period_s: float,
