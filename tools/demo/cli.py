@@ -21,12 +21,28 @@ def register(sub: argparse._SubParsersAction) -> None:
                       help="leave the stack running after the scenarios (Ctrl-C stops it)")
     demo.add_argument("--model", default=None,
                       help="embedding model (default: onnx:all-MiniLM-L6-v2, the service's)")
+    attach = demo.add_argument_group(
+        "attach", "fly against a stack that is already up (docker compose: its published "
+        "ports and deploy/secrets), as its robot: the Zenoh session from AESOP_ZENOH_* "
+        "(default: a client of tcp/127.0.0.1:7447 as robot-<AESOP_ROBOT>, the password "
+        "from deploy/secrets), the token from AESOP_ADMIN_TOKEN(_FILE) or "
+        "deploy/secrets/admin-token")
+    attach.add_argument("--attach", action="store_true", help="do not start a stack")
+    attach.add_argument("--embedding-url", default="http://127.0.0.1:8001")
+    attach.add_argument("--control-url", default="http://127.0.0.1:8003")
+    attach.add_argument("--sim-url", default="http://127.0.0.1:8004")
+    attach.add_argument("--secrets", type=Path, default=Path("deploy/secrets"),
+                        help="where the defaults come from (aesop zenoh credentials)")
+    attach.add_argument("--scenario-name", action="append", default=None, metavar="NAME",
+                        help="only this scenario (2a, 2b, 3, 1; repeatable)")
     add_fleet_options(demo)  # --robots 3: three scenarios flown at once, one per robot
     add_llm_options(demo)  # --llm local: a trained model, K measured on it first
     demo.set_defaults(func=cmd_demo, needs_bench_extra=True)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    if args.attach:
+        return cmd_attached(args)
     from tools.demo.flights import run_stack_demo
     from tools.stack.cli import stack_options
     from tools.stack.up import hardware_scenario
@@ -39,3 +55,41 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(json.dumps({"scenarios": result["scenarios"], **(
             {"k": result["k"]} if "k" in result else {})}, allow_nan=False))
     return 0 if result["ok"] else 1
+
+
+def cmd_attached(args: argparse.Namespace) -> int:
+    from shared.settings import BusSettings, read_settings
+    from tools.commands import CliError
+    from tools.demo.flights import Attached, demo_scenario, run_attached_demo
+    from tools.stack.acl import robot_user
+    from tools.stack.compose import TOKEN_FILE
+
+    env = dict(os.environ)
+    robot = env.get("AESOP_ROBOT", "robot0")
+    defaults = {"zenoh_mode": "client", "zenoh_connect": "tcp/127.0.0.1:7447"}
+    if "AESOP_ZENOH_USER" not in env:
+        defaults |= {"zenoh_user": robot_user(robot),
+                     "zenoh_password_file": args.secrets / f"{robot_user(robot)}.password"}
+    try:
+        bus = read_settings(BusSettings, env, defaults=defaults)
+        bus.zenoh_secret()  # a password file that cannot be read, named now
+        token = env.get("AESOP_ADMIN_TOKEN") or _first_line(
+            Path(env.get("AESOP_ADMIN_TOKEN_FILE", args.secrets / TOKEN_FILE)))
+        for name in args.scenario_name or ():
+            demo_scenario(name)
+    except (ValueError, KeyError) as exc:
+        raise CliError(f"demo --attach: {exc}") from None
+    stack = Attached(args.embedding_url, args.control_url, args.sim_url, token, bus)
+    result = run_attached_demo(stack, args.out.resolve(), names=args.scenario_name,
+                               model=args.model, table=not args.json)
+    if args.json:
+        print(json.dumps({"scenarios": result["scenarios"]}, allow_nan=False))
+    return 0 if result["ok"] else 1
+
+
+def _first_line(path: Path) -> str:
+    try:
+        return path.read_text().strip()
+    except OSError as exc:
+        raise ValueError(f"the admin token: cannot read {path}: {exc.strerror} (set "
+                         "AESOP_ADMIN_TOKEN, or run as a user who may read it)") from None

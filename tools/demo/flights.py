@@ -69,6 +69,9 @@ from tools.stack.up import (
     StackPlan,
     plan_stack,
 )
+from tools.stack.up import (
+    hardware_scenario as hardware_path,
+)
 
 from .k import QUERIES, KChoice, calibrate, choose_k, scene_with_k
 from .report import (
@@ -143,6 +146,41 @@ def run_stack_demo(options: StackOptions, environ: Mapping[str, str], out: Path,
         raise
     finally:
         stack.stop()
+
+
+@dataclass(frozen=True)
+class Attached:
+    """A stack that is already up (docker compose, or another machine's `aesop up`): where
+    its services answer, the admin token, and this robot's Zenoh session (its camera)."""
+
+    embedding_url: str
+    control_url: str
+    sim_url: str
+    token: str
+    bus: BusSettings  # the robot's user: its observations, as its camera publishes them
+
+
+def run_attached_demo(stack: Attached, out: Path, *, names: Sequence[str] | None = None,
+                      model: str | None = None, table: bool = True) -> dict[str, Any]:
+    """``aesop demo --attach``: the hardware scenarios (``names``, default all) flown against
+    ``stack``, whose control loop and simulator fly the hardware scene; the cache built
+    over REST, each flight judged on the simulator's truth, the report in ``out``."""
+    scenario = load_scenario(hardware_path())
+    demos = SCENARIOS if names is None else tuple(demo_scenario(n) for n in names)
+    started = time.monotonic()
+    result, flights = asyncio.run(fly_robot(stack.embedding_url, stack.control_url,
+                                            stack.sim_url, stack.token, stack.bus, scenario,
+                                            model, demos))
+    result.update(scene=scenario.name, rate_hz=1.0 / scenario.dt, llm="the stack's",
+                  wall_s=round(time.monotonic() - started, 1), dashboard=None)
+    report = write_report(out, result, flights, scenario)
+    if table:
+        print(f"\nAESOP demo — {scenario.name}, attached to {stack.control_url}\n")
+        print(summary_table(result["scenarios"]))
+        print(f"\n{verdict_line(result)} ({result['wall_s']:.0f} s)\nreport: {report}")
+    else:
+        _say(f"report: {report}")
+    return result
 
 
 def _interrupt(*_: object) -> None:

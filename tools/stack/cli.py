@@ -21,11 +21,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="the ROS 2 bridge's config (deploy/ros2/quadrotor.yaml): the ros2 "
                          "user may use its topics")
     rc.set_defaults(func=cmd_zenoh_router_config)
-    cr = zsub.add_parser("credentials", help="a fresh password for every Zenoh user: the "
-                         "router's users.txt and <user>.password files (0600)")
+    cr = zsub.add_parser("credentials", help="docker compose's secrets, made anew: a password "
+                         "for every Zenoh user (the router's users.txt, <user>.password), "
+                         "the admin token (admin-token) and PostgreSQL's (postgres.password), "
+                         "all 0600")
     cr.add_argument("folder", type=Path, help="e.g. deploy/secrets (compose reads it)")
     cr.add_argument("--robot", action="append", default=None,
                     help="a robot to make a user for (repeatable; robot0)")
+    cr.add_argument("--owner", type=_owner, default=None, metavar="UID[:GID]",
+                    help="chown the files to the containers' user, 10001 (root only): "
+                         "compose mounts them with the host's owner and mode")
     cr.set_defaults(func=cmd_zenoh_credentials)
     ce = zsub.add_parser("certs", help="a CA and certificates for mutual TLS between a server "
                          "and its robots (aesop up --role server | robot): DIR/robot-<id>/ "
@@ -178,16 +183,28 @@ def cmd_zenoh_certs(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_zenoh_credentials(args: argparse.Namespace) -> int:
-    from tools.stack.acl import new_passwords, users_of, write_credentials
+def _owner(text: str) -> tuple[int, int]:
+    uid, _, gid = text.partition(":")
+    if not uid.isdigit() or not (gid or uid).isdigit():
+        raise argparse.ArgumentTypeError(f"--owner: {text!r} is not UID or UID:GID (numbers)")
+    return int(uid), int(gid or uid)
 
-    users = users_of(args.robot or ["robot0"], ros2=True)  # the shipped router has the bridge
+
+def cmd_zenoh_credentials(args: argparse.Namespace) -> int:
+    from tools.stack.compose import write_secrets
+
     try:
-        write_credentials(args.folder, new_passwords(users))
+        users = write_secrets(args.folder, args.robot or ["robot0"], owner=args.owner)
+    except PermissionError as exc:
+        raise CliError(f"cannot chown the secrets in {args.folder} to {args.owner[0]}: "
+                       f"{exc.strerror} (--owner needs root: run it with sudo)"
+                       if args.owner else f"cannot write into {args.folder}: {exc}") from None
     except OSError as exc:
         raise CliError(f"cannot write the credentials into {args.folder}: {exc}") from None
-    print(f"wrote {args.folder}/users.txt (the router's) and a password file for each of "
-          f"{', '.join(users)}", file=sys.stderr)
+    owned = f", owned by {args.owner[0]}:{args.owner[1]}" if args.owner else ""
+    print(f"wrote {args.folder}/users.txt (the router's), a password file for each of "
+          f"{', '.join(users)}, admin-token and postgres.password (0600{owned})",
+          file=sys.stderr)
     return 0
 
 

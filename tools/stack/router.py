@@ -148,7 +148,10 @@ def _binds(address: str) -> bool:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="aesop-router", description=__doc__.splitlines()[0])
     parser.add_argument("--role", choices=ROLES, default="hub")
-    parser.add_argument("--listen", action="append", required=True,
+    parser.add_argument("--config", type=Path, default=None, metavar="FILE",
+                        help="a zenohd config file served as it is (docker compose's "
+                             "deploy/zenoh/router.json5): its listen endpoints, users, ACL")
+    parser.add_argument("--listen", action="append", default=[],
                         help="endpoint, e.g. tcp/127.0.0.1:7447 (repeat for more)")
     parser.add_argument("--connect", action="append", default=[],
                         help="robot: the server's endpoint, tls/HOST:PORT")
@@ -168,18 +171,32 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-observation-hz", type=float, default=MAX_OBSERVATION_HZ,
                         help="observations per second passed on from each session")
     args = parser.parse_args(argv)
+    if args.config is not None and (args.listen or args.role != "hub"):
+        parser.error("--config is the whole router: no --listen or --role with it")
+    if args.config is None and not args.listen:
+        parser.error("--listen (or --config) is required")
     if args.role != "hub" and args.tls is None:
         parser.error(f"--role {args.role} needs --tls DIR")
     if args.role == "robot" and (len(args.robot) != 1 or not args.connect):
         parser.error("--role robot needs one --robot and the server's --connect endpoint")
-    if args.role == "hub" and len(args.listen) != 1:
+    if args.role == "hub" and args.config is None and len(args.listen) != 1:
         parser.error("--role hub listens on one --listen endpoint")
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    listen = usable(args.listen)
     try:
-        conf, guard = _role_config(args, listen)
+        if args.config is not None:
+            conf = zenoh.Config.from_file(args.config)
+            endpoints = json.loads(conf.get_json("listen/endpoints"))  # a list, or per mode
+            listen = (endpoints if isinstance(endpoints, list)
+                      else [e for each in endpoints.values() for e in each])
+            guard = f"as {args.config} says"
+        else:
+            listen = usable(args.listen)
+            conf, guard = _role_config(args, listen)
+    except zenoh.ZError as exc:
+        print(f"router: {args.config}: {exc}", file=sys.stderr)
+        return 2
     except (ConfigError, FileNotFoundError) as exc:
         print(f"router: {exc}", file=sys.stderr)
         return 2
@@ -189,8 +206,9 @@ def main(argv: list[str] | None = None) -> int:
     except zenoh.ZError as exc:
         print(f"router: cannot listen on {', '.join(listen)}: {exc}", file=sys.stderr)
         return 2
-    print(f"zenoh router {session.zid()} listening on {', '.join(listen)} ({guard}; messages "
-          f"up to {args.max_message_bytes} bytes)", file=sys.stderr, flush=True)
+    limit = "" if args.config else f"; messages up to {args.max_message_bytes} bytes"
+    print(f"zenoh router {session.zid()} listening on {', '.join(listen)} ({guard}{limit})",
+          file=sys.stderr, flush=True)
     try:
         stop.wait()
     finally:
