@@ -17,10 +17,12 @@ from __future__ import annotations
 import functools
 import json
 import math
+import struct
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
+from rosbags.interfaces import Nodetype
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
@@ -29,10 +31,17 @@ from shared.messages import MAX_DETECTIONS, Detection, Observation, VehicleSetpo
 
 from .config import ACCEL, DETECTIONS, ODOMETRY, STRING, TWIST, DetectionsIn, Mapped
 
-# why a sample was dropped: in (the first eight), out (the set-point cannot be written as
-# the configured type), or a fault of the bridge's own (logged with its traceback)
+# why a sample was dropped: in (the first eight, and ``size``: over its topic's
+# ``max_bytes``), out (the set-point cannot be written as the configured type), either way
+# (``queue``: the oldest of a full queue) or a fault of the bridge's own (logged with its
+# traceback)
 REASONS = ("attachment", "type", "cdr", "non_finite", "frame", "unknown_class", "json",
-           "empty", "unsupported", "error")
+           "empty", "size", "queue", "unsupported", "error")
+# CDR's primitive sizes (XCDR1, as rmw_zenoh's Fast-CDR writes): each aligned to its size
+_PRIMITIVE_BYTES = {"bool": 1, "byte": 1, "char": 1, "int8": 1, "uint8": 1, "int16": 2,
+                    "uint16": 2, "int32": 4, "uint32": 4, "float32": 4, "int64": 8,
+                    "uint64": 8, "float64": 8}
+ENCAPSULATIONS = (b"\x00\x00", b"\x00\x01")  # CDR big- and little-endian
 
 # vision_msgs 4.x (Humble and later; ros-perception/vision_msgs, ros2 branch), which the
 # ROS 2 stores of rosbags do not hold
@@ -91,6 +100,124 @@ def deserialize(raw: bytes, ros_type: str) -> Any:
         return typestore().deserialize_cdr(raw, ros_type)
     except Exception as exc:  # rosbags raises struct, index, unicode and its own errors
         raise BadSample("cdr", f"not a CDR {ros_type}: {type(exc).__name__}") from None
+
+
+@functools.cache
+def min_cdr_bytes(ros_type: str) -> int:
+    """The fewest bytes a CDR ``ros_type`` can take, its 4-byte encapsulation header
+    included: every string empty, every sequence empty; a sample shorter is truncated."""
+    store = typestore()
+
+    def walk(at: int, desc: tuple[Any, Any]) -> int:
+        kind, arg = desc
+        if kind == Nodetype.NAME:
+            for _, field in store.fielddefs[arg][1]:
+                at = walk(at, field)
+            return at
+        if kind == Nodetype.ARRAY:
+            sub, length = arg
+            for _ in range(length):
+                at = walk(at, sub)
+            return at
+        if kind == Nodetype.SEQUENCE:
+            return -(-at // 4) * 4 + 4  # its length
+        name: str = arg[0]
+        if name in ("string", "wstring"):
+            return -(-at // 4) * 4 + 4 + (1 if name == "string" else 0)  # its length, a NUL
+        size = _PRIMITIVE_BYTES[name]
+        return -(-at // size) * size + size
+
+    return 4 + walk(0, (Nodetype.NAME, ros_type))
+
+
+def check_cdr(raw: bytes, ros_type: str) -> None:
+    """What can be told of ``raw`` as a CDR ``ros_type`` without decoding it (a
+    :class:`BadSample` ``cdr``), in a few microseconds: its encapsulation header, its
+    least length, then its layout skimmed (every string's length and terminator, each
+    fixed block in bounds, the size at the end as the decoder checks it) up to the first
+    sequence of messages, which only decoding walks. What the decoder takes passes."""
+    if raw[:2] not in ENCAPSULATIONS:
+        raise BadSample("cdr", f"not a CDR {ros_type}: no CDR encapsulation header")
+    if len(raw) < min_cdr_bytes(ros_type):
+        raise BadSample("cdr", f"not a CDR {ros_type}: truncated ({len(raw)} bytes, it "
+                               f"takes at least {min_cdr_bytes(ros_type)})")
+    u32 = _U32[raw[1]]
+    end, at = len(raw), 4  # alignment counts from after the header
+    for step in _plan(ros_type):
+        if step[0] == "fixed":
+            at = 4 + -(-(at - 4) // step[1]) * step[1] + step[2]
+            if at > end:
+                raise BadSample("cdr", f"not a CDR {ros_type}: truncated")
+        elif step[0] == "string":
+            at = 4 + -(-(at - 4) // 4) * 4
+            length = u32.unpack_from(raw, at)[0] if at + 4 <= end else 0
+            at += 4 + length
+            if length == 0 or at > end or raw[at - 1] != 0:
+                raise BadSample("cdr", f"not a CDR {ros_type}: a string's length or "
+                                       "terminator is wrong")
+        elif step[0] == "sequence":
+            at = 4 + -(-(at - 4) // 4) * 4
+            count = u32.unpack_from(raw, at)[0] if at + 4 <= end else end
+            at += 4 + count * step[1]
+            if at > end:
+                raise BadSample("cdr", f"not a CDR {ros_type}: a sequence's length is wrong")
+        else:  # a sequence of messages: the decoder walks the rest
+            return
+    if not 0 <= end - at <= 3:  # as the decoder: up to 3 bytes of padding at the end
+        raise BadSample("cdr", f"not a CDR {ros_type}: {end} bytes where it takes {at}")
+
+
+_U32 = {0: struct.Struct(">I"), 1: struct.Struct("<I")}
+
+
+@functools.cache
+def _plan(ros_type: str) -> tuple[tuple[Any, ...], ...]:
+    """``ros_type``'s CDR layout as steps for :func:`check_cdr`: ``("fixed", align,
+    size)`` (primitives in a row, each aligned within the block, the block to its first),
+    ``("string",)``, ``("sequence", size)`` (of primitives of at most 4 bytes, whose
+    alignment the count already gives) and ``("stop",)`` before a sequence of anything
+    else."""
+    store = typestore()
+    steps: list[list[Any]] = []
+
+    def fixed(align: int, size: int) -> None:
+        last = steps[-1] if steps else None
+        if last is not None and last[0] == "fixed" and last[1] >= align:
+            last[2] = -(-last[2] // align) * align + size
+        else:
+            steps.append(["fixed", align, size])
+
+    def walk(desc: tuple[Any, Any]) -> bool:  # False: stopped
+        kind, arg = desc
+        if kind == Nodetype.NAME:
+            return all(walk(field) for _, field in store.fielddefs[arg][1])
+        if kind == Nodetype.ARRAY:
+            sub, length = arg
+            if sub[0] == Nodetype.BASE and sub[1][0] in _PRIMITIVE_BYTES:
+                size = _PRIMITIVE_BYTES[sub[1][0]]
+                if length:
+                    fixed(size, size * length)
+                return True
+            return all(walk(sub) for _ in range(length))
+        if kind == Nodetype.SEQUENCE:
+            sub = arg[0]
+            if sub[0] == Nodetype.BASE and _PRIMITIVE_BYTES.get(sub[1][0], 8) <= 4:
+                steps.append(["sequence", _PRIMITIVE_BYTES[sub[1][0]]])
+                return True
+            steps.append(["stop"])
+            return False
+        name: str = arg[0]
+        if name == "string":
+            steps.append(["string"])
+            return True
+        if name not in _PRIMITIVE_BYTES:  # wstring: left to the decoder
+            steps.append(["stop"])
+            return False
+        fixed(_PRIMITIVE_BYTES[name], _PRIMITIVE_BYTES[name])
+        return True
+
+    walk((Nodetype.NAME, ros_type))
+    return tuple(tuple(step) for step in steps)
 
 
 def seconds(stamp: Any) -> float:
