@@ -22,6 +22,9 @@
 Every field is checked (an unknown one is an error naming it), so is every topic name
 and type (:mod:`.wire`). ``type_hash`` on a topic overrides the hash computed from the
 type store (for a message package of another version: ``ros2 topic info -v`` prints it).
+``max_bytes`` on an input is the largest sample the bridge takes on it (its CDR, header
+included; each kind has a default well above what it needs, at most
+:data:`MAX_SAMPLE_BYTES`): a larger one is refused before it is copied or decoded.
 """
 
 from __future__ import annotations
@@ -42,6 +45,9 @@ DETECTIONS: Final = "vision_msgs/msg/Detection2DArray"
 ACCEL: Final = "geometry_msgs/msg/AccelStamped"
 TWIST: Final = "geometry_msgs/msg/TwistStamped"
 MAX_CLASSES = 10_000
+# the most an input's max_bytes may be: half the 1 MiB the stack's router passes on
+# (tools/stack/acl.py, MAX_MESSAGE_BYTES), which a robot's own router does not enforce
+MAX_SAMPLE_BYTES = 512 * 1024
 
 
 class ConfigError(ValueError):
@@ -78,24 +84,42 @@ class Topic(_Strict):
         return v
 
 
-class OdometryIn(Topic):
+def _max_bytes(default: int) -> int:
+    """An input's ``max_bytes`` field, ``default`` unless the config says."""
+    field: int = Field(default=default, ge=1024, le=MAX_SAMPLE_BYTES)
+    return field
+
+
+class Input(Topic):
+    """A topic the bridge reads: ``max_bytes``, the largest sample it takes (its CDR)."""
+
+    max_bytes: int = _max_bytes(MAX_SAMPLE_BYTES)
+
+
+class OdometryIn(Input):
     type: Literal["nav_msgs/msg/Odometry"] = ODOMETRY
+    # 708 bytes and the two frames' names
+    max_bytes: int = _max_bytes(16 * 1024)
     # the ROS frame its poses must be in (header.frame_id); others are dropped
     frame_id: str = Field(default="map", min_length=1, max_length=64)
     # the name the stack gives that frame (VehicleState.frame; control's AESOP_CONTROL_VEHICLE)
     frame: str = Field(default="world", min_length=1, max_length=64)
 
 
-class SceneIn(Topic):
+class SceneIn(Input):
     type: Literal["std_msgs/msg/String"] = STRING
+    # an observation's text: 16,000 characters (shared.messages.MAX_TEXT_CHARS) of UTF-8
+    max_bytes: int = _max_bytes(64 * 1024)
 
 
-class DetectionsIn(Topic):
+class DetectionsIn(Input):
     type: Literal["vision_msgs/msg/Detection2DArray", "std_msgs/msg/String"] = DETECTIONS
     # class_id -> the phrase the detector embeds ("a red box on the ground"); for String
     # JSON the labels are the phrases, and classes (when given) maps them too
     classes: dict[str, str] = Field(default_factory=dict, max_length=MAX_CLASSES)
     min_score: float = Field(default=0.0, ge=0.0, le=1.0)  # hypotheses below it are left out
+    # about 600 detections of one hypothesis each (420 bytes), or 256 KiB of JSON
+    max_bytes: int = _max_bytes(256 * 1024)
 
     @field_validator("classes")
     @classmethod

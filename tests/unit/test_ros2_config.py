@@ -8,9 +8,18 @@ from pathlib import Path
 import pytest
 
 from services.ros2 import convert, wire
-from services.ros2.config import ConfigError, load_config, parse_config
+from services.ros2.config import (
+    MAX_SAMPLE_BYTES,
+    ODOMETRY,
+    STRING,
+    ConfigError,
+    Input,
+    load_config,
+    parse_config,
+)
+from shared.messages import MAX_TEXT_CHARS
 from tools import cli
-from tools.stack.acl import ROS2, ros_keys, stack_acl, users_of
+from tools.stack.acl import MAX_MESSAGE_BYTES, ROS2, ros_keys, stack_acl, users_of
 from tools.stack.up import Ports, StackOptions, plan_stack
 
 QUADROTOR = Path(__file__).resolve().parents[2] / "deploy" / "ros2" / "quadrotor.yaml"
@@ -45,6 +54,9 @@ def test_the_shipped_quadrotor_config_maps_odometry_in_and_the_setpoint_out():
     ("inputs: {odometry: {topic: /odom, type_hash: TypeHashNotSupported}}",
      "inputs.odometry.type_hash"),
     ("inputs: {detections: {topic: /d, classes: {'1': ''}}}", "inputs.detections.classes"),
+    ("inputs: {scene: {topic: /s, max_bytes: 600000}}", "inputs.scene.max_bytes"),
+    ("inputs: {odometry: {topic: /odom, max_bytes: 100}}", "inputs.odometry.max_bytes"),
+    ("outputs: {mode: {topic: /m, max_bytes: 4096}}", "outputs.mode.max_bytes"),
     ("domain_id: 300\ninputs: {odometry: {topic: /odom}}", "domain_id"),
     ("robot: 'a b'\ninputs: {odometry: {topic: /odom}}", "robot"),
     ("[1, 2]", "a mapping"),
@@ -61,6 +73,21 @@ def test_a_type_hash_in_the_config_overrides_the_type_stores():
                           "namespace: /robot1")
     [odom] = config.topics()
     assert odom.name == "/robot1/odom" and odom.settings.type_hash == given
+
+
+def test_each_input_takes_samples_up_to_its_max_bytes_under_what_the_router_passes():
+    """Issue 43, finding 4: a size per sample below the 1 MiB the stack's router passes
+    (a robot's own router passes any), each kind's default well above what it needs."""
+    config = load_config(QUADROTOR)
+    sizes = {m.role: m.settings.max_bytes for m in config.topics()
+             if isinstance(m.settings, Input)}
+    assert sizes == {"odometry": 16 * 1024, "scene": 64 * 1024, "detections": 256 * 1024}
+    assert max(sizes.values()) <= MAX_SAMPLE_BYTES < MAX_MESSAGE_BYTES
+    assert sizes["scene"] >= 4 * MAX_TEXT_CHARS + convert.min_cdr_bytes(STRING)  # UTF-8
+    assert sizes["odometry"] > convert.min_cdr_bytes(ODOMETRY) + 2 * 256  # two frames' names
+    given = parse_config("inputs: {detections: {topic: /d, max_bytes: 524288}}")
+    assert given.inputs.detections is not None
+    assert given.inputs.detections.max_bytes == MAX_SAMPLE_BYTES
 
 
 def test_keys_prints_data_keys_first_then_the_liveliness_tokens(
