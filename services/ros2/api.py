@@ -18,7 +18,7 @@ from shared.http import from_state, service_app
 
 from .bridge import SERVICE, Bridge, BridgeMetrics
 from .config import BridgeConfig
-from .schemas import BridgeAnswer, TopicAnswer
+from .schemas import BridgeAnswer, QueueAnswer, TopicAnswer
 from .settings import Ros2Settings
 
 BridgeDep = Annotated[Bridge, Depends(from_state("bridge"))]
@@ -30,8 +30,9 @@ async def bridge_status(bridge: BridgeDep) -> BridgeAnswer:
     return BridgeAnswer(
         robot=bridge.robot, domain_id=bridge.config.domain_id, node=bridge.config.node,
         zid=bridge.zid, node_token=bridge.node.token(),
-        topics=[TopicAnswer(**asdict(s)) for s in bridge.status.values()],
-        queue_dropped=bridge.queue_dropped)
+        topics=[TopicAnswer(**asdict(s)) for s in bridge.topics()],
+        queue_dropped=bridge.queue_dropped,
+        queues=[QueueAnswer(**q) for q in bridge.queues()])
 
 
 def create_app(settings: Ros2Settings, config: BridgeConfig,

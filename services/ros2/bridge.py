@@ -10,11 +10,17 @@ node, its subscribers (``MS``) and publishers (``MP``), so ``ros2 node list`` an
 the control state (its mode), the reasoner's decisions and requests (their option
 labels) and the events.
 
-Zenoh callbacks only queue what arrived (a bounded drop-oldest queue); one thread
-converts and publishes, in order. A sample that cannot be used (no attachment, another
-type or hash, truncated CDR, a NaN, a pose in another frame, an unknown class id) is
-dropped, counted in ``aesop_ros2_dropped_total{topic,reason}`` and logged once per
-topic and reason; it never stops the bridge.
+Each direction has its queues and its thread (:mod:`.lanes`), so neither can starve the
+other. In: a Zenoh callback refuses what it can tell cheaply (another type or hash, over
+the topic's ``max_bytes``: before the payload is copied, no attachment, CDR whose layout
+is wrong: :func:`.convert.check_cdr`) and queues the rest on its topic's queue, bounded in
+samples and bytes, the oldest dropped past either; the inbound thread takes the topics'
+queues in turn, so a flood on one topic waits behind the others' samples. Out: the
+set-points have a queue of their own that the outbound thread empties before the stack's
+other messages. A sample that cannot be used (those, a NaN, a pose in another frame, an
+unknown class id, the oldest of a full queue) is dropped, counted in
+``aesop_ros2_dropped_total{topic,reason}`` and logged once per topic and reason; it never
+stops the bridge.
 """
 
 from __future__ import annotations
@@ -24,11 +30,11 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import zenoh
-from prometheus_client import CollectorRegistry, Counter
+from prometheus_client import CollectorRegistry, Counter, Gauge
 
 from shared import topics
 from shared.bus import Bus, Received
@@ -43,12 +49,17 @@ from shared.messages import (
 )
 
 from . import convert, wire
-from .config import BridgeConfig, DetectionsIn, Mapped, OdometryIn
+from .config import BridgeConfig, DetectionsIn, Input, Mapped, OdometryIn
+from .lanes import Lanes, Limit
 
 log = logging.getLogger(__name__)
 
 SERVICE = "ros2"
-QUEUE = 1024  # samples waiting for the bridge's thread, the oldest dropped past it
+# each ROS topic's queue: so many samples and bytes (4 MiB: at least 8 of the largest a
+# topic may take), so all of them together hold at most 12 MiB however large the samples
+IN_ITEMS, IN_BYTES = 64, 4 * 1024 * 1024
+SETPOINTS_KEPT = 32  # set-points waiting to go out (1.6 s at 20 Hz), the oldest dropped past it
+OUT_ITEMS = 64  # the stack's other messages waiting to go out, per queue
 MODE_EVERY_S = 1.0  # the mode is sent on each change and at least this often
 ALARMS = ("warning", "alarm")  # the event severities sent on the alarms topic
 REQUESTS_KEPT = 32  # reasoner requests remembered for their option labels
@@ -63,7 +74,11 @@ class BridgeMetrics:
         self.published = Counter("aesop_ros2_published", "Samples published per ROS topic",
                                  ["topic"], registry=registry)
         self.queue_dropped = Counter("aesop_ros2_queue_dropped", "Samples dropped because "
-                                     "the bridge's queue was full", registry=registry)
+                                     "one of the bridge's queues was full", registry=registry)
+        self.queued = Gauge("aesop_ros2_queued", "Items in each of the bridge's queues",
+                            ["queue"], registry=registry)
+        self.queued_bytes = Gauge("aesop_ros2_queued_bytes", "Bytes of ROS samples in each "
+                                  "inbound queue of the bridge", ["queue"], registry=registry)
 
 
 @dataclass
@@ -80,20 +95,6 @@ class TopicStatus:
     dropped: dict[str, int] = field(default_factory=dict)
 
 
-@dataclass(frozen=True)
-class _In:
-    mapped: Mapped
-    key: str
-    payload: bytes
-    attachment: bytes | None
-
-
-@dataclass(frozen=True)
-class _Out:
-    role: str
-    message: Message
-
-
 class Bridge:
     """The bridge between ``config``'s topics and the stack, on ``bus``'s session."""
 
@@ -108,10 +109,20 @@ class Bridge:
                                          self.hashes[role]) for role, m in self.mapped.items()}
         self.status = {role: TopicStatus(role, m.direction, m.name, m.ros_type, self.keys[role])
                        for role, m in self.mapped.items()}
-        self._queue: deque[_In | _Out] = deque()
-        self._wake = threading.Event()
+        self._max_bytes = {role: m.settings.max_bytes for role, m in self.mapped.items()
+                           if isinstance(m.settings, Input)}
+        # in: a queue per ROS topic, taken in turn; out: the set-points first, then the
+        # stack's other messages (in order: a request before its decision), then alarms
+        self._in = Lanes({role: Limit(IN_ITEMS, min(IN_BYTES, IN_ITEMS * limit))
+                          for role, limit in self._max_bytes.items()}, in_turn=True)
+        self._out = Lanes({"setpoint": Limit(SETPOINTS_KEPT), "stack": Limit(OUT_ITEMS),
+                           "alarms": Limit(OUT_ITEMS)}, in_turn=False)
         self._stopping = threading.Event()
-        self._lock = threading.Lock()
+        self._counting = threading.Lock()  # status and _logged: Zenoh's threads and ours
+        # the counters' children, looked up once (a label lookup costs as much as a check)
+        self._received = {role: metrics.received.labels(m.name)
+                          for role, m in self.mapped.items()}
+        self._dropped: dict[tuple[str, str], Any] = {}
         self._declared: list[Any] = []
         self._publishers: dict[str, tuple[zenoh.Publisher, bytes]] = {}
         self._sequence: dict[str, int] = {}
@@ -120,7 +131,7 @@ class Bridge:
         self._frames = convert.Frames(config.inputs.scene_within_s)
         self._mode: tuple[str, float] | None = None  # last mode sent, when
         self._requests: deque[ReasonerRequest] = deque(maxlen=REQUESTS_KEPT)
-        self._thread: threading.Thread | None = None
+        self._threads: list[threading.Thread] = []
         self.queue_dropped = 0
         self._attitude: tuple[float, float, float, float] | None = None  # the newest odometry's
 
@@ -143,9 +154,19 @@ class Bridge:
             else:
                 self._publishers[role] = (session.declare_publisher(self.keys[role]),
                                           wire.gid(token))
+        for lanes, direction in ((self._in, "in"), (self._out, "out")):
+            for name in lanes.status():
+                self.metrics.queued.labels(name).set_function(_reading(lanes, name, "items"))
+                if direction == "in":
+                    self.metrics.queued_bytes.labels(name).set_function(
+                        _reading(lanes, name, "bytes"))
         self._follow_stack()
-        self._thread = threading.Thread(target=self._run, name="ros2-bridge", daemon=True)
-        self._thread.start()
+        self._threads = [threading.Thread(target=self._run, args=(lanes, work),
+                                          name=f"ros2-bridge-{direction}", daemon=True)
+                         for lanes, work, direction in ((self._in, self._inbound, "in"),
+                                                        (self._out, self._outbound, "out"))]
+        for thread in self._threads:
+            thread.start()
 
     def _follow_stack(self) -> None:
         robot, outputs = self.robot, self.config.outputs
@@ -164,9 +185,10 @@ class Bridge:
 
     def stop(self) -> None:
         self._stopping.set()
-        self._wake.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
+        for lanes in (self._in, self._out):
+            lanes.close()
+        for thread in self._threads:
+            thread.join(timeout=5.0)
         for declared in self._declared:
             declared.undeclare()
         for publisher, _ in self._publishers.values():
@@ -177,73 +199,90 @@ class Bridge:
 
     def _ros_sample(self, mapped: Mapped) -> Callable[[zenoh.Sample], None]:
         def on_sample(sample: zenoh.Sample) -> None:
-            attachment = sample.attachment
-            self._put(_In(mapped, str(sample.key_expr), sample.payload.to_bytes(),
-                          None if attachment is None else attachment.to_bytes()))
+            try:
+                self._take_ros(mapped.role, sample)
+            except Exception as exc:  # a fault of ours must never break Zenoh's thread
+                self._drop(mapped.role, "error", f"{type(exc).__name__}: {exc}", trace=True)
         return on_sample
 
-    def _stack(self, role: str) -> Callable[[Received[Any]], None]:
-        return lambda got: self._put(_Out(role, got.message))
-
-    def _put(self, item: _In | _Out) -> None:
-        with self._lock:
-            if len(self._queue) >= QUEUE:
-                self._queue.popleft()
-                self.queue_dropped += 1
-                self.metrics.queue_dropped.inc()
-            self._queue.append(item)
-        self._wake.set()
-
-    # ------------------------------------------------------------------ the bridge's thread
-
-    def _run(self) -> None:
-        while not self._stopping.is_set():
-            self._wake.wait(0.5)
-            self._wake.clear()
-            while True:
-                with self._lock:
-                    item = self._queue.popleft() if self._queue else None
-                if item is None or self._stopping.is_set():
-                    break
-                try:
-                    if isinstance(item, _In):
-                        self._inbound(item)
-                    else:
-                        self._outbound(item)
-                except convert.BadSample as exc:
-                    self._drop(_role(item), exc.reason, str(exc))
-                except Exception as exc:  # a fault of ours must not stop the bridge
-                    self._drop(_role(item), "error", f"{type(exc).__name__}: {exc}",
-                               trace=True)
-
-    def _inbound(self, item: _In) -> None:
-        mapped, role = item.mapped, item.mapped.role
-        status = self.status[role]
-        status.received += 1
-        self.metrics.received.labels(mapped.name).inc()
-        if item.key != self.keys[role]:
-            raise convert.BadSample("type", f"sample on {item.key}, expected the type and "
-                                            f"hash of {self.keys[role]}")
+    def _take_ros(self, role: str, sample: zenoh.Sample) -> None:
+        """Refuse what can be told without decoding, cheapest first, else queue it."""
+        self._count(role, "received")
+        key = str(sample.key_expr)
+        if key != self.keys[role]:
+            return self._drop(role, "type", f"sample on {key}, expected the type and hash "
+                                             f"of {self.keys[role]}")
+        size, limit = len(sample.payload), self._max_bytes[role]
+        if size > limit:  # before the payload is copied
+            return self._drop(role, "size", f"{size} bytes, the topic's max_bytes is {limit}")
+        attachment = sample.attachment
+        if attachment is not None and len(attachment) > wire.MAX_ATTACHMENT_BYTES:
+            return self._drop(role, "attachment", f"a {len(attachment)}-byte attachment: "
+                                                   "neither rmw_zenoh form")
         try:
-            wire.parse_attachment(item.attachment)
+            wire.parse_attachment(None if attachment is None else attachment.to_bytes())
         except wire.WireError as exc:
-            raise convert.BadSample("attachment", str(exc)) from None
-        settings = mapped.settings
+            return self._drop(role, "attachment", str(exc))
+        payload = sample.payload.to_bytes()
+        try:
+            convert.check_cdr(payload, self.mapped[role].ros_type)
+        except convert.BadSample as exc:
+            return self._drop(role, exc.reason, str(exc))
+        self._queued(role, self._in.put(role, payload, len(payload)))
+
+    def _stack(self, role: str) -> Callable[[Received[Any]], None]:
+        lane = "setpoint" if role == "setpoint" else "alarms" if role == "alarms" else "stack"
+
+        def on_message(got: Received[Any]) -> None:
+            if role == "alarms" and got.message.severity not in ALARMS:
+                return  # not sent: no need to queue it
+            dropped = self._out.put(lane, (role, got.message))
+            for old_role, _ in dropped:
+                self._queued(old_role, [None])
+        return on_message
+
+    def _queued(self, role: str, dropped: list[Any]) -> None:
+        """Count ``dropped``, the oldest of ``role``'s full queue."""
+        if dropped:
+            with self._counting:
+                self.queue_dropped += len(dropped)
+            self.metrics.queue_dropped.inc(len(dropped))
+            self._drop(role, "queue", "its queue was full: the oldest dropped",
+                       n=len(dropped))
+
+    # ------------------------------------------------------------------ the bridge's threads
+
+    def _run(self, lanes: Lanes, work: Callable[[str, Any], None]) -> None:
+        while not self._stopping.is_set():
+            taken = lanes.take(0.5)
+            if taken is None or self._stopping.is_set():
+                continue
+            name, item = taken
+            role = item[0] if lanes is self._out else name
+            try:
+                work(role, item)
+            except convert.BadSample as exc:
+                self._drop(role, exc.reason, str(exc))
+            except Exception as exc:  # a fault of ours must not stop the bridge
+                self._drop(role, "error", f"{type(exc).__name__}: {exc}", trace=True)
+
+    def _inbound(self, role: str, payload: bytes) -> None:
+        settings = self.mapped[role].settings
         if isinstance(settings, OdometryIn):
             self._seq["state"] += 1
-            state = convert.vehicle_state(item.payload, robot=self.robot,
+            state = convert.vehicle_state(payload, robot=self.robot,
                                           seq=self._seq["state"], frame_id=settings.frame_id,
                                           frame=settings.frame)
             self._attitude = state.attitude
             self._publish_stack(role, topics.vehicle_state(self.robot), state)
         elif role == "scene":
-            text = convert.scene_text(item.payload)
+            text = convert.scene_text(payload)
             frames = [(text, ())] if self.config.inputs.detections is None \
                 else self._frames.text(text, time.monotonic())
             for text_of, found in frames:
                 self._observe(role, text_of, found)
         elif isinstance(settings, DetectionsIn):
-            detected = convert.detections(item.payload, settings)
+            detected = convert.detections(payload, settings)
             for text_of, found in self._frames.found(detected, time.monotonic()):
                 self._observe(role, text_of, found)
 
@@ -256,12 +295,12 @@ class Bridge:
 
     def _publish_stack(self, role: str, key: str, message: Message) -> None:
         self.bus.publish(key, message)
-        self.status[role].published += 1
+        self._count(role, "published")
         self.metrics.published.labels(self.mapped[role].name).inc()
 
-    def _outbound(self, item: _Out) -> None:
-        message, outputs = item.message, self.config.outputs
-        if item.role == "setpoint" and outputs.setpoint is not None:
+    def _outbound(self, role: str, item: tuple[str, Message]) -> None:
+        message, outputs = item[1], self.config.outputs
+        if role == "setpoint" and outputs.setpoint is not None:
             assert isinstance(message, VehicleSetpoint)
             body = None
             if outputs.setpoint.body:
@@ -271,16 +310,16 @@ class Bridge:
                 body = self._attitude
             self._send("setpoint", convert.setpoint(message, outputs.setpoint.type,
                                                     outputs.setpoint.frame_id, body))
-        elif item.role == "mode":
+        elif role == "mode":
             assert isinstance(message, ControlState)
             self._send_mode(message)
-        elif item.role == "request":
+        elif role == "request":
             assert isinstance(message, ReasonerRequest)
             self._requests.append(message)
-        elif item.role == "decision":
+        elif role == "decision":
             assert isinstance(message, ReasonerDecision)
             self._send("decision", convert.string(self._decision(message)))
-        elif item.role == "alarms":
+        elif role == "alarms":
             assert isinstance(message, Event)
             if message.severity in ALARMS:
                 self._send("alarms", convert.string(
@@ -314,17 +353,45 @@ class Bridge:
         self._sequence[role] = self._sequence.get(role, 0) + 1
         attachment = wire.Attachment(self._sequence[role], time.time_ns(), gid)
         publisher.put(payload, attachment=attachment.encode())
-        self.status[role].published += 1
+        self._count(role, "published")
         self.metrics.published.labels(self.mapped[role].name).inc()
 
-    def _drop(self, role: str, reason: str, detail: str, *, trace: bool = False) -> None:
+    def _count(self, role: str, what: str) -> None:
+        with self._counting:
+            status = self.status[role]
+            setattr(status, what, getattr(status, what) + 1)
+        if what == "received":
+            self._received[role].inc()
+
+    def topics(self) -> list[TopicStatus]:
+        """Each mapped topic's counts (``GET /v1/bridge``), copied as they stand: Zenoh's
+        threads count on while they are read."""
+        with self._counting:
+            return [replace(s, dropped=dict(s.dropped)) for s in self.status.values()]
+
+    def queues(self) -> list[dict[str, Any]]:
+        """Each queue's state (``GET /v1/bridge``): its items and bytes, their limits, the
+        most bytes it has held, how many it dropped."""
+        return [{"name": name, "direction": direction, **lane}
+                for lanes, direction in ((self._in, "in"), (self._out, "out"))
+                for name, lane in lanes.status().items()]
+
+    def _drop(self, role: str, reason: str, detail: str, *, n: int = 1,
+              trace: bool = False) -> None:
+        """Count ``n`` samples of ``role`` dropped for ``reason``; the first of each topic
+        and reason is logged and said as an event. Any thread, Zenoh's included."""
         status = self.status.get(role)
         name = self.mapped[role].name if role in self.mapped else role
-        if status is not None:
-            status.dropped[reason] = status.dropped.get(reason, 0) + 1
-        self.metrics.dropped.labels(name, reason).inc()
-        if (role, reason) not in self._logged:  # once per topic and reason
+        with self._counting:
+            if status is not None:
+                status.dropped[reason] = status.dropped.get(reason, 0) + n
+            first = (role, reason) not in self._logged  # once per topic and reason
             self._logged.add((role, reason))
+        counter = self._dropped.get((name, reason))
+        if counter is None:
+            counter = self._dropped[(name, reason)] = self.metrics.dropped.labels(name, reason)
+        counter.inc(n)
+        if first:
             log.warning("ros2 bridge: dropped a sample on %s (%s); further ones for this "
                         "reason are only counted", name, detail, exc_info=trace)
             self.bus.publish(topics.event(self.robot, SERVICE), Event(
@@ -333,5 +400,6 @@ class Bridge:
                         "on the bridge's /metrics", data={"topic": name, "reason": reason}))
 
 
-def _role(item: _In | _Out) -> str:
-    return item.mapped.role if isinstance(item, _In) else item.role
+def _reading(lanes: Lanes, name: str, what: str) -> Callable[[], float]:
+    """A gauge's reading of lane ``name``'s ``what`` (items, bytes) when scraped."""
+    return lambda: float(lanes.status()[name][what])

@@ -22,6 +22,20 @@ class TopicAnswer(Answer):
     dropped: dict[str, Int]  # reason -> samples
 
 
+class QueueAnswer(Answer):
+    """One of the bridge's queues: in, one per ROS topic (taken in turn); out, the
+    set-points (first), the stack's other messages, the alarms."""
+
+    name: str  # in: the topic's role; out: setpoint, stack, alarms
+    direction: str
+    items: Int  # held now
+    max_items: Int
+    bytes: Int  # of ROS samples held now (in); 0 out, where items are bounded by count
+    max_bytes: Int | None  # None: bounded by count alone
+    peak_bytes: Int  # the most it has held
+    dropped: Int  # the oldest, dropped when it was full
+
+
 class BridgeAnswer(Answer):
     """``GET /v1/bridge``: who the bridge is in the ROS graph and what each topic did."""
 
@@ -31,4 +45,5 @@ class BridgeAnswer(Answer):
     zid: str
     node_token: str
     topics: list[TopicAnswer]
-    queue_dropped: Int
+    queue_dropped: Int  # all queues together
+    queues: list[QueueAnswer]

@@ -69,6 +69,7 @@ SESSION_DEFAULTS: dict[str, Any] = {
     "adminspace": {"enabled": True, "permissions": {"read": True, "write": False}},
 }
 ATTACHMENT_BYTES = 8 + 8 + 1 + GID_BYTES  # 33
+MAX_ATTACHMENT_BYTES = 128  # past either form (33, 77 bytes): refused before it is copied
 _POSITIONAL = struct.Struct("<qqB")
 # 0.2.0-0.2.3: zenoh-ext serialised (name, value) pairs; the names as they wrote them
 _KEYED_NAMES = (b"sequence_number", b"source_timestamp", b"source_gid")
