@@ -7,8 +7,8 @@ one detector. The override adds, for every further robot, its control loop and s
 vehicle (``control-<id>``, ``sim-<id>``: the base services with that robot's id, their own
 Zenoh users, ``control-<id>`` and ``robot-<id>``, secrets and Zenoh IDs, the host ports 100
 apart; every loop at the fleet's rate), and from two detector replicas on, the replicas
-(``embedding-<j>``, each with its own volume) and PostgreSQL (``postgres:15``, or
-``AESOP_POSTGRES_IMAGE``; its password a secret file) they share; the router mounts the
+(``embedding-<j>``, each with its own volume) and PostgreSQL (``aesop-postgres:15``, made
+offline by ``make image``, or ``AESOP_POSTGRES_IMAGE``; its password a secret file) they share; the router mounts the
 fleet's ACL::
 
     aesop zenoh fleet-compose --robots 3 --replicas 2 > deploy/compose.fleet.yml
@@ -35,7 +35,10 @@ FLEET_ROUTER = "./deploy/zenoh/router.fleet.json5"
 SECRETS = "${AESOP_SECRETS:-./deploy/secrets}"  # as docker-compose.yml names the folder
 # the password as files: the server's (POSTGRES_PASSWORD_FILE), the replicas' (libpq's passfile)
 STORE = "postgresql://aesop@postgres:5432/aesop?passfile=/run/secrets/postgres-pgpass"
-POSTGRES_IMAGE = "${AESOP_POSTGRES_IMAGE:-postgres:15}"
+# made offline by `make image` (deploy/docker/base-image.sh --postgres): Debian's PostgreSQL 15
+# as uid 10001, no capability needed; postgres:15 from Docker Hub serves too, given the
+# capabilities its entrypoint uses (CHOWN, DAC_OVERRIDE, FOWNER, SETGID, SETUID) back
+POSTGRES_IMAGE = "${AESOP_POSTGRES_IMAGE:-aesop-postgres:15}"
 STEP = 100  # host ports of the next robot or replica
 FLEET_RATE_HZ = 10  # every robot's loop, as `aesop up --robots N` (tools/stack/up.py)
 
@@ -131,7 +134,8 @@ def fleet_override(base: Mapping[str, Any], robots: Sequence[str], replicas: int
             out[name] = replica
             volumes[f"{name}-data"] = None
         out["postgres"] = {
-            "image": POSTGRES_IMAGE, "restart": "unless-stopped", "init": True,
+            "image": POSTGRES_IMAGE, "pull_policy": "missing", "restart": "unless-stopped",
+            "init": True, "cap_drop": ["ALL"], "security_opt": ["no-new-privileges:true"],
             "secrets": ["postgres-password"],
             "environment": {"POSTGRES_USER": "aesop", "POSTGRES_DB": "aesop",
                             "POSTGRES_PASSWORD_FILE": "/run/secrets/postgres-password"},
