@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import re
+from pathlib import Path
 from typing import Literal
 from urllib.parse import urlsplit
 
-from pydantic import AliasChoices, Field, SecretStr, field_validator
+from pydantic import AliasChoices, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import SettingsConfigDict
 
 from shared.settings import Group, ServiceSettings
@@ -81,6 +82,9 @@ class ReasonerSettings(ServiceSettings):
     llm_model: str = "fake"
     llm_api_key: SecretStr | None = Field(default=None, validation_alias=AliasChoices(
         "AESOP_REASONER_LLM_API_KEY", "OPENAI_API_KEY"))
+    # or, unless that is set, the key's first line from a file (a compose secret: not in
+    # `docker inspect`)
+    llm_api_key_file: Path | None = None
     request: LLMRequest = LLMRequest()
     hedge: Hedge = Hedge()
     domain: str = "quadrotor"  # prompt template: quadrotor, vtol, warehouse, vehicle
@@ -89,6 +93,20 @@ class ReasonerSettings(ServiceSettings):
     # rank policy: option label -> rank, lower is more conservative; JSON in the environment
     fallback_ranks: dict[str, int] = Field(default_factory=dict)
     limits: ReasonerLimits = ReasonerLimits()
+
+    @model_validator(mode="after")
+    def _key_from_file(self) -> ReasonerSettings:
+        if self.llm_api_key_file is not None and self.llm_api_key is None:
+            try:
+                key = self.llm_api_key_file.read_text().strip()
+            except OSError as exc:
+                raise ValueError(f"AESOP_REASONER_LLM_API_KEY_FILE: cannot read "
+                                 f"{self.llm_api_key_file}: {exc.strerror}") from None
+            if not key:
+                raise ValueError(f"AESOP_REASONER_LLM_API_KEY_FILE: {self.llm_api_key_file} "
+                                 "is empty")
+            self.llm_api_key = SecretStr(key)
+        return self
 
     def token_field(self, base_url: str) -> TokenField:
         if self.request.token_field != "auto":

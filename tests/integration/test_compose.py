@@ -95,6 +95,17 @@ def test_scenario_2a_flown_against_compose_ends_on_the_blue_box(stack: Compose,
     assert row["decision"] == "alternative landing site"
 
 
+def test_the_llm_server_answers_only_the_reasoners_key(stack: Compose) -> None:
+    """Issue 43: the fake LLM wants the key in llm.key (the reasoner's decision above came
+    from it: `decision_source` llm); another container on the network without it gets 401."""
+    ask = ("import sys, urllib.request as u, urllib.error as e\n"
+           "try: u.urlopen('http://fake-llm:8010/v1/models', timeout=8)\n"
+           "except e.HTTPError as x: sys.exit(0 if x.code == 401 else 1)\n"
+           "sys.exit(2)")
+    done = stack.compose("exec", "-T", "dashboard", "python", "-c", ask, check=False)
+    assert done.returncode == 0, (done.returncode, done.stdout, done.stderr)
+
+
 def test_down_and_up_keeps_the_cache(stack: Compose) -> None:
     before = caches(stack)
     assert before.get("quadrotor", 0) > 0, before  # the flight above built it over REST

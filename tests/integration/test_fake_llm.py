@@ -219,6 +219,28 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
             proc.wait(10)
 
 
+def test_with_a_key_every_route_but_the_ops_ones_wants_it() -> None:
+    """Issue 43: the fake LLM answered anyone; with its token it wants the key the reasoner
+    holds, as OpenAI's API does."""
+    from fastapi.testclient import TestClient
+    from pydantic import SecretStr
+
+    from tools.fakes.llm import FakeLLMConfig, create_app
+
+    body = {"model": "fake-fixed-0", "messages": [{"role": "user", "content": "hi"}]}
+    with TestClient(create_app(FakeLLMConfig(), SecretStr("k" * 20))) as client:
+        for headers in ({}, {"Authorization": "Bearer wrong"}, {"Authorization": "k" * 20}):
+            refused = client.post("/v1/chat/completions", json=body, headers=headers)
+            assert refused.status_code == 401 and \
+                refused.json()["error"]["code"] == "invalid_api_key"
+            assert client.get("/v1/models", headers=headers).status_code == 401
+        key = {"Authorization": f"Bearer {'k' * 20}"}
+        assert client.post("/v1/chat/completions", json=body, headers=key).status_code == 200
+        assert client.get("/readyz").status_code == 200  # health stays open
+    with TestClient(create_app(FakeLLMConfig())) as client:  # no key: as before
+        assert client.post("/v1/chat/completions", json=body).status_code == 200
+
+
 def chat(url: str, model: str, content: str, **extra: object) -> httpx.Response:
     body = {"model": model, "messages": [{"role": "system", "content": "You are a monitor."},
                                          {"role": "user", "content": content}], **extra}

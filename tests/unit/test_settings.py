@@ -154,7 +154,7 @@ def test_a_group_is_set_as_json_or_one_knob_at_a_time() -> None:
 
 
 # the detector's two past 15: its shared store and its name among replicas (issue 30)
-@pytest.mark.parametrize(("cls", "most"), [(EmbeddingSettings, 17), (ReasonerSettings, 13),
+@pytest.mark.parametrize(("cls", "most"), [(EmbeddingSettings, 17), (ReasonerSettings, 14),
                                            (ControlSettings, 11), (SimSettings, 10),
                                            (DashboardSettings, 6)], ids=lambda c: str(c))
 def test_each_service_reads_few_variables_of_its_own(cls: type[BaseSettings], most: int) -> None:
@@ -250,3 +250,16 @@ def test_the_admin_token_file_from_the_process_environment(
     settings = ControlSettings(host="0.0.0.0")
     assert settings.admin_token is not None and settings.admin_token.get_secret_value() == "v" * 32
     settings.check_exposure()  # off loopback, with the token from the file
+
+
+def test_the_reasoners_llm_key_from_a_file(tmp_path: Path) -> None:
+    """Issue 43: compose hands the LLM key as a file; a key in the environment wins."""
+    key = tmp_path / "llm.key"
+    key.write_text("sk-from-file\n")
+    settings = read_settings(ReasonerSettings, {"AESOP_REASONER_LLM_API_KEY_FILE": str(key)})
+    assert settings.backends()[0].api_key == "sk-from-file"
+    given = read_settings(ReasonerSettings, {"AESOP_REASONER_LLM_API_KEY_FILE": str(key),
+                                             "AESOP_REASONER_LLM_API_KEY": "sk-env"})
+    assert given.backends()[0].api_key == "sk-env"
+    with pytest.raises(ValidationError, match="AESOP_REASONER_LLM_API_KEY_FILE: cannot read"):
+        read_settings(ReasonerSettings, {"AESOP_REASONER_LLM_API_KEY_FILE": str(tmp_path / "x")})

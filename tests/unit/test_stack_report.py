@@ -340,3 +340,19 @@ def test_a_role_without_what_it_needs_is_a_plan_error(tmp_path: Path, change: di
                                                      says: str) -> None:
     with pytest.raises(PlanError, match=says):
         plan_stack(replace(options(tmp_path), **change), {}, "t" * 24)
+
+
+def test_the_stacks_llm_server_wants_the_key_the_reasoner_holds(tmp_path: Path) -> None:
+    """Issue 43: the LLM servers answered without a key, so any local process could hold
+    llama.cpp's one thread. The stack's own server (the fake, or llama.cpp's) is keyed with
+    the stack's token, and the reasoner presents it; a backend of the user's keeps theirs."""
+    plan = plan_stack(options(tmp_path), {}, "t" * 24)
+    fake, reasoner = plan.services[0].env, plan.services[2].env
+    assert fake["AESOP_ADMIN_TOKEN"] == reasoner["AESOP_REASONER_LLM_API_KEY"] == "t" * 24
+    local = plan_stack(replace(options(tmp_path), local_model=LocalModel(tmp_path / "m.gguf",
+                                                                         "m")), {}, "u" * 24)
+    assert local.services[0].env["API_KEY"] == "u" * 24  # llama.cpp's server reads API_KEY
+    assert local.services[2].env["AESOP_REASONER_LLM_API_KEY"] == "u" * 24
+    theirs = plan_stack(options(tmp_path), {"AESOP_REASONER_LLM_BASE_URL": "http://x/v1",
+                                            "AESOP_REASONER_LLM_API_KEY": "sk-theirs"}, "t" * 24)
+    assert theirs.services[1].env["AESOP_REASONER_LLM_API_KEY"] == "sk-theirs"

@@ -41,6 +41,11 @@ OpenAI's API does). When ``response_format`` asks for JSON (``json_object`` /
 ``json_schema``) the content is ``{"reasoning": str, "answer": int}``, its keys in the
 order of the schema's properties, as a grammar-bound server writes them.
 
+With a key (the service's admin token, ``AESOP_ADMIN_TOKEN`` or ``_FILE``: the one the
+reasoner holds as its ``AESOP_REASONER_LLM_API_KEY``), every route but the ops ones wants
+``Authorization: Bearer <key>``, as OpenAI's API does (401 ``invalid_api_key`` otherwise):
+no other local process holds the server.
+
 Run: ``python -m tools.fakes.llm --port 8010 [--profile bimodal]``; every
 flag also from ``AESOP_FAKE_LLM_*`` (``AESOP_FAKE_LLM_HOST``, ``AESOP_FAKE_LLM_PORT`` too).
 """
@@ -64,10 +69,11 @@ from typing import Any, Literal, cast
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 from prometheus_client import CollectorRegistry, Counter, Gauge
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
+from starlette.middleware.base import BaseHTTPMiddleware, RequestResponseEndpoint
 
-from shared.http import error_response, install_error_handlers, ops_router
+from shared.http import OPS_PATHS, error_response, install_error_handlers, ops_router, same_token
 from shared.settings import ServiceSettings
 
 Profile = Literal["fixed", "normal", "bimodal", "stall"]
@@ -476,10 +482,30 @@ def _chunks(text: str, n: int = 8) -> list[str]:
     return ["".join(pieces[i:i + size]) for i in range(0, len(pieces), size)]
 
 
-def create_app(config: FakeLLMConfig) -> FastAPI:
-    """The fake server; all state (RNG, counters, registry) lives in this app."""
+class KeyGuard(BaseHTTPMiddleware):
+    """Every route but the ops ones wants ``Authorization: Bearer <key>``."""
+
+    def __init__(self, app: Any, key: SecretStr) -> None:
+        super().__init__(app)
+        self.key = key
+
+    async def dispatch(self, request: Request, call_next: RequestResponseEndpoint
+                       ) -> Response:
+        if request.url.path not in OPS_PATHS:
+            scheme, _, given = request.headers.get("authorization", "").partition(" ")
+            if scheme.lower() != "bearer" or not same_token(given.strip(), self.key):
+                return error_response(401, "invalid_api_key",
+                                      "a valid 'Authorization: Bearer <key>' is missing")
+        return await call_next(request)
+
+
+def create_app(config: FakeLLMConfig, api_key: SecretStr | None = None) -> FastAPI:
+    """The fake server; all state (RNG, counters, registry) lives in this app. With
+    ``api_key``, every route but the ops ones wants it as its bearer key."""
     app = FastAPI(title="aesop fake LLM", version="1")
     install_error_handlers(app)
+    if api_key is not None:
+        app.add_middleware(KeyGuard, key=api_key)
     registry = CollectorRegistry()
     stats = Stats(registry)
     rng = random.Random(config.seed)
@@ -665,7 +691,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 class FakeLLMServiceSettings(ServiceSettings):
-    """Host and port (``AESOP_FAKE_LLM_HOST``, ``_PORT``; 8010 by default), log level."""
+    """Host and port (``AESOP_FAKE_LLM_HOST``, ``_PORT``; 8010 by default), log level; the
+    admin token is the key every request wants."""
 
     model_config = SettingsConfigDict(env_prefix="AESOP_FAKE_LLM_", extra="ignore",
                                       validate_by_name=True)
@@ -687,7 +714,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"fake-llm: {exc}", file=sys.stderr)
         return 2
     # Not shared.http.serve: a stalled request must not hold shutdown for long.
-    uvicorn.run(create_app(config), host=settings.host, port=settings.port,
+    uvicorn.run(create_app(config, settings.admin_token), host=settings.host, port=settings.port,
                 log_level=settings.log_level, access_log=False, timeout_graceful_shutdown=2)
     return 0
 

@@ -23,8 +23,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     rc.set_defaults(func=cmd_zenoh_router_config)
     cr = zsub.add_parser("credentials", help="docker compose's secrets, made anew: a password "
                          "for every Zenoh user (the router's users.txt, <user>.password), "
-                         "the admin token (admin-token) and PostgreSQL's (postgres.password), "
-                         "all 0600")
+                         "the admin token (admin-token), PostgreSQL's (postgres.password) and "
+                         "the LLM server's key (llm.key), all 0600")
     cr.add_argument("folder", type=Path, help="e.g. deploy/secrets (compose reads it)")
     cr.add_argument("--robot", action="append", default=None,
                     help="a robot to make a user for (repeatable; robot0)")
@@ -203,7 +203,7 @@ def cmd_zenoh_credentials(args: argparse.Namespace) -> int:
         raise CliError(f"cannot write the credentials into {args.folder}: {exc}") from None
     owned = f", owned by {args.owner[0]}:{args.owner[1]}" if args.owner else ""
     print(f"wrote {args.folder}/users.txt (the router's), a password file for each of "
-          f"{', '.join(users)}, admin-token and postgres.password (0600{owned})",
+          f"{', '.join(users)}, admin-token, postgres.password and llm.key (0600{owned})",
           file=sys.stderr)
     return 0
 

@@ -8,8 +8,8 @@ vehicle (``control-<id>``, ``sim-<id>``: the base services with that robot's id,
 Zenoh users, ``control-<id>`` and ``robot-<id>``, secrets and Zenoh IDs, the host ports 100
 apart; every loop at the fleet's rate), and from two detector replicas on, the replicas
 (``embedding-<j>``, each with its own volume) and PostgreSQL (``aesop-postgres:15``, made
-offline by ``make image``, or ``AESOP_POSTGRES_IMAGE``; its password a secret file) they share; the router mounts the
-fleet's ACL::
+offline by ``make image``, or ``AESOP_POSTGRES_IMAGE``; its password a secret file) they
+share; the router mounts the fleet's ACL::
 
     aesop zenoh fleet-compose --robots 3 --replicas 2 > deploy/compose.fleet.yml
     aesop zenoh router-config --robot robot0 --robot robot1 --robot robot2 \\
@@ -48,6 +48,7 @@ TOKEN_FILE = "admin-token"  # every service's admin token, AESOP_ADMIN_TOKEN_FIL
 TOKEN_SECRET = "admin-token"  # its name in docker-compose.yml
 POSTGRES_FILE = "postgres.password"  # the detectors' PostgreSQL (compose.fleet)
 PGPASS_FILE = "postgres.pgpass"  # the same, as libpq reads it (passfile)
+LLM_KEY_FILE = "llm.key"  # the key the reasoner presents to its LLM server
 
 
 def write_secrets(folder: Path, robots: Sequence[str], *,
@@ -56,15 +57,18 @@ def write_secrets(folder: Path, robots: Sequence[str], *,
     dictionary and each user's password (:func:`.acl.write_credentials`), the admin token
     and PostgreSQL's password, each 0600; with ``owner`` (uid, gid) chowned to it, so that
     the image's user reads them (compose bind-mounts a file secret with the host's owner and
-    mode). Returns the Zenoh users. ``PermissionError`` when the chown is not allowed."""
+    mode), and the key the reasoner presents to the LLM server (the fake LLM and llama.cpp's
+    want it; for a cloud server, write its key there instead). Returns the Zenoh users.
+    ``PermissionError`` when the chown is not allowed."""
     users = users_of(robots, ros2=True)  # the shipped router has the bridge
     write_credentials(folder, new_passwords(users))
     write_private(folder / TOKEN_FILE, secrets.token_urlsafe(32) + "\n")
     postgres = secrets.token_urlsafe(24)
     write_private(folder / POSTGRES_FILE, postgres + "\n")
     write_private(folder / PGPASS_FILE, f"*:*:*:aesop:{postgres}\n")
+    write_private(folder / LLM_KEY_FILE, secrets.token_urlsafe(32) + "\n")
     if owner is not None:
-        names = ["users.txt", TOKEN_FILE, POSTGRES_FILE, PGPASS_FILE,
+        names = ["users.txt", TOKEN_FILE, POSTGRES_FILE, PGPASS_FILE, LLM_KEY_FILE,
                  *(f"{u}.password" for u in users)]
         for name in names:
             os.chown(folder / name, *owner)

@@ -324,9 +324,11 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
     if postgres is not None:  # before the replicas: they open their store as they start
         children = (ChildSpec(POSTGRES, postgres.argv(), ports.postgres, inherited,
                               ready="tcp"), *children)
-    if local is not None:  # it accepts connections once the model is loaded
+    if local is not None:  # it accepts connections once the model is loaded; its key (llama.cpp's
+        # server reads API_KEY) is the stack's token, which the reasoner holds
         argv = server_argv(local, ports.fake_llm, threads=STACK_THREADS)
-        children = (ChildSpec(LOCAL_LLM, argv, ports.fake_llm, inherited, ready="tcp"),
+        children = (ChildSpec(LOCAL_LLM, argv, ports.fake_llm,
+                              {**inherited, "API_KEY": given or token}, ready="tcp"),
                     *children)
     return StackPlan(hub=hub, services=children, token=given or token,
                      token_generated=not given, fake_llm=fake, local_model=local,
@@ -444,8 +446,9 @@ def _reasoner(environ: Mapping[str, str], local: LocalModel | None, fake: bool, 
               forced: dict[str, Any]) -> ReasonerSettings:
     """The reasoner's settings: how it reaches the LLM server the stack starts, if any."""
     llm: dict[str, Any] = {}
-    if fake or local is not None:
+    if fake or local is not None:  # the stack's own server: its key is the stack's token
         llm["llm_base_url"] = f"http://127.0.0.1:{ports.fake_llm}/v1"
+        llm["llm_api_key"] = forced["admin_token"]
     if local is not None:  # its model, asked as that server wants (the environment's knobs win)
         asked = read_settings(ReasonerSettings, environ).request.model_dump(exclude_unset=True)
         llm |= {"llm_model": local.alias, "request": {**REASONER_SETTINGS["request"], **asked}}
