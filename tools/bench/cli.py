@@ -119,6 +119,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="each phase, alone and flooded (default 15)")
     bf.add_argument("--direct", action="store_true",
                     help="no hub: the robots reach the service as peers (its own defence only)")
+    bf.add_argument("--same-text", action="store_true",
+                    help="robot1 floods one fixed observation (the detector's memo makes it "
+                         "nearly free) instead of distinct ones")
     _model_option(bf)
     bf.add_argument("--json", action="store_true")
     bf.set_defaults(func=cmd_bench_fairness)
@@ -329,7 +332,7 @@ def cmd_bench_fairness(args: argparse.Namespace) -> int:
         raise CliError("--flood-hz, --rate and --seconds must be positive")
     return _with_processes("fairness", lambda: run_fairness_bench(
         seconds=args.seconds, rate_hz=args.rate, flood_hz=args.flood_hz, direct=args.direct,
-        model=args.model, table_out=not args.json), args.json)
+        model=args.model, table_out=not args.json, same_text=args.same_text), args.json)
 
 
 def cmd_bench_ros2(args: argparse.Namespace) -> int:

@@ -1,15 +1,22 @@
 """``aesop bench fairness``: one robot floods its observations; does another still get
 its verdicts, and how late?
 
-It starts the stack's hub (``python -m tools.stack.router``: a Zenoh router with the
-stack's per-session observation rate, no users) and ``aesop serve embedding`` (the
-bundled model, the hardware scene's calibrated cache, as ``aesop bench bus`` builds
-it) as child processes. Two robots are client sessions of the hub, each its own:
-robot0 publishes the nominal scene at ``rate_hz`` and times each verdict (publish to
-arrival here, both on this process's ``time.monotonic``), first alone for
-``seconds`` (the baseline), then for another ``seconds`` while robot1 publishes at
-``flood_hz`` on a thread of its own. A robot0 observation without a verdict
-``LOST_AFTER_S`` after the last one was published is lost.
+It starts the stack's hub (``python -m tools.stack.router`` as ``aesop up`` runs it:
+every session authenticates, the stack's access-control list, the per-session
+observation rate) and ``aesop serve embedding`` (the bundled model, the hardware
+scene's calibrated cache, as ``aesop bench bus`` builds it; the ``embedding`` user) as
+child processes. Two robots are client sessions of the hub, each with its own
+credential ``robot-<id>``, as a robot's camera is: robot0 publishes the nominal scene
+at ``rate_hz`` and times each verdict (publish to arrival here, both on this process's
+``time.monotonic``), first alone for ``seconds`` (the baseline), then for another
+``seconds`` while robot1 publishes at ``flood_hz`` on a thread of its own. A robot0
+observation without a verdict ``LOST_AFTER_S`` after the last one was published is
+lost.
+
+The flood is of **distinct** observations by default: the nominal scene with one more
+object, numbered afresh in every message, so no text (and no detection phrase) repeats
+and the detector's vector memo cannot make one nearly free. ``same_text`` floods one
+fixed observation instead (the bench's first version, which the memo made cheap).
 
 With ``direct`` there is no hub: the service and both robots are peers of this
 process's session, so only the detector's own per-robot inbox stands between the
@@ -45,6 +52,7 @@ from shared.settings import BusSettings
 from shared.tables import table
 from tools.bench.bus import CACHE, WAIT_S, BenchError, embedding_process, pick_scenes, say
 from tools.scenes.hardware import build_scene_cache, camera_observation
+from tools.stack.acl import new_passwords, robot_user, users_of, write_credentials
 
 QUIET, FLOODER = "robot0", "robot1"
 LOST_AFTER_S = 5.0  # a verdict later than this after the last observation is lost
@@ -59,12 +67,14 @@ class Timed:
         self.seq = 1
         self.sent: dict[int, float] = {}
         self.arrived: dict[int, float] = {}
+        self.inside: dict[int, float] = {}  # the verdict's own latency_ms: in the detector
         self._sub = bus.subscribe(topics.anomaly(QUIET), AnomalyVerdict, maxsize=8192)
         self.task = asyncio.create_task(self._collect())
 
     async def _collect(self) -> None:
         async for got in self._sub:
             self.arrived.setdefault(got.message.seq, got.received_at)
+            self.inside.setdefault(got.message.seq, got.message.latency_ms)
 
     async def phase(self, seconds: float, rate_hz: float) -> list[int]:
         """Observations at ``rate_hz`` for ``seconds``; their seqs."""
@@ -89,6 +99,12 @@ class Timed:
         got = [(self.arrived[s] - self.sent[s]) * 1000.0 for s in seqs if s in self.arrived]
         return got, len(seqs) - len(got)
 
+    def in_detector(self, seqs: list[int]) -> list[float]:
+        """The verdicts' own ``latency_ms``: from the worker starting on each observation
+        (taken from its robot's queue) to its verdict, the embedding batches it waited for
+        included; the rest of the round trip is the bus and the queue."""
+        return [self.inside[s] for s in seqs if s in self.inside]
+
     async def close(self) -> None:
         self._sub.close()
         self.task.cancel()
@@ -96,15 +112,25 @@ class Timed:
             await self.task
 
 
-def flood(bus: Bus, text: str, hz: float, stop: threading.Event) -> int:
-    """robot1's flood at ``hz`` until ``stop``; how many it published. The same encoded
-    observation each time, through one declared publisher, as a flooding robot would send
-    it: the flood's own cost on these shared cores is kept as small as it can be."""
-    payload = camera_observation(text, 1, FLOODER).encode()
+def flood_payloads(text: str, n: int, *, same_text: bool) -> list[bytes]:
+    """robot1's encoded observations, made before the flood starts (building each message
+    as it is sent cost the service more CPU, on these shared cores, than the flood did):
+    ``n`` distinct ones, the scene ``text`` with one more object numbered afresh in each
+    (a text, and a detection phrase, no cache or memo holds), or one of ``text`` alone."""
+    if same_text:
+        return [camera_observation(text, 1, FLOODER).encode()]
+    return [camera_observation(f"{text}\na marker numbered {i} on the ground", i,
+                               FLOODER).encode() for i in range(1, n + 1)]
+
+
+def flood(bus: Bus, payloads: list[bytes], hz: float, stop: threading.Event) -> int:
+    """robot1's flood at ``hz`` until ``stop``; how many it published. The ``payloads`` in
+    turn (again from the first if the flood outlasts them), through one declared
+    publisher, as a flooding robot would send them."""
     publisher = bus.session.declare_publisher(topics.observation(FLOODER))
     period, sent, start = 1.0 / hz, 0, time.monotonic()
     while not stop.is_set():
-        publisher.put(payload)
+        publisher.put(payloads[sent % len(payloads)])
         sent += 1
         delay = start + sent * period - time.monotonic()
         if delay > 0:
@@ -122,8 +148,11 @@ def spread(ms: list[float]) -> dict[str, float | int | None]:
 
 
 @contextlib.contextmanager
-def hub_process(endpoint: str) -> Any:
-    proc = subprocess.Popen([sys.executable, "-m", "tools.stack.router", "--listen", endpoint],
+def hub_process(endpoint: str, users: Path) -> Any:
+    """``aesop up``'s hub for the two robots: the ``users`` dictionary, the stack's ACL and
+    its per-session observation rate (tools/stack/acl.py)."""
+    proc = subprocess.Popen([sys.executable, "-m", "tools.stack.router", "--listen", endpoint,
+                             "--users", str(users), "--robot", QUIET, "--robot", FLOODER],
                             stderr=subprocess.PIPE, text=True)
     try:
         assert proc.stderr is not None
@@ -136,26 +165,37 @@ def hub_process(endpoint: str) -> Any:
         proc.wait(10)
 
 
-def robot_session(endpoint: str, robot: str, *, client: bool) -> Bus:
-    mode = "client" if client else "peer"
-    return Bus.open(BusSettings(robot=robot, zenoh_mode=mode, zenoh_connect=[endpoint]),
-                    f"bench-{robot}")
+def robot_session(endpoint: str, robot: str, passwords: dict[str, str] | None) -> Bus:
+    """A robot's session: a client of the hub as ``robot-<id>`` (``passwords``), or a
+    peer (None: no hub)."""
+    if passwords is None:
+        settings = BusSettings(robot=robot, zenoh_mode="peer", zenoh_connect=[endpoint])
+    else:
+        user = robot_user(robot)
+        settings = BusSettings(robot=robot, zenoh_mode="client", zenoh_connect=[endpoint],
+                               zenoh_user=user, zenoh_password=passwords[user])
+    return Bus.open(settings, f"bench-{robot}")
 
 
 async def _bench(seconds: float, rate_hz: float, flood_hz: float, direct: bool,
-                 model: str) -> dict[str, Any]:
+                 model: str, same_text: bool) -> dict[str, Any]:
     token = secrets.token_urlsafe(24)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with tempfile.TemporaryDirectory(prefix="aesop-bench-fairness-") as tmp, \
             contextlib.ExitStack() as stack:
+        passwords: dict[str, str] | None = None
+        extra: dict[str, str] = {}
         if direct:  # this process's session is the meeting point
             stack.enter_context(Bus.open(BusSettings(zenoh_listen=[endpoint]), "bench"))
         else:
-            stack.enter_context(hub_process(endpoint))
-        extra = {} if direct else {"AESOP_ZENOH_MODE": "client"}
+            passwords = new_passwords(users_of([QUIET, FLOODER]))
+            zenoh_dir = Path(tmp) / "zenoh"
+            stack.enter_context(hub_process(endpoint, write_credentials(zenoh_dir, passwords)))
+            extra = {"AESOP_ZENOH_MODE": "client", "AESOP_ZENOH_USER": "embedding",
+                     "AESOP_ZENOH_PASSWORD_FILE": str(zenoh_dir / "embedding.password")}
         service = stack.enter_context(embedding_process(Path(tmp), endpoint, token, **extra))
-        quiet = stack.enter_context(robot_session(endpoint, QUIET, client=not direct))
-        loud = stack.enter_context(robot_session(endpoint, FLOODER, client=not direct))
+        quiet = stack.enter_context(robot_session(endpoint, QUIET, passwords))
+        loud = stack.enter_context(robot_session(endpoint, FLOODER, passwords))
         say(f"embedding up on Zenoh {endpoint} ({'peers' if direct else 'through the hub'})")
         async with EmbeddingClient(service.url, token=token, timeout_s=WAIT_S * 5) as detector:
             info, _ = await build_scene_cache(detector, CACHE, model=model, say=say)
@@ -166,10 +206,13 @@ async def _bench(seconds: float, rate_hz: float, flood_hz: float, direct: bool,
                 say(f"baseline: {QUIET} alone at {rate_hz:g} Hz for {seconds:g} s")
                 base = await timed.phase(seconds, rate_hz)
                 await timed.settle(base)
-                say(f"flood: {FLOODER} at {flood_hz:g} Hz meanwhile")
+                payloads = flood_payloads(nominal, round(flood_hz * (seconds + 1.0)),
+                                          same_text=same_text)
+                say(f"flood: {FLOODER} at {flood_hz:g} Hz meanwhile, "
+                    f"{'one text' if same_text else 'distinct texts'}")
                 stop = threading.Event()
                 flooding = asyncio.create_task(
-                    asyncio.to_thread(flood, loud, nominal, flood_hz, stop))
+                    asyncio.to_thread(flood, loud, payloads, flood_hz, stop))
                 await asyncio.sleep(0.5)  # the flood is on before robot0 is timed
                 flooded = await timed.phase(seconds, rate_hz)
                 stop.set()
@@ -186,7 +229,10 @@ async def _bench(seconds: float, rate_hz: float, flood_hz: float, direct: bool,
         ratio = round(float(flooding_["p99"]) / float(baseline["p99"]), 2)
     return {"seconds": seconds, "rate_hz": rate_hz, "flood_hz": flood_hz,
             "through": "peers" if direct else "hub", "model": info.model,
+            "flood_texts": "one text" if same_text else "distinct texts",
             "baseline_ms": baseline, "flood_ms": flooding_,
+            "detector_ms": {"alone": spread(timed.in_detector(base)),
+                            "flood": spread(timed.in_detector(flooded))},
             "baseline_p99_ms": baseline["p99"], "flood_p99_ms": flooding_["p99"],
             "p99_ratio": ratio, "lost": flood_lost, "baseline_lost": base_lost,
             "flood_sent": sent, "flood_achieved_hz": round(sent / (seconds + 0.5), 1),
@@ -216,10 +262,11 @@ def _dropped(metrics: str) -> dict[str, float]:
 
 def run_fairness_bench(seconds: float = 15.0, rate_hz: float = 10.0, flood_hz: float = 2000.0,
                        direct: bool = False, model: str | None = None,
-                       table_out: bool = True) -> dict[str, Any]:
+                       table_out: bool = True, same_text: bool = False) -> dict[str, Any]:
     if not (seconds > 0 and rate_hz > 0 and flood_hz > 0):
         raise ValueError("seconds, rate_hz and flood_hz must be positive")
-    result = asyncio.run(_bench(seconds, rate_hz, flood_hz, direct, model or SERVICE_MODEL))
+    result = asyncio.run(_bench(seconds, rate_hz, flood_hz, direct, model or SERVICE_MODEL,
+                                same_text))
     if table_out:
         print_table(result)
     return result
@@ -229,11 +276,16 @@ def print_table(result: dict[str, Any]) -> None:
     rows = [{"robot0's verdicts [ms]": label, **result[key],
              "lost": result["baseline_lost" if key == "baseline_ms" else "lost"]}
             for label, key in (("alone", "baseline_ms"),
-                               (f"robot1 flooding at {result['flood_hz']:g} Hz", "flood_ms"))]
+                               (f"robot1 flooding {result['flood_texts']} at "
+                                f"{result['flood_hz']:g} Hz", "flood_ms"))]
     verdict = "met" if result["met"] else "MISSED"
     print(table(f"fairness through the {result['through']}: robot0 at {result['rate_hz']:g} Hz, "
                 f"{result['seconds']:g} s a phase ({result['model']}); p99 ratio "
                 f"{result['p99_ratio']} (target <= {TARGET_RATIO:g}, none lost): {verdict}",
                 rows))
+    inside = result["detector_ms"]
     print(f"robot1 published {result['flood_sent']} ({result['flood_achieved_hz']} Hz); "
-          f"dropped by the detector: {result['dropped'] or 'none'}")
+          f"dropped by the detector: {result['dropped'] or 'none'}; in the detector (the "
+          f"verdicts' latency_ms) p50/p99: alone {inside['alone']['p50']}/"
+          f"{inside['alone']['p99']} ms, flooded {inside['flood']['p50']}/"
+          f"{inside['flood']['p99']} ms")
