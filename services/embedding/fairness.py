@@ -9,11 +9,20 @@ published at 2 kHz). Here each robot has
   second's worth); past it an observation is refused before it is even decoded;
 * a **queue** of at most ``depth`` observations; a full queue drops its oldest (the
   newest scene matters most to a control loop);
-* at most ``per_robot`` observations **being scored** at once.
+* at most ``per_robot`` observations **being scored** at once: one by default.
 
 :meth:`FairInbox.take` hands out the next observation round-robin over the robots
 that have one waiting and a free slot, so a robot's wait for a verdict does not grow
-with another robot's load. Every refusal is counted per robot and reason
+with another robot's load. What is being scored at once is what the embedding batches
+are made of (the service's micro-batcher puts every observation that arrives while a
+batch is embedded into the next one), so ``per_robot`` is also each robot's share of
+every batch. With one, an observation waits for the batch being embedded when it is
+taken, which holds at most one observation of each other robot, and is embedded in the
+next, beside at most one of each other robot's again (none of a robot whose one was in
+the batch before: its next is taken only once that one is done). Issue 43, finding 10:
+with 4 a robot flooding distinct texts (which the vector memo cannot make free) had 4
+in those batches, and another robot's verdicts waited for all of them (p50 5-7 ms ->
+156-178 ms; ``aesop bench fairness``). Every refusal is counted per robot and reason
 (``rate``, ``full``; and ``robots``, counted under :data:`OTHER`: past ``max_robots``
 robots tracked, the least recently seen idle one is forgotten to make room, or the
 newcomer refused if none is idle), so the counters, and the metrics' labels, stay
@@ -35,7 +44,7 @@ from typing import Generic, Literal, TypeVar
 T = TypeVar("T")
 Reason = Literal["rate", "full", "robots"]
 DEPTH = 32  # observations waiting per robot
-PER_ROBOT = 4  # observations of one robot being scored at once
+PER_ROBOT = 1  # observations of one robot being scored at once: its share of a batch
 OTHER = "(other)"  # the robot a refused newcomer is counted under
 
 

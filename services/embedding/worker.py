@@ -7,8 +7,10 @@ share one embedding call) and answered with an ``AnomalyVerdict`` on
 With detector replicas sharing a PostgreSQL store, each scores only its own robots
 (rendezvous hashing over the live replicas, :mod:`.replicas`), so an observation is
 answered once. Observations wait per robot and are scored in turn (:mod:`.fairness`): a robot past
-its rate is refused before its message is decoded, so one robot's flood neither
-delays nor drops another's verdicts; refusals are counted per robot
+its rate is refused before its message is decoded, and a robot has one observation being
+scored at a time, so it has at most one in any embedding batch, and one robot's flood
+(distinct texts or not) neither drops another's verdicts nor delays them by more than
+one of its embeddings; refusals are counted per robot
 (``aesop_embedding_observations_dropped_total``) and said, at most every 10 s, in an
 ``observations_dropped`` alarm on that robot's event key.
 

@@ -5,6 +5,11 @@ busy machine is slower still) and two robots on a real Zenoh bus: robot1 floods 
 own observation key at about 2 kHz while robot0 publishes at 10 Hz. Every one of
 robot0's observations gets its verdict; robot1's surplus is refused at its own
 rate, counted per robot in /metrics and said in an alarm event on robot1's key.
+
+Issue 43, finding 10: a flood of **distinct** texts (which the vector memo cannot make
+free) delayed the other robot's verdicts by several embeddings: the batch another
+robot's observation waits for, and its own, held up to 4 of the flood's. The embedding
+calls are counted: at most one of the flood's is computed before the other's verdict.
 """
 
 from __future__ import annotations
@@ -12,7 +17,7 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -20,16 +25,17 @@ import pytest
 from prometheus_client import CollectorRegistry, generate_latest
 
 from services.embedding.entries import Item
+from services.embedding.fairness import FairInbox
 from services.embedding.loading import EmbedderPool
 from services.embedding.metrics import EmbeddingMetrics
 from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingSettings
 from services.embedding.worker import DetectorWorker
 from shared import topics
-from shared.bus import Bus
+from shared.bus import Bus, Received
 from shared.messages import AnomalyVerdict, Event, Observation
 from tests.fakes.hash_embedder import HashEmbedder
-from tests.zenoh_peers import async_wait_until, routed
+from tests.zenoh_peers import DEADLINE_S, async_wait_until, routed
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -117,3 +123,87 @@ async def test_a_flooding_robot_does_not_starve_another(service: CacheService, l
         t.cancel()
     await worker.stop()
     await asyncio.wait_for(task, 10)
+
+
+class GatedEmbedder(HashEmbedder):
+    """Records the texts of every embedding call; while ``gate`` is shut, the call waits
+    for it (on the compute thread), as a long embedding would."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.batches: list[list[str]] = []
+        self.gate = threading.Event()
+        self.gate.set()
+        self.waiting = threading.Event()  # a call is waiting at the shut gate
+
+    def _encode(self, batch: list[str]) -> np.ndarray:
+        self.batches.append(list(batch))
+        if not self.gate.is_set():
+            self.waiting.set()
+            self.gate.wait(DEADLINE_S)
+        return super()._encode(batch)
+
+
+class SeenInbox(FairInbox[Received[Observation]]):
+    """The worker's inbox, noting the robots whose observations it was handed."""
+
+    def __init__(self) -> None:
+        super().__init__(rate_hz=10_000.0, max_robots=8)
+        self.seen: set[str] = set()
+
+    def put(self, robot: str, item: Received[Observation]) -> bool:
+        self.seen.add(robot)
+        return super().put(robot, item)
+
+
+@pytest.fixture
+def gated(tmp_path: Path) -> Iterator[tuple[EmbeddingSettings, GatedEmbedder]]:
+    embedder = GatedEmbedder()
+    yield EmbeddingSettings(data_dir=tmp_path, fsync=False, zenoh_worker=False), embedder
+    embedder.gate.set()  # never leave the compute thread waiting
+
+
+async def test_a_flood_of_distinct_texts_costs_another_robot_one_embedding_at_most(
+        gated: tuple[EmbeddingSettings, GatedEmbedder], listener: Bus,
+        connector: Bus) -> None:
+    settings, embedder = gated
+    svc = CacheService(settings, embedders=EmbedderPool(loader=lambda _: embedder))
+    await svc.start()
+    await svc.create("scene", model="hash", k=1)
+    await svc.add("scene", [Item(text=t) for t in NOMINAL])
+    await svc.calibrate("scene", "loo-quantile", alpha=0.9)
+    # no rate limit in the way: what is measured is the scheduling of what was admitted
+    worker = DetectorWorker(svc, listener, cache="scene", robot_hz=10_000)
+    inbox = worker.inbox = SeenInbox()
+    task = asyncio.create_task(worker.run())
+    verdicts = connector.subscribe(topics.anomaly("robot0"), AnomalyVerdict, maxsize=16)
+    await routed(connector, listener)
+    await routed(listener, connector)
+    embedder.batches.clear()
+
+    flood = [f"frame {i} a red box on the ground near a drill" for i in range(1000)]
+    flooding = set(flood)
+    embedder.gate.clear()  # robot1's first observation is being embedded, and takes long
+    connector.publish(topics.observation("robot1"),
+                      Observation(robot="robot1", seq=0, text=flood[0]))
+    await asyncio.to_thread(embedder.waiting.wait, DEADLINE_S)
+    for seq, text in enumerate(flood[1:], 1):  # the rest of the flood, then robot0's one
+        connector.publish(topics.observation("robot1"),
+                          Observation(robot="robot1", seq=seq, text=text))
+    connector.publish(topics.observation("robot0"),
+                      Observation(robot="robot0", seq=1, text=NOMINAL[2]))
+    await async_wait_until(lambda: "robot0" in inbox.seen, "robot0's observation")
+    embedder.gate.set()
+    verdict = await asyncio.wait_for(anext(verdicts), DEADLINE_S)
+    assert verdict.message.seq == 1 and verdict.message.is_anomaly is False
+
+    mine = next(i for i, b in enumerate(embedder.batches) if NOMINAL[2] in b)
+    flooded = [sum(t in flooding for t in b) for b in embedder.batches]
+    # robot0's observation waited for the one of robot1's being embedded when it came,
+    # and no other: its own batch holds none of the flood's
+    assert sum(flooded[:mine + 1]) == 1, embedder.batches[:mine + 1]
+    assert max(flooded) == 1  # no batch holds two of one robot's observations
+    verdicts.close()
+    await worker.stop()
+    await asyncio.wait_for(task, DEADLINE_S)
+    await svc.close()

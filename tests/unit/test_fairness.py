@@ -34,6 +34,25 @@ def test_a_flooding_robot_waits_its_turn_behind_a_quiet_one() -> None:
     assert inbox.take() == ("robot1", 2)
 
 
+def test_by_default_a_flooding_robot_has_one_observation_in_any_batch() -> None:
+    """Issue 43, finding 10: the observations being scored at once are the embedding
+    batch; 4 of a robot's at once put 4 of a flood's distinct texts beside (and in the
+    batch before) another robot's one, which waited for all of them. By default a robot
+    has one being scored: whatever batch another robot's observation waits for, or is
+    in, holds at most one of the flood's."""
+    inbox: FairInbox[str] = FairInbox(rate_hz=10_000, max_robots=8, clock=Clock())
+    for i in range(1000):  # robot A floods distinct texts (its queue keeps the newest)
+        offer(inbox, "A", f"A's text {i}")
+    offer(inbox, "B", "B's text")
+    scoring = []
+    while (nxt := inbox.take()) is not None:  # all that may be scored at once
+        scoring.append(nxt)
+    assert scoring == [("A", "A's text 968"), ("B", "B's text")]
+    inbox.done("A")
+    assert inbox.take() == ("A", "A's text 969")  # A's next, once its one was scored
+    assert inbox.take() is None
+
+
 def test_a_full_queue_drops_its_own_oldest_and_counts_it() -> None:
     inbox: FairInbox[int] = FairInbox(rate_hz=1000, max_robots=8, depth=4, per_robot=1,
                                       clock=Clock())
