@@ -18,10 +18,13 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from shared.bus import zenoh_config
-from shared.messages import ControlState, Observation
+from shared import topics
+from shared.bus import Bus, zenoh_config
+from shared.messages import ControlState, Event, Observation
+from shared.process import free_port
 from shared.settings import BusSettings
 from tools.recording.mcapfile import FlightWriter, read_messages
+from tools.recording.record import record
 from tools.recording.replay import replay as replay_file
 
 pytestmark = pytest.mark.timeout(120)
@@ -50,6 +53,7 @@ class Heard:
     """Everything that arrives on ``aesop/**`` at a listening peer, in order."""
 
     def __init__(self, endpoint: str) -> None:
+        self.endpoint = endpoint
         self.got: list[tuple[str, bytes]] = []
         self._lock = threading.Lock()
         self.session = zenoh.open(zenoh_config(BusSettings(zenoh_listen=[endpoint])))
@@ -136,3 +140,72 @@ def test_an_unknown_topic_is_named(flight: Path) -> None:
     proc = replay(str(flight), "--topics", "nonsense")
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 2 and "nonsense" in err and "Traceback" not in err
+
+
+def recorded_flight(endpoint: str, listener: Bus, out: Path) -> Path:
+    """A flight recorded by ``aesop record``'s recorder from a live peer: observations and
+    states, the control loop's alarms and the detector's events, each source on its own
+    key (``aesop/<robot>/event/<source>``)."""
+    stop, ready, lines = threading.Event(), threading.Event(), []
+    thread = threading.Thread(target=record, args=(BusSettings(zenoh_connect=[endpoint]), out),
+                              kwargs={"stop": stop, "say": lines.append, "every_s": 0.05,
+                                      "ready": ready}, daemon=True)
+    thread.start()
+    assert ready.wait(30)
+
+    def recorded() -> int:
+        said = [line for line in lines if line.startswith("recording: ")]
+        return int(said[-1].split()[1]) if said else 0
+
+    deadline = time.monotonic() + 30
+    while recorded() == 0:  # the route is up
+        listener.publish(topics.observation("robot0"), Observation(seq=0, text="a probe"))
+        assert time.monotonic() < deadline
+        time.sleep(0.1)
+    sent = recorded()
+    for seq in range(1, 21):
+        listener.publish(topics.observation("robot0"), Observation(seq=seq, text=f"look {seq}"))
+        listener.publish(topics.state("robot0"), ControlState(
+            t=seq * 0.1, x=(0.0,) * 12, u=(9.81, 0, 0, 0), mode="nominal"))
+        sent += 2
+        if seq % 5 == 0:
+            listener.publish(topics.event("robot0", "control"), Event(
+                source="control", kind="anomaly", severity="warning", message=f"alarm {seq}"))
+            listener.publish(topics.event("robot0", "embedding"), Event(
+                source="embedding", kind="detector", message=f"flagged {seq}"))
+            sent += 2
+        time.sleep(0.01)
+    deadline = time.monotonic() + 30
+    while recorded() < sent:
+        assert time.monotonic() < deadline, (recorded(), sent)
+        time.sleep(0.05)
+    stop.set()
+    thread.join(30)
+    return out
+
+
+def test_a_recorded_flights_events_are_replayed(endpoint: str, listener: Bus,
+                                                tmp_path: Path) -> None:
+    """Issue 44: a replayed flight lost every event (the dashboard showed no alarm)."""
+    path = recorded_flight(endpoint, listener, tmp_path / "flight.mcap")
+    recorded = [(r.key, r.data) for r in read_messages(path)]
+    events = [(key, data) for key, data in recorded if "/event/" in key]
+    assert {key for key, _ in events} == {"aesop/robot0/event/control",
+                                          "aesop/robot0/event/embedding"}
+    assert len(events) == 8
+
+    heard = Heard(f"tcp/127.0.0.1:{free_port()}")
+    try:
+        proc = replay(str(path), "--connect", heard.endpoint, "--speed", "4")
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == 0, err
+        assert heard.got == recorded  # every message, the events among them, in order
+        assert f"replayed {len(recorded)} messages" in err
+
+        proc = replay(str(path), "--connect", heard.endpoint, "--speed", "4", "--topics",
+                      "event")
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == 0, err
+        assert heard.got[len(recorded):] == events
+    finally:
+        heard.close()

@@ -116,6 +116,11 @@ def test_replay_keeps_the_recorded_timing_scaled() -> None:
     keep = topic_filter(["observation", "reasoner/request"])
     assert keep("aesop/robot0/observation") and keep("aesop/r1/reasoner/request")
     assert not keep("aesop/robot0/state") and not keep("aesop/health/embedding")
+    events = topic_filter(["event"])  # one key per source: aesop/<robot>/event/<source>
+    assert events("aesop/robot0/event/control") and events("aesop/r1/event/embedding")
+    assert not events("aesop/robot0/observation")
+    every = topic_filter(None)
+    assert every("aesop/robot0/event/robot") and every("aesop/robot0/vehicle/state")
     with pytest.raises(ValueError, match="nonsense"):
         topic_filter(["nonsense"])
 

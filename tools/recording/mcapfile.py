@@ -65,15 +65,23 @@ def check_topics(wanted: Sequence[str] | None) -> list[str]:
     return list(wanted or MODELS)
 
 
-def model_of(key: str) -> type[Message] | None:
-    """The message type of a concrete robot key (``aesop/robot0/state``), else None."""
+def topic_of(key: str) -> str | None:
+    """The topic (a name in :data:`MODELS`) of a concrete robot key: ``state`` for
+    ``aesop/robot0/state``, ``event`` for any source's ``aesop/robot0/event/control``;
+    else None."""
     parts = key.split("/", 2)
     if len(parts) < 3 or parts[0] != topics.PREFIX or parts[1] == "health":
         return None
     name = parts[2]
     if name.startswith("event/"):  # one key per source
         name = "event"
-    return MODELS.get(name)
+    return name if name in MODELS else None
+
+
+def model_of(key: str) -> type[Message] | None:
+    """The message type of a concrete robot key (``aesop/robot0/state``), else None."""
+    name = topic_of(key)
+    return None if name is None else MODELS[name]
 
 
 def key_expr(who: str, name: str) -> str:

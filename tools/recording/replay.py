@@ -26,7 +26,7 @@ import zenoh
 from shared.bus import zenoh_config
 from shared.settings import BusSettings
 
-from .mcapfile import check_topics, read_messages
+from .mcapfile import check_topics, read_messages, topic_of
 
 Say = Callable[[str], None]
 
@@ -41,9 +41,11 @@ class Replayed:
 
 def topic_filter(wanted: Sequence[str] | None) -> Callable[[str], bool]:
     """Whether a recorded key is one of the ``wanted`` topics (names as in
-    :data:`~.mcapfile.MODELS`; every topic when None)."""
+    :data:`~.mcapfile.MODELS`; every topic when None). Read as the recorder reads it
+    (:func:`~.mcapfile.topic_of`): an event's key names its source,
+    ``aesop/<robot>/event/<source>``, and is the topic ``event``."""
     names = set(check_topics(wanted))
-    return lambda key: len(parts := key.split("/", 2)) == 3 and parts[2] in names
+    return lambda key: topic_of(key) in names
 
 
 def due_s(log_time_ns: int, first_ns: int, speed: float) -> float:
