@@ -205,25 +205,54 @@ class Mapped:
         return self.settings.type
 
 
-def parse_config(text: str, source: str = "config") -> BridgeConfig:
-    """The config in ``text`` (YAML); :class:`ConfigError` names what is wrong."""
+def parse_config(text: str, source: str = "config", *, frame: str | None = None
+                 ) -> BridgeConfig:
+    """The config in ``text`` (YAML); :class:`ConfigError` names what is wrong (``source``,
+    the file, and the field; for YAML that does not parse, its line and column). ``frame``:
+    the frame the stack's control loop flies in (``AESOP_CONTROL_VEHICLE``'s ``frame``),
+    which the odometry's must be: control refuses every state in another."""
     try:
         raw = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{source}: not YAML: {exc}") from None
+        raise ConfigError(_not_yaml(exc, source, text)) from None
     if not isinstance(raw, dict):
         raise ConfigError(f"{source}: expected a mapping at the top")
     try:
-        return BridgeConfig.model_validate(raw)
+        config = BridgeConfig.model_validate(raw)
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"]) or "(top)"
         raise ConfigError(f"{source}: {where}: {first['msg']}") from None
+    odometry = config.inputs.odometry
+    if frame is not None and odometry is not None and odometry.frame != frame:
+        raise ConfigError(f"{source}: inputs.odometry.frame: {odometry.frame!r} is not "
+                          f"{frame!r}, the frame control flies in (AESOP_CONTROL_VEHICLE's "
+                          "frame): control would refuse every state")
+    return config
 
 
-def load_config(path: Path) -> BridgeConfig:
+def _not_yaml(exc: yaml.YAMLError, source: str, text: str) -> str:
+    """One line: ``source:line:column: not YAML: the problem`` (PyYAML's own message names
+    no file, ``"<unicode string>"``, over several lines)."""
+    if isinstance(exc, yaml.MarkedYAMLError) and exc.problem_mark is not None:
+        mark = exc.problem_mark
+        where = f"{source}:{mark.line + 1}:{mark.column + 1}"
+        problem = exc.problem or "a syntax error"
+        if exc.context and exc.context_mark is not None:
+            problem += f" ({exc.context} at line {exc.context_mark.line + 1})"
+        return f"{where}: not YAML: {problem}"
+    if isinstance(exc, yaml.reader.ReaderError):  # a character YAML does not allow
+        line = text.count("\n", 0, exc.position) + 1
+        column = exc.position - text.rfind("\n", 0, exc.position)
+        char = chr(exc.character) if isinstance(exc.character, int) else exc.character
+        return f"{source}:{line}:{column}: not YAML: character {char!r}: {exc.reason}"
+    return f"{source}: not YAML: {' '.join(str(exc).split())}"
+
+
+def load_config(path: Path, *, frame: str | None = None) -> BridgeConfig:
+    """The config in the file at ``path`` (see :func:`parse_config`)."""
     try:
         text = path.read_text()
     except OSError as exc:
         raise ConfigError(f"cannot read {path}: {exc.strerror}") from None
-    return parse_config(text, str(path))
+    return parse_config(text, str(path), frame=frame)

@@ -20,7 +20,7 @@ from services.ros2.config import (
 from shared.messages import MAX_TEXT_CHARS
 from tools import cli
 from tools.stack.acl import MAX_MESSAGE_BYTES, ROS2, ros_keys, stack_acl, users_of
-from tools.stack.up import Ports, StackOptions, plan_stack
+from tools.stack.up import PlanError, Ports, StackOptions, plan_stack
 
 QUADROTOR = Path(__file__).resolve().parents[2] / "deploy" / "ros2" / "quadrotor.yaml"
 
@@ -150,3 +150,31 @@ def test_up_with_ros2_runs_the_bridge_instead_of_the_simulated_vehicle(tmp_path:
     other.write_text("robot: robot7\ninputs: {odometry: {topic: /odom}}\n")
     with pytest.raises(ValueError, match="robot7"):
         plan_stack(StackOptions(data_dir=tmp_path, ros2=other), {}, "t" * 24)
+
+
+def test_a_yaml_syntax_error_names_the_file_and_the_line(tmp_path: Path):
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("robot: robot0\ninputs:\n  odometry: {topic: /odom\n  scene: x\n")
+    with pytest.raises(ConfigError) as caught:
+        load_config(broken)
+    message = str(caught.value)
+    assert message.startswith(f"{broken}:4:8: not YAML: "), message  # file:line:column
+    assert "<unicode string>" not in message and "\n" not in message  # one line, one name
+
+
+def test_a_ros2_config_in_a_frame_control_does_not_fly_in_is_refused(tmp_path: Path):
+    """Control refuses every state not in its frame (AESOP_CONTROL_VEHICLE's ``frame``):
+    a bridge config that names another is refused where both are known, not flown blind."""
+    wrong = tmp_path / "wrld.yaml"
+    wrong.write_text("inputs: {odometry: {topic: /odom, frame: wrld}}\n")
+    with pytest.raises(ConfigError, match=rf"^{wrong}: inputs\.odometry\.frame: 'wrld' is "
+                       r"not 'world', the frame control flies in \(AESOP_CONTROL_VEHICLE"):
+        load_config(wrong, frame="world")
+    assert load_config(wrong).inputs.odometry is not None  # the frame alone: no control known
+    with pytest.raises(PlanError, match=rf"{wrong}: inputs\.odometry\.frame: 'wrld' .*'world'"):
+        plan_stack(StackOptions(data_dir=tmp_path, ros2=wrong), {}, "t" * 24)
+    # control told to fly in it: the same config is taken
+    plan = plan_stack(StackOptions(data_dir=tmp_path, ros2=wrong),
+                      {"AESOP_CONTROL_VEHICLE__FRAME": "wrld"}, "t" * 24)
+    assert "ros2" in [s.name for s in plan.services]
+    assert load_config(QUADROTOR, frame="world").inputs.odometry is not None

@@ -47,7 +47,7 @@ from services.control.settings import ControlSettings
 from services.dashboard.settings import DashboardSettings
 from services.embedding.settings import EmbeddingSettings
 from services.reasoner.settings import ReasonerSettings
-from services.ros2.config import load_config
+from services.ros2.config import ConfigError, load_config
 from services.ros2.settings import Ros2Settings
 from services.sim.settings import SimSettings
 from shared.process import (
@@ -482,6 +482,11 @@ def _robots(options: StackOptions, environ: Mapping[str, str], robots: Sequence[
         control = read_settings(ControlSettings, environ, **forced)
         scenario = scenario or resolve_scenario(control.scenario or hardware_scenario())
         control = control.model_copy(update={"scenario": scenario})  # resolved, existing
+        if options.ros2 is not None:  # its states must be in control's frame, or all refused
+            try:
+                load_config(options.ros2, frame=control.vehicle.frame)
+            except ConfigError as exc:
+                raise PlanError(str(exc)) from None
         dt = dt or load_scenario(scenario).dt  # the one scene, read once
         vehicle_port = ports.of(vehicle_name, "sim", i)
         vehicle: ServiceSettings = (
