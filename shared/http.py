@@ -437,15 +437,17 @@ class Guard:
     then the body read as it streams in and refused (413) once past ``max_body_bytes``
     whatever ``Content-Length`` said or did not say, (408) when no part of it came for
     ``body_idle_s``, or (503) when the bodies being read at once would hold more than
-    twice ``max_body_bytes``. A refused body closes its connection. The route then reads
+    twice ``max_body_bytes``; the 413 names ``body_setting``, the variable that raises the
+    limit. A refused body closes its connection. The route then reads
     the body from memory; later ``receive`` calls go to the client (so a disconnect is
     still seen). A refused WebSocket is closed with 1008 (policy violation) before it is
     accepted."""
 
     def __init__(self, app: ASGIApp, *, token: SecretStr | None, max_body_bytes: int,
                  public: tuple[str, ...] = (), body_idle_s: float = BODY_IDLE_S,
-                 session_reads: bool = False) -> None:
+                 session_reads: bool = False, body_setting: str | None = None) -> None:
         self.app, self.token, self.max_body_bytes, self.public = app, token, max_body_bytes, public
+        self.body_setting = body_setting
         self.body_idle_s, self.session_reads = body_idle_s, session_reads
         self.reading = 0  # bytes of bodies being read now, over all requests
 
@@ -490,8 +492,9 @@ class Guard:
                     break
                 part = message.get("body", b"")
                 if counted + len(part) > self.max_body_bytes:
+                    setting = f" ({self.body_setting})" if self.body_setting else ""
                     raise Refusal(413, "too_large", "request body is over the limit of "
-                                  f"{self.max_body_bytes} bytes", "body")
+                                  f"{self.max_body_bytes} bytes{setting}", "body")
                 if self.reading + len(part) > 2 * self.max_body_bytes:
                     raise Refusal(503, "busy", "the service is reading other large bodies "
                                   "now: retry later", "body")
@@ -533,8 +536,9 @@ def service_app(
 ) -> FastAPI:
     """A service's app with what every service has: the :class:`Guard` (host, origin,
     ``admin_token`` on every path but the ops ones and ``public``, JSON bodies of at most
-    ``max_body_bytes``), documented errors, the error body, the settings ``limits`` in its
-    schema, request metrics, and ``/healthz`` ``/readyz`` ``/metrics``."""
+    ``max_body_bytes``: a 413 past it names ``AESOP_<SERVICE>_MAX_BODY_BYTES``, ``service``
+    in capitals), documented errors, the error body, the settings ``limits`` in its schema,
+    request metrics, and ``/healthz`` ``/readyz`` ``/metrics``."""
     app = FastAPI(title=title, version="1", lifespan=lifespan, responses=errors(*GUARD_ERRORS))
     app.state.admin_token = admin_token
     install_error_handlers(app)
@@ -542,7 +546,8 @@ def service_app(
         document_limits(app, limits)
     document_security(app, public)
     app.add_middleware(Guard, token=admin_token, max_body_bytes=max_body_bytes, public=public,
-                       body_idle_s=body_idle_s, session_reads=session_reads)
+                       body_idle_s=body_idle_s, session_reads=session_reads,
+                       body_setting=f"AESOP_{service.upper()}_MAX_BODY_BYTES")
     HttpMetrics(registry, service).install(app)  # outside the guard: refusals are counted
     app.include_router(ops_router(registry, ready, refresh))
     return app

@@ -224,7 +224,8 @@ def _check_texts(texts: list[str], field: str, settings: EmbeddingSettings,
         where = f"{field}[{i}]" + (f".{key}" if key else "")
         if len(text) > settings.limits.max_text_chars:
             raise InvalidInput(f"text has {len(text)} characters; the limit is "
-                               f"{settings.limits.max_text_chars}", field=where)
+                               f"{settings.limits.max_text_chars} "
+                               "(AESOP_EMBEDDING_LIMITS__MAX_TEXT_CHARS)", field=where)
 
 
 def _score_response(batch: ScoreBatch) -> Scores:

@@ -203,6 +203,31 @@ def test_a_body_that_is_not_json_is_refused_with_415(client: TestClient) -> None
     assert client.get("/v1/caches/wm").status_code == 404
 
 
+def test_a_limit_refused_names_the_setting_that_raises_it(tmp_path: Path) -> None:
+    """docs/operations.md, "Limits": each refusal names the variable to change."""
+    with make_client(tmp_path, max_body_bytes=8192) as client:
+        create(client, k=3)
+        r = client.post("/v1/caches/wm/experiences", headers=AUTH,
+                        json={"items": [{"text": "a package " * 100}] * 10})
+        assert r.status_code == 413, r.text
+        assert r.json()["error"] == {
+            "code": "too_large", "field": "body",
+            "message": "request body is over the limit of 8192 bytes "
+                       "(AESOP_EMBEDDING_MAX_BODY_BYTES)"}
+        for path, body, field in [
+                ("/v1/caches/wm/experiences", {"items": [{"text": "x" * 4001}]},
+                 "items[0].text"),
+                ("/v1/caches/wm/score", {"texts": ["x" * 4001]}, "texts[0]"),
+                ("/v1/caches/wm/calibrate", {"method": "loo-quantile", "calibration": [
+                    {"text": "x" * 4001, "label": "nominal"}]}, "calibration[0].text")]:
+            r = client.post(path, headers=AUTH, json=body)
+            assert r.status_code == 422, r.text
+            assert r.json()["error"]["field"] == field
+            assert r.json()["error"]["message"] == (
+                "text has 4001 characters; the limit is 4000 "
+                "(AESOP_EMBEDDING_LIMITS__MAX_TEXT_CHARS)"), r.text
+
+
 def test_vectors_of_huge_or_tiny_numbers_keep_their_direction(client: TestClient) -> None:
     """Scaled to unit length in float64 before float32: neither overflows nor vanishes."""
     create(client, "raw", model=None, dim=2)

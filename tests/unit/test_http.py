@@ -122,7 +122,8 @@ def test_a_chunked_body_past_the_limit_is_413() -> None:
     assert "content-length" not in r.request.headers  # the old check saw nothing
     assert r.status_code == 413, r.text
     assert r.json()["error"] == {"code": "too_large", "field": "body",
-                                 "message": "request body is over the limit of 1024 bytes"}
+                                 "message": "request body is over the limit of 1024 bytes "
+                                            "(AESOP_TEST_MAX_BODY_BYTES)"}
 
 
 def test_a_body_within_the_limit_still_arrives_whole() -> None:
