@@ -96,6 +96,51 @@ def test_up_rejects_a_missing_scenario_file(tmp_path: Path) -> None:
     assert "--scenario" in r.stderr and "nope.yaml" in r.stderr
 
 
+def test_a_second_up_on_the_data_dir_in_use_is_refused_and_the_first_serves_on(
+        tmp_path: Path) -> None:
+    """Issue 44: a second ``aesop up`` on a running stack's data dir exits 2 at once, naming
+    the data dir and the first one's pid, and leaves its passwords and token as they were
+    (it used to rewrite them and start most of a stack: the first's ``aesop watch`` line
+    stopped working, and after its hub restarted no service could log in)."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("AESOP_ADMIN_TOKEN", "AESOP_REASONER_LLM_BASE_URL")}
+    data = tmp_path / "data"
+    argv = [sys.executable, "-m", "tools.cli", "up", "--random-ports", "--no-dashboard",
+            "--data-dir", str(data)]
+    proc = subprocess.Popen(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                            stdin=subprocess.DEVNULL, text=True)
+    second: subprocess.Popen[str] | None = None
+    try:
+        urls = wait_for_urls(proc, names=("fake-llm", "embedding", "reasoner", "control"))
+        kept = {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in data.rglob("*")
+                if p.is_file() and (p.parent.name == "zenoh" or p.name == "admin-token")}
+        assert data / "zenoh" / "monitor.password" in kept and data / "admin-token" in kept
+        second = subprocess.Popen(argv, env=env, stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True)
+        try:
+            _, err = second.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            second.send_signal(signal.SIGINT)
+            second.wait(90)
+            raise AssertionError("the second aesop up went on starting a stack") from None
+        assert second.returncode == 2, err
+        assert str(data) in err and f"pid {proc.pid}" in err, err
+        assert {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in kept} == kept
+        for name, url in urls.items():
+            assert httpx.get(f"{url}/readyz", timeout=5).status_code == 200, name
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(60) == 0
+    finally:  # SIGINT first: a killed aesop up would leave its children behind
+        for p in (second, proc):
+            if p is not None and p.poll() is None:
+                p.send_signal(signal.SIGINT)
+                try:
+                    p.wait(60)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
+
+
 def test_up_serves_the_local_model_and_starts_it_again_when_it_dies(tmp_path: Path) -> None:
     """``aesop up --llm local``: llama.cpp's server with the bundled SmolLM2 in place of the
     fake LLM, the reasoner answered by the model; the server killed is started again."""

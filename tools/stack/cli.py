@@ -215,9 +215,11 @@ def stack_options(args: argparse.Namespace, data_dir: Path):
     from services.control.settings import ControlSettings
     from shared.settings import BusSettings
     from tools.stack.up import (
+        DataDirInUse,
         Ports,
         StackOptions,
         child_names,
+        data_dir_holder,
         fleet,
         hardware_scenario,
         loop_rate,
@@ -237,11 +239,17 @@ def stack_options(args: argparse.Namespace, data_dir: Path):
         raise CliError("--robots and --replicas count from 1")
     names = child_names(fleet(BusSettings().robot, robots), replicas)
     more = [n for kind in names.values() for n in kind[1:]]
+    # refused before anything is written or loaded: a data dir another stack holds (its
+    # passwords and token would be rewritten under it), then a port in use
+    holder = data_dir_holder(data_dir)
+    if holder is not None:
+        raise CliError(str(DataDirInUse(data_dir, holder, _data_dir_flag(args))))
     ports = Ports.free(more) if args.random_ports else Ports()
     busy = ports.busy(_used_ports(role))
     if busy:
-        raise CliError(f"ports already in use: {', '.join(busy)} (is `aesop up` running?); "
-                       "stop it or pass --random-ports")
+        raise CliError(f"ports already in use on this machine: {', '.join(busy)} (is another "
+                       "`aesop up` running?); stop it, or pass --random-ports (free ports for "
+                       "every service); nothing was started")
     rate = None if control.rate_hz is not None else loop_rate(1.0 / scenario.dt, robots)
     ros2 = getattr(args, "ros2", None)
     if ros2 is not None:
@@ -251,6 +259,11 @@ def stack_options(args: argparse.Namespace, data_dir: Path):
                         rate_hz=rate, dashboard=dashboard, local_model=local_model(args),
                         ros2=ros2, robots=robots, replicas=replicas,
                         **_role_options(args, role, ports.hub))
+
+
+def _data_dir_flag(args: argparse.Namespace) -> str:
+    """The option that picks the data dir: ``aesop demo`` keeps it under its --out."""
+    return "--out" if getattr(args, "command", None) == "demo" else "--data-dir"
 
 
 def _used_ports(role: str) -> tuple[str, ...] | None:

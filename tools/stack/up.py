@@ -18,7 +18,11 @@ PostgreSQL) and ``robot`` (a router of the robot's own, open on its loopback and
 to the server's; the control loop and the vehicle or bridge, its clients).
 
 * :func:`plan_stack` is pure: environment and options in, the child specs out.
-* :class:`Stack` starts the children (:class:`shared.process.Child`, each in its
+* :class:`Stack` first claims the data directory (an ``flock`` on
+  ``<data-dir>/aesop-up.lock``, held for the stack's life: one stack per data directory)
+  and checks that every port it will listen on is free, refusing before it writes a
+  credential or starts anything; then it starts the children
+  (:class:`shared.process.Child`, each in its
   own process group, its output forwarded to a sink: ``[control] ...``), waits
   for every ``/readyz`` (a TCP accept for the hub), and stops them all: SIGTERM
   to every group, SIGKILL to what is left after a grace period, the hub last.
@@ -31,9 +35,10 @@ to the server's; the control loop and the vehicle or bridge, its clients).
 
 from __future__ import annotations
 
+import fcntl
+import os
 import secrets
 import signal
-import socket
 import sys
 import threading
 import time
@@ -57,6 +62,7 @@ from shared.process import (
     Sink,
     await_ready,
     free_port,
+    port_in_use,
     stderr_sink,
 )
 from shared.settings import BusSettings, ServiceSettings, read_settings, to_env
@@ -122,16 +128,15 @@ class Ports:
         return base if index == 0 else dict(self.more).get(child, base + 100 * index)
 
     def busy(self, only: Sequence[str] | None = None) -> list[str]:
-        """``name:port`` of every port (of those named in ``only``, if given) something on
-        loopback already listens on."""
+        """``name:port`` of every port (of those named in ``only``, if given) a service could
+        not bind on loopback now: something listens there or holds it bound."""
         out = []
         named = [(k, v) for k, v in vars(self).items() if k != "more"] + list(self.more)
         for name, port in named:
             if only is not None and name not in only:
                 continue
-            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-                if sock.connect_ex(("127.0.0.1", port)) == 0:
-                    out.append(f"{name}:{port}")
+            if port_in_use(port):
+                out.append(f"{name}:{port}")
         return out
 
 
@@ -176,6 +181,76 @@ class PlanError(ValueError):
     """Options that contradict each other or the environment (the message says how)."""
 
 
+LOCK_FILE = "aesop-up.lock"  # in the data directory: flocked by the stack that uses it
+
+
+class DataDirInUse(PlanError):
+    """Another stack (``aesop up`` or ``aesop demo``, another process) holds the data
+    directory."""
+
+    def __init__(self, data_dir: Path, holder: str, flag: str = "--data-dir") -> None:
+        super().__init__(f"the data dir {data_dir} is in use by another stack (pid {holder}, "
+                         f"`aesop up` or `aesop demo`): stop that one first, or give this one "
+                         f"another {flag}; nothing was changed")
+        self.data_dir, self.holder = data_dir, holder
+
+
+def data_dir_holder(data_dir: Path) -> str | None:
+    """The pid (as its lock file says) of the process whose stack holds ``data_dir``, or
+    None when no stack does. Touches nothing: no folder or file is made or written."""
+    try:
+        fd = os.open(data_dir / LOCK_FILE, os.O_RDONLY | os.O_NOFOLLOW)
+    except OSError:  # none there (nobody ever held it), or not a file we can read
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return os.read(fd, 32).decode(errors="replace").strip() or "unknown"
+    finally:
+        os.close(fd)  # releases the lock if this probe took it
+    return None
+
+
+class DataDirLock:
+    """An exclusive ``flock`` on ``<data_dir>/aesop-up.lock`` while the stack is up, the
+    holder's pid in the file (the embedding service's lock on its own folder, one level
+    up). The kernel lets it go when the process dies, however it dies; the children do not
+    inherit it (the descriptor is closed on exec)."""
+
+    def __init__(self, data_dir: Path) -> None:
+        self.data_dir = data_dir
+        self.fd: int | None = None
+
+    def acquire(self) -> None:
+        """Hold it (again: a no-op), or :class:`DataDirInUse` naming the holder, the data
+        directory left as it was."""
+        if self.fd is not None:
+            return
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.data_dir / LOCK_FILE, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 32).decode(errors="replace").strip() or "unknown"
+            os.close(fd)
+            raise DataDirInUse(self.data_dir, holder) from None
+        except BaseException:
+            os.close(fd)
+            raise
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        self.fd = fd
+
+    def release(self) -> None:
+        if self.fd is None:
+            return
+        fd, self.fd = self.fd, None
+        try:
+            os.ftruncate(fd, 0)  # no pid left behind in a lock nobody holds
+        finally:
+            os.close(fd)
+
+
 @dataclass(frozen=True)
 class StackOptions:
     data_dir: Path
@@ -209,6 +284,7 @@ class StackPlan:
     robot: str  # the (first) robot the services serve
     scenario: Path  # the scene the control loop flies
     zenoh_dir: Path  # the hub's user dictionary and each user's password file
+    data_dir: Path  # the stack's: one subdirectory per service, held while it is up
     passwords: Mapping[str, str] = field(repr=False)  # Zenoh user -> password
     # every robot flown (``robot`` first): its id, its control loop's and vehicle's child
     fleet: tuple[tuple[str, str, str], ...] = ()
@@ -333,6 +409,7 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
     return StackPlan(hub=hub, services=children, token=given or token,
                      token_generated=not given, fake_llm=fake, local_model=local,
                      robot=robots[0], scenario=scenario, zenoh_dir=zenoh_dir,
+                     data_dir=options.data_dir,
                      passwords=secret, fleet=fleet_children, postgres=postgres, role=role,
                      tls=options.tls, endpoint=endpoint, server=options.server,
                      linked=tuple(robots) if role == "server" else ())
@@ -519,14 +596,29 @@ class Stack:
         self.stopping = stop_event or threading.Event()
         self.restarts: dict[str, int] = {}  # child name -> times started again
         self.hub_restart_delay_s = hub_restart_delay_s  # a crashing child is not a busy loop
+        self.lock = DataDirLock(plan.data_dir)
 
     @property
     def pids(self) -> dict[str, int]:
         return {c.name: c.pid for c in [self.hub, *self.children] if c.proc is not None}
 
+    def claim(self) -> None:
+        """Hold the data directory and check that every port the stack will listen on is
+        free, before anything is written or started: :class:`DataDirInUse` when another
+        stack holds the directory (it would rewrite that stack's Zenoh passwords and token),
+        :class:`PlanError` naming a port in use (the directory let go again). Again once
+        held: the ports only."""
+        self.lock.acquire()
+        busy = [(c.name, c.port) for c in [self.plan.hub, *self.plan.services]
+                if port_in_use(c.port, c.host)]
+        if busy:
+            self.lock.release()
+            raise PlanError(ports_in_use_text(self.plan, busy))
+
     def start(self) -> None:
-        """The Zenoh credentials, the hub, then every service at once; returns when all
-        are ready."""
+        """:meth:`claim`, the Zenoh credentials, the hub, then every service at once;
+        returns when all are ready."""
+        self.claim()
         if self.plan.passwords:  # one machine: a password per user and start
             write_credentials(self.plan.zenoh_dir, self.plan.passwords)
         if ROS2 in self.plan.passwords:  # the robot's rmw_zenoh nodes join as the ros2 user
@@ -599,6 +691,17 @@ class Stack:
                     self.sink("up", f"{child.name} did not stop in {grace_s:g} s: killing it")
                     child.signal(signal.SIGKILL)
                     child.wait(5.0)
+        self.lock.release()
+
+
+def ports_in_use_text(plan: StackPlan, busy: Sequence[tuple[str, int]]) -> str:
+    """Which ports are taken, by which child they were meant for, and how to change them."""
+    ports = ", ".join(f"{port} ({name})" for name, port in busy)
+    listen = plan.role == "server" and any(name == plan.hub.name for name, _ in busy)
+    return (f"port{'s' if len(busy) > 1 else ''} {ports} already in use on this machine "
+            f"(another `aesop up` or `aesop demo`?): stop what holds "
+            f"{'them' if len(busy) > 1 else 'it'}, or pass --random-ports"
+            + (" (the router's port: --listen)" if listen else "") + "; nothing was started")
 
 
 # --------------------------------------------------------------------------- the command
@@ -679,11 +782,12 @@ def run_up(options: StackOptions, environ: Mapping[str, str]) -> int:
     if not options.dashboard and options.role == "all":
         print("aesop up: the dashboard is off (--no-dashboard)", file=sys.stderr)
     stop = threading.Event()
-    install_stop_handlers(stop)
     stack = Stack(plan, stderr_sink(), stop_event=stop)
-    token_file = write_token(options.data_dir, plan.token) if plan.token_generated else None
+    stack.claim()  # the data directory and the ports, before a file is written
+    install_stop_handlers(stop)
     status = 0
     try:
+        token_file = write_token(options.data_dir, plan.token) if plan.token_generated else None
         stack.start()
         print(urls_text(plan, token_file), flush=True)
         died = stack.watch()
