@@ -14,7 +14,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from shared.messages import AnomalyVerdict, Detection, Observation
+from shared.messages import AnomalyVerdict, ControlState, Detection, Observation
 from shared.process import ServiceProcess, free_port
 from tools.recording.importer import scene_id
 from tools.recording.mcapfile import FlightWriter
@@ -168,6 +168,48 @@ def test_rescore_offline_judges_each_scene_with_its_detections(flight: Path,
     r = aesop("detector", "eval", "--recording", str(flight), "--nominal", str(nominal),
               "--score", "detections")
     assert r.returncode == 2 and "--score topk, mahalanobis or combined" in r.stderr
+
+
+def test_until_3_imports_the_first_3_s_of_a_flight_the_recorder_began_before(
+        tmp_path: Path, service: ServiceProcess) -> None:
+    """docs/recordings.md on the demo's recordings (issue 44): the demo starts its recorder
+    while it sets the flight up, and the camera comes on seconds later; ``--until 3`` takes
+    the first 3 s of observations, not the 3 s of states before them."""
+    path = tmp_path / "1-nominal.mcap"
+    writer = FlightWriter(path)
+    on = T0 + 3_500_000_000  # the camera comes on 3.5 s into the recording
+    for i in range(70):  # 20 Hz states from the start
+        writer.add("aesop/robot0/state", ControlState(
+            t=i * 0.05, x=(0.0,) * 12, u=(0.0,) * 4, mode="waiting").encode(), T0 + i * 50_000_000)
+    for seq in range(50):  # 10 Hz observations, three scenes over and over
+        writer.add("aesop/robot0/observation",
+                   observation(seq, NOMINAL[seq % 3]).encode(), on + seq * 100_000_000)
+    writer.close()
+    r = aesop("cache", "import", "--recording", str(path), "--cache", "first3", "--k", "1",
+              "--until", "3", "--url", service.url, "--json")
+    assert r.returncode == 0, r.stderr
+    got = json.loads(r.stdout)
+    assert (got["observations"], got["scenes"], got["added"], got["size"]) == (31, 3, 3, 3)
+
+
+def test_an_import_that_selects_nothing_fails_and_stores_nothing(
+        flight: Path, service: ServiceProcess) -> None:
+    headers = {"Authorization": f"Bearer {TOKEN}"}
+    r = aesop("cache", "import", "--recording", str(flight), "--cache", "never",
+              "--since", "30", "--url", service.url, "--json")
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "no observations" in r.stderr and "--since 30" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr and r.stdout == ""
+    assert httpx.get(f"{service.url}/v1/caches/never", headers=headers).status_code == 404
+
+    r = aesop("cache", "import", "--recording", str(flight), "--cache", "kept",
+              "--until", "0.05", "--url", service.url, "--json")
+    assert r.returncode == 0, r.stderr
+    before = httpx.get(f"{service.url}/v1/caches/kept", headers=headers).json()
+    r = aesop("cache", "import", "--recording", str(flight), "--cache", "kept", "--since",
+              "40", "--until", "50", "--url", service.url)
+    assert r.returncode == 2 and "no observations" in r.stderr, r.stdout + r.stderr
+    assert httpx.get(f"{service.url}/v1/caches/kept", headers=headers).json() == before
 
 
 @pytest.mark.parametrize(("args", "message"), [

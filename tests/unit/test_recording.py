@@ -80,6 +80,34 @@ def test_observations_in_a_window_of_one_robot(flight: Path) -> None:
         list(observations(flight, since="5", until="1"))
 
 
+def demo_like(path: Path, camera_on_s: float) -> Path:
+    """A recording as ``aesop demo`` makes one (issue 44): the recorder starts while the
+    flight is set up, so 20 Hz states come from the start and the camera's 10 Hz
+    observations only ``camera_on_s`` later, for 5 s."""
+    writer = FlightWriter(path)
+    on = T0 + round(camera_on_s * 1e9)
+    messages = [(T0 + i * 50_000_000, "aesop/robot0/state", ControlState(
+        t=i * 0.05, x=(0.0,) * 12, u=(0.0,) * 4, mode="waiting").encode())
+        for i in range(round((camera_on_s + 5) * 20))]
+    messages += [(on + seq * 100_000_000 + 1, "aesop/robot0/observation",
+                  Observation(seq=seq, text="a red box").encode()) for seq in range(50)]
+    for at, key, data in sorted(messages):
+        writer.add(key, data, at)
+    writer.close()
+    return path
+
+
+def test_a_window_counts_from_the_first_observation_not_the_recorders_start(
+        tmp_path: Path) -> None:
+    """docs/recordings.md's ``--until 3``: the first 3 s of what the camera saw, however long
+    the recorder ran before the camera came on."""
+    path = demo_like(tmp_path / "late.mcap", camera_on_s=3.5)
+    assert [r.observation.seq for r in observations(path, until="3")] == list(range(31))
+    assert [r.observation.seq for r in observations(path, since="1", until="1.25")] == [
+        10, 11, 12]
+    assert [r.observation.seq for r in observations(path, robot="robot0", until="0")] == [0]
+
+
 def test_verdicts_are_keyed_by_robot_and_seq(flight: Path) -> None:
     old = verdicts(flight)
     assert len(old) == 10 and old[("robot0", 7)].score == 0.9

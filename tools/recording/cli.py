@@ -51,8 +51,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     ci.add_argument("--recording", type=Path, required=True, action="append",
                     metavar="FILE.mcap", help="a recorded flight (repeatable)")
     ci.add_argument("--cache", required=True, help="the cache (created if there is none)")
-    ci.add_argument("--since", help="from here: seconds from each recording's start (12.5) "
-                    "or an ISO 8601 time (UTC unless it says)")
+    ci.add_argument("--since", help="from here: seconds from each recording's first "
+                    "observation (12.5) or an ISO 8601 time (UTC unless it says)")
     ci.add_argument("--until", help="up to here, as --since")
     ci.add_argument("--robot", help="only this robot's observations (default: all)")
     ci.add_argument("--model", default=None, help="embedding model of a new cache")

@@ -7,7 +7,9 @@ would make every copy its neighbours' perfect match, and the leave-one-out
 calibration (eq. 2) would then learn a threshold of nothing. Each scene gets an id
 made from its content, so importing a recording twice (or two recordings of the
 same flight) adds nothing the second time. Its metadata say where it came from; its
-detections become the experience's (the cache's nominal detections).
+detections become the experience's (the cache's nominal detections). An import whose
+window holds no observation is refused before the service is asked anything: no
+empty cache is made, and a cache there is stays as it was.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from services.embedding.client import EmbeddingClient
 from services.embedding.proposals import scene_id
 from shared.client import Progress, ServiceError
 
-from .recorded import RecordedObservation, observations
+from .recorded import RecordedObservation, RecordingError, observations
 
 Say = Callable[[str], None]
 BATCH = 500  # items per add request (one job each, progress per batch)
@@ -81,6 +83,8 @@ async def import_recording(client: EmbeddingClient, cache: str, paths: Sequence[
         say(f"{len(some)} observations, {len(distinct_scenes(some))} distinct scenes in "
             f"{path.name}")
         recorded += some
+    if not recorded:  # before the service is asked anything: no empty cache made
+        raise RecordingError(_nothing(paths, robot, since, until))
     scenes = distinct_scenes(recorded)
     try:
         info = await client.cache(cache)
@@ -99,6 +103,18 @@ async def import_recording(client: EmbeddingClient, cache: str, paths: Sequence[
         size, version = done.size, done.version
         say(f"added {added} of {len(new)}")
     return Imported(len(recorded), len(scenes), len(scenes) - len(new), added, size, version)
+
+
+def _nothing(paths: Sequence[Path], robot: str | None, since: str | None,
+             until: str | None) -> str:
+    """Why an import selected no observation, for the operator."""
+    asked = " ".join(f"--{name} {value}" for name, value in (
+        ("robot", robot), ("since", since), ("until", until)) if value is not None)
+    where = ", ".join(p.name for p in paths)
+    if not asked:
+        return f"no observations in {where}: nothing to import, the cache is left as it was"
+    return (f"no observations in {where} with {asked} (seconds count from each recording's "
+            "first observation): nothing to import, the cache is left as it was")
 
 
 async def _has(client: EmbeddingClient, cache: str, ident: str) -> bool:

@@ -35,8 +35,9 @@ def check_recording(path: Path) -> None:
 
 
 def parse_when(text: str, start_ns: int) -> int:
-    """A point of a recording, as ns since the epoch: seconds from its first message
-    (``12.5``) or a time (``2026-11-23T10:15:00``, UTC unless it names a zone)."""
+    """A point of a recording, as ns since the epoch: seconds from ``start_ns`` (``12.5``;
+    :func:`observations` gives its first observation's time) or a time
+    (``2026-11-23T10:15:00``, UTC unless it names a zone)."""
     try:
         return start_ns + round(float(text.removesuffix("s")) * 1e9)
     except ValueError:
@@ -44,8 +45,8 @@ def parse_when(text: str, start_ns: int) -> int:
     try:
         when = datetime.fromisoformat(text)
     except ValueError:
-        raise RecordingError(f"{text!r} is neither seconds from the start of the recording "
-                             "nor an ISO 8601 time") from None
+        raise RecordingError(f"{text!r} is neither seconds from the recording's first "
+                             "observation nor an ISO 8601 time") from None
     if when.tzinfo is None:
         when = when.replace(tzinfo=UTC)
     return round(when.timestamp() * 1e9)
@@ -62,18 +63,24 @@ class RecordedObservation:
 def observations(path: Path, *, robot: str | None = None, since: str | None = None,
                  until: str | None = None) -> Iterator[RecordedObservation]:
     """The observations of ``robot`` (every robot by default) that arrived in the
-    window [since, until] (see :func:`parse_when`; the recording starts with its first
-    message of any kind), in the order recorded, in one pass over the file. A message
-    that does not decode (recorded by another version) is skipped."""
+    window [since, until] (see :func:`parse_when`), in the order recorded, in one pass
+    over the file. Seconds count from the first of those observations, when the camera
+    came on, not from the recording's first message: a recorder runs before the flight
+    does (``aesop demo`` starts it while it sets the flight up, seconds of states and
+    plans before the first observation), so ``--until 3`` is the first 3 s the camera
+    saw. A message that does not decode (recorded by another version) is skipped."""
     low = high = None
-    for i, record in enumerate(read_messages(path)):
-        if i == 0:
+    first = True
+    for record in read_messages(path):
+        if not _is_kind(record, "observation", robot):
+            continue
+        if first:
+            first = False
             low = parse_when(since, record.log_time_ns) if since is not None else None
             high = parse_when(until, record.log_time_ns) if until is not None else None
             if low is not None and high is not None and high < low:
                 raise RecordingError(f"--until ({until}) is before --since ({since})")
-        if not _is_kind(record, "observation", robot) or (
-                low is not None and record.log_time_ns < low) or (
+        if (low is not None and record.log_time_ns < low) or (
                 high is not None and record.log_time_ns > high):
             continue
         try:
