@@ -56,10 +56,14 @@ router = APIRouter()
                        **errors(401, 409, 502, 503, 507)})
 async def put_cache(name: str, body: CreateCache, service: ServiceDep,
                     settings: SettingsDep) -> JSONResponse:
-    model = body.model if "model" in body.model_fields_set else settings.model
-    desc, created = await service.create(name, model=model, dim=body.dim, k=body.k,
-                                         score=body.score, index=body.index,
-                                         proposals=body.proposals)
+    # what the body names, and only that: an existing cache keeps every setting the
+    # request leaves out (a new one takes the defaults)
+    named = body.model_fields_set
+    desc, created = await service.create(
+        name, model=body.model if "model" in named else settings.model, dim=body.dim,
+        k=body.k, score=body.score if "score" in named else None,
+        index=body.index if "index" in named else None, proposals=body.proposals,
+        model_is_default="model" not in named)
     return JSONResponse(desc.model_dump(mode="json"), status_code=201 if created else 200)
 
 

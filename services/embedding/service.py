@@ -171,30 +171,34 @@ class CacheService:
         model: str | None,
         dim: int | None = None,
         k: int | None = None,
-        score: ScoreKind = "topk",
-        index: IndexKind = "flat",
+        score: ScoreKind | None = None,
+        index: IndexKind | None = None,
         proposals: Policy | None = None,
+        model_is_default: bool = False,
     ) -> tuple[CacheInfo, bool]:
-        """Create cache ``name`` or reconcile an existing one; returns (description, created)."""
+        """Create cache ``name`` (what is None: the default) or change the existing one's
+        settings that are not None, leaving the others as they are (a PUT that names one
+        field changes that field); returns (description, created). ``model_is_default``:
+        ``model`` was not asked for, only a new cache takes it."""
         if not CACHE_NAME.fullmatch(name):
             raise InvalidInput("cache names are 1-64 letters, digits, '_', '.', '-'", field="name")
-        k = k or DEFAULT_K
+        asked = None if model_is_default else model
         async with self._create_lock:
             if name in self._entries:
-                return await self._reconcile(name, model=model, k=k, score=score,
+                return await self._reconcile(name, model=asked, k=k, score=score,
                                              proposals=proposals), False
             if model is not None:
                 embedder = await self.scorer.embedder(model)
                 model, dim = embedder.name, embedder.dim
             elif dim is None:
                 raise InvalidInput("a cache without a model needs 'dim'", field="dim")
-            config = CacheConfig(name, model, int(dim), k, score, index,
-                                 proposals=proposals or "review")
+            config = CacheConfig(name, model, int(dim), k or DEFAULT_K, score or "topk",
+                                 index or "flat", proposals=proposals or "review")
             try:
                 entry = await asyncio.to_thread(self._create_entry, config)
             except Behind:  # another replica created it meanwhile
                 await self._load(name)
-                return await self._reconcile(name, model=model, k=k, score=score,
+                return await self._reconcile(name, model=asked, k=k, score=score,
                                              proposals=proposals), False
             self._entries[name] = entry
             return CacheInfo.of(entry.cache), True
@@ -203,8 +207,9 @@ class CacheService:
         self.store.create(config)
         return Entry(Cache(config))
 
-    async def _reconcile(self, name: str, *, model: str | None, k: int, score: ScoreKind,
-                         proposals: Policy | None = None) -> CacheInfo:
+    async def _reconcile(self, name: str, *, model: str | None, k: int | None,
+                         score: ScoreKind | None, proposals: Policy | None = None
+                         ) -> CacheInfo:
         entry = self._entries[name]
         pinned = entry.cache.config.model
         if model is not None and pinned is not None:
@@ -213,7 +218,9 @@ class CacheService:
                 raise Conflict(f"cache {name!r} is pinned to model {pinned!r}; create another "
                                f"cache for {resolved!r}", field="model")
         async with self.writing(entry):
-            op = entry.cache.plan_configure(k=k, score=score, proposals=proposals)
+            now = entry.cache.config  # what the request does not name stays as it is
+            op = entry.cache.plan_configure(k=k or now.k, score=score or now.score,
+                                            proposals=proposals)
             if op is not None:
                 await self.commit(entry, op)
         return self.describe(name)

@@ -20,14 +20,23 @@ arrival here to its publication. The service is told what left (:class:`Left`), 
 refused (:class:`Refused`) and what did not decode (:class:`Undecodable`), for its metrics
 and logs.
 
+Nothing leaves after its deadline (``arrival + deadline_s``): a decision that would (the
+keeper was stopped or starved past it, and its timer fires late) is dropped and the service
+told (:class:`Late`). By then the robot has committed its own fallback at K and ignores a
+decision for it; sent, it could only displace the answer to the robot's next question.
+
 The two talk over a pipe (:func:`multiprocessing.Pipe`). When the service goes, the pipe
-closes and the keeper exits; when the keeper goes, its token vanishes (the reasoner is
-seen gone) and the service starts another (:class:`.worker.ReasonerWorker`). Meanwhile
-requests go unanswered, which the control loop takes as silence: its own fallback at K.
+closes and the keeper exits. Once on the bus, the keeper's timer thread, the one that
+sends the fallbacks, writes a heartbeat into memory the two share every ``HEARTBEAT_S``.
+The service watches it: a keeper that dies, or whose heartbeat stops for ``STALL_S``
+(``SIGSTOP``, a starved core), is killed if need be and replaced, and meanwhile the
+service sends the decisions itself (:mod:`.standby`, which is this module's
+:class:`Keeper` on a Zenoh session of the service's own).
 """
 
 from __future__ import annotations
 
+import gc
 import heapq
 import itertools
 import logging
@@ -57,6 +66,10 @@ MAX_PENDING = 1024  # requests armed at once; more are refused (field "pending")
 # past it that robot's are refused, so its flood takes no other robot's place
 MAX_PENDING_PER_ROBOT = 32
 SWITCH_INTERVAL_S = 0.001  # a thread that wants the GIL waits at most this (default 5 ms)
+HEARTBEAT_S = 0.05  # the keeper's timer thread says it runs this often (.standby.Watched)
+# no heartbeat for this long: the keeper is stopped or starved, and the service takes over
+# (well under any K a robot flies: the paper's is 4.3 s)
+STALL_S = 0.25
 
 
 # --------------------------------------------------------------------------- the pipe
@@ -99,7 +112,17 @@ class Listening:
     priority: Priority
 
 
-Report = Received[ReasonerRequest] | Left | Refused | Undecodable | Listening
+@dataclass(frozen=True, slots=True)
+class Late:
+    """Keeper -> service: ``decision`` was not published: it would have left ``late_s``
+    after its request's deadline."""
+
+    robot: str
+    decision: ReasonerDecision
+    late_s: float
+
+
+Report = Received[ReasonerRequest] | Left | Refused | Undecodable | Listening | Late
 
 
 # --------------------------------------------------------------------------- the timer
@@ -111,7 +134,8 @@ class DeadlineTimer:
     thread, its process's own real-time ones included (:func:`shared.realtime.urgent`;
     ``priority`` says what it got)."""
 
-    def __init__(self) -> None:
+    def __init__(self, name: str = "aesop-deadlines") -> None:
+        self._name = name
         self._heap: list[tuple[float, int]] = []
         self._pending: dict[int, Callable[[], None]] = {}  # not yet run nor cancelled
         self._ready = threading.Condition()
@@ -123,7 +147,7 @@ class DeadlineTimer:
     def at(self, due: float, fn: Callable[[], None]) -> int:
         with self._ready:
             if self._thread is None:
-                self._thread = threading.Thread(target=self._serve, name="aesop-deadlines",
+                self._thread = threading.Thread(target=self._serve, name=self._name,
                                                 daemon=True)
                 self._thread.start()
             handle = next(self._order)
@@ -163,12 +187,17 @@ class DeadlineTimer:
 # --------------------------------------------------------------------------- the keeper
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class _Armed:
     robot: str
     received_at: float
+    deadline: float  # received_at + deadline_s: nothing leaves after it
     fallback: ReasonerDecision
     handle: int
+    # the standby's (.standby): the keeper that sends this one, and the service's answer
+    # held meanwhile (sent at once should that keeper be lost)
+    owner: Any = None
+    answer: ReasonerDecision | None = None
 
 
 class Keeper:
@@ -224,24 +253,42 @@ class Keeper:
             else:
                 refused = None
                 handle = self._timer.at(due, lambda: self._expire(ident))
-                self._armed[ident] = _Armed(robot, received.received_at, fallback, handle)
+                self._armed[ident] = _Armed(robot, received.received_at,
+                                            received.received_at + request.deadline_s,
+                                            fallback, handle,
+                                            self._owner(received.received_at))
                 self._per_robot[robot] = self._per_robot.get(robot, 0) + 1
         self._tell(refused or received)
 
     def answered(self, answer: Answer) -> None:
         """The service's decision: published unless the fallback left first."""
+        ident = (answer.robot, answer.decision.request_id)
         with self._lock:
-            armed = self._disarm((answer.robot, answer.decision.request_id))
-        if armed is None:
-            return  # too late (the fallback left), or never armed
+            armed = self._armed.get(ident)
+            if armed is None:
+                return  # too late (the fallback left), or never armed
+            if self._defers(armed):
+                armed.answer = answer.decision  # another sends it
+                return
+            self._disarm(ident)
         self._timer.cancel(armed.handle)
         self._send(armed, answer.decision)
 
     def _expire(self, ident: tuple[str, str]) -> None:
         with self._lock:
             armed = self._disarm(ident)
-        if armed is not None:
-            self._send(armed, armed.fallback)
+            if armed is None or self._defers(armed):
+                return
+        self._send(armed, armed.answer or armed.fallback)
+
+    def _owner(self, received_at: float) -> Any:
+        """Who else sends the decision for a request that arrived at ``received_at``
+        (None: this keeper). The keeper's own is always itself."""
+        return None
+
+    def _defers(self, armed: _Armed) -> bool:
+        """Whether ``armed``'s decision is another's to send (under the lock)."""
+        return False
 
     def _disarm(self, ident: tuple[str, str]) -> _Armed | None:
         """Forget ``ident``'s request (under the lock); what was armed for it, if anything."""
@@ -255,9 +302,14 @@ class Keeper:
         return armed
 
     def _send(self, armed: _Armed, decision: ReasonerDecision) -> None:
+        """Publish ``decision`` stamped as it leaves, unless its deadline has passed."""
+        now = self._clock()
+        if now > armed.deadline:
+            self._tell(Late(armed.robot, decision, now - armed.deadline))
+            return
         decision = decision.model_copy(update={
-            "robot": armed.robot,
-            "latency_ms": max(0.0, (self._clock() - armed.received_at) * 1000.0)})
+            "robot": armed.robot, "stamp": time.time(),
+            "latency_ms": max(0.0, (now - armed.received_at) * 1000.0)})
         try:
             self._publish(topics.reasoner_decision(armed.robot), decision)
         except Exception:
@@ -270,9 +322,11 @@ class Keeper:
 
 
 def main(settings: ReasonerSettings, answers: Connection, reports: Connection,
-         policy: FallbackPolicy, margin_s: float) -> None:
+         policy: FallbackPolicy, margin_s: float, pulse: Any) -> None:
     """The keeper process (started by :class:`.worker.ReasonerWorker`): until the service
-    closes ``answers``, requests from the bus to ``reports`` and answers to the bus."""
+    closes ``answers``, requests from the bus to ``reports`` and answers to the bus; once
+    on the bus, ``time.monotonic()`` into ``pulse`` (a shared ``double``) every
+    ``HEARTBEAT_S`` from the timer's thread."""
     logging.basicConfig(level=settings.log_level.upper(),
                         format="%(levelname)s:     %(name)s: %(message)s")
     # a signal to the service's process group is the service's to handle: the keeper
@@ -287,13 +341,17 @@ def main(settings: ReasonerSettings, answers: Connection, reports: Connection,
                               daemon=True)
     writer.start()
     timer = DeadlineTimer()
+    # the collection that moves what was imported out of the collector's way, before the
+    # heartbeat starts (it holds the GIL for tens of ms); what the bus adds is frozen later
+    settle()
     try:
         with Bus.open(settings, "reasoner", alive=False) as bus:
+            _beat(timer, pulse)  # from here a stall is one: opening may wait for a router
             keeper = Keeper(settings, policy, margin_s, bus.publish, outbox.put, timer)
             bus.each(topics.reasoner_request(topics.ANY_ROBOT), ReasonerRequest,
                      keeper.arrived, on_error=keeper.undecodable)
             bus.announce()
-            settle()
+            gc.freeze()
             outbox.put(Listening(priority))
             _read(answers, keeper)
     finally:
@@ -301,6 +359,13 @@ def main(settings: ReasonerSettings, answers: Connection, reports: Connection,
         outbox.put(None)
         writer.join(timeout=1.0)
         reports.close()
+
+
+def _beat(timer: DeadlineTimer, pulse: Any) -> None:
+    """Say the timer's thread runs (now, and every ``HEARTBEAT_S`` after)."""
+    now = time.monotonic()
+    pulse.value = now
+    timer.at(now + HEARTBEAT_S, lambda: _beat(timer, pulse))
 
 
 def _read(conn: Connection, keeper: Keeper) -> None:

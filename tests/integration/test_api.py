@@ -575,6 +575,40 @@ def test_the_proposal_policy_is_set_with_put_and_kept(tmp_path: Path) -> None:
         assert client.get("/v1/caches/wm").json()["proposals"] == "auto"
 
 
+def test_a_put_naming_one_field_changes_only_that_field(tmp_path: Path) -> None:
+    """docs/embedding.md's ``PUT caches/scene {"proposals": "auto"}`` on a cache made with
+    k=1 and calibrated (issue 44): the policy changes, and nothing it did not name (k, the
+    score, the calibration and whether it is stale) does."""
+    with make_client(tmp_path) as client:
+        create(client, k=1, score="mahalanobis")
+        r = client.post("/v1/caches/wm/experiences", headers=AUTH,
+                        json={"items": [scene(i) for i in range(40)]})
+        assert r.status_code == 200, r.text
+        r = client.post("/v1/caches/wm/calibrate", headers=AUTH, json={"method": "loo-quantile"})
+        assert r.status_code == 200, r.text
+        before = client.get("/v1/caches/wm").json()
+        assert before["k"] == 1 and before["calibration"]["stale"] is False
+
+        after = create(client, proposals="auto")
+        assert after["proposals"] == "auto"
+        assert after == client.get("/v1/caches/wm").json()
+        unchanged = {key for key in before if key not in ("proposals", "version")}
+        assert {key: after[key] for key in unchanged} == {key: before[key] for key in unchanged}
+        assert after["k"] == 1 and after["score"] == "mahalanobis"
+        assert after["calibration"] == before["calibration"]  # still fresh, same tau
+
+
+def test_a_put_without_a_model_leaves_a_cache_of_another_model_alone(tmp_path: Path) -> None:
+    """A cache pinned to a model other than the service's default: a PUT that names no model
+    is no request to change it (no 409), and changes what it names."""
+    with make_client(tmp_path) as client:
+        assert create(client, model="other-model", k=1)["model"] == "test/other-model"
+        r = client.put("/v1/caches/wm", json={"proposals": "auto"}, headers=AUTH)
+        assert r.status_code == 200, r.text
+        assert r.json()["model"] == "test/other-model" and r.json()["k"] == 1
+        assert r.json()["proposals"] == "auto"
+
+
 def test_a_batch_review_accepts_in_order_recalibrates_on_the_accepted_and_checks_first(
         tmp_path: Path) -> None:
     """Select many, accept: each scene added, then, under the policy ``window``, the
