@@ -5,6 +5,15 @@ share libgomp, which keeps a team of OpenMP threads per calling thread; with mor
 such thread alive, embedding one observation took twice as long). The bus's observations go
 in the urgent lane, before REST scoring and admin work; REST requests run as chunks of
 ``score_chunk`` texts and are refused past ``max_pending_texts``.
+
+One exception: a bus observation whose vectors are all known already (its text in the
+memo, its detection phrases in the cache or the memo: a camera describing the scene it
+described before) needs no model, only a search (one query, on one OpenMP thread), and is
+scored at once on a search thread of its own (``known``), beside whatever the compute
+thread is embedding. Embedding is not preemptible: without it such an observation waited
+for the batch being embedded, and a robot flooding distinct texts kept one of its own in
+nearly every batch (issue 43, finding 10: the other robot's verdicts waited up to a whole
+embedding of the flood's, 60 ms on a busy 2-core machine, for a search of 1 ms).
 """
 
 from __future__ import annotations
@@ -102,12 +111,16 @@ class Scorer:
 
     def __init__(self, settings: EmbeddingSettings, embedders: EmbedderPool,
                  entry: Callable[[str], Entry], normal: Executor, urgent: Executor,
-                 on_batch: Callable[[int], None] | None = None) -> None:
+                 on_batch: Callable[[int], None] | None = None,
+                 known: Executor | None = None) -> None:
+        """``known``: where a bus observation whose vectors are all known is scored (not
+        behind the compute thread's embeddings); None: in the urgent lane's batches."""
         self.settings = settings
         self.embedders = embedders
         self.entry = entry
         self._compute = normal
         self._urgent = urgent
+        self._known = known
         self._on_batch = on_batch
         self._rest_pending = 0  # REST texts being scored or waiting (max_pending_texts)
         self._phrases = VectorMemo()
@@ -132,7 +145,7 @@ class Scorer:
             raise Conflict(f"cache {name!r} has no embedding model: score vectors",
                            field="texts")
         if urgent:
-            return self._batch(entry, await self._score_on(entry, k, queries, True), k)
+            return self._batch(entry, await self._score_urgent(entry, k, queries), k)
         limit = self.settings.limits.max_pending_texts
         if self._rest_pending + len(texts) > limit:
             raise Busy(f"{self._rest_pending} texts are already waiting to be scored; with "
@@ -147,6 +160,16 @@ class Scorer:
         finally:
             self._rest_pending -= len(texts)
         return self._batch(entry, results, k)
+
+    async def _score_urgent(self, entry: Entry, k: int, queries: list[Query]) -> list[Scored]:
+        """The bus's: on the search thread if no vector is to embed, else in the urgent
+        lane's batches."""
+        if self._known is not None and self._texts.size:
+            scored = await asyncio.get_running_loop().run_in_executor(
+                self._known, partial(self._score_known, entry, k, queries))
+            if scored is not None:
+                return scored
+        return await self._score_on(entry, k, queries, True)
 
     async def _score_on(self, entry: Entry, k: int, queries: list[Query], urgent: bool
                         ) -> list[Scored]:
@@ -181,21 +204,46 @@ class Scorer:
                 on_batch=self._on_batch, executor=self._urgent if urgent else self._compute)
         return entry.batchers[k, urgent]
 
+    def _recall(self, entry: Entry, model: str, queries: list[Query]) -> tuple[
+            dict[str, np.ndarray], dict[str, np.ndarray], list[str], list[str]]:
+        """The vectors known without the model: of the texts (the memo) and of the
+        detection phrases (the cache's, the memo's); and the texts and phrases to embed."""
+        phrases = list(dict.fromkeys(p for q in queries for p in q.phrases))
+        with entry.rw.read():
+            known = {p: entry.cache.detection_vectors[p] for p in phrases
+                     if p in entry.cache.detection_vectors}
+        known |= self._phrases.recall(model, [p for p in phrases if p not in known])
+        unknown = [p for p in phrases if p not in known]
+        texts = list(dict.fromkeys(q.text for q in queries))
+        seen = self._texts.recall(model, texts) if self._texts.size else {}
+        fresh = [t for t in texts if t not in seen]
+        return seen, known, fresh, unknown
+
+    def _score_known(self, entry: Entry, k: int, queries: list[Query]) -> list[Scored] | None:
+        """Score ``queries`` if every vector they need is known (None if one is to
+        embed): a search, no model."""
+        model = entry.cache.config.model
+        assert model is not None
+        seen, known, fresh, unknown = self._recall(entry, model, queries)
+        if fresh or unknown:
+            return None
+        return self._score(entry, k, queries, seen, known)
+
+    def _score(self, entry: Entry, k: int, queries: list[Query], texts: dict[str, np.ndarray],
+               phrases: dict[str, np.ndarray], pairs: bool = False) -> list[Scored]:
+        vectors = np.stack([texts[q.text] for q in queries])
+        found = [Detections(q.phrases, np.stack([phrases[p] for p in q.phrases]))
+                 if q.phrases else None for q in queries]
+        with entry.rw.read():
+            return entry.cache.score(vectors, k, VERDICT_NEIGHBORS, found, pairs=pairs)
+
     def _embed_and_score(self, entry: Entry, k: int, queries: list[Query],
                          pairs: bool = False) -> list[Scored]:
         """Embed the texts, and the detection phrases the cache has no vector for, in one
         call; then score."""
         config = entry.cache.config
         assert config.model is not None
-        phrases = list(dict.fromkeys(p for q in queries for p in q.phrases))
-        with entry.rw.read():
-            known = {p: entry.cache.detection_vectors[p] for p in phrases
-                     if p in entry.cache.detection_vectors}
-        known |= self._phrases.recall(config.model, [p for p in phrases if p not in known])
-        unknown = [p for p in phrases if p not in known]
-        texts = list(dict.fromkeys(q.text for q in queries))
-        seen = self._texts.recall(config.model, texts) if self._texts.size else {}
-        fresh = [t for t in texts if t not in seen]
+        seen, known, fresh, unknown = self._recall(entry, config.model, queries)
         rows = self.embedders.get(config.model).embed(
             fresh + [embedded_form(p) for p in unknown],
             batch_size=self.settings.tuning.embed_batch_size) if fresh or unknown else None
@@ -205,17 +253,12 @@ class Scorer:
             if self._texts.size:
                 self._texts.keep(config.model, embedded)
             seen |= embedded
-        vectors = np.stack([seen[q.text] for q in queries])
         if unknown:
             assert rows is not None
             new = dict(zip(unknown, unit_vectors(rows[len(fresh):]), strict=True))
             self._phrases.keep(config.model, new)
             known |= new
-        found = [Detections(q.phrases, np.stack([known[p] for p in q.phrases]))
-                 if q.phrases else None for q in queries]
-        with entry.rw.read():
-            return entry.cache.score(vectors, k, VERDICT_NEIGHBORS, found,
-                                     pairs=pairs)
+        return self._score(entry, k, queries, seen, known, pairs)
 
     async def _score_vectors(self, entry: Entry, vectors: np.ndarray, k: int | None = None
                              ) -> list[Scored]:

@@ -77,11 +77,14 @@ class CacheService:
         self._entries: dict[str, Entry] = {}
         self._create_lock = asyncio.Lock()
         self._thread = ComputeThread()
+        # the bus's observations that need no model: scored beside the embeddings (scorer)
+        self._search = ComputeThread("aesop-search")
         self._store: Store | PostgresStore | None = None
         self._on_follow = on_follow
         self._follower: Follower | None = None
         self.scorer = Scorer(settings, self.embedders, self.entry, self._thread.lane(NORMAL),
-                             self._thread.lane(URGENT), on_batch)
+                             self._thread.lane(URGENT), on_batch,
+                             known=self._search.lane(URGENT))
         self.review = Review(self)
 
     @property
@@ -121,6 +124,7 @@ class CacheService:
         if self._store is not None:
             self._store.close()
         self._thread.shutdown(wait=True)
+        self._search.shutdown(wait=True)
         self.embedders.close()
 
     def _save_index(self, entry: Entry) -> None:

@@ -10,7 +10,8 @@ answered once. Observations wait per robot and are scored in turn (:mod:`.fairne
 its rate is refused before its message is decoded, and a robot has one observation being
 scored at a time, so it has at most one in any embedding batch, and one robot's flood
 (distinct texts or not) neither drops another's verdicts nor delays them by more than
-one of its embeddings; refusals are counted per robot
+one of its embeddings (an observation whose vectors the detector knows already, by none:
+it is scored beside the embeddings, :mod:`.scorer`); refusals are counted per robot
 (``aesop_embedding_observations_dropped_total``) and said, at most every 10 s, in an
 ``observations_dropped`` alarm on that robot's event key.
 

@@ -190,19 +190,63 @@ async def test_a_flood_of_distinct_texts_costs_another_robot_one_embedding_at_mo
     for seq, text in enumerate(flood[1:], 1):  # the rest of the flood, then robot0's one
         connector.publish(topics.observation("robot1"),
                           Observation(robot="robot1", seq=seq, text=text))
+    scene = "robot0 sees a blue box on the ground near a drill"  # a text to embed
     connector.publish(topics.observation("robot0"),
-                      Observation(robot="robot0", seq=1, text=NOMINAL[2]))
+                      Observation(robot="robot0", seq=1, text=scene))
     await async_wait_until(lambda: "robot0" in inbox.seen, "robot0's observation")
     embedder.gate.set()
     verdict = await asyncio.wait_for(anext(verdicts), DEADLINE_S)
-    assert verdict.message.seq == 1 and verdict.message.is_anomaly is False
+    assert verdict.message.seq == 1
 
-    mine = next(i for i, b in enumerate(embedder.batches) if NOMINAL[2] in b)
+    mine = next(i for i, b in enumerate(embedder.batches) if scene in b)
     flooded = [sum(t in flooding for t in b) for b in embedder.batches]
     # robot0's observation waited for the one of robot1's being embedded when it came,
     # and no other: its own batch holds none of the flood's
     assert sum(flooded[:mine + 1]) == 1, embedder.batches[:mine + 1]
     assert max(flooded) == 1  # no batch holds two of one robot's observations
+    verdicts.close()
+    await worker.stop()
+    await asyncio.wait_for(task, DEADLINE_S)
+    await svc.close()
+
+
+async def test_an_observation_the_memo_knows_waits_for_no_embedding_of_the_flood(
+        gated: tuple[EmbeddingSettings, GatedEmbedder], listener: Bus,
+        connector: Bus) -> None:
+    """Embedding is not preemptible: with one of robot1's distinct texts in nearly every
+    batch, robot0's observation waited for a whole embedding even when its text was
+    known. A camera describes the scene it described before: robot0's verdict comes while
+    robot1's embedding is still held up."""
+    settings, embedder = gated
+    svc = CacheService(settings, embedders=EmbedderPool(loader=lambda _: embedder))
+    await svc.start()
+    await svc.create("scene", model="hash", k=1)
+    await svc.add("scene", [Item(text=t) for t in NOMINAL])
+    await svc.calibrate("scene", "loo-quantile", alpha=0.9)
+    worker = DetectorWorker(svc, listener, cache="scene", robot_hz=10_000)
+    task = asyncio.create_task(worker.run())
+    verdicts = connector.subscribe(topics.anomaly("robot0"), AnomalyVerdict, maxsize=16)
+    await routed(connector, listener)
+    await routed(listener, connector)
+    scene = "a red box on the ground near a drill; the landing pad is clear"
+    connector.publish(topics.observation("robot0"),
+                      Observation(robot="robot0", seq=1, text=scene))
+    first = await asyncio.wait_for(anext(verdicts), DEADLINE_S)  # its text embedded once
+    embedder.batches.clear()
+
+    embedder.gate.clear()  # robot1's distinct text is being embedded, and takes long
+    connector.publish(topics.observation("robot1"), Observation(
+        robot="robot1", seq=1, text="frame 1 a red box on the ground near a chair"))
+    await asyncio.to_thread(embedder.waiting.wait, DEADLINE_S)
+    connector.publish(topics.observation("robot0"),
+                      Observation(robot="robot0", seq=2, text=scene))
+    try:
+        again = await asyncio.wait_for(anext(verdicts), DEADLINE_S)
+        assert not embedder.gate.is_set()  # robot1's embedding was still held up
+    finally:
+        embedder.gate.set()
+    assert again.message.seq == 2 and again.message.score == first.message.score
+    assert embedder.batches == [["frame 1 a red box on the ground near a chair"]]
     verdicts.close()
     await worker.stop()
     await asyncio.wait_for(task, DEADLINE_S)
