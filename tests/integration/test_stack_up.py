@@ -3,6 +3,7 @@ SIGINT stops them all (no orphan left)."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -194,3 +195,37 @@ def reason(url: str, auth: dict[str, str]) -> dict[str, object]:
     assert r.status_code == 200, r.text
     answer: dict[str, object] = r.json()
     return answer
+
+
+def test_the_fly_line_aesop_up_prints_flies_2a_to_the_blue_box(tmp_path: Path) -> None:
+    """Issue 44: after `aesop up`, nothing flew and nothing said how; its banner now says
+    the `aesop demo --attach` that flies the hardware scenarios against it, as a newcomer
+    would copy it (the cache built over REST, the flight judged on the vehicle's truth)."""
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith("AESOP_") or k == "AESOP_LOG_LEVEL"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tools.cli", "up", "--random-ports", "--data-dir",
+         str(tmp_path / "data")], env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+        stdin=subprocess.DEVNULL, text=True)
+    try:
+        assert proc.stdout is not None
+        fly = None
+        for line in proc.stdout:
+            if "aesop demo --attach" in line:  # the command, on a line of its own
+                fly = line.split()
+            if line.startswith("Ctrl-C stops everything"):
+                break
+        assert fly is not None and fly[:3] == ["aesop", "demo", "--attach"], fly
+        done = subprocess.run([sys.executable, "-m", "tools.cli", *fly[1:], "--scenario-name",
+                               "2a", "--json", "--out", str(tmp_path / "report")], env=env,
+                              capture_output=True, text=True, timeout=240)
+        assert done.returncode == 0, done.stderr[-3000:]
+        (row,) = json.loads(done.stdout.splitlines()[-1])["scenarios"]
+        assert row["ended_in"] == "blue-box" and row["constraint_violations"] == 0, row
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()

@@ -33,6 +33,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     attach.add_argument("--sim-url", default="http://127.0.0.1:8004")
     attach.add_argument("--secrets", type=Path, default=Path("deploy/secrets"),
                         help="where the defaults come from (aesop zenoh credentials)")
+    attach.add_argument("--data-dir", type=Path, default=None,
+                        help="an `aesop up` stack's data dir instead: its zenoh/ passwords and "
+                             "its admin-token (aesop up prints the whole command)")
+    attach.add_argument("--connect", default=None, metavar="ENDPOINT",
+                        help="its router (default tcp/127.0.0.1:7447, or AESOP_ZENOH_CONNECT)")
     attach.add_argument("--scenario-name", action="append", default=None, metavar="NAME",
                         help="only this scenario (2a, 2b, 3, 1; repeatable)")
     add_fleet_options(demo)  # --robots 3: three scenarios flown at once, one per robot
@@ -66,15 +71,19 @@ def cmd_attached(args: argparse.Namespace) -> int:
 
     env = dict(os.environ)
     robot = env.get("AESOP_ROBOT", "robot0")
+    # compose's secrets (aesop zenoh credentials), or an `aesop up` data dir's
+    passwords, token_file = ((args.secrets, args.secrets / TOKEN_FILE) if args.data_dir is None
+                             else (args.data_dir / "zenoh", args.data_dir / "admin-token"))
     defaults = {"zenoh_mode": "client", "zenoh_connect": "tcp/127.0.0.1:7447"}
     if "AESOP_ZENOH_USER" not in env:
         defaults |= {"zenoh_user": robot_user(robot),
-                     "zenoh_password_file": args.secrets / f"{robot_user(robot)}.password"}
+                     "zenoh_password_file": passwords / f"{robot_user(robot)}.password"}
+    forced = {} if args.connect is None else {"zenoh_connect": args.connect}
     try:
-        bus = read_settings(BusSettings, env, defaults=defaults)
+        bus = read_settings(BusSettings, env, defaults=defaults, **forced)
         bus.zenoh_secret()  # a password file that cannot be read, named now
         token = env.get("AESOP_ADMIN_TOKEN") or _first_line(
-            Path(env.get("AESOP_ADMIN_TOKEN_FILE", args.secrets / TOKEN_FILE)))
+            Path(env.get("AESOP_ADMIN_TOKEN_FILE", token_file)))
         for name in args.scenario_name or ():
             demo_scenario(name)
     except (ValueError, KeyError) as exc:

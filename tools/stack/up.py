@@ -733,6 +733,10 @@ def urls_text(plan: StackPlan, token_file: Path | None) -> str:
         lines.append(f"  ROS 2: start the robot's nodes with RMW_IMPLEMENTATION=rmw_zenoh_cpp "
                      f"ZENOH_SESSION_CONFIG_URI={plan.ros2_session} (the ros2 user); "
                      f"its topics: aesop ros2 keys --config <the --ros2 file>")
+    fly = fly_command(plan)
+    if fly:
+        lines += ["  fly the hardware scenarios against it (add --scenario-name 2a for one):",
+                  f"    {fly}"]
     if plan.fake_llm:
         lines.append("  LLM: the fake OpenAI-compatible server (--llm local for a trained "
                      "model here, or AESOP_REASONER_LLM_BASE_URL for any server)")
@@ -746,6 +750,19 @@ def urls_text(plan: StackPlan, token_file: Path | None) -> str:
         lines.append("  admin token: AESOP_ADMIN_TOKEN from the environment")
     lines.append("Ctrl-C stops everything.")
     return "\n".join(lines)
+
+
+def fly_command(plan: StackPlan) -> str | None:
+    """``aesop demo --attach`` for this stack's first robot (its simulated vehicle), when it
+    runs one on this machine's hub."""
+    if plan.role != "all" or not plan.fleet:
+        return None
+    control, sim = plan.robot_urls(plan.robots[0])
+    if not sim or plan.url("embedding") is None:
+        return None
+    robot = "" if plan.robots[0] == "robot0" else f"AESOP_ROBOT={plan.robots[0]} "
+    return (f"{robot}aesop demo --attach --data-dir {plan.data_dir} --connect {plan.endpoint} "
+            f"--embedding-url {plan.url('embedding')} --control-url {control} --sim-url {sim}")
 
 
 def _zenoh_lines(plan: StackPlan) -> list[str]:
