@@ -289,8 +289,9 @@ def _rule(rule_id: str, flow: str, messages: list[str], keys: list[str]) -> dict
 
 
 ROUTER_HEADER = """\
-// The Zenoh router of the compose stack (image eclipse/zenoh, same version as the
-// eclipse-zenoh wheel). Written by `aesop zenoh router-config --robot robot0 --ros2
+// The Zenoh router of the compose stack (the eclipse-zenoh wheel's router in the stack's
+// image, `python -m tools.stack.router --config`, or eclipse/zenoh of the wheel's
+// version). Written by `aesop zenoh router-config --robot robot0 --ros2
 // deploy/ros2/quadrotor.yaml`, from the same code as the ACL of `aesop up`'s hub
 // (tools/stack/acl.py): regenerate it, do not edit it. Every session authenticates
 // (user:password, the dictionary is the compose secret zenoh-users, made by `aesop zenoh

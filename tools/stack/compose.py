@@ -18,6 +18,7 @@ share; the router mounts the fleet's ACL::
         --robot robot0 --robot robot1 --robot robot2
     docker compose -f docker-compose.yml -f deploy/compose.fleet.yml up -d
 """
+
 from __future__ import annotations
 
 import copy
@@ -41,8 +42,6 @@ STORE = "postgresql://aesop@postgres:5432/aesop?passfile=/run/secrets/postgres-p
 POSTGRES_IMAGE = "${AESOP_POSTGRES_IMAGE:-aesop-postgres:15}"
 STEP = 100  # host ports of the next robot or replica
 FLEET_RATE_HZ = 10  # every robot's loop, as `aesop up --robots N` (tools/stack/up.py)
-
-
 IMAGE_UID = 10001  # the image's user (deploy/docker/Dockerfile)
 TOKEN_FILE = "admin-token"  # every service's admin token, AESOP_ADMIN_TOKEN_FILE
 TOKEN_SECRET = "admin-token"  # its name in docker-compose.yml

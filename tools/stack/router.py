@@ -19,6 +19,10 @@ ships no ``zenohd``; this process stands in for it), in one of three roles.
   robot's local traffic stays local, and only what the server subscribes to and its ACL
   lets in crosses.
 
+``--config FILE`` serves a zenohd config file as it is instead (docker compose's
+``deploy/zenoh/router.json5``, which :mod:`.acl` writes): the router ``zenohd`` would be, from
+the stack's own image.
+
 With an ACL, a message past ``--max-message-bytes`` is dropped, and observations past
 ``--max-observation-hz`` per session. It serves until SIGINT/SIGTERM, with a larger share
 of a busy machine's cores where allowed (:func:`shared.realtime.favoured`).
