@@ -2,11 +2,13 @@
 
 - errors: JSON ``{"error": {"code", "message", "field"}}`` (``ErrorBody``) with a 4xx/5xx
   status, documented in ``/openapi.json`` with ``errors(...)``;
-- ``Guard``: with ``AESOP_ADMIN_TOKEN`` set, every route but the ops ones needs
+- ``Guard``: with ``AESOP_ADMIN_TOKEN`` set, every route but the ops and docs ones needs
   ``Authorization: Bearer <token>``, checked before the body is read; without it, only
   loopback ``Host`` names; no cross-site requests; bodies counted as they stream in, each
   part due within ``BODY_IDLE_S``, at most twice the body limit being read at once;
-- ``ops_router``: ``/healthz``, ``/readyz`` and ``/metrics`` (Prometheus, per-app registry).
+- ``ops_router``: ``/healthz``, ``/readyz`` and ``/metrics`` (Prometheus, per-app registry);
+- ``docs_pages``: ``/docs`` (Swagger UI) and ``/redoc`` with their JavaScript and CSS served
+  by the app itself (an offline robot reaches no CDN); they and ``/openapi.json`` are public.
 
 Running an app (connection limits, the header timeout) is :mod:`shared.serving`.
 """
@@ -19,13 +21,17 @@ import hashlib
 import hmac
 import time
 from collections.abc import Awaitable, Callable
+from pathlib import Path
 from typing import Any, TypeVar
 from urllib.parse import urlsplit
 
+import fastapi_offline
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, PlainTextResponse, Response
+from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
+from fastapi.responses import HTMLResponse, JSONResponse, PlainTextResponse, Response
 from fastapi.routing import APIRouter
+from fastapi.staticfiles import StaticFiles
 from prometheus_client import (
     CONTENT_TYPE_LATEST,
     CollectorRegistry,
@@ -313,6 +319,14 @@ def ops_router(
 
 
 OPS_PATHS = ("/healthz", "/readyz", "/metrics")
+# The API's description: read-only, no data, public so that an operator can read it (and use
+# Swagger's Authorize button) without putting the admin token in a URL. The operations it
+# describes still need the token.
+DOCS_PATHS = ("/openapi.json", "/docs", "/redoc")
+DOCS_ASSETS = "/docs/assets"  # the pages' JavaScript, CSS and icon, served by the app itself
+# Swagger UI's and ReDoc's dist files as fastapi-offline ships them (a PyPI package, so
+# nothing is vendored here and nothing is fetched at run time)
+DOCS_STATIC = Path(fastapi_offline.__file__).parent / "static"
 LOOPBACK_HOSTS = frozenset({"localhost", "127.0.0.1", "::1"})
 
 
@@ -379,9 +393,11 @@ def session_of(headers: Headers) -> str:
 
 
 def is_public(path: str, public: tuple[str, ...]) -> bool:
-    """An ops path, or one of ``public``: a path, or every path under one ending in '/'."""
-    return path in OPS_PATHS or any(
-        path == p or (len(p) > 1 and p.endswith("/") and path.startswith(p)) for p in public)
+    """An ops path, the API's description (:data:`DOCS_PATHS` and their assets), or one of
+    ``public``: a path, or every path under one ending in '/'."""
+    return path in OPS_PATHS or path in DOCS_PATHS or path.startswith(DOCS_ASSETS + "/") \
+        or any(path == p or (len(p) > 1 and p.endswith("/") and path.startswith(p))
+               for p in public)
 
 
 def same_token(given: str, token: SecretStr) -> bool:
@@ -519,6 +535,37 @@ class Guard:
         return replay
 
 
+def docs_pages(app: FastAPI) -> None:
+    """``/docs`` (Swagger UI) and ``/redoc`` for an app made with ``docs_url=None,
+    redoc_url=None``: FastAPI's pages, but their JavaScript, CSS and icon come from the app
+    itself (:data:`DOCS_ASSETS`) instead of a CDN and Google Fonts, and Swagger UI's
+    validator badge (an image from validator.swagger.io) is off: an offline robot shows
+    them all. "Try it out" sends the bearer token once it is given to the Authorize button
+    (the schema declares the scheme: :func:`document_security`)."""
+    app.mount(DOCS_ASSETS, StaticFiles(directory=DOCS_STATIC), name="docs-assets")
+
+    def root(request: Request) -> str:
+        return str(request.scope.get("root_path", "")).rstrip("/")
+
+    @app.get("/docs", include_in_schema=False)
+    async def swagger_ui(request: Request) -> HTMLResponse:
+        at = root(request)
+        return get_swagger_ui_html(
+            openapi_url=f"{at}{app.openapi_url}", title=f"{app.title} - Swagger UI",
+            swagger_js_url=f"{at}{DOCS_ASSETS}/swagger-ui-bundle.js",
+            swagger_css_url=f"{at}{DOCS_ASSETS}/swagger-ui.css",
+            swagger_favicon_url=f"{at}{DOCS_ASSETS}/favicon.png",
+            oauth2_redirect_url=None, swagger_ui_parameters={"validatorUrl": None})
+
+    @app.get("/redoc", include_in_schema=False)
+    async def redoc(request: Request) -> HTMLResponse:
+        at = root(request)
+        return get_redoc_html(
+            openapi_url=f"{at}{app.openapi_url}", title=f"{app.title} - ReDoc",
+            redoc_js_url=f"{at}{DOCS_ASSETS}/redoc.standalone.js",
+            redoc_favicon_url=f"{at}{DOCS_ASSETS}/favicon.png", with_google_fonts=False)
+
+
 def service_app(
     title: str,
     *,
@@ -538,8 +585,10 @@ def service_app(
     ``admin_token`` on every path but the ops ones and ``public``, JSON bodies of at most
     ``max_body_bytes``: a 413 past it names ``AESOP_<SERVICE>_MAX_BODY_BYTES``, ``service``
     in capitals), documented errors, the error body, the settings ``limits`` in its schema,
-    request metrics, and ``/healthz`` ``/readyz`` ``/metrics``."""
-    app = FastAPI(title=title, version="1", lifespan=lifespan, responses=errors(*GUARD_ERRORS))
+    request metrics, ``/healthz`` ``/readyz`` ``/metrics``, and the public ``/openapi.json``,
+    ``/docs`` and ``/redoc`` (:func:`docs_pages`: no CDN)."""
+    app = FastAPI(title=title, version="1", lifespan=lifespan, responses=errors(*GUARD_ERRORS),
+                  docs_url=None, redoc_url=None)
     app.state.admin_token = admin_token
     install_error_handlers(app)
     if limits:
@@ -550,4 +599,5 @@ def service_app(
                        body_setting=f"AESOP_{service.upper()}_MAX_BODY_BYTES")
     HttpMetrics(registry, service).install(app)  # outside the guard: refusals are counted
     app.include_router(ops_router(registry, ready, refresh))
+    docs_pages(app)
     return app
