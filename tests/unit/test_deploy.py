@@ -86,7 +86,8 @@ SETTINGS = {
 }
 STACK = {"embedding", "reasoner", "control", "dashboard"}  # the Zenoh services
 VEHICLE = "sim"  # the simulated vehicle: the robot's user
-BRIDGE = "ros2"  # the ROS 2 bridge (profile ros2): the ros2 user
+BRIDGE = "ros2"  # the ROS 2 bridge (profile ros2), as the user ros2-bridge
+BRIDGE_USER, NODE_USER = "ros2-bridge", "ros2"  # the bridge's and the robot's ROS nodes' users
 SERVED = sorted([*STACK, VEHICLE, BRIDGE, "fake-llm"])  # compose's `aesop serve` services
 QUADROTOR = ROOT / "deploy" / "ros2" / "quadrotor.yaml"
 ROBOT = "robot0"
@@ -606,7 +607,8 @@ def test_services_are_zenoh_clients_of_the_router(
     # it authenticates as itself (the vehicle as the robot), with the password compose
     # mounts as its secret: the one the router's dictionary has for that user
     user, secret_name = ((f"robot-{ROBOT}", "robot") if name == VEHICLE else
-                         (f"control-{ROBOT}", "control") if name == "control" else (name, name))
+                         (f"control-{ROBOT}", "control") if name == "control" else
+                         (BRIDGE_USER, BRIDGE_USER) if name == BRIDGE else (name, name))
     assert svc["environment"]["AESOP_ZENOH_PASSWORD_FILE"] == f"/run/secrets/zenoh-{secret_name}"
     assert {"admin-token", f"zenoh-{secret_name}"} <= set(svc["secrets"])
     assert interpolate(compose()["secrets"][f"zenoh-{secret_name}"]["file"], {}) == \
@@ -1058,7 +1060,7 @@ def test_the_router_is_the_hubs_acl_and_denies_by_default() -> None:
     rules = acl()
     assert rules["enabled"] is True and rules["default_permission"] == "deny"
     assert acl_users() == {*(STACK - {"control"}), f"control-{ROBOT}", "monitor",
-                           f"robot-{ROBOT}", BRIDGE}
+                           f"robot-{ROBOT}", BRIDGE_USER, NODE_USER}
     rule_ids = {r["id"] for r in rules["rules"]}
     for policy in rules["policies"]:
         assert set(policy["rules"]) <= rule_ids and set(policy["subjects"]) <= acl_users()
@@ -1161,17 +1163,17 @@ def test_only_services_declare_health_and_strangers_see_nothing(
     assert stranger_name not in dashboard.alive()
 
 
-def test_the_ros2_user_uses_only_its_mapped_ros_topics_and_its_robots_inputs(
+def test_the_ros2_users_use_only_the_mapped_ros_topics_and_only_the_bridge_the_inputs(
         router: str, credentials: tuple[Path, dict[str, str]],
         stack: dict[str, tuple[Bus, Tap]]) -> None:
-    """Two sessions of the ros2 user (the bridge, a ROS 2 node) on the shipped router: a
-    mapped topic's samples (any type: the bridge refuses a wrong one itself) and the
-    graph's tokens pass; an unmapped topic, another domain and the stack's outputs do
-    not."""
+    """The bridge (ros2-bridge) and a ROS 2 node (ros2) on the shipped router: a mapped
+    topic's samples (any type: the bridge refuses a wrong one itself) and the graph's tokens
+    pass; an unmapped topic, another domain and the stack's outputs do not; the robot's
+    inputs only from the bridge, never from a node around its checks (issue 43)."""
     config = load_config(QUADROTOR)
     settings = BusSettings(zenoh_config=CLIENTS / "ros2.json5", zenoh_mode="client",
-                           zenoh_connect=[router], zenoh_user=BRIDGE,
-                           zenoh_password_file=credentials[0] / f"{BRIDGE}.password")
+                           zenoh_connect=[router], zenoh_user=BRIDGE_USER,
+                           zenoh_password_file=credentials[0] / f"{BRIDGE_USER}.password")
     odom = next(m for m in config.topics() if m.role == "odometry")
     ok = wire.data_key(0, odom.name, odom.ros_type, convert.type_hash(odom.ros_type))
     other_type = wire.data_key(0, odom.name, "std_msgs/msg/String",
@@ -1179,7 +1181,9 @@ def test_the_ros2_user_uses_only_its_mapped_ros_topics_and_its_robots_inputs(
     refused = [wire.data_key(0, "/not/mapped", odom.ros_type, convert.type_hash(odom.ros_type)),
                wire.data_key(7, odom.name, odom.ros_type, convert.type_hash(odom.ros_type))]
     got: list[str] = []
-    robot = settings.model_copy(update={"zenoh_config": None})  # a session id of its own
+    robot = settings.model_copy(update={  # a session id of its own, a node's user
+        "zenoh_config": None, "zenoh_user": NODE_USER,
+        "zenoh_password_file": credentials[0] / f"{NODE_USER}.password"})
     with Bus.open(settings, BRIDGE) as bridge, zenoh.open(zenoh_config(robot)) as node:
         for key in [wire.topic_keys(0, odom.name), *refused]:  # the refused: not declared
             bridge.session.declare_subscriber(key, lambda s: got.append(str(s.key_expr)))
@@ -1205,6 +1209,12 @@ def test_the_ros2_user_uses_only_its_mapped_ros_topics_and_its_robots_inputs(
         bridge.publish(state_key, Event(source=BRIDGE, kind="own"))
         wait_until(lambda: tap.has(state_key, BRIDGE, "own"), "the robot's input, through")
         assert not tap.has(forged, BRIDGE, "forged")
+        # a ROS node may not put the robot's inputs around the bridge's checks (issue 43)
+        node.put(state_key, Event(source="node", kind="forged-state").encode())
+        node.put(topics.observation(ROBOT), Event(source="node", kind="forged-obs").encode())
+        bridge.publish(state_key, Event(source=BRIDGE, kind="after"))  # sent after them
+        wait_until(lambda: tap.has(state_key, BRIDGE, "after"), "the bridge's next input")
+        assert tap.kinds("node") == set(), tap.kinds("node")
 
 
 # --------------------------------------------------------------------------- a fleet

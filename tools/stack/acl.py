@@ -20,11 +20,13 @@ the stack does (docs/architecture.md, "Zenoh key expressions"). Everything else 
 - a robot linked through a router of its own (``aesop up --role robot``) is one subject
   ``robot-<id>`` at the server: what its control loop, vehicle and ROS 2 bridge may do;
 - ``monitor`` (``aesop watch``, a recorder) only reads;
-- ``ros2`` (``aesop ros2``, the bridge, and the ROS 2 robot's rmw_zenoh sessions on one
-  machine), when a bridge config is given: the ROS keys of its domain and mapped topics
-  (data keys of any type, rmw_zenoh's ``@adv`` keys under them, the graph's
-  ``@ros2_lv/<domain>/**`` tokens) both ways, and of the stack's keys only its robot's
-  inputs (observations, vehicle state, its events) and its health token.
+- ``ros2`` (the ROS 2 robot's rmw_zenoh sessions on one machine), when a bridge config is
+  given: the ROS keys of its domain and mapped topics (data keys of any type, rmw_zenoh's
+  ``@adv`` keys under them, the graph's ``@ros2_lv/<domain>/**`` tokens) both ways, and
+  none of the stack's keys: a ROS node reaches the stack only through the bridge's checks;
+- ``ros2-bridge`` (``aesop ros2``, the bridge): the same ROS keys, and of the stack's keys
+  only its robot's inputs (observations, vehicle state, its events), its robot's keys to
+  receive and its health token.
 
 The router also passes on at most ``max_observation_hz`` observations per second
 from each session (its ``downsampling``), so a robot flooding its own key loads the
@@ -86,7 +88,7 @@ def control_user(robot: str) -> str:
 def users_of(robots: Iterable[str], *, ros2: bool = False) -> list[str]:
     robots = list(robots)
     return [*SERVICE_PUTS, MONITOR, *(control_user(r) for r in robots),
-            *(robot_user(r) for r in robots), *([ROS2] if ros2 else [])]
+            *(robot_user(r) for r in robots), *([ROS2, ROS2_BRIDGE] if ros2 else [])]
 
 
 def server_users() -> list[str]:
@@ -120,7 +122,7 @@ def stack_acl(robots: Sequence[str], ros2: BridgeConfig | None = None, *,
     readers = [*SERVICE_PUTS, MONITOR]
     users = list(dict.fromkeys([
         *readers, *(u for r in robots for u in (control_user(r), robot_user(r))),
-        *([ROS2] if ros2 is not None else []), *map(robot_user, linked)]))
+        *([ROS2, ROS2_BRIDGE] if ros2 is not None else []), *map(robot_user, linked)]))
     policies: list[dict[str, Any]] = [
         {"id": "everyone", "rules": ["subscribe", "announce"], "subjects": users},
         {"id": "readers", "rules": ["receive"], "subjects": readers}]
@@ -153,10 +155,9 @@ def stack_acl(robots: Sequence[str], ros2: BridgeConfig | None = None, *,
         rules.append(_rule("ros2-health", "ingress", ["liveliness_token"],
                            [f"aesop/health/{ROS2}"]))
     if ros2 is not None:
-        ros_rules, ros_policy = ros2_acl(ros2)
+        ros_rules, ros_policies = ros2_acl(ros2)
         rules += [r for r in ros_rules if r["id"] not in {x["id"] for x in rules}]
-        ros_policy["rules"].append(f"{ros2.robot}-receive")
-        policies.append(ros_policy)
+        policies += ros_policies
     field = "usernames" if identity == "usrpwd" else "cert_common_names"
     return {
         "enabled": True,
@@ -188,7 +189,8 @@ def _robot_rules(robot: str) -> tuple[list[dict[str, Any]], ...]:
                    [clock])])
 
 
-ROS2 = "ros2"  # the user of the ROS 2 bridge and of the robot's rmw_zenoh sessions
+ROS2 = "ros2"  # the user of the robot's rmw_zenoh sessions (and the bridge's service name)
+ROS2_BRIDGE = "ros2-bridge"  # the user of the ROS 2 bridge
 ROS_MESSAGES = ["put", "delete", "declare_subscriber", "declare_queryable", "query", "reply",
                 "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"]
 
@@ -220,8 +222,10 @@ def ros2_session_config(endpoint: str, password: str) -> str:
             + json.dumps(config, indent=2) + "\n")
 
 
-def ros2_acl(config: BridgeConfig) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """The ``ros2`` user's rules and policy: the ROS keys both ways, its robot's inputs."""
+def ros2_acl(config: BridgeConfig) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The rules and the policies of the ``ros2`` user (the robot's nodes: the ROS keys both
+    ways) and of the bridge's ``ros2-bridge`` (the same, and its robot's inputs, its robot's
+    keys to receive and its health token)."""
     robot, keys = config.robot, ros_keys(config)
     rules = [
         _rule("ros2-ros-in", "ingress", ROS_MESSAGES, keys),
@@ -231,8 +235,11 @@ def ros2_acl(config: BridgeConfig) -> tuple[list[dict[str, Any]], dict[str, Any]
                f"aesop/{robot}/event/{ROS2}"]),
         _rule("ros2-health", "ingress", ["liveliness_token"], [f"aesop/health/{ROS2}"]),
     ]
-    policy = {"id": ROS2, "rules": [r["id"] for r in rules], "subjects": [ROS2]}
-    return rules, policy
+    ros = ["ros2-ros-in", "ros2-ros-out"]
+    policies = [{"id": ROS2, "rules": ros, "subjects": [ROS2]},
+                {"id": ROS2_BRIDGE, "rules": [*ros, "ros2-puts", "ros2-health",
+                                              f"{robot}-receive"], "subjects": [ROS2_BRIDGE]}]
+    return rules, policies
 
 
 def size_cap(max_message_bytes: int = MAX_MESSAGE_BYTES) -> list[dict[str, Any]]:
@@ -297,7 +304,7 @@ ROUTER_HEADER = """\
 // (user:password, the dictionary is the compose secret zenoh-users, made by `aesop zenoh
 // credentials deploy/secrets`); each service may publish only its own keys, robot-<id>
 // only its own observations, events and vehicle state (and answer its clock), ros2 (the
-// ROS 2 bridge and the robot's rmw_zenoh nodes) the mapped ROS topics and its robot's
+// robot's rmw_zenoh nodes) the mapped ROS topics only, ros2-bridge those and its robot's
 // inputs, monitor only reads; a message past the size limit is dropped, and observations
 // past the rate per session. See deploy/README.md.
 """

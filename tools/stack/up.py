@@ -71,6 +71,7 @@ from tools.local_llm import REASONER_SETTINGS, STACK_THREADS, LocalModel, server
 
 from .acl import (
     ROS2,
+    ROS2_BRIDGE,
     control_user,
     new_passwords,
     robot_user,
@@ -572,7 +573,7 @@ def _robots(options: StackOptions, environ: Mapping[str, str], robots: Sequence[
                           scenario=scenario,
                           time_scale=dt / control.period_s(dt))
             if options.ros2 is None else
-            read_settings(Ros2Settings, environ, **common, **user(ROS2), port=vehicle_port,
+            read_settings(Ros2Settings, environ, **common, **user(ROS2_BRIDGE), port=vehicle_port,
                           data_dir=data(vehicle_name), config=options.ros2))
         settings += [(vehicle_name, vehicle_kind, vehicle), (control_name, "control", control)]
         out.append((robot, control_name, vehicle_name))
