@@ -44,7 +44,8 @@ RECONNECT = {"period_init_ms": 100, "period_max_ms": 1000, "period_increase_fact
 
 
 def zenoh_config(settings: BusSettings) -> zenoh.Config:
-    """A Zenoh config: the JSON5 file if any, then mode, endpoints, multicast, the
+    """A Zenoh config: the JSON5 file if any (``ValueError`` naming a file it cannot read,
+    as for the password and TLS files), then mode, endpoints, multicast, the
     reconnection backoff, the TLS files and the user/password from settings.
 
     With a file, only settings given explicitly (init or ``AESOP_*``) override it;
@@ -52,6 +53,14 @@ def zenoh_config(settings: BusSettings) -> zenoh.Config:
     listen endpoint listens on a random loopback port, not on every interface).
     """
     if settings.zenoh_config is not None:
+        # zenoh's own error for a missing file names no file; and a caller that cannot
+        # open a session blames the router's user and password
+        try:
+            with open(settings.zenoh_config, "rb"):
+                pass
+        except OSError as exc:
+            raise ValueError(f"AESOP_ZENOH_CONFIG: cannot read {settings.zenoh_config}: "
+                             f"{exc.strerror}") from None
         conf = zenoh.Config.from_file(settings.zenoh_config)
         given = settings.model_fields_set
     else:

@@ -101,9 +101,20 @@ def require_bench_extra() -> None:
 COMMANDS = (serve, detector, bench_cli, watch, recording_cli, stack_cli, demo_cli, ros2)
 
 
+def package_version() -> str:
+    """The installed aesop-stack's version (``unknown`` where only the sources are)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("aesop-stack")
+    except PackageNotFoundError:
+        return "unknown"
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Each command module registers its own subcommands and their handlers."""
     parser = argparse.ArgumentParser(prog="aesop", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
     for module in COMMANDS:
         module.register(sub)

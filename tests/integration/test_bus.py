@@ -216,3 +216,9 @@ def test_zenoh_config_file_then_explicit_settings(tmp_path: Path) -> None:
     assert _conf(overridden, "mode") == "peer"
     assert _conf(overridden, "connect/endpoints") == ["tcp/127.0.0.1:7448"]
     assert _conf(overridden, "scouting/multicast/enabled") is False
+
+
+def test_a_missing_zenoh_config_file_is_named(tmp_path: Path) -> None:
+    path = tmp_path / "gone.json5"
+    with pytest.raises(ValueError, match=f"AESOP_ZENOH_CONFIG: cannot read {path}: No such"):
+        zenoh_config(BusSettings(zenoh_config=path))

@@ -8,6 +8,8 @@ import signal
 import subprocess
 import sys
 import threading
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -15,8 +17,11 @@ import pytest
 from shared import topics
 from shared.bus import Bus
 from shared.messages import Event
+from shared.process import free_port
+from shared.settings import BusSettings
 from tests.e2e.demo_flight import Flight
 from tests.zenoh_peers import wait_until
+from tools.stack.acl import new_passwords, users_of, write_credentials
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
@@ -125,3 +130,81 @@ def test_watch_all_follows_every_robot_of_a_fleet(listener: Bus, endpoint: str,
             proc.kill()
             proc.wait(10)
     assert "every robot" in (tmp_path / "watch.err").read_text()
+
+
+@pytest.fixture
+def hub(tmp_path: Path) -> Iterator[str]:
+    """aesop up's router (users and passwords under ``tmp_path/zenoh``): its endpoint."""
+    folder = tmp_path / "zenoh"
+    write_credentials(folder, new_passwords(users_of((ROBOT,))))
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    proc = subprocess.Popen([sys.executable, "-m", "tools.stack.router", "--listen", endpoint,
+                             "--users", str(folder / "users.txt"), "--robot", ROBOT],
+                            stderr=subprocess.PIPE, text=True)
+    assert proc.stderr is not None
+    line = proc.stderr.readline()  # printed once it listens
+    assert "listening" in line, line
+    yield endpoint
+    proc.terminate()
+    proc.wait(10)
+
+
+@pytest.mark.parametrize("login", [{}, {"AESOP_ZENOH_USER": "monitor",
+                                         "AESOP_ZENOH_PASSWORD": "not-the-password"}],
+                         ids=["no-user", "wrong-password"])
+def test_watch_refused_by_aesop_ups_router_says_how_to_log_in(
+        hub: str, login: dict[str, str]) -> None:
+    # docs/dashboard.md's line as a newcomer types it: it used to wait silently for ever
+    env = {k: v for k, v in os.environ.items() if not k.startswith("AESOP_ZENOH")} | login
+    started = time.monotonic()
+    done = subprocess.run([sys.executable, "-m", "tools.cli", "watch", "--connect", hub],
+                          capture_output=True, text=True, env=env, stdin=subprocess.DEVNULL,
+                          timeout=40)
+    took = time.monotonic() - started
+    assert done.returncode == 2, done.stderr
+    assert took < 20, took
+    assert "Traceback" not in done.stderr
+    assert f"the router at {hub} refused this session or did not answer" in done.stderr
+    assert ("AESOP_ZENOH_MODE=client AESOP_ZENOH_USER=monitor "
+            "AESOP_ZENOH_PASSWORD_FILE=<data-dir>/zenoh/monitor.password") in done.stderr
+    assert done.stdout == ""
+
+
+def test_watch_as_the_monitor_joins_aesop_ups_router(hub: str, tmp_path: Path) -> None:
+    password_file = tmp_path / "zenoh" / "monitor.password"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("AESOP_ZENOH")} | {
+        "AESOP_ZENOH_MODE": "client", "AESOP_ZENOH_USER": "monitor",
+        "AESOP_ZENOH_PASSWORD_FILE": str(password_file)}
+    with open(tmp_path / "watch.err", "w") as err:
+        proc = subprocess.Popen([sys.executable, "-m", "tools.cli", "watch", "--robot", ROBOT,
+                                 "--connect", hub], stdout=subprocess.PIPE, stderr=err,
+                                stdin=subprocess.DEVNULL, text=True, env=env)
+    try:
+        lines = Lines(proc)
+        with Bus.open(BusSettings(zenoh_mode="client", zenoh_connect=[hub],
+                                  zenoh_user="embedding",
+                                  zenoh_password_file=tmp_path / "zenoh" / "embedding.password"),
+                      "embedding") as embedding:
+            def greeted() -> bool:
+                embedding.publish(topics.event(ROBOT, "embedding"),
+                                  Event(robot=ROBOT, source="embedding", kind="hello"))
+                return bool(lines.having("event", "embedding/hello"))
+
+            wait_until(greeted, "watch to follow the hub", 20.0)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    assert "Traceback" not in (tmp_path / "watch.err").read_text()
+
+
+@pytest.mark.parametrize("mode", ["peer", "client"])
+def test_watch_joins_when_any_of_its_endpoints_lets_it_in(hub: str, tmp_path: Path,
+                                                          mode: str) -> None:
+    from tools.watch import joined
+
+    joined(BusSettings(zenoh_mode=mode, zenoh_connect=[f"tcp/127.0.0.1:{free_port()}", hub],
+                       zenoh_user="monitor",
+                       zenoh_password_file=tmp_path / "zenoh" / "monitor.password"))

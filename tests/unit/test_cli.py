@@ -105,3 +105,35 @@ def test_a_servers_address_takes_the_routers_port_unless_given(given: str,
     from tools.stack.cli import _host_port
 
     assert _host_port(given) == endpoint
+
+
+def test_version_prints_the_package_version(capsys: pytest.CaptureFixture[str]) -> None:
+    from importlib.metadata import version
+
+    with pytest.raises(SystemExit) as done:
+        cli.main(["--version"])
+    assert done.value.code == 0
+    assert capsys.readouterr().out.strip() == f"aesop {version('aesop-stack')}"
+
+
+@pytest.mark.parametrize(("variable", "says"), [
+    ("AESOP_ZENOH_CONFIG", "AESOP_ZENOH_CONFIG: cannot read {path}"),
+    ("AESOP_ZENOH_PASSWORD_FILE", "AESOP_ZENOH_PASSWORD_FILE: cannot read {path}"),
+])
+def test_watch_names_the_missing_file_it_was_given(
+        variable: str, says: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    # a missing config file used to be reported as a router that wants a user and password,
+    # and a missing password file as a traceback
+    for name in list(os.environ):
+        if name.startswith("AESOP_ZENOH"):
+            monkeypatch.delenv(name)
+    path = tmp_path / "gone"
+    monkeypatch.setenv(variable, str(path))
+    if variable == "AESOP_ZENOH_PASSWORD_FILE":
+        monkeypatch.setenv("AESOP_ZENOH_USER", "monitor")
+    assert cli.main(["watch", "--connect", "tcp/127.0.0.1:1"]) == 2
+    err = capsys.readouterr().err
+    assert says.format(path=path) in err
+    if variable == "AESOP_ZENOH_CONFIG":
+        assert "PASSWORD" not in err
