@@ -37,7 +37,7 @@ def test_the_router_restarts_mid_flight_and_the_stack_carries_on(tmp_path: Path)
     environ = {k: v for k, v in os.environ.items() if k != "AESOP_ADMIN_TOKEN"}
     plan = plan_stack(StackOptions(data_dir=tmp_path / "data", ports=Ports.free()), environ,
                       TOKEN)
-    stack = Stack(plan, file_sink(tmp_path / "logs"), hub_restart_delay_s=2.0)
+    stack = Stack(plan, file_sink(tmp_path / "logs"), restart_delay_s=2.0)
     control, dashboard = plan.url("control"), plan.url("dashboard")
     http = httpx.Client(headers=AUTH, timeout=10)
 

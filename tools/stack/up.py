@@ -42,6 +42,7 @@ import signal
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -86,7 +87,11 @@ DETECTOR_CACHE = "quadrotor"
 LOCAL_LLM = "llm"  # the name of --llm local's server among the children
 POSTGRES = "postgres"  # the detector replicas' PostgreSQL server among the children
 # children started again when they die, like the hub
-RESTARTED = ("fake-llm", LOCAL_LLM, POSTGRES)
+# a child that dies is started again (Stack.watch), after a delay doubling from 1 s; one that
+# exits more than MAX_RESTARTS times in RESTART_WINDOW_S stops the stack
+MAX_RESTARTS = 5
+RESTART_WINDOW_S = 60.0
+MAX_RESTART_DELAY_S = 30.0
 FAKE_LLM_LATENCY_S = 3.1  # the paper's mean GPT-3.5-turbo CoT latency (Table "jetson timings")
 # Environment a child must not inherit: each service listens on its own port
 # and joins the hub, whatever the calling shell says.
@@ -589,14 +594,14 @@ class Stack:
 
     def __init__(self, plan: StackPlan, sink: Sink, *, ready_timeout_s: float = 180.0,
                  stop_event: threading.Event | None = None,
-                 hub_restart_delay_s: float = 1.0) -> None:
+                 restart_delay_s: float = 1.0) -> None:
         self.plan, self.sink = plan, sink
         self.hub = Child(plan.hub, sink)
         self.children = [Child(spec, sink) for spec in plan.services]
         self.ready_timeout_s = ready_timeout_s
         self.stopping = stop_event or threading.Event()
         self.restarts: dict[str, int] = {}  # child name -> times started again
-        self.hub_restart_delay_s = hub_restart_delay_s  # a crashing child is not a busy loop
+        self.restart_delay_s = restart_delay_s  # a crashing child is not a busy loop
         self.lock = DataDirLock(plan.data_dir)
 
     @property
@@ -646,24 +651,41 @@ class Stack:
                     on_ready=lambda c: self.sink("up", f"{c.name} ready on port {c.spec.port}"))
 
     def watch(self) -> str | None:
-        """Block until ``stopping`` is set (None) or a service exits (its description).
-        A hub that exits is started again on its port: the services are Zenoh clients
-        that reconnect by themselves, and meanwhile the control loop takes the silence
-        as an anomaly. So is an LLM server (:data:`RESTARTED`): meanwhile the reasoner
-        answers with its labelled fallback."""
+        """Block until ``stopping`` is set (None) or a child keeps dying (its description).
+        Every child that exits, the hub, a service, an LLM server or PostgreSQL, is started
+        again, as compose's restart policy or systemd's ``Restart=`` would, after a delay
+        that doubles with each of its exits in the last :data:`RESTART_WINDOW_S` (from
+        ``restart_delay_s`` up to :data:`MAX_RESTART_DELAY_S`); the others go on: the
+        services are Zenoh clients that reconnect by themselves, the control loop takes a
+        silent detector or vehicle as an anomaly, the reasoner answers with its labelled
+        fallback. A child that exits more than :data:`MAX_RESTARTS` times in that window
+        stops the stack."""
+        exits: dict[str, deque[float]] = {}
+        due: dict[str, float] = {}  # child name -> when it starts again
         while not self.stopping.wait(0.2):
+            now = time.monotonic()
             for child in [self.hub, *self.children]:
+                if child.name in due:
+                    if now >= due[child.name]:
+                        del due[child.name]
+                        child.start()
+                    continue
                 status = child.exited()
                 if status is None:
                     continue
-                if child is not self.hub and child.name not in RESTARTED:
-                    return f"{child.name} exited with status {status}"
+                recent = exits.setdefault(child.name, deque())
+                recent.append(now)
+                while now - recent[0] > RESTART_WINDOW_S:
+                    recent.popleft()
+                if len(recent) > MAX_RESTARTS:
+                    return (f"{child.name} exited with status {status} ({len(recent)} times "
+                            f"in {RESTART_WINDOW_S:g} s)")
+                delay = min(self.restart_delay_s * 2 ** (len(recent) - 1),
+                            MAX_RESTART_DELAY_S)
                 self.restarts[child.name] = self.restarts.get(child.name, 0) + 1
                 self.sink("up", f"{child.name} exited with status {status}: starting it "
-                          f"again in {self.hub_restart_delay_s:g} s")
-                if self.stopping.wait(self.hub_restart_delay_s):
-                    return None
-                child.start()
+                          f"again in {delay:g} s")
+                due[child.name] = now + delay
         return None
 
     def replace(self, spec: ChildSpec) -> None:
