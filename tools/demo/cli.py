@@ -59,7 +59,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"scenarios": result["scenarios"], **(
             {"k": result["k"]} if "k" in result else {})}, allow_nan=False))
-    return 0 if result["ok"] else 1
+    # --keep-up: a service that died stopped the stack, as it ends `aesop up` (status 1)
+    return 0 if result["ok"] and not result.get("stack_stopped") else 1
 
 
 def cmd_attached(args: argparse.Namespace) -> int:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import asyncio
 import secrets
+import shlex
 import signal
 import sys
 import threading
@@ -68,6 +69,7 @@ from tools.stack.up import (
     StackOptions,
     StackPlan,
     plan_stack,
+    write_token,
 )
 from tools.stack.up import (
     hardware_scenario as hardware_path,
@@ -77,10 +79,13 @@ from .k import QUERIES, KChoice, calibrate, choose_k, scene_with_k
 from .report import (
     decisions_text,
     ended_in,
+    flight_facts,
     flight_measures,
     judge,
+    stories_text,
     summary_table,
     verdict_line,
+    what_happened,
     write_report,
 )
 
@@ -96,12 +101,19 @@ LOAD_FLIGHTS = 20  # nominal flights at most while the model is timed (about 30 
 def run_stack_demo(options: StackOptions, environ: Mapping[str, str], out: Path, *,
                    model: str | None = None, table: bool = True, keep_up: bool = False
                    ) -> dict[str, Any]:
+    """Up, the scenarios flown and judged, the report written; then down, or with
+    ``keep_up`` supervised as ``aesop up`` supervises its stack (:meth:`Stack.watch`) until
+    Ctrl-C or a service dies (``result["stack_stopped"]`` says which, and how)."""
     scenario = load_scenario(options.scenario)
     plan = plan_stack(options, environ, secrets.token_urlsafe(24))
     stack = Stack(plan, file_sink(out / "logs"))
     signal.signal(signal.SIGTERM, _interrupt)
     started = time.monotonic()
     try:
+        stack.claim()  # the data dir and the ports first: another stack's token stays its own
+        # as `aesop up` keeps it: a generated token in <data dir>/admin-token (0600), so the
+        # dashboard's address can be opened (the token is never printed)
+        token_file = write_token(options.data_dir, plan.token) if plan.token_generated else None
         _say(f"starting the stack (logs in {out / 'logs'}) ...")
         stack.start()
         k = None
@@ -109,7 +121,8 @@ def run_stack_demo(options: StackOptions, environ: Mapping[str, str], out: Path,
             k, scenario = fly_with_k(stack, plan, options, environ, scenario, out)
         dashboard = plan.url("dashboard")
         if dashboard:
-            _say(f"dashboard: {dashboard}  (watch the flights live)")
+            _say(f"dashboard: {dashboard_login(dashboard, token_file)}  (watch the flights "
+                 "live; opened once, the browser keeps a session)")
         if len(plan.robots) > 1:
             _say(f"flying {len(plan.robots)} robots at once: "
                  + ", ".join(f"{r} {FLEET_ORDER[i % len(FLEET_ORDER)]}"
@@ -129,23 +142,48 @@ def run_stack_demo(options: StackOptions, environ: Mapping[str, str], out: Path,
         if table:
             print(f"\nAESOP demo — {scenario.name}, {result['llm']}\n")
             print(summary_table(result["scenarios"]))
+            print(stories_text(result["scenarios"]), end="")
             if k is not None:
                 print(decisions_text(result))
             print(f"\n{verdict_line(result)} ({result['wall_s']:.0f} s)\nreport: {report}")
             if dashboard:
-                print(f"dashboard: {dashboard}" + ("" if keep_up else " (stopped with the demo;"
-                                                   " `aesop demo --keep-up` leaves it running)"))
+                print(dashboard_text(dashboard, token_file, keep_up))
         else:
             _say(f"report: {report}")
         if keep_up:
-            _say("the stack stays up; Ctrl-C stops it")
-            stack.stopping.wait()
+            _say("the stack stays up" + (f" (dashboard: {dashboard_login(dashboard, token_file)})"
+                                         if dashboard else "") + "; Ctrl-C stops it")
+            died = stack.watch()  # as `aesop up`: a child that dies is started again
+            if died is not None:
+                _say(f"{died}; stopping the stack")
+                result["stack_stopped"] = died
         return result
     except KeyboardInterrupt:
         _say("interrupted")
         raise
     finally:
         stack.stop()
+
+
+def dashboard_login(url: str, token_file: Path | None) -> str:
+    """The dashboard's address with the admin token, as a shell expands it: read from the
+    stack's token file (or ``$AESOP_ADMIN_TOKEN``, where the token came from), never the
+    token itself. Opened once, the dashboard keeps a session cookie."""
+    token = "$AESOP_ADMIN_TOKEN" if token_file is None else \
+        f"$(cat {shlex.quote(str(token_file))})"
+    return f"{url}/?token={token}"
+
+
+def dashboard_text(url: str, token_file: Path | None, keep_up: bool) -> str:
+    """The summary's lines about the dashboard: how to open it, and for how long it runs."""
+    where = ("with AESOP_ADMIN_TOKEN set in that shell" if token_file is None else
+             f"the admin token is in {token_file}, readable by you only")
+    lines = [f"dashboard: {dashboard_login(url, token_file)}",
+             f"  (open it once, e.g. xdg-open \"<that address>\": {where}; the browser then "
+             "keeps a session)"]
+    if not keep_up:
+        lines.append("  (stopped with the demo; `aesop demo --keep-up` leaves it running)")
+    return "\n".join(lines)
 
 
 @dataclass(frozen=True)
@@ -177,6 +215,7 @@ def run_attached_demo(stack: Attached, out: Path, *, names: Sequence[str] | None
     if table:
         print(f"\nAESOP demo — {scenario.name}, attached to {stack.control_url}\n")
         print(summary_table(result["scenarios"]))
+        print(stories_text(result["scenarios"]), end="")
         print(f"\n{verdict_line(result)} ({result['wall_s']:.0f} s)\nreport: {report}")
     else:
         _say(f"report: {report}")
@@ -360,6 +399,7 @@ class Recorder:
     decisions: list[ReasonerDecision] = field(default_factory=list)
     events: list[Event] = field(default_factory=list)
     detector_alarms: int = 0  # anomalous verdicts during the flight
+    flagged_at: list[float] = field(default_factory=list)  # when each came (the loop's t)
     recording: bool = False
 
     @property
@@ -423,7 +463,8 @@ async def fly_robot(embedding_url: str | None, control_url: str | None, sim_url:
                     rows.append(row)
                     flights[demo.name] = states
                     if until is None:
-                        _say(f"  {demo.name}: {row['outcome']}")
+                        _say(f"  {demo.name}: {row['outcome']}" + (
+                            "" if row["outcome"] == "ok" else f"\n    {row['what_happened']}"))
                 state_rate_hz = (await sim.state()).reporting["rate_hz"]
             add_time_lost(rows)
         finally:
@@ -519,7 +560,7 @@ async def _fly(pilots: Pilots, camera: Camera, rec: Recorder, demo: DemoScenario
                ) -> tuple[dict[str, Any], np.ndarray]:
     rec.recording = False
     rec.states, rec.requests, rec.decisions, rec.events = [], [], [], []
-    rec.detector_alarms = 0
+    rec.detector_alarms, rec.flagged_at = 0, []
     start = [float(v) for v in scenario.start_center]
     await pilots.new_flight(camera, start)
     rec.recording = True
@@ -602,9 +643,11 @@ def summarize(rec: Recorder, demo: DemoScenario, scenario: Scenario, wall_s: flo
         decision, source = None, f"{source}, late: not acted on"
     ended = ended_in(states[-1], scenario) if len(states) else None
     violations = count_violations(states, inputs, scenario)
+    facts = flight_facts(demo, scenario, rec.states, rec.requests, rec.decisions, rec.events,
+                         rec.flagged_at)
     problems = judge(demo, ended=ended, detector_alarms=rec.detector_alarms,
                      anomaly_at_s=anomaly_at, decision=decision, violations=violations,
-                     scenario=scenario if real_model else None)
+                     scenario=scenario if real_model else None, facts=facts)
     measures = flight_measures([s.t for s in rec.states], np.array([s.x for s in rec.states]),
                                [s.mode for s in rec.states], scenario.goal, anomaly_at)
     row = {"name": demo.name, "expected": demo.expected, "outcome": "; ".join(problems) or "ok",
@@ -630,6 +673,8 @@ def summarize(rec: Recorder, demo: DemoScenario, scenario: Scenario, wall_s: flo
            "closest_to_goal_m": _round(measures.closest_to_goal_m),
            "time_lost_s": None,
            "anomalous_verdicts": rec.detector_alarms,
+           "what_happened": what_happened(demo, facts, ended=ended, decision=decision,
+                                          source=source),
            "rationale": None if decided is None else decided.rationale[-300:]}
     return row, states
 
@@ -670,6 +715,8 @@ def _on_state(rec: Recorder, msg: ControlState) -> None:
 
 def _on_verdict(rec: Recorder, msg: AnomalyVerdict) -> None:
     rec.detector_alarms += int(msg.is_anomaly)
+    if msg.is_anomaly:
+        rec.flagged_at.append(rec.t)
 
 
 def _on_request(rec: Recorder, msg: ReasonerRequest) -> None:

@@ -8,6 +8,10 @@ The scenarios themselves are :mod:`tools.scenes.hardware`.
   closest approach to the red box once the detector has fired.
 * :func:`ended_in`, :func:`judge` — where a flight ended (on the simulator's truth)
   and what went wrong.
+* :func:`flight_facts`, :func:`what_happened` — what was recorded of a flight, told:
+  stale verdicts and when, the anomalies raised, the questions, the answers and the
+  fallback, where the robot went and which decision sent it, whether the anomaly was
+  ever in view and flagged.
 * :func:`summary_table`, :func:`write_report` — what a person reads.
 """
 
@@ -15,16 +19,18 @@ from __future__ import annotations
 
 import html
 import json
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from services.control.outbox import BLIND
 from services.control.regions import Tolerance
 from services.control.scenario import Scenario
 from services.sim.judge import TOLERANCE
+from shared.messages import ControlState, Event, ReasonerDecision, ReasonerRequest
 from tools.scenes.hardware import GOAL, DemoScenario
 from tools.scenes.quadrotor import TASK
 
@@ -107,7 +113,7 @@ def destination(demo: DemoScenario, decision: str | None, scenario: Scenario) ->
 
 def judge(demo: DemoScenario, *, ended: str | None, detector_alarms: int,
           anomaly_at_s: float | None, decision: str | None, violations: int,
-          scenario: Scenario | None = None) -> list[str]:
+          scenario: Scenario | None = None, facts: FlightFacts | None = None) -> list[str]:
     """What did not go as expected (empty: the scenario passed).
 
     In the nominal scenario the detector must never flag the scene; an anomaly the
@@ -115,7 +121,9 @@ def judge(demo: DemoScenario, *, ended: str | None, detector_alarms: int,
     row but is no failure as long as the flight ends where it should. With ``scenario``
     (a real model, which may decide wrong) a wrong decision is no failure: the flight
     must end safely where that decision sent it (:func:`destination`); whether the
-    decision was right is the row's ``decision_right``.
+    decision was right is the row's ``decision_right``. With ``facts`` (what was recorded
+    of the flight) an anomaly that raised nothing is told as it was: never in view, in view
+    but never flagged, or flagged and not acted on.
     """
     problems = []
     expected = demo.expected if scenario is None else destination(demo, decision, scenario)
@@ -124,13 +132,203 @@ def judge(demo: DemoScenario, *, ended: str | None, detector_alarms: int,
     if demo.expected_decision is None and detector_alarms:
         problems.append(f"the detector flagged the nominal scene {detector_alarms} times")
     if demo.expected_decision is not None and anomaly_at_s is None:
-        problems.append("the anomaly was not detected")
+        problems.append(_not_raised(facts))
     if scenario is None and demo.expected_decision is not None \
             and decision != demo.expected_decision:
         problems.append(f"decision {decision!r}, expected {demo.expected_decision!r}")
     if violations:
         problems.append(f"{violations} ticks outside the limits")
     return problems
+
+
+def _not_raised(facts: FlightFacts | None) -> str:
+    """Why a scenario's anomaly raised none, as far as the record tells."""
+    if facts is None:
+        return "the anomaly was not detected"
+    if facts.in_view_s is None:
+        closest = "" if facts.closest_to_anomaly_m is None else \
+            f" (closest {facts.closest_to_anomaly_m:.2f} m)"
+        return f"the robot never came within view of the anomaly{closest}"
+    if facts.flagged_at_s is None:
+        return f"the detector never flagged the anomaly in view (from {facts.in_view_s:.2f} s)"
+    return (f"the detector flagged the anomaly at {facts.flagged_at_s:.2f} s but the control "
+            "loop raised none")
+
+
+# --------------------------------------------------------------------------- what happened
+
+
+@dataclass(frozen=True)
+class Asked:
+    """A question the control loop put to the reasoner (at ``t_s``), and its answer."""
+
+    t_s: float
+    about: str  # the scene the detector flagged, the silent detector, or the lost vehicle
+    decision: str | None = None  # the option answered (its label), None: no answer came
+    source: str | None = None  # of the answer: llm, timeout, parse_error, backend_error
+    answered_s: float | None = None
+
+
+@dataclass(frozen=True)
+class FlightFacts:
+    """What was recorded of one flight, on its own clock (the loop's t, s): what
+    :func:`what_happened` tells and :func:`judge` names."""
+
+    stale_verdicts: tuple[tuple[float, float | None], ...] = ()  # (t, the verdict's age, s)
+    stale_states: tuple[float, ...] = ()  # each alarm of the vehicle's state going stale
+    raised_s: tuple[float, ...] = ()  # each anomaly the control loop raised (its t_anom)
+    asked: tuple[Asked, ...] = ()
+    fallbacks: tuple[tuple[float, str], ...] = ()  # (t, the region committed to at K)
+    flagged_at_s: float | None = None  # the first anomalous verdict
+    flagged: int = 0  # anomalous verdicts
+    in_view_s: float | None = None  # when the scenario's anomaly came into the camera's view
+    closest_to_anomaly_m: float | None = None  # horizontally, over the flight
+    acted_s: float | None = None  # when the decision the flight ended with was taken
+    flown_m: float | None = None  # horizontally from where it was then to where it ended
+
+
+def flight_facts(demo: DemoScenario, scenario: Scenario, states: Sequence[ControlState],
+                 requests: Sequence[ReasonerRequest], decisions: Sequence[ReasonerDecision],
+                 events: Sequence[Event], flagged_at: Sequence[float] = ()) -> FlightFacts:
+    """:class:`FlightFacts` from what the demo recorded over the bus: the loop's ``states``,
+    its questions and the reasoner's answers, its ``events`` and the times (the loop's t)
+    of the anomalous verdicts. Messages are put on the flight's clock by their stamps: the
+    first state published from then on (a tick publishes its request and its events before
+    its state; a decision counts from the tick that took it)."""
+    stamps = np.array([s.stamp for s in states])
+
+    def when(stamp: float) -> float:
+        if not len(states):
+            return 0.0
+        i = int(np.searchsorted(stamps, stamp - 1e-9, side="left"))
+        return float(states[min(i, len(states) - 1)].t)
+
+    labels = {r.index: r.label for r in scenario.regions}
+    answers = {d.request_id: d for d in decisions}
+    asked = []
+    for q in requests:
+        options = {o.index: o.label for o in q.options}
+        about = ("the scene the detector flagged" if "continue" in options.values() else
+                 "the vehicle's state, which had stopped arriving"
+                 if q.observation.text.startswith(BLIND) else "the silent detector")
+        got = answers.get(q.request_id)
+        asked.append(Asked(when(q.stamp), about) if got is None else Asked(
+            when(q.stamp), about, options.get(got.choice, str(got.choice)), got.source,
+            when(got.stamp)))
+    fallbacks = tuple((when(e.stamp), _label(labels, e.data.get("chosen")))
+                      for e in events if e.kind == "fallback")
+    raised: list[float] = []
+    for s in states:
+        if s.t_anom is not None and (not raised or abs(s.t_anom - raised[-1]) > 1e-6):
+            raised.append(s.t_anom)
+    in_view_s = closest = None
+    x = np.array([s.x for s in states]) if len(states) else np.zeros((0, 12))
+    if demo.anomalies and demo.spot is not None and len(x):
+        reach = np.hypot(x[:, 0] - demo.spot[0], x[:, 1] - demo.spot[1])
+        closest = float(reach.min())
+        seen = reach <= demo.seen_within_m
+        in_view_s = float(states[int(np.argmax(seen))].t) if seen.any() else None
+    answered = [a for a in asked if a.answered_s is not None]
+    acted_s = fallbacks[0][0] if fallbacks else answered[-1].answered_s if answered else None
+    flown = None
+    if acted_s is not None and len(x):
+        i = int(np.searchsorted([s.t for s in states], acted_s, side="left"))
+        there = x[min(i, len(x) - 1)]
+        flown = float(np.hypot(*(x[-1, :2] - there[:2])))
+    return FlightFacts(
+        stale_verdicts=tuple((when(e.stamp), _float(e.data.get("age_s"))) for e in events
+                             if e.kind == "verdict_stale"),
+        stale_states=tuple(when(e.stamp) for e in events if e.kind == "state_stale"),
+        raised_s=tuple(raised), asked=tuple(asked), fallbacks=fallbacks,
+        flagged_at_s=min(flagged_at) if flagged_at else None, flagged=len(flagged_at),
+        in_view_s=in_view_s, closest_to_anomaly_m=closest, acted_s=acted_s, flown_m=flown)
+
+
+def what_happened(demo: DemoScenario, facts: FlightFacts, *, ended: str | None,
+                  decision: str | None, source: str | None) -> str:
+    """One flight told from its :class:`FlightFacts`, in order: stale verdicts or states and
+    when, the anomalies the loop raised, what it asked and what came back, the fallback
+    at K, where the robot went and which decision sent it there, and whether the
+    scenario's anomaly was ever in view and flagged. ``decision``, ``source``: the decision
+    the flight ended with (the row's)."""
+    said = []
+    if facts.stale_verdicts:
+        said.append("the anomaly verdicts went stale " + _times(
+            f"at {t:.2f} s (" + ("no verdict" if age is None else f"a verdict {age:.2f} s old")
+            + ")" for t, age in facts.stale_verdicts)
+            + ": the control loop counted the detector as silent, an anomaly")
+    if facts.stale_states:
+        said.append("the vehicle's state went stale " + _times(
+            f"at {t:.2f} s" for t in facts.stale_states))
+    if not facts.raised_s:
+        said.append("no anomaly was raised")
+    else:
+        said.append("the control loop raised an anomaly at " + _times(
+            f"{t:.2f} s" for t in facts.raised_s))
+    for q in facts.asked:
+        said.append(f"at {q.t_s:.2f} s it asked the reasoner about {q.about}: " + (
+            "no answer came" if q.answered_s is None else
+            f"answered {q.decision!r} (source {q.source}) at {q.answered_s:.2f} s"))
+    for t, label in facts.fallbacks:
+        said.append(f"at {t:.2f} s, K after the anomaly and no decision acted on, the control "
+                    f"loop's fallback committed to the {label}")
+    end = f"the {ended}" if ended else "no region"
+    if decision is not None and facts.acted_s is not None and facts.flown_m is not None:
+        said.append(f"{decision!r} ({source}) sent it on at {facts.acted_s:.2f} s: it flew "
+                    f"{facts.flown_m:.1f} m from there and ended in {end}")
+    elif facts.raised_s:
+        said.append(f"no decision was acted on; it ended in {end}")
+    else:
+        said.append(f"it flew the nominal route and ended in {end}")
+    if demo.anomalies:
+        what = " and ".join(demo.anomalies)
+        if facts.in_view_s is None:
+            closest = "" if facts.closest_to_anomaly_m is None else \
+                f" (closest {facts.closest_to_anomaly_m:.2f} m)"
+            said.append(f"it never came within {demo.seen_within_m:g} m of {what}{closest}: "
+                        "the camera never saw it, so there was nothing to detect")
+        elif facts.flagged_at_s is None:
+            said.append(f"{what} was in the camera's view from {facts.in_view_s:.2f} s, but "
+                        "no anomalous verdict came: the detector missed it")
+        else:
+            said.append(f"{what} came into the camera's view at {facts.in_view_s:.2f} s; the "
+                        f"detector flagged {'them' if len(demo.anomalies) > 1 else 'it'} at "
+                        f"{facts.flagged_at_s:.2f} s ({facts.flagged} "
+                        "anomalous verdicts)")
+    elif facts.flagged_at_s is not None:
+        said.append(f"the detector flagged the nominal scene {facts.flagged} times, first at "
+                    f"{facts.flagged_at_s:.2f} s")
+    return "; ".join(said) + "."
+
+
+def _times(items: Iterable[str], shown: int = 4) -> str:
+    """The first ``shown`` of ``items``, and how many more."""
+    items = list(items)
+    more = f" and {len(items) - shown} more times" if len(items) > shown else ""
+    return ", ".join(items[:shown]) + more
+
+
+def _label(labels: dict[int, str], chosen: object) -> str:
+    """The label of the region index ``chosen`` (as an event's data carries it)."""
+    if isinstance(chosen, int) and not isinstance(chosen, bool) and chosen in labels:
+        return labels[chosen]
+    return str(chosen)
+
+
+def _float(value: object) -> float | None:
+    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) \
+        else None
+
+
+def stories_text(rows: Sequence[dict[str, Any]]) -> str:
+    """What happened in each flight that did not end as expected (text for the terminal,
+    each line ending in a newline; empty when all did)."""
+    told = [r for r in rows if r.get("outcome") != "ok" and r.get("what_happened")]
+    return "".join(f"\n{_name(r)}: {r['what_happened']}" for r in told) + ("\n" if told else "")
+
+
+def _name(row: dict[str, Any]) -> str:
+    return f"{row['robot']} {row['name']}" if row.get("robot") else str(row["name"])
 
 
 # --------------------------------------------------------------------------- output
@@ -200,6 +398,13 @@ def decisions_text(result: dict[str, Any]) -> str:
         lines.append(f"{r['name']}: {r['decision']} ({right}; {r['decision_source']}, "
                      f"{_cell(r.get('decision_latency_ms'))} ms): {answer[:240]}")
     return "\n".join(lines)
+
+
+def stories_section(rows: Sequence[dict[str, Any]]) -> str:
+    """What happened in each flight, from what was recorded (HTML)."""
+    items = [f"<li><b>{html.escape(_name(r))}</b> ({html.escape(str(r.get('outcome')))}): "
+             f"{html.escape(r['what_happened'])}</li>" for r in rows if r.get("what_happened")]
+    return "<h2>What happened</h2><ul>" + "".join(items) + "</ul>" if items else ""
 
 
 def decisions_section(result: dict[str, Any]) -> str:
@@ -314,6 +519,7 @@ processes over Zenoh (vector cache, reasoner with {html.escape(result['llm'])}, 
 ended are judged on the simulator's truth.</p>
 <table><tr>{head}</tr>{body}</table>
 <p>{html.escape(verdict_line(result))}.</p>
+{stories_section(result["scenarios"])}
 {decisions_section(result)}
 <h2>Flights</h2><img src="flights.png" alt="flights, top and side view" width="100%">
 {recordings_section(result["scenarios"])}
