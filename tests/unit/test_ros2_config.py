@@ -19,7 +19,14 @@ from services.ros2.config import (
 )
 from shared.messages import MAX_TEXT_CHARS
 from tools import cli
-from tools.stack.acl import MAX_MESSAGE_BYTES, ROS2, ros_keys, stack_acl, users_of
+from tools.stack.acl import (
+    MAX_MESSAGE_BYTES,
+    ROS2,
+    ROS2_BRIDGE,
+    ros_keys,
+    stack_acl,
+    users_of,
+)
 from tools.stack.up import PlanError, Ports, StackOptions, plan_stack
 
 QUADROTOR = Path(__file__).resolve().parents[2] / "deploy" / "ros2" / "quadrotor.yaml"
@@ -117,22 +124,32 @@ def test_keys_with_a_bad_or_missing_config_is_a_usage_error(
     assert "cannot read" in capsys.readouterr().err
 
 
-def test_the_ros2_user_may_use_its_topics_and_its_robots_inputs_only():
+def test_the_ros2_users_may_use_their_topics_and_only_the_bridge_its_robots_inputs():
+    """The robot's nodes (ros2) the mapped ROS keys only; the bridge (ros2-bridge) those and
+    its robot's inputs, its keys to receive and its health token (issue 43: a node put the
+    robot's inputs around the bridge's checks)."""
     config = load_config(QUADROTOR)
     acl = stack_acl(["robot0"], config)
-    assert ROS2 in users_of(["robot0"], ros2=True) and ROS2 not in users_of(["robot0"])
-    [policy] = [p for p in acl["policies"] if p["id"] == ROS2]
-    rules = {r["id"]: r for r in acl["rules"] if r["id"] in policy["rules"]}
+    assert {ROS2, ROS2_BRIDGE} <= set(users_of(["robot0"], ros2=True))
+    assert not {ROS2, ROS2_BRIDGE} & set(users_of(["robot0"]))
+    policies = {p["id"]: p for p in acl["policies"]}
+    rules = {r["id"]: r for r in acl["rules"]}
     keys = ros_keys(config)
     assert "0/mavros/local_position/odom/*/*" in keys
     assert "0/mavros/local_position/odom/*/*/@adv/**" in keys  # advanced pub/sub
     assert keys[-1] == "@ros2_lv/0/**"  # the graph
     assert all(k.startswith(("0/", "@ros2_lv/0/")) for k in keys)  # its domain only
-    puts = rules["ros2-puts"]["key_exprs"]
-    assert set(puts) == {"aesop/robot0/observation", "aesop/robot0/vehicle/state",
-                         "aesop/robot0/event/ros2"}
+    for user in (ROS2, ROS2_BRIDGE):
+        assert {"ros2-ros-in", "ros2-ros-out"} <= set(policies[user]["rules"])
+        assert all(rules[r]["key_exprs"] == keys for r in ("ros2-ros-in", "ros2-ros-out"))
+    node, bridge = set(policies[ROS2]["rules"]), set(policies[ROS2_BRIDGE]["rules"])
+    assert not any(rules[r]["key_exprs"] != keys for r in node)  # nothing of the stack's
+    assert {"ros2-puts", "ros2-health", "robot0-receive"} <= bridge
+    assert set(rules["ros2-puts"]["key_exprs"]) == {
+        "aesop/robot0/observation", "aesop/robot0/vehicle/state", "aesop/robot0/event/ros2"}
     assert rules["ros2-health"]["key_exprs"] == ["aesop/health/ros2"]
-    assert ROS2 not in {u for s in stack_acl(["robot0"])["subjects"] for u in s["usernames"]}
+    assert not {ROS2, ROS2_BRIDGE} & {u for s in stack_acl(["robot0"])["subjects"]
+                                      for u in s["usernames"]}
 
 
 def test_up_with_ros2_runs_the_bridge_instead_of_the_simulated_vehicle(tmp_path: Path):
@@ -144,7 +161,8 @@ def test_up_with_ros2_runs_the_bridge_instead_of_the_simulated_vehicle(tmp_path:
     bridge = plan.services[3]
     assert bridge.argv[-2:] == ("serve", "ros2") and bridge.port == 7  # the vehicle's port
     assert bridge.env["AESOP_ROS2_CONFIG"] == str(QUADROTOR)
-    assert bridge.env["AESOP_ZENOH_USER"] == ROS2 and ROS2 in plan.passwords
+    assert bridge.env["AESOP_ZENOH_USER"] == ROS2_BRIDGE and ROS2_BRIDGE in plan.passwords
+    assert ROS2 in plan.passwords  # the robot's nodes, in the session file aesop up writes
     assert plan.hub.argv[-2:] == ("--ros2", str(QUADROTOR))
     other = tmp_path / "other.yaml"
     other.write_text("robot: robot7\ninputs: {odometry: {topic: /odom}}\n")
