@@ -83,7 +83,7 @@ test:
 	$(MAKE) -j4 --output-sync=target $(STAMP) system llama image
 	$(VENV)/bin/ruff check shared services tools tests
 	$(VENV)/bin/mypy
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --durations=25
 
 # make demo LLM=local: the trained model served by llama.cpp (built by `make llama`)
 demo: $(STAMP) $(if $(filter local,$(LLM)),llama)
