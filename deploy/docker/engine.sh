@@ -17,7 +17,7 @@ sudo=$([ "$(id -u)" = 0 ] || echo sudo)
 
 answers() { docker info >/dev/null 2>&1; }
 
-install() {
+install_missing() {
     local missing=()
     command -v dockerd >/dev/null || missing+=(docker.io)
     command -v debootstrap >/dev/null || missing+=(debootstrap)
@@ -46,7 +46,7 @@ install() {
 }
 
 up() {
-    install
+    install_missing
     if answers; then
         echo "engine.sh: an engine answers: $(docker info --format '{{.ServerVersion}}')"
         return

@@ -75,6 +75,17 @@ def caches(stack: Compose) -> dict[str, int]:
     return {c["name"]: c["size"] for c in reply.json()["caches"]}
 
 
+def test_engine_sh_fetches_compose_v2_where_it_is_missing(engine: list[str],
+                                                          tmp_path: Path) -> None:
+    """As on a fresh machine: no Compose plugin in this HOME, so engine.sh fetches Debian
+    13's (an engine answers already: the fixture's)."""
+    home = {**os.environ, "HOME": str(tmp_path)}
+    run([ROOT / "deploy" / "docker" / "engine.sh", "up"], env=home, timeout=300)
+    assert (tmp_path / ".docker" / "cli-plugins" / "docker-compose").is_file()
+    version = run(["docker", "compose", "version", "--short"], env=home).stdout
+    assert int(version.split(".")[0]) >= 2, version
+
+
 def test_the_secrets_are_the_images_user_s_and_no_one_else_s(secrets: Path) -> None:
     for path in secrets.iterdir():
         info = path.stat()
