@@ -5,6 +5,7 @@ runtime as the bus's slot would hand them, the runtime's set-points handed back.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -14,7 +15,8 @@ from services.control.loop import ControlRuntime, TickResult, rest_at
 from services.control.scenario import Scenario
 from services.control.settings import ControlSettings
 from services.sim.vehicle import Reporting, SimVehicle
-from shared.bus import Received
+from shared import topics
+from shared.bus import Bus, Received
 from shared.messages import AnomalyVerdict, Observation, ReasonerDecision, VehicleState
 
 
@@ -148,3 +150,27 @@ def fly(scenario: Scenario, seconds: float, *, reporting: Reporting | None = Non
         flown.ticks.append(k)
         clock.now = deadline + scenario.dt
     return flown
+
+
+class NominalDetector:
+    """A nominal observation of ``robot`` and its verdict every 50 ms, as its camera and the
+    detector would publish them over ``bus``."""
+
+    def __init__(self, bus: Bus, robot: str) -> None:
+        self.bus, self.robot, self._stop, self._seq = bus, robot, threading.Event(), 0
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.05):
+            self._seq += 1
+            self.bus.publish(topics.observation(self.robot), Observation(
+                robot=self.robot, seq=self._seq, text="the red box"))
+            self.bus.publish(topics.anomaly(self.robot), AnomalyVerdict(
+                robot=self.robot, seq=self._seq, score=-0.9, threshold=-0.7,
+                is_anomaly=False, k=1, model="fake", cache="scene", cache_version=1,
+                latency_ms=1.0))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)

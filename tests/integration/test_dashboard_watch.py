@@ -8,7 +8,6 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -156,13 +155,10 @@ def test_watch_refused_by_aesop_ups_router_says_how_to_log_in(
         hub: str, login: dict[str, str]) -> None:
     # docs/dashboard.md's line as a newcomer types it: it used to wait silently for ever
     env = {k: v for k, v in os.environ.items() if not k.startswith("AESOP_ZENOH")} | login
-    started = time.monotonic()
     done = subprocess.run([sys.executable, "-m", "tools.cli", "watch", "--connect", hub],
                           capture_output=True, text=True, env=env, stdin=subprocess.DEVNULL,
-                          timeout=40)
-    took = time.monotonic() - started
+                          timeout=40)  # a watch that still hung fails here
     assert done.returncode == 2, done.stderr
-    assert took < 20, took
     assert "Traceback" not in done.stderr
     assert f"the router at {hub} refused this session or did not answer" in done.stderr
     assert ("AESOP_ZENOH_MODE=client AESOP_ZENOH_USER=monitor "

@@ -8,7 +8,6 @@ import os
 import re
 import subprocess
 import sys
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -17,9 +16,10 @@ import pytest
 
 from shared import topics
 from shared.bus import Bus
-from shared.messages import AnomalyVerdict, Event, Observation, ReasonerRequest
+from shared.messages import Event, ReasonerRequest
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
+from tests.vehicles import NominalDetector
 from tests.zenoh_peers import wait_until
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
@@ -35,28 +35,6 @@ def example() -> str:
     section = text[text.index("## 3a. The vehicle contract"):text.index("## 4. Messages")]
     (code,) = re.findall(r"```python\n(.*?)```", section, re.S)
     return code
-
-
-class Detector:
-    """A nominal observation and its verdict every 50 ms, as a camera and the detector."""
-
-    def __init__(self, bus: Bus) -> None:
-        self.bus, self._stop, self._seq = bus, threading.Event(), 0
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.wait(0.05):
-            self._seq += 1
-            self.bus.publish(topics.observation(ROBOT), Observation(
-                robot=ROBOT, seq=self._seq, text="the red box"))
-            self.bus.publish(topics.anomaly(ROBOT), AnomalyVerdict(
-                robot=ROBOT, seq=self._seq, score=-0.9, threshold=-0.7, is_anomaly=False,
-                k=1, model="fake", cache="scene", cache_version=1, latency_ms=1.0))
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(5)
 
 
 @pytest.fixture
@@ -88,7 +66,7 @@ def test_the_documented_vehicle_is_flown_and_its_silence_is_an_anomaly(
             bus.session.declare_subscriber(topics.reasoner_request(ROBOT),
                                            lambda sample: requests.append(
                                                ReasonerRequest.decode(sample.payload.to_bytes())))]
-        detector = Detector(bus)
+        detector = NominalDetector(bus, ROBOT)
         vehicle = subprocess.Popen([sys.executable, str(script)], env=env,
                                    stdin=subprocess.DEVNULL, stderr=subprocess.PIPE)
         try:

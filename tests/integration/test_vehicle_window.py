@@ -18,9 +18,10 @@ import pytest
 
 from shared import topics
 from shared.bus import Bus
-from shared.messages import AnomalyVerdict, Event, Observation, VehicleClock, VehicleState
+from shared.messages import Event, VehicleClock, VehicleState
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
+from tests.vehicles import NominalDetector
 from tests.zenoh_peers import wait_until
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
@@ -67,28 +68,6 @@ class Vehicle:
             forged = self.forged
             if forged is not None:
                 self.bus.publish(topics.vehicle_state(ROBOT), forged(self.seq, now))
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(5)
-
-
-class Detector:
-    """A nominal observation and its verdict every 50 ms, as a camera and the detector."""
-
-    def __init__(self, bus: Bus) -> None:
-        self.bus, self._stop, self._seq = bus, threading.Event(), 0
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.wait(0.05):
-            self._seq += 1
-            self.bus.publish(topics.observation(ROBOT), Observation(
-                robot=ROBOT, seq=self._seq, text="the red box"))
-            self.bus.publish(topics.anomaly(ROBOT), AnomalyVerdict(
-                robot=ROBOT, seq=self._seq, score=-0.9, threshold=-0.7, is_anomaly=False,
-                k=1, model="fake", cache="scene", cache_version=1, latency_ms=1.0))
 
     def close(self) -> None:
         self._stop.set()
@@ -151,7 +130,7 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
         subscriber = bus.session.declare_subscriber(
             topics.events(ROBOT), lambda sample: events.append(
                 Event.decode(sample.payload.to_bytes())))
-        detector, vehicle = Detector(bus), Vehicle(bus)
+        detector, vehicle = NominalDetector(bus, ROBOT), Vehicle(bus)
         stack = Stack(http, vehicle, events)
         try:
             wait_until(lambda: http.get("/v1/state").json()["mode"] == "nominal"
