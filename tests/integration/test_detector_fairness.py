@@ -163,15 +163,21 @@ def gated(tmp_path: Path) -> Iterator[tuple[EmbeddingSettings, GatedEmbedder]]:
     embedder.gate.set()  # never leave the compute thread waiting
 
 
-async def test_a_flood_of_distinct_texts_costs_another_robot_one_embedding_at_most(
-        gated: tuple[EmbeddingSettings, GatedEmbedder], listener: Bus,
-        connector: Bus) -> None:
-    settings, embedder = gated
+async def scene_service(settings: EmbeddingSettings, embedder: GatedEmbedder) -> CacheService:
+    """The detector's service on ``embedder``, its cache "scene" calibrated on NOMINAL."""
     svc = CacheService(settings, embedders=EmbedderPool(loader=lambda _: embedder))
     await svc.start()
     await svc.create("scene", model="hash", k=1)
     await svc.add("scene", [Item(text=t) for t in NOMINAL])
     await svc.calibrate("scene", "loo-quantile", alpha=0.9)
+    return svc
+
+
+async def test_a_flood_of_distinct_texts_costs_another_robot_one_embedding_at_most(
+        gated: tuple[EmbeddingSettings, GatedEmbedder], listener: Bus,
+        connector: Bus) -> None:
+    settings, embedder = gated
+    svc = await scene_service(settings, embedder)
     # no rate limit in the way: what is measured is the scheduling of what was admitted
     worker = DetectorWorker(svc, listener, cache="scene", robot_hz=10_000)
     inbox = worker.inbox = SeenInbox()
@@ -218,11 +224,7 @@ async def test_an_observation_the_memo_knows_waits_for_no_embedding_of_the_flood
     known. A camera describes the scene it described before: robot0's verdict comes while
     robot1's embedding is still held up."""
     settings, embedder = gated
-    svc = CacheService(settings, embedders=EmbedderPool(loader=lambda _: embedder))
-    await svc.start()
-    await svc.create("scene", model="hash", k=1)
-    await svc.add("scene", [Item(text=t) for t in NOMINAL])
-    await svc.calibrate("scene", "loo-quantile", alpha=0.9)
+    svc = await scene_service(settings, embedder)
     worker = DetectorWorker(svc, listener, cache="scene", robot_hz=10_000)
     task = asyncio.create_task(worker.run())
     verdicts = connector.subscribe(topics.anomaly("robot0"), AnomalyVerdict, maxsize=16)

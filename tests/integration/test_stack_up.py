@@ -134,12 +134,7 @@ def test_a_second_up_on_the_data_dir_in_use_is_refused_and_the_first_serves_on(
     finally:  # SIGINT first: a killed aesop up would leave its children behind
         for p in (second, proc):
             if p is not None and p.poll() is None:
-                p.send_signal(signal.SIGINT)
-                try:
-                    p.wait(60)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+                interrupt(p)
 
 
 def test_up_serves_the_local_model_and_starts_it_again_when_it_dies(tmp_path: Path) -> None:
@@ -223,9 +218,14 @@ def test_the_fly_line_aesop_up_prints_flies_2a_to_the_blue_box(tmp_path: Path) -
         (row,) = json.loads(done.stdout.splitlines()[-1])["scenarios"]
         assert row["ended_in"] == "blue-box" and row["constraint_violations"] == 0, row
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        interrupt(proc)
+
+
+def interrupt(proc: subprocess.Popen[str]) -> None:
+    """Stop an ``aesop up`` as Ctrl-C does (it stops its children), killing it after 60 s."""
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(60)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
