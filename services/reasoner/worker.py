@@ -115,10 +115,11 @@ class ReasonerWorker:
 
     @property
     def listening(self) -> bool:
-        """Whether a keeper is on the bus, answering requests."""
+        """Whether a keeper is on the bus, answering requests alone: it has listened for
+        ``SETTLE_S`` (before, the standby sends a request's decision too)."""
         watched = self._keeper
-        return (watched is not None and watched.lost is None
-                and watched.listening_since is not None and watched.process.is_alive())
+        return (watched is not None and watched.settled(time.monotonic())
+                and watched.process.is_alive())
 
     async def run(self) -> None:
         """Keep a keeper running, the standby beside it and the watchdog on it, until

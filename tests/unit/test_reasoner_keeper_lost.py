@@ -246,3 +246,22 @@ def test_the_standbys_zenoh_session_is_its_own() -> None:
     assert peer is not None
     assert json.loads(peer.get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]
     assert standby_config(BusSettings(zenoh_listen=["tcp/127.0.0.1:7448"])) is None
+
+
+def test_the_worker_listens_once_its_keeper_has_every_request_alone() -> None:
+    """Until its keeper has listened for SETTLE_S, the standby also sends the decision of a
+    request (the keeper may not have it): two decisions for one request. The worker (and
+    so /readyz) says it listens only from then on (CI: a request sent as soon as it said
+    so was decided, and counted, twice)."""
+    worker = ReasonerWorker(Decider([Recording()], DeciderConfig()), SETTINGS)
+
+    class Alive:
+        def is_alive(self) -> bool:
+            return True
+
+    keeper = watched(listening_since=time.monotonic())
+    keeper.process = Alive()
+    worker._keeper = keeper
+    assert not worker.listening
+    keeper.listening_since = time.monotonic() - SETTLE_S
+    assert worker.listening
