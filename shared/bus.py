@@ -412,6 +412,33 @@ class Answering(_Declared):
             log.exception("answering a query on %s failed", self.key)
 
 
+class Serving(_Declared, Generic[M]):
+    """A queryable on ``key`` whose queries carry a ``model`` message: each is answered
+    with ``handle(message)`` (nothing when it returns None, or when the query's payload
+    does not decode: logged), on a Zenoh thread (``handle`` must be quick)."""
+
+    def __init__(self, session: zenoh.Session, key: str, model: type[M],
+                 handle: Callable[[M], Message | None]) -> None:
+        self.key, self._model, self._handle = key, model, handle
+        self._queryable = session.declare_queryable(key, self._on_query)
+        self._undeclare = _once(self._queryable.undeclare)
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        payload = query.payload
+        try:
+            message = self._model.decode(b"" if payload is None else payload.to_bytes())
+        except ValueError as exc:
+            log.warning("a query on %s was not a %s: %s", self.key, self._model.__name__,
+                        _first_line(exc))
+            return
+        try:
+            answer = self._handle(message)
+            if answer is not None:
+                query.reply(self.key, answer.encode())
+        except Exception:  # a callback must never break the Zenoh thread
+            log.exception("answering a query on %s failed", self.key)
+
+
 class LivelinessWatch(_Stream[HealthChange]):
     """Async iterator of ``HealthChange``s of services under a health prefix."""
 
@@ -541,13 +568,22 @@ class Bus:
         """Answer every query on the concrete ``key`` with ``reply()`` (a queryable)."""
         return self._adopt(Answering(self._open_session(), key, reply))
 
-    def ask(self, key: str, model: type[M], *, timeout: float = 1.0) -> list[Received[M]]:
-        """Query ``key`` and decode the answers as ``model`` (one that does not decode is
-        left out); blocks until the query completes, at most ``timeout`` s. Each answer's
-        ``received_at`` is its arrival (``time.monotonic()``)."""
+    def serve(self, key: str, model: type[M], handle: Callable[[M], Message | None]
+              ) -> Serving[M]:
+        """Answer every query on the concrete ``key`` that carries a ``model`` message with
+        ``handle(message)`` (see :class:`Serving`)."""
+        return self._adopt(Serving(self._open_session(), key, model, handle))
+
+    def ask(self, key: str, model: type[M], *, timeout: float = 1.0,
+            payload: Message | None = None) -> list[Received[M]]:
+        """Query ``key`` (carrying ``payload``, if any) and decode the answers as ``model``
+        (one that does not decode is left out); blocks until the query completes, at most
+        ``timeout`` s. Each answer's ``received_at`` is its arrival
+        (``time.monotonic()``)."""
         decoder = _Decoder(key, model)
         out: list[Received[M]] = []
-        for reply in self._open_session().get(key, timeout=timeout):
+        body = None if payload is None else payload.encode()
+        for reply in self._open_session().get(key, timeout=timeout, payload=body):
             sample = reply.ok
             got = None if sample is None else decoder(sample)
             if got is not None:

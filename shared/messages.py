@@ -410,3 +410,13 @@ class VehicleClock(Message):
     the vehicle's clock when it answered, so control can map state stamps onto its own
     clock (the query's round trip bounds the error). Optional: without it control takes the
     fastest arrival it has seen as instant."""
+
+
+class VehicleReset(Message):
+    """A query on ``aesop/{robot}/vehicle/reset`` (optional to answer): be at rest at
+    ``position`` (world frame, m), level, from now on, following no set-point older than
+    the query; a simulator teleports, a real vehicle may answer nothing (an operator brings
+    it there). The answer is the vehicle's :class:`VehicleState` once it is there.
+    ``aesop demo`` starts each flight with one."""
+
+    position: Point3

@@ -37,6 +37,8 @@ regions = _robot_key("regions")
 vehicle_state = _robot_key("vehicle/state")
 vehicle_setpoint = _robot_key("vehicle/setpoint")
 vehicle_clock = _robot_key("vehicle/clock")
+vehicle_reset = _robot_key("vehicle/reset")  # optional: a query to start a flight over
+vehicle_truth = _robot_key("vehicle/truth")  # optional: a simulator's exact state
 
 
 ROBOT_SOURCE = "robot"  # the source of the events a robot (its own software) publishes

@@ -4,9 +4,12 @@ One thread (the sim thread) keeps the truth at the wall clock: it sleeps until t
 next state is due or a set-point arrives (the subscription's callback wakes it, so a
 set-point is applied within a fraction of a millisecond of its arrival), integrates
 to now, applies the newest set-point and publishes the states due on
-``aesop/{robot}/vehicle/state``. It answers clock queries on
-``aesop/{robot}/vehicle/clock`` with what its clock reads. The HTTP routes reset,
-teleport and inject faults under the same lock. The bus declares ``aesop/health/sim``.
+``aesop/{robot}/vehicle/state``, and its truth (exact, at the trace's rate) on
+``aesop/{robot}/vehicle/truth``. It answers clock queries on
+``aesop/{robot}/vehicle/clock`` with what its clock reads, and reset queries on
+``aesop/{robot}/vehicle/reset`` (:class:`~shared.messages.VehicleReset`: at rest there,
+as ``POST /v1/reset`` does). The HTTP routes reset, teleport and inject faults under the
+same lock. The bus declares ``aesop/health/sim``.
 """
 
 from __future__ import annotations
@@ -23,10 +26,11 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
 from shared import topics
 from shared.bus import Bus, Latest, Received
-from shared.messages import VehicleClock, VehicleSetpoint
+from shared.messages import VehicleClock, VehicleReset, VehicleSetpoint, VehicleState
 
 from .settings import SimSettings
-from .vehicle import Faults, SetpointAges, SimVehicle
+from .start import StartError, start_state
+from .vehicle import Faults, SetpointAges, SimVehicle, state_message
 
 log = logging.getLogger(__name__)
 
@@ -83,8 +87,10 @@ class SimService:
             self.setpoints = bus.latest(topics.vehicle_setpoint(robot), VehicleSetpoint,
                                         on_update=self._wake.set)
             self._states_key = topics.vehicle_state(robot)
+            self._truth_key = topics.vehicle_truth(robot)
             bus.answer(topics.vehicle_clock(robot),
                        lambda: VehicleClock(robot=robot, stamp=self.vehicle.clock(self.clock())))
+            bus.serve(topics.vehicle_reset(robot), VehicleReset, self._reset_asked)
 
     # ----------------------------------------------------------------- the thread
 
@@ -133,14 +139,18 @@ class SimService:
             now = self.clock()
             reports = self.vehicle.advance(now)
             self.metrics.holding.set(1.0 if self.vehicle.holding else 0.0)
+            truth: VehicleState | None = None
             if now - self._traced_at >= 1.0 / self.settings.trace.hz:
                 self._traced_at = now
                 self.trace.append(TracePoint(
                     round((now - self.reset_at) * self.vehicle.time_scale, 4),
                     tuple(float(v) for v in self.vehicle.truth), self.vehicle.holding))
+                truth = self._truth_now()
         if self.bus is not None:
             for report in reports:
                 self.bus.publish(self._states_key, report.state)
+            if truth is not None:
+                self.bus.publish(self._truth_key, truth)
         self.published += len(reports)
         self.metrics.states.inc(len(reports))
 
@@ -156,6 +166,25 @@ class SimService:
             self.trace.clear()
             self._traced_at, self.reset_at = -np.inf, now
         self._wake.set()
+
+    def _truth_now(self) -> VehicleState:
+        """The truth as a state message (under the lock), stamped on the vehicle's clock."""
+        x, vehicle = self.vehicle.truth, self.vehicle
+        return state_message(x, x[0:3], x[3:6], seq=vehicle.seq,
+                             stamp=vehicle.clock(self.clock()), robot=vehicle.robot,
+                             frame=vehicle.frame)
+
+    def _reset_asked(self, asked: VehicleReset) -> VehicleState | None:
+        """A reset query (on a Zenoh thread): at rest at its position, answered with the
+        truth there; one outside the fence is refused (logged, no answer)."""
+        try:
+            x0 = start_state(self.vehicle.scenario, asked.position, self.settings.seed)
+        except StartError as exc:
+            log.warning("reset query refused: %s", exc)
+            return None
+        self.reset(x0)
+        with self.lock:
+            return self._truth_now()
 
     def stop(self, timeout_s: float = 5.0) -> None:
         self._stopping.set()

@@ -15,7 +15,7 @@ import pytest
 
 from shared import topics
 from shared.bus import Bus, HealthChange, Subscription, zenoh_config
-from shared.messages import Detection, Observation
+from shared.messages import Detection, Observation, VehicleReset, VehicleState
 from shared.settings import BusSettings
 from tests.zenoh_peers import (
     DEADLINE_S,
@@ -110,6 +110,33 @@ def test_latest_keeps_the_newest(listener: Bus, connector: Bus) -> None:
     latest.close()
     latest.close()
     assert latest.get() == got
+
+
+def test_a_query_carries_a_message_and_is_answered_with_one(
+        listener: Bus, connector: Bus) -> None:
+    """The vehicle contract's reset: the query carries a VehicleReset, the answer is a
+    VehicleState; a query that carries something else gets no answer (logged)."""
+    key = topics.vehicle_reset("drone7")
+    asked: list[VehicleReset] = []
+
+    def reset(message: VehicleReset) -> VehicleState:
+        asked.append(message)
+        return VehicleState(robot="drone7", seq=0, position=message.position,
+                            velocity=(0.0, 0.0, 0.0))
+
+    listener.serve(key, VehicleReset, reset)
+    wait_routed(listener, connector)
+    wait_until(lambda: bool(connector.ask(
+        key, VehicleState, payload=VehicleReset(robot="drone7", position=(1.0, 2.0, 3.0)))),
+        "an answer to the reset")
+    assert asked[-1].position == (1.0, 2.0, 3.0)
+    [answer] = connector.ask(key, VehicleState,
+                             payload=VehicleReset(robot="drone7", position=(4.0, 5.0, 6.0)))
+    assert answer.message.position == (4.0, 5.0, 6.0)
+    before = len(asked)
+    assert connector.ask(key, VehicleState, payload=_obs(1), timeout=0.5) == []
+    assert connector.ask(key, VehicleState, timeout=0.5) == []  # no payload at all
+    assert len(asked) == before
 
 
 def test_alive_sees_a_service_until_it_closes(listener: Bus, connector: Bus) -> None:

@@ -28,6 +28,8 @@ from shared.messages import (
     ReasonerDecision,
     ReasonerRequest,
     Regions,
+    VehicleReset,
+    VehicleState,
 )
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
@@ -313,6 +315,26 @@ def test_the_regions_and_goal_go_out_on_the_bus_again_for_late_subscribers(
     listing = stack.http.get("/v1/regions").json()
     assert [r.model_dump(mode="json") for r in again.regions] == listing["regions"]
     assert list(again.goal) == listing["goal"]
+
+
+def test_the_sim_answers_the_contracts_reset_query_and_publishes_its_truth(
+        stack: Stack) -> None:
+    """Issue 46: `aesop demo --vehicle bus` starts a flight by the contract's reset query
+    and judges it on the vehicle's truth topic; the simulator answers one and publishes
+    the other. A reset outside the fence is refused: no answer, nothing moved."""
+    truths = Inbox(stack.bus, topics.vehicle_truth(ROBOT), VehicleState)
+    key = topics.vehicle_reset(ROBOT)
+    [answer] = stack.bus.ask(key, VehicleState, timeout=5.0,
+                             payload=VehicleReset(robot=ROBOT, position=(0.5, -0.5, 1.0)))
+    assert answer.message.position == (0.5, -0.5, 1.0)
+    assert answer.message.velocity == (0.0, 0.0, 0.0)
+    assert np.allclose(stack.vehicle.get("/v1/state").json()["truth"]["position"], (0.5, -0.5, 1.0),
+                       atol=0.05)
+    truths.wait_for(lambda s: np.allclose(s.position, (0.5, -0.5, 1.0), atol=0.05),
+                    "the truth there")
+    assert stack.bus.ask(key, VehicleState, timeout=1.0,
+                         payload=VehicleReset(robot=ROBOT, position=(0.0, 0.0, 99.0))) == []
+    assert stack.vehicle.get("/v1/state").json()["truth"]["position"][2] < 5.0
 
 
 def test_reset_and_ops_routes(stack: Stack) -> None:

@@ -22,8 +22,10 @@ from tools.stack.up import (
     Ports,
     StackOptions,
     fleet,
+    fly_command,
     hardware_scenario,
     plan_stack,
+    urls_text,
 )
 
 SCENE = load_scenario(hardware_scenario())
@@ -277,6 +279,31 @@ def test_a_fleet_cannot_be_one_ros2_robot_and_counts_from_one(tmp_path: Path) ->
         plan_stack(replace(options(tmp_path), replicas=0), {}, "t" * 24)
     assert fleet("robot0", 3) == ("robot0", "robot1", "robot2")
     assert fleet("drone", 2) == ("drone0", "drone1") and fleet("x9", 1) == ("x9",)
+
+
+def test_an_external_vehicle_plan_starts_none_and_says_how_each_robots_own_joins(
+        tmp_path: Path) -> None:
+    """Issue 46: `aesop up --vehicle external` runs the stack without its simulator; the
+    banner says how each robot's vehicle joins (its robot's user and password file) and
+    flies the demo against it over the bus."""
+    plan = plan_stack(replace(options(tmp_path), robots=2, vehicle="external"),
+                      {"AESOP_ROBOT": "drone7"}, "t" * 24)
+    names = [s.name for s in plan.services]
+    assert names == ["fake-llm", "embedding", "reasoner", "control-drone7", "control-drone8",
+                     "dashboard"]
+    assert plan.robot_urls("drone8") == ("http://127.0.0.1:104", None)
+    assert "robot-drone8" in plan.passwords  # its vehicle logs in as the robot
+    text = urls_text(plan, None)
+    for robot in ("drone7", "drone8"):
+        assert (f"AESOP_ROBOT={robot} AESOP_ZENOH_MODE=client AESOP_ZENOH_CONNECT="
+                f"{plan.endpoint} AESOP_ZENOH_USER=robot-{robot} AESOP_ZENOH_PASSWORD_FILE="
+                f"{plan.zenoh_dir / f'robot-{robot}.password'} python my_vehicle.py") in text
+    fly = fly_command(plan)
+    assert fly is not None and fly.endswith("--vehicle bus") and "--sim-url" not in fly
+    assert "simulated vehicle" not in text
+    with pytest.raises(PlanError, match="--vehicle external"):
+        plan_stack(replace(options(tmp_path), vehicle="external",
+                           ros2=Path("deploy/ros2/quadrotor.yaml")), {}, "t" * 24)
 
 
 def test_a_server_plan_runs_the_detector_reasoner_and_dashboard_behind_a_tls_router(

@@ -30,7 +30,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     attach.add_argument("--attach", action="store_true", help="do not start a stack")
     attach.add_argument("--embedding-url", default="http://127.0.0.1:8001")
     attach.add_argument("--control-url", default="http://127.0.0.1:8003")
-    attach.add_argument("--sim-url", default="http://127.0.0.1:8004")
+    attach.add_argument("--sim-url", default="http://127.0.0.1:8004",
+                        help="the simulated vehicle (aesop serve sim): reset over HTTP, "
+                             "flights judged on its truth trace and set-point ages")
+    attach.add_argument("--vehicle", choices=["sim", "bus"], default="sim",
+                        help="sim (default): the simulator at --sim-url; bus: any vehicle "
+                             "of the contract (docs/architecture.md 3a), reset by a query "
+                             "when it answers one, judged on its vehicle/truth or states")
     attach.add_argument("--secrets", type=Path, default=Path("deploy/secrets"),
                         help="where the defaults come from (aesop zenoh credentials)")
     attach.add_argument("--data-dir", type=Path, default=None,
@@ -89,7 +95,8 @@ def cmd_attached(args: argparse.Namespace) -> int:
             demo_scenario(name)
     except (ValueError, KeyError) as exc:
         raise CliError(f"demo --attach: {exc}") from None
-    stack = Attached(args.embedding_url, args.control_url, args.sim_url, token, bus)
+    stack = Attached(args.embedding_url, args.control_url,
+                     args.sim_url if args.vehicle == "sim" else None, token, bus)
     result = run_attached_demo(stack, args.out.resolve(), names=args.scenario_name,
                                model=args.model, table=not args.json)
     if args.json:

@@ -21,6 +21,7 @@ that is already up (the browser test flies one scenario while a page watches).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import secrets
 import shlex
 import signal
@@ -88,6 +89,7 @@ from .report import (
     what_happened,
     write_report,
 )
+from .vehicles import BusVehicle, FlightVehicle, SimVehicle
 
 FLIGHT_S = 22.0  # simulated seconds per scenario: the way in, T = 10 s after the anomaly, settling
 SETTLE_S = 3.0  # simulated seconds after a late anomaly's T, to come to rest in the region
@@ -193,7 +195,7 @@ class Attached:
 
     embedding_url: str
     control_url: str
-    sim_url: str
+    sim_url: str | None  # None: any vehicle on the bus (:class:`.vehicles.BusVehicle`)
     token: str
     bus: BusSettings  # the robot's user: its observations, as its camera publishes them
 
@@ -201,8 +203,9 @@ class Attached:
 def run_attached_demo(stack: Attached, out: Path, *, names: Sequence[str] | None = None,
                       model: str | None = None, table: bool = True) -> dict[str, Any]:
     """``aesop demo --attach``: the hardware scenarios (``names``, default all) flown against
-    ``stack``, whose control loop and simulator fly the hardware scene; the cache built
-    over REST, each flight judged on the simulator's truth, the report in ``out``."""
+    ``stack``, whose control loop flies the hardware scene with its simulator (or any
+    vehicle on the bus); the cache built over REST, each flight judged on the vehicle's
+    truth, the report in ``out``."""
     scenario = load_scenario(hardware_path())
     demos = SCENARIOS if names is None else tuple(demo_scenario(n) for n in names)
     started = time.monotonic()
@@ -425,8 +428,10 @@ async def fly_robot(embedding_url: str | None, control_url: str | None, sim_url:
                     on_start: Callable[[], None] | None = None
                     ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """One robot's flights (``settings.robot``), the cache built first unless
-    ``detector`` says it is; ``on_start``: called as each flight starts."""
-    assert control_url and sim_url
+    ``detector`` says it is; ``on_start``: called as each flight starts. The vehicle is
+    the simulator at ``sim_url``, or with None any vehicle on the bus
+    (:class:`.vehicles.BusVehicle`)."""
+    assert control_url
     if detector is None:
         detector = await scene_cache(embedding_url, token, model)
     rows, flights = [], {}
@@ -451,9 +456,13 @@ async def fly_robot(embedding_url: str | None, control_url: str | None, sim_url:
         tasks.append(asyncio.create_task(camera.run()))
         try:
             await _first_verdict(verdicts)
-            async with ControlClient(control_url, token=token, timeout_s=60) as control, \
-                    SimClient(sim_url, token=token, timeout_s=60) as sim:
-                pilots = Pilots(control, sim)
+            async with contextlib.AsyncExitStack() as stack:
+                control = await stack.enter_async_context(
+                    ControlClient(control_url, token=token, timeout_s=60))
+                vehicle: FlightVehicle = BusVehicle(bus, robot) if sim_url is None else \
+                    SimVehicle(await stack.enter_async_context(
+                        SimClient(sim_url, token=token, timeout_s=60)))
+                pilots = Pilots(control, vehicle)
                 for demo in demos:
                     if until is not None and until.is_set():
                         break
@@ -465,7 +474,7 @@ async def fly_robot(embedding_url: str | None, control_url: str | None, sim_url:
                     if until is None:
                         _say(f"  {demo.name}: {row['outcome']}" + (
                             "" if row["outcome"] == "ok" else f"\n    {row['what_happened']}"))
-                state_rate_hz = (await sim.state()).reporting["rate_hz"]
+                state_rate_hz = await vehicle.rate_hz()
             add_time_lost(rows)
         finally:
             for task in tasks:
@@ -505,11 +514,10 @@ class Camera:
 
 @dataclass(frozen=True)
 class Pilots:
-    """The two services a demo flight is started through: the control loop and the
-    simulated vehicle."""
+    """What a demo flight is started through: the control loop and the vehicle."""
 
     control: ControlClient
-    sim: SimClient
+    vehicle: FlightVehicle
 
     async def new_flight(self, camera: Camera, start: Sequence[float],
                          timeout_s: float = ROUTE_TIMEOUT_S) -> None:
@@ -520,7 +528,7 @@ class Pilots:
         camera.paused = True
         await asyncio.sleep(STALE_WAIT_S)  # the newest verdict goes stale
         await self.control.reset()
-        await self.sim.reset(start)
+        await self.vehicle.reset(start)
         deadline = time.monotonic() + timeout_s
         try:
             while True:
@@ -575,14 +583,9 @@ async def _fly(pilots: Pilots, camera: Camera, rec: Recorder, demo: DemoScenario
         await asyncio.sleep(0.05)
     camera.flying = False
     rec.recording = False
-    vehicle, trace = await pilots.sim.state(), await pilots.sim.trace()
-    # judged where the vehicle is now, on its own clock: it counts from its reset, which
-    # came before the loop's first tick (the loop waits for a verdict and warms up), so
-    # the loop's t lags it (by seconds on a loaded machine)
-    truth = np.array([x for t, x in zip(trace.t, trace.x, strict=True)
-                      if t <= vehicle.t + 1e-9])
-    return summarize(rec, demo, scenario, time.monotonic() - wall, truth,
-                     vehicle.setpoints, real_model=real_model)
+    truth, setpoints = await pilots.vehicle.flown()
+    return summarize(rec, demo, scenario, time.monotonic() - wall, truth, setpoints,
+                     real_model=real_model)
 
 
 def flight_end(rec: Recorder, scenario: Scenario) -> float:

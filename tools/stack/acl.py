@@ -14,9 +14,11 @@ the stack does (docs/architecture.md, "Zenoh key expressions"). Everything else 
   regions, requests, events and set-points, and ask its own vehicle's clock;
 - a robot ``robot-<id>`` (its vehicle, its camera) may publish only its own observations,
   events and vehicle state (``aesop/<id>/observation``, ``aesop/<id>/event/robot``,
-  ``aesop/<id>/vehicle/state``), answer queries of its own clock
-  (``aesop/<id>/vehicle/clock``) and declare a vehicle's health token (``aesop/health/sim``
-  or ``aesop/health/vehicle``); so no user may put two robots' vehicle keys;
+  ``aesop/<id>/vehicle/state``, a simulator's ``aesop/<id>/vehicle/truth``), answer
+  queries of its own clock and reset (``aesop/<id>/vehicle/clock``, ``.../vehicle/reset``),
+  ask its own reset (``aesop demo``, as the robot's camera) and declare a vehicle's health
+  token (``aesop/health/sim`` or ``aesop/health/vehicle``); so no user may put two robots'
+  vehicle keys;
 - a robot linked through a router of its own (``aesop up --role robot``) is one subject
   ``robot-<id>`` at the server: what its control loop, vehicle and ROS 2 bridge may do;
 - ``monitor`` (``aesop watch``, a recorder) only reads;
@@ -63,7 +65,7 @@ SERVICE_PUTS: Mapping[str, tuple[str, ...]] = {
 # ``aesop/<id>/``: their own robot's keys and no other's
 CONTROL_PUTS = ("state", "plan", "reasoner/request", "regions", "event/control",
                 "vehicle/setpoint")
-ROBOT_PUTS = ("observation", f"event/{topics.ROBOT_SOURCE}", "vehicle/state")
+ROBOT_PUTS = ("observation", f"event/{topics.ROBOT_SOURCE}", "vehicle/state", "vehicle/truth")
 CONTROL = "control"  # the control loops' health token and the stem of their users
 MONITOR = "monitor"
 MAX_MESSAGE_BYTES = 1024 * 1024  # the largest message the router passes on
@@ -173,7 +175,7 @@ def _robot_rules(robot: str) -> tuple[list[dict[str, Any]], ...]:
     list), and what both share: the clock query between them (control asks, the vehicle
     answers) and what its sessions receive."""
     control, vehicle, mine = control_user(robot), robot_user(robot), f"aesop/{robot}"
-    clock = topics.vehicle_clock(robot)
+    clock, reset = topics.vehicle_clock(robot), topics.vehicle_reset(robot)
     return ([_rule(f"{control}-puts", "ingress", ["put", "delete"],
                    [f"{mine}/{key}" for key in CONTROL_PUTS]),
              _rule(f"{control}-ask", "ingress", ["query"], [clock]),
@@ -181,12 +183,14 @@ def _robot_rules(robot: str) -> tuple[list[dict[str, Any]], ...]:
                    [topics.health(CONTROL)])],
             [_rule(f"{vehicle}-puts", "ingress", ["put", "delete"],
                    [f"{mine}/{key}" for key in ROBOT_PUTS]),
-             _rule(f"{vehicle}-answer", "ingress", ["declare_queryable", "reply"], [clock]),
+             _rule(f"{vehicle}-answer", "ingress", ["declare_queryable", "reply"],
+                   [clock, reset]),
+             _rule(f"{vehicle}-ask", "ingress", ["query"], [reset]),
              _rule(f"{vehicle}-health", "ingress", ["liveliness_token"],
                    ["aesop/health/sim", "aesop/health/vehicle"])],
             [_rule(f"{robot}-receive", "egress", ["put", "delete"], [f"{mine}/**"]),
              _rule(f"{robot}-clock", "egress", ["query", "reply", "declare_queryable"],
-                   [clock])])
+                   [clock, reset])])
 
 
 ROS2 = "ros2"  # the user of the robot's rmw_zenoh sessions (and the bridge's service name)
@@ -303,7 +307,7 @@ ROUTER_HEADER = """\
 // (tools/stack/acl.py): regenerate it, do not edit it. Every session authenticates
 // (user:password, the dictionary is the compose secret zenoh-users, made by `aesop zenoh
 // credentials deploy/secrets`); each service may publish only its own keys, robot-<id>
-// only its own observations, events and vehicle state (and answer its clock), ros2 (the
+// only its own observations, events and vehicle state (answer its clock and reset), ros2 (the
 // robot's rmw_zenoh nodes) the mapped ROS topics only, ros2-bridge those and its robot's
 // inputs, monitor only reads; a message past the size limit is dropped, and observations
 // past the rate per session. See deploy/README.md.

@@ -74,6 +74,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     up.add_argument("--ros2", type=Path, default=None, metavar="CONFIG",
                     help="fly a ROS 2 robot through the bridge (aesop ros2) with this config "
                          "(deploy/ros2/quadrotor.yaml) instead of the simulated vehicle")
+    up.add_argument("--vehicle", choices=["sim", "external"], default="sim",
+                    help="sim (default): a simulated vehicle per robot (aesop serve sim); "
+                         "external: none, each robot's own vehicle joins the bus as "
+                         "robot-<id> (the contract: docs/architecture.md 3a)")
     up.add_argument("--role", choices=["all", "server", "robot"], default="all",
                     help="all (default): everything on this machine; server: the router "
                          "robots link to, detectors, reasoner, LLM, dashboard; robot: its own "
@@ -258,6 +262,7 @@ def stack_options(args: argparse.Namespace, data_dir: Path):
     return StackOptions(data_dir=data_dir, ports=ports, scenario=scenario_path.resolve(),
                         rate_hz=rate, dashboard=dashboard, local_model=local_model(args),
                         ros2=ros2, robots=robots, replicas=replicas,
+                        vehicle=getattr(args, "vehicle", "sim"),
                         **_role_options(args, role, ports.hub))
 
 

@@ -168,15 +168,25 @@ def fleet(robot: str, n: int) -> tuple[str, ...]:
     return tuple(f"{stem}{first + i}" for i in range(n))
 
 
-def child_names(robots: Sequence[str], replicas: int, *, ros2: bool = False
+def child_names(robots: Sequence[str], replicas: int, *, vehicle: str | None = "sim"
                 ) -> dict[str, list[str]]:
     """The children of each kind that come in numbers: the detector replicas, the control
-    loops and the vehicles (one of each per robot); plain names for one."""
-    vehicle = ROS2 if ros2 else "sim"
+    loops and the vehicles (one of each per robot; ``vehicle``: their kind, ``sim`` or
+    ``ros2``, None for vehicles of the robots' own); plain names for one."""
     alone = len(robots) == 1
-    return {"embedding": ["embedding", *(f"embedding-{j + 1}" for j in range(1, replicas))],
-            "control": ["control" if alone else f"control-{r}" for r in robots],
-            vehicle: [vehicle if alone else f"{vehicle}-{r}" for r in robots]}
+    names = {"embedding": ["embedding", *(f"embedding-{j + 1}" for j in range(1, replicas))],
+             "control": ["control" if alone else f"control-{r}" for r in robots]}
+    if vehicle is not None:
+        names[vehicle] = [vehicle if alone else f"{vehicle}-{r}" for r in robots]
+    return names
+
+
+def vehicle_kind(options: StackOptions) -> str | None:
+    """The child each robot's vehicle is: the simulator, the ROS 2 bridge, or none (an
+    external vehicle joins the bus on its own)."""
+    if options.ros2 is not None:
+        return ROS2
+    return "sim" if options.vehicle == "sim" else None
 
 
 Role = Literal["all", "server", "robot"]
@@ -267,6 +277,8 @@ class StackOptions:
     python: str = sys.executable
     local_model: LocalModel | None = None  # served by llama.cpp instead of the fake LLM
     ros2: Path | None = None  # a ROS 2 robot through the bridge with this config, not the sim
+    # "external": no vehicle child; each robot's own vehicle joins the bus as robot-<id>
+    vehicle: Literal["sim", "external"] = "sim"
     robots: int = 1  # robots flown at once, each with its control loop and simulated vehicle
     replicas: int = 1  # detector replicas; from 2 on they share the stack's PostgreSQL
     # where the parts run (docs/deployment.md): "all" on this machine; "server" (router,
@@ -293,6 +305,7 @@ class StackPlan:
     data_dir: Path  # the stack's: one subdirectory per service, held while it is up
     passwords: Mapping[str, str] = field(repr=False)  # Zenoh user -> password
     # every robot flown (``robot`` first): its id, its control loop's and vehicle's child
+    # ("" for an external vehicle)
     fleet: tuple[tuple[str, str, str], ...] = ()
     postgres: PostgresServer | None = None  # the detector replicas' store, with --replicas
     role: Role = "all"
@@ -308,12 +321,12 @@ class StackPlan:
     def robots(self) -> tuple[str, ...]:
         return tuple(robot for robot, _, _ in self.fleet)
 
-    def robot_urls(self, robot: str) -> tuple[str, str]:
-        """The URLs of ``robot``'s control loop and vehicle."""
+    def robot_urls(self, robot: str) -> tuple[str, str | None]:
+        """The URLs of ``robot``'s control loop and vehicle (None: an external one)."""
         _, control, vehicle = next(f for f in self.fleet if f[0] == robot)
-        found = self.url(control), self.url(vehicle)
-        assert found[0] is not None and found[1] is not None
-        return found[0], found[1]
+        url = self.url(control)
+        assert url is not None
+        return url, self.url(vehicle) if vehicle else None
 
     @property
     def ros2_session(self) -> Path:
@@ -373,7 +386,7 @@ def plan_stack(options: StackOptions, environ: Mapping[str, str], token: str,
 
     local = options.local_model if role != "robot" else None
     fake = role != "robot" and local is None and "AESOP_REASONER_LLM_BASE_URL" not in environ
-    names = child_names(robots, options.replicas, ros2=options.ros2 is not None)
+    names = child_names(robots, options.replicas, vehicle=vehicle_kind(options))
     postgres = (PostgresServer(data("postgres"), ports.postgres)
                 if options.replicas > 1 and role != "robot" else None)
     settings: list[tuple[str, str, ServiceSettings]] = []
@@ -503,6 +516,9 @@ def _check_fleet(options: StackOptions, robot: str) -> tuple[str, ...]:
     """The robots this machine flies (all, robot) or serves (server)."""
     if options.robots < 1 or options.replicas < 1:
         raise PlanError("--robots and --replicas count from 1")
+    if options.vehicle == "external" and (options.ros2 is not None or options.role == "server"):
+        raise PlanError("--vehicle external is the robot's own vehicle, on the robot: not "
+                        "with --ros2 (the bridge is the vehicle) nor --role server")
     if options.role != "all":
         if options.tls is None:
             raise PlanError(f"--role {options.role} needs --tls DIR (aesop zenoh certs)")
@@ -548,15 +564,16 @@ def _robots(options: StackOptions, environ: Mapping[str, str], robots: Sequence[
             ) -> tuple[tuple[tuple[str, str, str], ...], Path]:
     """Each robot's control loop and vehicle (the simulator as the robot's own user, as
     fast as the loop flies the scene: real time at the scene's 1/dt; or the bridge to a
-    ROS 2 robot, as the ros2 user), appended to ``settings``; (robot, control, vehicle)
-    child names, and the scene flown."""
+    ROS 2 robot, as the ros2 user; or none, for an external vehicle), appended to
+    ``settings``; (robot, control, vehicle) child names, and the scene flown."""
     ports = options.ports
-    vehicle_kind = ROS2 if options.ros2 is not None else "sim"
+    kind = vehicle_kind(options)
     out = []
     scenario = options.scenario
     dt: float | None = None
     for i, robot in enumerate(robots):
-        control_name, vehicle_name = names["control"][i], names[vehicle_kind][i]
+        control_name = names["control"][i]
+        vehicle_name = names[kind][i] if kind is not None else ""
         forced: dict[str, Any] = {**common, **user(control_user(robot)), "robot": robot,
                                   "port": ports.of(control_name, "control", i),
                                   "data_dir": data(control_name)}
@@ -571,6 +588,10 @@ def _robots(options: StackOptions, environ: Mapping[str, str], robots: Sequence[
             except ConfigError as exc:
                 raise PlanError(str(exc)) from None
         dt = dt or load_scenario(scenario).dt  # the one scene, read once
+        settings.append((control_name, "control", control))
+        out.append((robot, control_name, vehicle_name))
+        if kind is None:
+            continue  # the robot's own vehicle joins as robot-<id>
         vehicle_port = ports.of(vehicle_name, "sim", i)
         vehicle: ServiceSettings = (
             read_settings(SimSettings, environ, **common, **user(robot_user(robot)),
@@ -580,8 +601,7 @@ def _robots(options: StackOptions, environ: Mapping[str, str], robots: Sequence[
             if options.ros2 is None else
             read_settings(Ros2Settings, environ, **common, **user(ROS2_BRIDGE), port=vehicle_port,
                           data_dir=data(vehicle_name), config=options.ros2))
-        settings += [(vehicle_name, vehicle_kind, vehicle), (control_name, "control", control)]
-        out.append((robot, control_name, vehicle_name))
+        settings.insert(-1, (vehicle_name, kind, vehicle))  # before its control loop
     assert scenario is not None
     return tuple(out), scenario
 
@@ -746,12 +766,14 @@ def urls_text(plan: StackPlan, token_file: Path | None) -> str:
                                     if plan.postgres else "")
               for s in plan.services]
     if len(plan.robots) > 1:
-        lines.append(f"  robots     {', '.join(plan.robots)} (each with its control loop and "
-                     "simulated vehicle)")
+        own = "" if any(not vehicle for _, _, vehicle in plan.fleet) else \
+            " and simulated vehicle"
+        lines.append(f"  robots     {', '.join(plan.robots)} (each with its control loop{own})")
     if plan.url("dashboard"):
         lines.append("  (open the dashboard once as <its url>/?token=<admin token>: "
                      "the browser keeps it as a cookie)")
     lines += _zenoh_lines(plan)
+    lines += vehicle_lines(plan)
     if plan.url(ROS2) and plan.role == "all":
         lines.append(f"  ROS 2: start the robot's nodes with RMW_IMPLEMENTATION=rmw_zenoh_cpp "
                      f"ZENOH_SESSION_CONFIG_URI={plan.ros2_session} (the ros2 user); "
@@ -776,16 +798,38 @@ def urls_text(plan: StackPlan, token_file: Path | None) -> str:
 
 
 def fly_command(plan: StackPlan) -> str | None:
-    """``aesop demo --attach`` for this stack's first robot (its simulated vehicle), when it
-    runs one on this machine's hub."""
+    """``aesop demo --attach`` for this stack's first robot (its simulated vehicle, or an
+    external one: ``--vehicle bus``), when it flies one on this machine's hub."""
     if plan.role != "all" or not plan.fleet:
         return None
-    control, sim = plan.robot_urls(plan.robots[0])
-    if not sim or plan.url("embedding") is None:
-        return None
+    control, vehicle = plan.robot_urls(plan.robots[0])
+    external = not plan.fleet[0][2]
+    if (not vehicle and not external) or plan.url("embedding") is None:
+        return None  # the ROS 2 bridge's robot: reset and truth are the robot's own
     robot = "" if plan.robots[0] == "robot0" else f"AESOP_ROBOT={plan.robots[0]} "
     return (f"{robot}aesop demo --attach --data-dir {plan.data_dir} --connect {plan.endpoint} "
-            f"--embedding-url {plan.url('embedding')} --control-url {control} --sim-url {sim}")
+            f"--embedding-url {plan.url('embedding')} --control-url {control} "
+            + ("--vehicle bus" if external else f"--sim-url {vehicle}"))
+
+
+def vehicle_lines(plan: StackPlan) -> list[str]:
+    """How each robot's external vehicle joins this machine's router (none: the stack
+    runs its vehicles)."""
+    external = [robot for robot, _, vehicle in plan.fleet if not vehicle]
+    if not external:
+        return []
+    lines = ["  vehicles: none started; the control loop waits for each robot's own "
+             "(docs/architecture.md 3a), joining as its robot's user:"]
+    for robot in external:
+        user = robot_user(robot)
+        if plan.role == "all":
+            identity = (f"AESOP_ZENOH_USER={user} "
+                        f"AESOP_ZENOH_PASSWORD_FILE={plan.zenoh_dir / f'{user}.password'} ")
+        else:  # the robot's own router, open on its loopback
+            identity = ""
+        lines.append(f"    AESOP_ROBOT={robot} AESOP_ZENOH_MODE=client "
+                     f"AESOP_ZENOH_CONNECT={plan.endpoint} {identity}python my_vehicle.py")
+    return lines
 
 
 def _zenoh_lines(plan: StackPlan) -> list[str]:
