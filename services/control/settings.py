@@ -18,8 +18,11 @@ class VehicleLink(Group):
     # a state that arrived more than this many ticks ago is stale (an anomaly, flown blind
     # on the recovery branch)
     state_stale_ticks: float = Field(default=3.0, gt=0.0, le=100.0)
-    # a set-point is valid this many ticks past the instant it is for; then the vehicle holds
-    setpoint_valid_ticks: float = Field(default=3.0, gt=0.0, le=100.0)
+    # a set-point is valid this many ticks past the instant it is for (carrying the plan's
+    # commands that far ahead); then the vehicle holds. 0.5 s at 20 Hz: a loop late by a
+    # few ticks on a busy robot computer leaves the vehicle flying the plan, not holding
+    # (PX4 leaves offboard after COM_OF_LOSS_T, 1 s by default)
+    setpoint_valid_ticks: float = Field(default=10.0, gt=0.0, le=100.0)
     frame: str = Field(default="world", min_length=1, max_length=64)  # a state must name it
     # a state farther than this (m), plus what 5 m/s^2 adds over the time between them (their
     # stamps' span, never more than passed here), from where the last accepted one was

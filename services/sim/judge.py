@@ -52,3 +52,33 @@ def count_violations(states: np.ndarray, inputs: np.ndarray, scenario: Scenario,
         n = min(len(bad), len(bad_u))
         bad[:n] |= bad_u[:n]
     return int(np.sum(bad))
+
+
+LIMITS = ("position", "velocity", "tilt", "rate")  # the 12-state row's four triples
+
+
+def over_limits(states: np.ndarray, inputs: np.ndarray, scenario: Scenario,
+                tol: LimitTolerance = LIMIT_TOLERANCE) -> dict[str, tuple[int, float]]:
+    """Which limits :func:`count_violations` found exceeded: per limit (``position`` (the
+    fence), ``velocity``, ``tilt`` (roll and pitch), ``rate`` (body rates), ``input`` (the
+    planning model's box)) the rows over it and the worst excess beyond the limit, in its
+    units (a non-finite value counts as infinite); only the limits exceeded."""
+    states, inputs = np.asarray(states, dtype=float), np.asarray(inputs, dtype=float)
+    out: dict[str, tuple[int, float]] = {}
+    if len(states):
+        lo, hi = scenario.limits.box()
+        slack = tol.state()
+        excess = np.maximum(states - hi, lo - states)
+        excess = np.where(np.isfinite(states), excess, np.inf)
+        for i, name in enumerate(LIMITS):
+            cols = slice(3 * i, 3 * i + 3)
+            rows = np.any(excess[:, cols] > slack[cols], axis=1)
+            if rows.any():
+                out[name] = (int(rows.sum()), float(excess[:, cols].max()))
+    if len(inputs):
+        model = planning_model(scenario)
+        excess_u = np.maximum(inputs - model.u_hi, model.u_lo - inputs)
+        rows = np.any(excess_u > tol.input, axis=1)
+        if rows.any():
+            out["input"] = (int(rows.sum()), float(excess_u.max()))
+    return out

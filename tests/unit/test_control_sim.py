@@ -11,7 +11,7 @@ import pytest
 
 from services.control.dynamics import QuadrotorParams
 from services.control.scenario import load_scenario, planning_model
-from services.sim.judge import count_violations
+from services.sim.judge import count_violations, over_limits
 from tools.bench.sim import Case, Flight, fly, judge, sample_cases
 
 SCENARIO = load_scenario()
@@ -121,3 +121,11 @@ def test_count_violations_judges_the_truth_and_the_models_inputs(name: str) -> N
     lost = rest.copy()
     lost[2] = np.nan  # a non-finite state counts too
     assert count_violations([lost], [], scene) == 1
+    # which limits, by how much: what a team needs to tune its vehicle
+    spun = rest.copy()
+    spun[10] = -(scene.limits.rates[1] + 0.7)  # pitch rate
+    assert over_limits(inside, hover, scene) == {}
+    got = over_limits([rest, fast, outside, spun, spun], pushed, scene)
+    assert got == {"position": (1, pytest.approx(0.5)), "velocity": (1, pytest.approx(0.5)),
+                   "rate": (2, pytest.approx(0.7)), "input": (1, pytest.approx(0.01))}
+    assert over_limits([lost], [], scene) == {"position": (1, np.inf)}

@@ -107,7 +107,7 @@ class Flight:
 
 
 STALE_TICKS = 3.0  # as the control service's default state_stale_ticks
-SETPOINT_TICKS = 3.0  # and setpoint_valid_ticks
+SETPOINT_TICKS = 10.0  # and setpoint_valid_ticks
 
 
 def vehicle_loop(scenario: Scenario, x0: np.ndarray, reporting: Reporting

@@ -41,7 +41,7 @@ from services.control.client import ControlClient
 from services.control.scenario import Scenario, load_scenario
 from services.embedding.client import EmbeddingClient
 from services.sim.client import SimClient
-from services.sim.judge import count_violations
+from services.sim.judge import count_violations, over_limits
 from shared import topics
 from shared.bus import Bus, Subscription
 from shared.client import ServiceError
@@ -660,6 +660,10 @@ def summarize(rec: Recorder, demo: DemoScenario, scenario: Scenario, wall_s: flo
            else decision == demo.expected_decision,
            "answer": None if decided is None else decided.answer[:MAX_ANSWER_CHARS],
            "constraint_violations": violations,
+           # which limits, how far past (None: not a finite number)
+           "over_limits": {name: [rows, _round(worst) if np.isfinite(worst) else None]
+                           for name, (rows, worst)
+                           in over_limits(states, inputs, scenario).items()},
            "duration_s": round(rec.states[-1].t, 2) if rec.states else 0.0,
            "wall_s": round(wall_s, 2),
            "decision_latency_ms": None if decided is None else round(decided.latency_ms, 1),
