@@ -83,7 +83,10 @@ def server(app: FastAPI, host: str, port: int, *, log_level: str = "info",
     """A ``uvicorn.Server`` for ``app`` with the limits above (not started)."""
     import uvicorn
 
+    # log_config=None: uvicorn's lines go to the root logger, in the process's one format
+    # (shared.logs), not in a second one of its own
     config = uvicorn.Config(app, host=host, port=port, log_level=log_level, access_log=False,
+                            log_config=None,
                             http=header_timeout(header_timeout_s),
                             limit_concurrency=limit_concurrency,
                             timeout_keep_alive=int(KEEP_ALIVE_S))

@@ -162,6 +162,9 @@ class ServiceSettings(BusSettings):
     data_dir: Path = Field(default=Path("data"), validation_alias=shared("data_dir"))
     log_level: Literal["debug", "info", "warning", "error"] = Field(
         default="info", validation_alias=shared("log_level"))
+    # text, or JSON lines for a log collector (shared.logs); the CLI reads it first
+    log_format: Literal["text", "json"] = Field(default="text",
+                                                validation_alias=shared("log_format"))
     # the largest request body, counted as it streams in (413 past it)
     max_body_bytes: int = Field(default=1024 * 1024, ge=1024)
 

@@ -16,6 +16,7 @@ from collections.abc import Mapping
 
 from pydantic import ValidationError
 
+from shared.logs import configure, log_format
 from tools import detector, ros2, serve, watch
 from tools.bench import cli as bench_cli
 from tools.commands import CliError
@@ -35,8 +36,11 @@ def main(argv: list[str] | None = None) -> int:
     if extra and getattr(args, "service", None) != "fake-llm":
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
     args.extra = extra
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        configure(logging.INFO, log_format())
+    except ValueError as exc:
+        print(f"aesop: {exc}", file=sys.stderr)
+        return 2
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request is noise
     logging.getLogger("faiss.loader").setLevel(logging.WARNING)  # which build it found
     os.environ.setdefault("HF_HUB_OFFLINE", "1")

@@ -52,6 +52,7 @@ from typing import Any
 
 from shared import topics
 from shared.bus import Bus, Received
+from shared.logs import configure
 from shared.messages import ReasonerDecision, ReasonerRequest
 from shared.realtime import Priority, urgent
 
@@ -327,8 +328,7 @@ def main(settings: ReasonerSettings, answers: Connection, reports: Connection,
     closes ``answers``, requests from the bus to ``reports`` and answers to the bus; once
     on the bus, ``time.monotonic()`` into ``pulse`` (a shared ``double``) every
     ``HEARTBEAT_S`` from the timer's thread."""
-    logging.basicConfig(level=settings.log_level.upper(),
-                        format="%(levelname)s:     %(name)s: %(message)s")
+    configure(settings.log_level, settings.log_format)  # the service's format
     # a signal to the service's process group is the service's to handle: the keeper
     # stops when the service closes the pipe (or dies), not before its last decision
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -66,7 +66,7 @@ def test_every_field_has_one_name_of_its_service_or_a_shared_one(cls: type[BaseS
               "zenoh_config", "zenoh_user", "zenoh_password", "zenoh_password_file",
               "zenoh_tls_ca", "zenoh_tls_cert", "zenoh_tls_key", "zenoh_id", "admin_token",
               "admin_token_file", "data_dir",
-              "log_level"}
+              "log_level", "log_format"}
     prefix = str(cls.model_config["env_prefix"])
     assert prefix.startswith("AESOP_") and prefix != "AESOP_"
     for name in cls.model_fields:
