@@ -199,7 +199,9 @@ class ReasonerRequest(Message):
     drift: Drift | None = None
 
 
-DecisionSource = Literal["llm", "timeout", "parse_error", "backend_error"]
+# refused: no model was asked (the scene tripped the injection check, or its options
+# cannot be put in a prompt); the others: docs/reasoner.md
+DecisionSource = Literal["llm", "timeout", "parse_error", "backend_error", "refused"]
 
 
 class ReasonerDecision(Message):

@@ -10,9 +10,10 @@ answers by K:
   other attempt is cancelled, and its HTTP connection closed once the decision has left.
 - ``timeout``: no valid answer by the deadline; everything is cancelled.
 - ``parse_error``: every attempt answered but none parsed (the reason codes of
-  :mod:`services.reasoner.parsing` are in the rationale); also a task or observation
-  flagged by :func:`~services.reasoner.prompts.suspicious_scene` (reason ``injection``,
-  the LLM is never called) and options the prompt cannot render (reason ``invalid_request``).
+  :mod:`services.reasoner.parsing` are in the rationale).
+- ``refused``: no model was asked: a task or observation flagged by
+  :func:`~services.reasoner.prompts.suspicious_scene` (reason ``injection``), or options
+  the prompt cannot render (reason ``invalid_request``).
 - ``backend_error``: every attempt failed in the backend (kind and HTTP status in the
   rationale). With mixed failures, ``parse_error`` wins: a model did answer.
 
@@ -212,12 +213,12 @@ class Decider:
                                    observation=request.observation.text,
                                    unusual=unusual_of(request))
         if flagged:
-            return self._fallback(request, start, "parse_error",
+            return self._fallback(request, start, "refused",
                                   f"injection: {flagged}; LLM not asked")
         try:
             messages = self._messages(request)
         except ValueError as exc:
-            return self._fallback(request, start, "parse_error", f"invalid_request: {exc}")
+            return self._fallback(request, start, "refused", f"invalid_request: {exc}")
         offered = [o.index for o in request.options]
         outcome = await self._race(messages, offered, deadline)
         return self._decision(request, start, outcome)

@@ -87,7 +87,7 @@ PAPER_K_S = 4.3  # s: the paper's deadline, the bimodal profile's 95th percentil
 MISS_TOLERANCE_S = 0.001  # s: an answer later than K + this is a deadline miss
 TARGET_OVERSHOOT_P99_MS = 20.0
 TARGET_OVERHEAD_P99_MS = 5.0
-SOURCES = ("llm", "timeout", "parse_error", "backend_error")
+SOURCES = ("llm", "timeout", "parse_error", "backend_error", "refused")
 
 TASK = "land the quadrotor on the red box"
 RED_BOX = "another quadrotor is parked on the red box\na blue box on the ground"

@@ -165,7 +165,7 @@ class Asked:
     t_s: float
     about: str  # the scene the detector flagged, the silent detector, or the lost vehicle
     decision: str | None = None  # the option answered (its label), None: no answer came
-    source: str | None = None  # of the answer: llm, timeout, parse_error, backend_error
+    source: str | None = None  # of the answer: llm, timeout, parse_error, backend_error, refused
     answered_s: float | None = None
 
 
