@@ -28,11 +28,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--robot", help="with --recording: only this robot's observations")
     ev.add_argument("--changed-only", action="store_true",
                     help="with --recording: list only the observations whose verdict changed")
-    ev.add_argument("--k", type=int, default=5)
-    ev.add_argument("--alpha", type=float, default=0.95)
-    ev.add_argument("--tpr", type=float, default=0.9, help="target TPR for tpr-target")
+    ev.add_argument("--k", type=int, default=5,
+                    help="neighbours a score averages over (default 5)")
+    ev.add_argument("--alpha", type=float, default=0.95,
+                    help="the calibration's quantile: about 1 - alpha of nominal scenes "
+                         "flagged (default 0.95)")
+    ev.add_argument("--tpr", type=float, default=0.9,
+                    help="target TPR for tpr-target (default 0.9)")
     ev.add_argument("--method", choices=["loo-quantile", "conformal", "tpr-target"],
-                    default="loo-quantile")
+                    default="loo-quantile", help="how tau is calibrated (default "
+                    "loo-quantile: eq. 2's leave-one-out quantile)")
     ev.add_argument("--score", choices=["topk", "mahalanobis", "detections", "combined"],
                     default="topk", help="detections, combined: each line's 'detections' "
                     "against the nominal set's (combined: with topk, as conformal p-values)")
@@ -44,11 +49,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "scored, as the service accepts one batch review of them (then the "
                     "calibration by --recalibrate)")
     ev.add_argument("--recalibrate", choices=["window", "stale"], default="window",
-                    help="with --adapt: the service's policy (AESOP_EMBEDDING_ADAPT__RECALIBRATE)")
+                    help="with --adapt: the service's policy (AESOP_EMBEDDING_ADAPT__RECALIBRATE; "
+                    "default window)")
     ev.add_argument("--window", type=int, default=100, help="with --adapt and --recalibrate "
-                    "window: the accepted scenes calibrated on (AESOP_EMBEDDING_ADAPT__WINDOW)")
+                    "window: the accepted scenes calibrated on (AESOP_EMBEDDING_ADAPT__WINDOW; "
+                    "default 100)")
     ev.add_argument("--model", default=None, help="embedding model (default: all-MiniLM-L6-v2)")
-    ev.add_argument("--json", action="store_true")
+    ev.add_argument("--json", action="store_true",
+                    help="print the result as one JSON object instead of tables")
     ev.set_defaults(func=cmd_detector_eval)
 
     dd = dsub.add_parser("domains", help="write the synthetic domains as JSONL sets for "
@@ -56,7 +64,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                          "<domain>-test.jsonl (the other 20%% and every anomaly), with "
                          "their detections")
     dd.add_argument("--out", type=Path, required=True, help="the folder")
-    dd.add_argument("--seed", type=int, default=0)
+    dd.add_argument("--seed", type=int, default=0,
+                    help="random seed of what is drawn (default 0)")
     dd.add_argument("--form", choices=["brief", "prompt"], default="brief",
                     help="the text: the observation (brief) or the paper's whole prompt")
     dd.add_argument("--drift", action="store_true", help="instead, each synthetic domain "

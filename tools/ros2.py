@@ -24,8 +24,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     serve = rsub.add_parser("serve", help="run the bridge (as `aesop serve ros2`)")
     serve.add_argument("--config", type=Path, default=None,
                        help="the bridge's YAML file (default: AESOP_ROS2_CONFIG)")
-    serve.add_argument("--host")
-    serve.add_argument("--port", type=int)
+    serve.add_argument("--host", help="the address its HTTP API listens on (default "
+                       "AESOP_ROS2_HOST, else 127.0.0.1)")
+    serve.add_argument("--port", type=int, help="its HTTP port (default AESOP_ROS2_PORT, "
+                       "else 8005)")
     serve.set_defaults(func=cmd_serve)
 
 

@@ -27,9 +27,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                        help="sim: the simulated vehicle control flies; ros2: the bridge to a "
                             "ROS 2 robot (AESOP_ROS2_CONFIG); fake-llm: an "
                             "OpenAI-compatible test server, see its --help")
-    serve.add_argument("--host")
-    serve.add_argument("--port", type=int)
-    serve.add_argument("--data-dir", type=Path)
+    serve.add_argument("--host", help="the address its HTTP API listens on (default "
+                       "AESOP_<SERVICE>_HOST, else 127.0.0.1)")
+    serve.add_argument("--port", type=int, help="its HTTP port (default AESOP_<SERVICE>_PORT, "
+                       "else the service's: 8001 embedding, 8002 reasoner, 8003 control, "
+                       "8004 sim, 8005 ros2, 8080 dashboard)")
+    serve.add_argument("--data-dir", type=Path, help="where it keeps its files (default "
+                       "AESOP_DATA_DIR, else ./data)")
     serve.add_argument("--scenario", default=None,
                        help="control and sim: a bundled scenario (paper, hardware) or a file "
                             "(default: AESOP_CONTROL_SCENARIO or AESOP_SIM_SCENARIO, else "

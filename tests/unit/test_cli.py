@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import argparse
 import importlib.util
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -137,3 +139,38 @@ def test_watch_names_the_missing_file_it_was_given(
     assert says.format(path=path) in err
     if variable == "AESOP_ZENOH_CONFIG":
         assert "PASSWORD" not in err
+
+
+def every_argument(parser: argparse.ArgumentParser, path: str = "aesop"
+                   ) -> Iterator[tuple[str, argparse.Action]]:
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from every_argument(sub, f"{path} {name}")
+        elif not isinstance(action, argparse._HelpAction | argparse._VersionAction):
+            yield path, action
+
+
+def test_every_flag_says_what_it_is() -> None:
+    """Issue 44, item 12: 33 of 179 arguments had no help; each one has it now, and a
+    default worth knowing (not None, not a switch) is in it."""
+    arguments = list(every_argument(cli.build_parser()))
+    assert len(arguments) > 150
+    bare = [f"{path} {'/'.join(a.option_strings) or a.dest}" for path, a in arguments
+            if not a.help or a.help == argparse.SUPPRESS]
+    assert bare == []
+    unsaid = [f"{path} {'/'.join(a.option_strings)}" for path, a in arguments
+              if a.option_strings and a.help and not says_default(a)]
+    assert unsaid == []
+
+
+def says_default(action: argparse.Action) -> bool:
+    """Whether ``action``'s help says its default: in words, or its value in it (none to
+    say for a switch, None or an empty list)."""
+    default = action.default
+    if default in (None, False, True, argparse.SUPPRESS, []):
+        return True
+    assert action.help is not None
+    shown = (f"{default:g}" if isinstance(default, float) else
+             " ".join(map(str, default)) if isinstance(default, list) else str(default))
+    return "default" in action.help or shown in action.help

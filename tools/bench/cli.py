@@ -34,11 +34,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     bench = sub.add_parser("bench", help="benchmarks (tables, or one JSON object with --json)")
     bsub = bench.add_subparsers(dest="bench_command", required=True)
     bd = bsub.add_parser("detector", help="detector quality, latency, memory and throughput")
-    bd.add_argument("--json", action="store_true")
+    bd.add_argument("--json", action="store_true",
+                    help="print the result as one JSON object instead of tables")
     bd.add_argument("--quick", action="store_true", help="small sizes, for a smoke run")
     bd.add_argument("--only", action="append", help="run only these parts (repeatable)")
     bd.add_argument("--plot", type=Path, default=None, help="write the quality figure (PNG)")
-    bd.add_argument("--seed", type=int, default=0)
+    bd.add_argument("--seed", type=int, default=0,
+                    help="random seed of what is drawn (default 0)")
     bd.set_defaults(func=cmd_bench_detector)
     br = bsub.add_parser("reasoner", help="deadline, fallbacks, overhead and hedging of the "
                          "slow reasoner against the fake LLM (bimodal profile)")
@@ -51,7 +53,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="hedging delay in s (default: the single-backend p50 latency)")
     br.add_argument("--cpu-hog", type=int, default=0,
                     help="this many other processes spin on the CPU throughout (default 0)")
-    br.add_argument("--json", action="store_true")
+    br.add_argument("--json", action="store_true",
+                    help="print the result as one JSON object instead of tables")
     add_llm_options(br)
     _add_template_options(br)
     br.set_defaults(func=cmd_bench_reasoner)
@@ -65,12 +68,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="a bundled scenario (paper, hardware) or a file (default: paper)")
     bm.add_argument("--horizons", type=int, nargs="+", default=[],
                     help="also re-grid the scene to these N at the same T (e.g. 40 100 200 400)")
-    bm.add_argument("--seed", type=int, default=0)
-    bm.add_argument("--json", action="store_true")
+    bm.add_argument("--seed", type=int, default=0,
+                    help="random seed of what is drawn (default 0)")
+    bm.add_argument("--json", action="store_true",
+                    help="print the result as one JSON object instead of tables")
     bm.set_defaults(func=cmd_bench_mpc)
     bc = bsub.add_parser("closed-loop", help="the paper's ablation: naive, FS-MPC and AESOP")
     bc.add_argument("--scenarios", type=int, default=500, help="cases (default 500)")
-    bc.add_argument("--seed", type=int, default=0)
+    bc.add_argument("--seed", type=int, default=0,
+                    help="random seed of what is drawn (default 0)")
     bc.add_argument("--workers", type=int, default=os.cpu_count() or 1,
                     help="worker processes (default: every CPU)")
     bc.add_argument("--inconsequential", type=int, default=5,
@@ -85,18 +91,21 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="the vehicle's state rate (default 100); several: one condition each")
     bc.add_argument("--methods", nargs="+", choices=["naive", "fsmpc", "aesop"],
                     default=["naive", "fsmpc", "aesop"], help="(default: all three)")
-    bc.add_argument("--json", action="store_true")
+    bc.add_argument("--json", action="store_true",
+                    help="print the result as one JSON object instead of tables")
     bc.set_defaults(func=cmd_bench_closed_loop)
     bl = bsub.add_parser("loop", help="the fixed-rate control loop's jitter and overruns over "
-                         "simulated flights (no Zenoh)")
+                         "simulated flights (the simulator a process over Zenoh)")
     bl.add_argument("--rates", type=float, nargs="+", default=[10.0, 20.0],
                     help="loop rates in Hz, run one after the other (default 10 20)")
     bl.add_argument("--minutes", type=float, default=10.0,
                     help="simulated flight per rate, in minutes (default 10)")
     bl.add_argument("--scenario", type=Path, default=None,
                     help="a bundled scenario (paper, hardware) or a file (default: paper)")
-    bl.add_argument("--seed", type=int, default=0)
-    bl.add_argument("--json", action="store_true")
+    bl.add_argument("--seed", type=int, default=0,
+                    help="random seed of what is drawn (default 0)")
+    bl.add_argument("--json", action="store_true",
+                    help="print the result as one JSON object instead of tables")
     bl.set_defaults(func=cmd_bench_loop)
     bb = bsub.add_parser("bus", help="observation -> verdict and -> control reaction latency "
                          "over Zenoh (embedding and control as processes)")
@@ -108,7 +117,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     bb.add_argument("--cache-detections", type=int, default=4, choices=[1, 2, 3, 4],
                     help="cache every combination of up to N scene detections (default 4)")
     _model_option(bb)
-    bb.add_argument("--json", action="store_true")
+    bb.add_argument("--json", action="store_true",
+                    help="print the result as one JSON object instead of tables")
     bb.set_defaults(func=cmd_bench_bus)
     bf = bsub.add_parser("fairness", help="one robot floods its observations: another robot's "
                          "verdict latency and losses, through the hub (or --direct)")
@@ -123,7 +133,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="robot1 floods one fixed observation (the detector's memo makes it "
                          "nearly free) instead of distinct ones")
     _model_option(bf)
-    bf.add_argument("--json", action="store_true")
+    bf.add_argument("--json", action="store_true",
+                    help="print the result as one JSON object instead of tables")
     bf.set_defaults(func=cmd_bench_fairness)
     _ros2_parser(bsub)
     _fleet_parser(bsub)
@@ -137,7 +148,8 @@ def _ros2_parser(bsub: argparse._SubParsersAction) -> None:
     br.add_argument("--seconds", type=float, default=20.0, help="each way (default 20)")
     br.add_argument("--rate", type=float, default=100.0,
                     help="samples per second (100: odometry's usual rate)")
-    br.add_argument("--json", action="store_true")
+    br.add_argument("--json", action="store_true",
+                    help="print the result as one JSON object instead of tables")
     br.set_defaults(func=cmd_bench_ros2)
 
 
@@ -152,7 +164,8 @@ def _fleet_parser(bsub: argparse._SubParsersAction) -> None:
                      help="commits per store for its cost (default 50)")
     bfl.add_argument("--batch", type=int, default=100, help="experiences per commit (100)")
     _model_option(bfl)
-    bfl.add_argument("--json", action="store_true")
+    bfl.add_argument("--json", action="store_true",
+                    help="print the result as one JSON object instead of tables")
     bfl.set_defaults(func=cmd_bench_fleet)
 
 
@@ -171,7 +184,8 @@ def _link_parser(bsub: argparse._SubParsersAction) -> None:
                     help="leave out the stall and the routers restarted")
     bl.add_argument("--out", type=Path, default=None,
                     help="keep the logs and data here (default: a temporary folder)")
-    bl.add_argument("--json", action="store_true")
+    bl.add_argument("--json", action="store_true",
+                    help="print the result as one JSON object instead of tables")
     bl.set_defaults(func=cmd_bench_link)
 
 

@@ -12,7 +12,8 @@ from tools.stack.cli import add_fleet_options, add_llm_options
 
 def register(sub: argparse._SubParsersAction) -> None:
     demo = sub.add_parser("demo", help="the paper's hardware scenarios on the whole stack")
-    demo.add_argument("--json", action="store_true")
+    demo.add_argument("--json", action="store_true",
+                      help="print the result as one JSON object instead of tables")
     demo.add_argument("--out", type=Path, default=Path("aesop-demo-report"),
                       help="report directory (default ./aesop-demo-report)")
     demo.add_argument("--random-ports", action="store_true",
@@ -28,11 +29,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         "from deploy/secrets), the token from AESOP_ADMIN_TOKEN(_FILE) or "
         "deploy/secrets/admin-token")
     attach.add_argument("--attach", action="store_true", help="do not start a stack")
-    attach.add_argument("--embedding-url", default="http://127.0.0.1:8001")
-    attach.add_argument("--control-url", default="http://127.0.0.1:8003")
+    attach.add_argument("--embedding-url", default="http://127.0.0.1:8001",
+                        help="its detector (default http://127.0.0.1:8001)")
+    attach.add_argument("--control-url", default="http://127.0.0.1:8003",
+                        help="its robot's control loop (default http://127.0.0.1:8003)")
     attach.add_argument("--sim-url", default="http://127.0.0.1:8004",
                         help="the simulated vehicle (aesop serve sim): reset over HTTP, "
-                             "flights judged on its truth trace and set-point ages")
+                             "flights judged on its truth trace and set-point ages (default "
+                             "http://127.0.0.1:8004)")
     attach.add_argument("--vehicle", choices=["sim", "bus"], default="sim",
                         help="sim (default): the simulator at --sim-url; bus: any vehicle "
                              "of the contract (docs/architecture.md 3a), reset by a query "

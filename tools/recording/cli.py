@@ -32,7 +32,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     rp = sub.add_parser("replay", help="publish a recording on Zenoh again with its timing "
                         "(the dashboard and aesop watch show the flight); Ctrl-C stops")
-    rp.add_argument("file", type=Path, metavar="FILE.mcap")
+    rp.add_argument("file", type=Path, metavar="FILE.mcap",
+                    help="a recording of `aesop record` (or any MCAP of the stack's keys)")
     rp.add_argument("--speed", type=float, default=1.0, help="time scale (2: twice as fast)")
     rp.add_argument("--topics", nargs="+", metavar="TOPIC",
                     help="only these (e.g. observation: a live stack's detector sees the "
@@ -60,17 +61,21 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="neighbours a new cache scores with (default 5; the paper's "
                          "hardware cache: 1)")
     add_url_argument(ci)
-    ci.add_argument("--json", action="store_true")
+    ci.add_argument("--json", action="store_true",
+                    help="print the result as one JSON object instead of tables")
     ci.set_defaults(func=cache_import_command)
     cc = casub.add_parser("calibrate", help="tau of a cache from its own experiences (eq. 2: "
                           "the alpha quantile of the leave-one-out scores)")
-    cc.add_argument("--cache", required=True)
-    cc.add_argument("--alpha", type=float, default=0.95)
+    cc.add_argument("--cache", required=True, help="the cache to calibrate")
+    cc.add_argument("--alpha", type=float, default=0.95,
+                    help="the quantile: about 1 - alpha of nominal scenes flagged "
+                         "(default 0.95)")
     cc.add_argument("--pairs", action="store_true",
                     help="score pairs of detections too (two nominal objects never seen "
                          "together)")
     add_url_argument(cc)
-    cc.add_argument("--json", action="store_true")
+    cc.add_argument("--json", action="store_true",
+                    help="print the result as one JSON object instead of tables")
     cc.set_defaults(func=cache_calibrate_command)
 
 

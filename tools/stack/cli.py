@@ -49,7 +49,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     ce.add_argument("--service", action="append", default=[], metavar="NAME",
                     help="another session's certificate besides the server's services "
                          "(repeatable; compose's control-<robot>, for example)")
-    ce.add_argument("--days", type=int, default=825, help="validity of what is issued")
+    ce.add_argument("--days", type=int, default=825,
+                    help="validity of what is issued, in days (default 825)")
     ce.set_defaults(func=cmd_zenoh_certs)
     fc = zsub.add_parser("fleet-compose", help="a docker compose override for a fleet: a "
                          "control loop and simulated vehicle per robot, detector replicas "
@@ -70,7 +71,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                          "(default: AESOP_CONTROL_SCENARIO or the hardware scene)")
     up.add_argument("--random-ports", action="store_true",
                     help="free ports instead of 7447 (Zenoh) and 8001-8003, 8010, 8080")
-    up.add_argument("--no-dashboard", action="store_true")
+    up.add_argument("--no-dashboard", action="store_true",
+                    help="start no dashboard (the rest needs none)")
     up.add_argument("--ros2", type=Path, default=None, metavar="CONFIG",
                     help="fly a ROS 2 robot through the bridge (aesop ros2) with this config "
                          "(deploy/ros2/quadrotor.yaml) instead of the simulated vehicle")
