@@ -1,9 +1,11 @@
 """``aesop watch``: the dashboard's stream as lines in a terminal.
 
 One line per state at most every ``state_every_s`` seconds (and at every mode
-change), every anomaly flag and the return to nominal, every reasoner request
-and decision, every event, and services appearing and vanishing. Plans are
-left to the dashboard. ``--robot all`` follows every robot of a fleet, each line
+change); the first flagged verdict of a run (and one whose reason changes), then the
+return to nominal saying how many were flagged; every reasoner request and decision;
+each event, but one of a kind at most every ``REPEAT_S`` per robot, the next saying how
+many it stood for; and services appearing and vanishing. Plans are left to the
+dashboard. ``--robot all`` follows every robot of a fleet, each line
 led by its robot (each robot's states throttled and its flags followed on their own).
 :class:`Terminal` is the pure part; :func:`watch` the I/O.
 """
@@ -13,7 +15,7 @@ from __future__ import annotations
 import math
 import time
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, TextIO
 
 import zenoh
@@ -27,6 +29,8 @@ from .feed import Update, follow
 Json = dict[str, Any]
 _KEEP_REQUESTS = 32
 _KEEP_ROBOTS = 1024
+REPEAT_S = 5.0  # an event of one kind (per robot) at most once in this long
+_KEEP_KINDS = 64  # event kinds remembered per robot
 
 
 @dataclass
@@ -36,6 +40,12 @@ class _Seen:
     last_state: float | None = None  # received time of the last printed state
     last_mode: str | None = None
     flagged: bool = False
+    run: int = 0  # flagged verdicts in the current run
+    run_since: float = 0.0  # when it began
+    run_reason: str | None = None  # the reason last printed
+    run_top: float = -math.inf  # its highest score
+    # event kind -> (received time of the last one printed, how many not printed since)
+    events: dict[str, tuple[float, int]] = field(default_factory=dict)
 
 
 class Terminal:
@@ -87,15 +97,24 @@ class Terminal:
 
     def _anomaly(self, m: Json, update: Update) -> str | None:
         seen = self._seen(update)
-        was, seen.flagged = seen.flagged, bool(m["is_anomaly"])
-        if not m["is_anomaly"] and not was:
-            return None
+        flagged, reason = bool(m["is_anomaly"]), m.get("reason")
+        was, seen.flagged = seen.flagged, flagged
         tau = "none (uncalibrated)" if m["threshold"] is None else f"{m['threshold']:.3f}"
-        head = "ANOMALY" if m["is_anomaly"] else "nominal again"
-        text = f"{head} seq={m['seq']} score={m['score']:.3f} tau={tau}"
-        if m["is_anomaly"] and m.get("reason"):
-            text += f" ({m['reason']})"
-        return text
+        if flagged:
+            if not was:
+                seen.run, seen.run_since, seen.run_top = 0, update.received, -math.inf
+            seen.run += 1
+            seen.run_top = max(seen.run_top, float(m["score"]))
+            if was and reason == seen.run_reason:
+                return None  # the same anomaly, still flagged: counted for the summary
+            seen.run_reason = reason
+            text = f"ANOMALY seq={m['seq']} score={m['score']:.3f} tau={tau}"
+            return f"{text} ({reason})" if reason else text
+        if not was:
+            return None
+        return (f"nominal again seq={m['seq']} score={m['score']:.3f} tau={tau}, after "
+                f"{seen.run} flagged verdict(s) in {update.received - seen.run_since:.1f} s "
+                f"(highest score {seen.run_top:.3f})")
 
     def _request(self, m: Json, _u: Update) -> str:
         self._labels[m["request_id"]] = {o["index"]: o["label"] for o in m["options"]}
@@ -113,9 +132,23 @@ class Terminal:
             text += f" {_short(m['rationale'], 60)}"
         return text
 
-    def _event(self, m: Json, _u: Update) -> str:
-        text = f"[{m['severity']}] {m['source']}/{m['kind']}"
-        return f"{text}: {m['message']}" if m.get("message") else text
+    def _event(self, m: Json, update: Update) -> str | None:
+        seen = self._seen(update)
+        kind = f"{m['source']}/{m['kind']}"
+        last, unsaid = seen.events.get(kind, (-math.inf, 0))
+        if update.received - last < REPEAT_S:
+            seen.events[kind] = (last, unsaid + 1)
+            return None
+        seen.events.pop(kind, None)
+        seen.events[kind] = (update.received, 0)  # the most recent last
+        while len(seen.events) > _KEEP_KINDS:
+            seen.events.pop(next(iter(seen.events)))
+        text = f"[{m['severity']}] {kind}"
+        if m.get("message"):
+            text += f": {m['message']}"
+        if unsaid:
+            text += f" (and {unsaid} more like it since the last one shown)"
+        return text
 
     def _health(self, m: Json, _u: Update) -> str:
         return f"{m['service']} {'alive' if m['alive'] else 'gone'}"

@@ -33,17 +33,41 @@ def test_states_are_throttled_but_a_mode_change_always_shows() -> None:
     assert changed is not None and "recovering" in changed and "y=3" in changed
 
 
-def test_every_anomaly_flag_and_the_return_to_nominal() -> None:
+def test_a_run_of_flags_is_one_line_and_the_return_to_nominal_sums_it_up() -> None:
+    """Issue 44, item 12: every flagged verdict was a line (10 a second from a camera at
+    10 Hz: 47 lines in 5 s). Now the first of a run, one whose reason changes, and the
+    return to nominal saying how many there were."""
     term = Terminal()
     assert term.line(verdict(0, False)) is None
-    flagged = [term.line(verdict(i, True)) for i in (1, 2)]
-    assert all(line is not None and "ANOMALY" in line and "tau=-0.700" in line
-               for line in flagged)
-    back = term.line(verdict(3, False))
-    assert back is not None and "nominal again" in back
-    assert term.line(verdict(4, False)) is None
-    uncalibrated = term.line(verdict(5, True, threshold=None))
+    first = term.line(verdict(1, True))
+    assert first is not None and "ANOMALY seq=1" in first and "tau=-0.700" in first
+    assert [term.line(verdict(i, True)) for i in range(2, 30)] == [None] * 28
+    other = verdict(30, True)
+    other.message["reason"] = "a keyboard"
+    changed = term.line(other)
+    assert changed is not None and "ANOMALY seq=30" in changed and "(a keyboard)" in changed
+    back = term.line(verdict(31, False))
+    assert back is not None and "nominal again seq=31" in back
+    assert "after 30 flagged verdict(s) in 30.0 s (highest score -0.500)" in back
+    assert term.line(verdict(32, False)) is None
+    uncalibrated = term.line(verdict(33, True, threshold=None))
     assert uncalibrated is not None and "tau=none (uncalibrated)" in uncalibrated
+
+
+def test_an_event_of_one_kind_shows_at_most_every_few_seconds_with_a_count() -> None:
+    term = Terminal()
+
+    def event(kind: str, received: float) -> Update:
+        return at("event", {"severity": "warning", "source": "control", "kind": kind,
+                            "message": ""}, received)
+
+    flapping = [term.line(event(kind, 100.0 + i * 0.1))
+                for i in range(40) for kind in ("verdict_stale", "verdict_fresh")]
+    shown = [line for line in flapping if line is not None]
+    assert len(shown) == 2 * 1  # 4 s of flapping: the first of each kind
+    later = term.line(event("verdict_stale", 106.0))
+    assert later is not None and "(and 39 more like it since the last one shown)" in later
+    assert term.line(event("verdict_fresh", 106.1)) is not None
 
 
 def test_a_request_and_its_decision_with_the_chosen_label_and_source() -> None:
