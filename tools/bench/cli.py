@@ -30,17 +30,25 @@ def _add_template_options(br: argparse.ArgumentParser) -> None:
                     help="--llm local: only these templates (repeatable; default all)")
 
 
+def _json_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", action="store_true",
+                        help="print the result as one JSON object instead of tables")
+
+
+def _seed_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--seed", type=int, default=0,
+                        help="random seed of what is drawn (default 0)")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     bench = sub.add_parser("bench", help="benchmarks (tables, or one JSON object with --json)")
     bsub = bench.add_subparsers(dest="bench_command", required=True)
     bd = bsub.add_parser("detector", help="detector quality, latency, memory and throughput")
-    bd.add_argument("--json", action="store_true",
-                    help="print the result as one JSON object instead of tables")
+    _json_option(bd)
     bd.add_argument("--quick", action="store_true", help="small sizes, for a smoke run")
     bd.add_argument("--only", action="append", help="run only these parts (repeatable)")
     bd.add_argument("--plot", type=Path, default=None, help="write the quality figure (PNG)")
-    bd.add_argument("--seed", type=int, default=0,
-                    help="random seed of what is drawn (default 0)")
+    _seed_option(bd)
     bd.set_defaults(func=cmd_bench_detector)
     br = bsub.add_parser("reasoner", help="deadline, fallbacks, overhead and hedging of the "
                          "slow reasoner against the fake LLM (bimodal profile)")
@@ -53,8 +61,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="hedging delay in s (default: the single-backend p50 latency)")
     br.add_argument("--cpu-hog", type=int, default=0,
                     help="this many other processes spin on the CPU throughout (default 0)")
-    br.add_argument("--json", action="store_true",
-                    help="print the result as one JSON object instead of tables")
+    _json_option(br)
     add_llm_options(br)
     _add_template_options(br)
     br.set_defaults(func=cmd_bench_reasoner)
@@ -68,15 +75,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="a bundled scenario (paper, hardware) or a file (default: paper)")
     bm.add_argument("--horizons", type=int, nargs="+", default=[],
                     help="also re-grid the scene to these N at the same T (e.g. 40 100 200 400)")
-    bm.add_argument("--seed", type=int, default=0,
-                    help="random seed of what is drawn (default 0)")
-    bm.add_argument("--json", action="store_true",
-                    help="print the result as one JSON object instead of tables")
+    _seed_option(bm)
+    _json_option(bm)
     bm.set_defaults(func=cmd_bench_mpc)
     bc = bsub.add_parser("closed-loop", help="the paper's ablation: naive, FS-MPC and AESOP")
     bc.add_argument("--scenarios", type=int, default=500, help="cases (default 500)")
-    bc.add_argument("--seed", type=int, default=0,
-                    help="random seed of what is drawn (default 0)")
+    _seed_option(bc)
     bc.add_argument("--workers", type=int, default=os.cpu_count() or 1,
                     help="worker processes (default: every CPU)")
     bc.add_argument("--inconsequential", type=int, default=5,
@@ -91,8 +95,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="the vehicle's state rate (default 100); several: one condition each")
     bc.add_argument("--methods", nargs="+", choices=["naive", "fsmpc", "aesop"],
                     default=["naive", "fsmpc", "aesop"], help="(default: all three)")
-    bc.add_argument("--json", action="store_true",
-                    help="print the result as one JSON object instead of tables")
+    _json_option(bc)
     bc.set_defaults(func=cmd_bench_closed_loop)
     bl = bsub.add_parser("loop", help="the fixed-rate control loop's jitter and overruns over "
                          "simulated flights (the simulator a process over Zenoh)")
@@ -102,10 +105,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="simulated flight per rate, in minutes (default 10)")
     bl.add_argument("--scenario", type=Path, default=None,
                     help="a bundled scenario (paper, hardware) or a file (default: paper)")
-    bl.add_argument("--seed", type=int, default=0,
-                    help="random seed of what is drawn (default 0)")
-    bl.add_argument("--json", action="store_true",
-                    help="print the result as one JSON object instead of tables")
+    _seed_option(bl)
+    _json_option(bl)
     bl.set_defaults(func=cmd_bench_loop)
     bb = bsub.add_parser("bus", help="observation -> verdict and -> control reaction latency "
                          "over Zenoh (embedding and control as processes)")
@@ -117,8 +118,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     bb.add_argument("--cache-detections", type=int, default=4, choices=[1, 2, 3, 4],
                     help="cache every combination of up to N scene detections (default 4)")
     _model_option(bb)
-    bb.add_argument("--json", action="store_true",
-                    help="print the result as one JSON object instead of tables")
+    _json_option(bb)
     bb.set_defaults(func=cmd_bench_bus)
     bf = bsub.add_parser("fairness", help="one robot floods its observations: another robot's "
                          "verdict latency and losses, through the hub (or --direct)")
@@ -133,8 +133,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="robot1 floods one fixed observation (the detector's memo makes it "
                          "nearly free) instead of distinct ones")
     _model_option(bf)
-    bf.add_argument("--json", action="store_true",
-                    help="print the result as one JSON object instead of tables")
+    _json_option(bf)
     bf.set_defaults(func=cmd_bench_fairness)
     _ros2_parser(bsub)
     _fleet_parser(bsub)
@@ -148,8 +147,7 @@ def _ros2_parser(bsub: argparse._SubParsersAction) -> None:
     br.add_argument("--seconds", type=float, default=20.0, help="each way (default 20)")
     br.add_argument("--rate", type=float, default=100.0,
                     help="samples per second (100: odometry's usual rate)")
-    br.add_argument("--json", action="store_true",
-                    help="print the result as one JSON object instead of tables")
+    _json_option(br)
     br.set_defaults(func=cmd_bench_ros2)
 
 
@@ -164,8 +162,7 @@ def _fleet_parser(bsub: argparse._SubParsersAction) -> None:
                      help="commits per store for its cost (default 50)")
     bfl.add_argument("--batch", type=int, default=100, help="experiences per commit (100)")
     _model_option(bfl)
-    bfl.add_argument("--json", action="store_true",
-                    help="print the result as one JSON object instead of tables")
+    _json_option(bfl)
     bfl.set_defaults(func=cmd_bench_fleet)
 
 
@@ -184,8 +181,7 @@ def _link_parser(bsub: argparse._SubParsersAction) -> None:
                     help="leave out the stall and the routers restarted")
     bl.add_argument("--out", type=Path, default=None,
                     help="keep the logs and data here (default: a temporary folder)")
-    bl.add_argument("--json", action="store_true",
-                    help="print the result as one JSON object instead of tables")
+    _json_option(bl)
     bl.set_defaults(func=cmd_bench_link)
 
 
