@@ -47,6 +47,9 @@ from .plant import FlightController, FlightControllerGains, Plant, make_plant
 BRISK_HOLD = (2.0, 2.5, 2.0)
 GENTLE_HOLD = (0.5, 1.2, 0.5)
 BRISK_TILT_RAD_S2 = 10.0  # the angular acceleration the torque box gives, at least
+# simulated s over which a hold eases from the last acceleration command into its own (a
+# step would be a step in attitude: docs/architecture.md 3a, "Holding")
+HOLD_EASE_S = 0.2
 
 
 def hold_gains(params: QuadrotorParams) -> np.ndarray:
@@ -181,6 +184,9 @@ class SimVehicle:
         self._reports.clear()
         self._setpoint: VehicleSetpoint | None = None
         self._hold_at: np.ndarray | None = np.asarray(x0, dtype=float)[0:3].copy()
+        self._hold_from: np.ndarray | None = None  # the command a hold eases from
+        self._hold_since = now
+        self.applied = np.zeros(3 if self.accelerations else 4)  # the last command flown
 
     @property
     def truth(self) -> np.ndarray:
@@ -252,13 +258,19 @@ class SimVehicle:
         x = self.plant.state
         sp = self._setpoint
         if sp is not None and self._hold_at is None and self.clock(self.now) > sp.valid_until:
-            self._hold_at = x[0:3].copy()  # expired: hold where it is now
+            self._hold_at = x[0:3].copy()  # expired: hold where it is now,
+            self._hold_from = self.applied.copy() if self.accelerations else None
+            self._hold_since = self.now  # easing in from the last command
         h = span * self.time_scale
         if self._hold_at is not None or sp is None:
             accel = self._hold_accel(x)
+            if self._hold_from is not None:
+                ease = min(1.0, (self.now - self._hold_since) * self.time_scale / HOLD_EASE_S)
+                accel = (1.0 - ease) * self._hold_from + ease * accel
             u = accel if self.accelerations else self._fc.command(x, accel)
         else:
             u = np.asarray(sp.command_at(self.clock(self.now)), dtype=float)
+        self.applied = u
         self.plant.step(u, h)
 
     def _next_switch(self) -> float:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from services.control.scenario import load_scenario
-from services.sim.vehicle import Reporting, SimVehicle
+from services.sim.vehicle import HOLD_EASE_S, Reporting, SimVehicle
 from shared.frames import euler_from_quaternion
 from shared.messages import Mode, VehicleSetpoint
 
@@ -64,6 +64,25 @@ def test_it_follows_a_set_point_then_holds_itself_when_it_expires() -> None:
     assert v.holding
     v.advance(106.0)
     assert np.linalg.norm(v.truth[3:6]) < 0.02 and abs(v.truth[0] - START[0]) < 0.2
+
+
+def test_its_hold_eases_in_from_the_last_command_instead_of_stepping() -> None:
+    """Issue 46: a hold that steps the acceleration command from the plan's to its own turns,
+    in a tracking controller without clamps, into body rates past the scene's limits. The
+    acceleration it flies when a set-point expires starts at the last command and reaches
+    its own hold's over ``HOLD_EASE_S``, never jumping."""
+    v = vehicle()
+    assert v.receive(accel(1, v.clock(100.0), a=(0.8, 0.0, 0.0), valid_s=0.3), 100.0)
+    applied = []
+    for t in np.arange(100.01, 101.0, 0.01):
+        v.advance(float(t))
+        applied.append((float(t), v.applied.copy()))
+    expired = [(t, u) for t, u in applied if t > 100.3 + 1e-9]
+    assert v.holding and expired[0][1][0] == pytest.approx(0.8, abs=0.1)  # the last command
+    steps = np.abs(np.diff([u for _, u in applied], axis=0)).max()
+    assert steps < 0.2  # per 10 ms: eased, not stepped (the hold's own brakes at ~-1 m/s^2)
+    later = [u for t, u in expired if t > 100.3 + HOLD_EASE_S + 0.02]
+    assert later[0][0] < 0.0  # by then its own hold brakes
 
 
 def test_it_flies_the_commands_ahead_each_from_its_own_instant() -> None:
