@@ -3,8 +3,8 @@
 One line per state at most every ``state_every_s`` seconds (and at every mode
 change); the first flagged verdict of a run (and one whose reason changes), then the
 return to nominal saying how many were flagged; every reasoner request and decision;
-each event, but one of a kind at most every ``REPEAT_S`` per robot, the next saying how
-many it stood for; and services appearing and vanishing. Plans are left to the
+each event, but at most ``BURST`` of a kind per ``REPEAT_S`` per robot, the next one
+shown saying how many were not; and services appearing and vanishing. Plans are left to the
 dashboard. ``--robot all`` follows every robot of a fleet, each line
 led by its robot (each robot's states throttled and its flags followed on their own).
 :class:`Terminal` is the pure part; :func:`watch` the I/O.
@@ -29,7 +29,8 @@ from .feed import Update, follow
 Json = dict[str, Any]
 _KEEP_REQUESTS = 32
 _KEEP_ROBOTS = 1024
-REPEAT_S = 5.0  # an event of one kind (per robot) at most once in this long
+REPEAT_S = 5.0  # events of one kind (per robot): at most BURST lines in this long
+BURST = 3  # (a flight's mode changes come a few at a time; a flapping alarm, every tick)
 _KEEP_KINDS = 64  # event kinds remembered per robot
 
 
@@ -44,8 +45,8 @@ class _Seen:
     run_since: float = 0.0  # when it began
     run_reason: str | None = None  # the reason last printed
     run_top: float = -math.inf  # its highest score
-    # event kind -> (received time of the last one printed, how many not printed since)
-    events: dict[str, tuple[float, int]] = field(default_factory=dict)
+    # event kind -> (when its window began, lines shown in it, events not shown since)
+    events: dict[str, tuple[float, int, int]] = field(default_factory=dict)
 
 
 class Terminal:
@@ -135,13 +136,15 @@ class Terminal:
     def _event(self, m: Json, update: Update) -> str | None:
         seen = self._seen(update)
         kind = f"{m['source']}/{m['kind']}"
-        last, unsaid = seen.events.get(kind, (-math.inf, 0))
-        if update.received - last < REPEAT_S:
-            seen.events[kind] = (last, unsaid + 1)
+        since, shown, unsaid = seen.events.pop(kind, (-math.inf, 0, 0))
+        if update.received - since < REPEAT_S and shown >= BURST:
+            seen.events[kind] = (since, shown, unsaid + 1)
             return None
-        seen.events.pop(kind, None)
-        seen.events[kind] = (update.received, 0)  # the most recent last
-        while len(seen.events) > _KEEP_KINDS:
+        if update.received - since >= REPEAT_S:  # a new window; unsaid: the last one's
+            seen.events[kind] = (update.received, 1, 0)
+        else:  # within the window's burst (nothing unsaid in it yet)
+            seen.events[kind] = (since, shown + 1, 0)
+        while len(seen.events) > _KEEP_KINDS:  # the most recent last
             seen.events.pop(next(iter(seen.events)))
         text = f"[{m['severity']}] {kind}"
         if m.get("message"):

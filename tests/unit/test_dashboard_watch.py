@@ -54,7 +54,7 @@ def test_a_run_of_flags_is_one_line_and_the_return_to_nominal_sums_it_up() -> No
     assert uncalibrated is not None and "tau=none (uncalibrated)" in uncalibrated
 
 
-def test_an_event_of_one_kind_shows_at_most_every_few_seconds_with_a_count() -> None:
+def test_events_of_one_kind_show_a_few_at_a_time_and_then_a_count() -> None:
     term = Terminal()
 
     def event(kind: str, received: float) -> Update:
@@ -64,10 +64,13 @@ def test_an_event_of_one_kind_shows_at_most_every_few_seconds_with_a_count() -> 
     flapping = [term.line(event(kind, 100.0 + i * 0.1))
                 for i in range(40) for kind in ("verdict_stale", "verdict_fresh")]
     shown = [line for line in flapping if line is not None]
-    assert len(shown) == 2 * 1  # 4 s of flapping: the first of each kind
+    assert len(shown) == 2 * 3  # 4 s of flapping: the first three of each kind
     later = term.line(event("verdict_stale", 106.0))
-    assert later is not None and "(and 39 more like it since the last one shown)" in later
+    assert later is not None and "(and 37 more like it since the last one shown)" in later
     assert term.line(event("verdict_fresh", 106.1)) is not None
+    # a flight's mode changes, a few in a row, all show
+    changes = [term.line(event("mode_change", 107.0 + i * 0.05)) for i in range(3)]
+    assert all(line is not None for line in changes)
 
 
 def test_a_request_and_its_decision_with_the_chosen_label_and_source() -> None:
