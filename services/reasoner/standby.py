@@ -18,6 +18,9 @@ leave late. From then on the standby sends the decisions of that keeper's reques
 answers the service had handed it at once, the fallbacks at their deadlines) and of every
 request that arrives until another keeper has it.
 
+A keeper whose process has exited is never deferred to, whether or not the watchdog has
+noticed yet (on a loaded machine it notices late, and a deadline may come first).
+
 A request is the keeper's (``owner``) when the keeper told the service it has it
 (:meth:`Standby.cover`), or when it arrived after the keeper had been listening for
 ``SETTLE_S`` (its subscription has reached every publisher by then). Otherwise it is the
@@ -36,6 +39,7 @@ from __future__ import annotations
 import json
 from collections.abc import Callable
 from dataclasses import dataclass
+from multiprocessing.connection import wait as ready_of
 from typing import Any
 
 import zenoh
@@ -68,6 +72,13 @@ class Watched:
         beat = float(self.pulse.value)
         return None if beat == 0.0 else now - beat
 
+    def exited(self) -> bool:
+        """Whether its process has exited, noticed or not yet by the watchdog (which looks
+        every ``WATCH_S``, later on a loaded machine)."""
+        if self.process is None:
+            return False
+        return bool(ready_of([self.process.sentinel], 0))
+
     def settled(self, at: float) -> bool:
         """Whether a request arriving ``at`` reaches it (listening for ``SETTLE_S``)."""
         return (self.lost is None and self.listening_since is not None
@@ -89,7 +100,11 @@ class Standby(Keeper):
         return keeper if keeper is not None and keeper.settled(received_at) else None
 
     def _defers(self, armed: _Armed) -> bool:
-        return armed.owner is not None and armed.owner.lost is None
+        # a keeper that has exited sends nothing more, even before the watchdog says so:
+        # a deadline that comes first is the standby's (CI: a keeper SIGKILLed just before
+        # a deadline, noticed after it, left that request unanswered)
+        owner = armed.owner
+        return owner is not None and owner.lost is None and not owner.exited()
 
     def cover(self, robot: str, request_id: str, keeper: Watched) -> None:
         """``keeper`` has the request: it sends the decision while it is not lost."""

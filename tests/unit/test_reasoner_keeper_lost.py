@@ -11,6 +11,7 @@ import asyncio
 import itertools
 import json
 import multiprocessing
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -265,3 +266,26 @@ def test_the_worker_listens_once_its_keeper_has_every_request_alone() -> None:
     assert not worker.listening
     keeper.listening_since = time.monotonic() - SETTLE_S
     assert worker.listening
+
+
+def test_a_keeper_that_exited_unnoticed_leaves_its_deadlines_to_the_standby() -> None:
+    """CI: a keeper SIGKILLed just before a request's deadline, noticed by the watchdog only
+    after it (a loaded machine), left that request unanswered: the standby deferred to a
+    keeper that no longer existed. A keeper whose process has exited is not deferred to."""
+    out, timer, clock = Outlets(), HandTimer(), Clock(10.0)
+    keeper = watched(listening_since=0.0)
+    read, write = os.pipe()
+    os.close(write)  # its sentinel is ready: the process has exited
+
+    class Exited:
+        sentinel = read
+
+    keeper.process = Exited()
+    try:
+        sb = standby(out, timer, clock, lambda: keeper)
+        sb.arrived(arrived("pending", 10.0))
+        clock.now = 10.99
+        timer.fire(until=10.99)  # its deadline, before the watchdog said the keeper is lost
+        assert [(d.request_id, d.source) for d in out.published] == [("pending", "timeout")]
+    finally:
+        os.close(read)
