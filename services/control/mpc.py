@@ -13,7 +13,10 @@ region in ``Y``, each a trajectory of the planning model (:mod:`.models`: the
   relaxing promise of :func:`promised_step`); regions are sets of
   equilibria, so holding them to the end of the horizon changes no
   feasibility and keeps the problem's shape fixed;
-* state and input boxes on every step of every branch.
+* state and input boxes on every step of every branch;
+* with a lagged point mass, each command within ``lag_gap`` of the acceleration the
+  vehicle realizes at that step (:func:`tightened_lag_gaps`): a bound on the realized
+  jerk, which for a multirotor is its tilt rate.
 
 The cost is the nominal task cost ``C`` (quadratic tracking of the goal plus
 input effort) plus a small, ``recovery_weight``-scaled cost on each recovery
@@ -262,6 +265,8 @@ class Chain:
     q_state: np.ndarray  # diagonal weights
     r_input: np.ndarray
     floor: np.ndarray  # least early widening per state (relax_floor on symmetric limits)
+    # (lag state, its input, lo, hi), chain-local: lo <= du[k] - x[k] <= hi on every step
+    lags: tuple[tuple[int, int, float, float], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -360,6 +365,21 @@ def tightened_inputs(model: PlanningModel, config: MPCConfig) -> tuple[np.ndarra
     return lo, hi
 
 
+def tightened_lag_gaps(model: PlanningModel, config: MPCConfig
+                       ) -> list[tuple[int, int, float, float]]:
+    """``(state, input, lo, hi)`` per lag state with a finite ``lag_gap``: the bounds on
+    ``du[k] - a[k]`` (input relative to hover, minus the lag state at the same step) that
+    keep ``|u - a|`` within the gap tightened by ``shrink``. The first step is always
+    feasible: ``u_0 = a_0``, a filter of past commands inside the input box."""
+    first = model.n - model.n_lag
+    out = []
+    for j, (channel, gap) in enumerate(zip(model.lag_inputs, model.lag_gap, strict=False)):
+        if np.isfinite(gap):
+            width, hover = gap * (1.0 - config.shrink), float(model.linear.u_hover[channel])
+            out.append((first + j, channel, -width - hover, width - hover))
+    return out
+
+
 def decouple(a: np.ndarray, b: np.ndarray) -> list[tuple[tuple[int, ...], tuple[int, ...]]]:
     """Groups ``(states, inputs)`` of ``x+ = A x + B u`` that never influence each other.
 
@@ -398,7 +418,8 @@ class ChainQP:
     Variables, branch after branch: ``x_b[0..T]`` then ``du_b[0..T-1]``; then,
     when ``soft``, ``sigma+`` and ``sigma-`` (``n`` each) per recovery slot.
     Rows: initial states, dynamics, state boxes on steps ``1..T`` (region rows
-    are these rows with tighter bounds), input boxes, the first input shared
+    are these rows with tighter bounds), input boxes, the lag gaps (each command
+    against its lag state at the same step), the first input shared
     with the nominal branch, consecutive recovery branches' consensus on every
     step (free from ``K'`` on), and the slacks' signs.
     """
@@ -498,6 +519,17 @@ class ChainQP:
         self._input_rows = add(np.arange(nb * horizon * m), ui, 1.0, nb * horizon * m,
                                np.tile(self.chain.du_lo, nb * horizon),
                                np.tile(self.chain.du_hi, nb * horizon))
+        # commands within the lag gap of the realized acceleration, row (b, k, l)
+        lags = self.chain.lags
+        n_lag = len(lags)
+        gap = np.arange(nb * horizon * n_lag).reshape(nb, horizon, n_lag)
+        lag_x = xi[:, :-1, [state for state, _, _, _ in lags]]
+        lag_u = ui[:, :, [channel for _, channel, _, _ in lags]]
+        self._lag_rows = add(np.concatenate([gap.ravel(), gap.ravel()]),
+                             np.concatenate([lag_u.ravel(), lag_x.ravel()]),
+                             np.concatenate([np.ones(gap.size), -np.ones(gap.size)]), gap.size,
+                             np.tile([lo for _, _, lo, _ in lags], nb * horizon),
+                             np.tile([hi for _, _, _, hi in lags], nb * horizon))
         # the first input shared with the nominal branch
         if self.has_nominal and self.n_rec:
             share = np.arange(self.n_rec * m).reshape(self.n_rec, m)
@@ -576,6 +608,7 @@ class ChainQP:
         advance(self._init_rows + nb * self.n, nb, self.n)  # dynamics rows
         advance(self._state_rows, nb, self.n)
         advance(self._input_rows, nb, self.m)
+        advance(self._lag_rows, nb, len(self.chain.lags))
         advance(self._consensus_rows, max(0, self.n_rec - 1), self.m)
         return var, con
 
@@ -766,12 +799,15 @@ class BranchProblem:
         a, b = model.linear.a, model.linear.b
         floor = np.zeros(model.n)
         floor[list(model.symmetric)] = config.relax_floor
+        gaps = tightened_lag_gaps(model, config)
         self.chains = []
         for states, inputs in decouple(a, b):
             s, i = list(states), list(inputs)
+            lags = tuple((s.index(state), i.index(channel), lo, hi)
+                         for state, channel, lo, hi in gaps if state in s)
             self.chains.append(Chain(states, inputs, a[np.ix_(s, s)], b[np.ix_(s, i)],
                                      self.x_lo[s], self.x_hi[s], du_lo[i], du_hi[i],
-                                     q_state[s], r_input[i], floor[s]))
+                                     q_state[s], r_input[i], floor[s], lags))
         self._cache: ChainCache = {} if cache is None else cache
         self._executor = executor
 

@@ -53,7 +53,9 @@ class PlanningModel:
     ``velocity`` get the extra velocity margin; ``free`` are left to the state
     limits inside a recovery region (yaw); every other non-position coordinate
     is pinned to zero there (at rest, level). The last ``len(lag_decay)``
-    coordinates are lag states that :meth:`advance` keeps from the commands.
+    coordinates are lag states that :meth:`advance` keeps from the commands;
+    ``lag_gap`` bounds how far a command may jump from its lag state (``|u - a|``,
+    the realized jerk times the lag: see :func:`point_mass_model`).
     """
 
     name: str
@@ -73,6 +75,7 @@ class PlanningModel:
     free: tuple[int, ...] = ()
     lag_inputs: tuple[int, ...] = ()  # the input each lag state follows
     lag_decay: tuple[float, ...] = ()  # exp(-dt / tau) per lag state
+    lag_gap: tuple[float, ...] = ()  # largest |u - a| per lag state (inf: none), true limit
 
     @property
     def n(self) -> int:
@@ -172,12 +175,19 @@ def quadrotor_model(params: QuadrotorParams, dt: float, x_bounds: tuple[np.ndarr
 def point_mass_model(dt: float, position_lo: tuple[float, float, float],
                      position_hi: tuple[float, float, float], velocity: float,
                      acceleration: tuple[float, float, float],
-                     lag: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> PlanningModel:
+                     lag: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                     jerk: tuple[float, float, float] = (np.inf, np.inf, np.inf)
+                     ) -> PlanningModel:
     """The paper's hardware model: ``p'' = a`` per axis, ZOH at ``dt``.
 
     Limits: the position fence, ``|v| <= velocity`` and ``|u_i| <= acceleration[i]``
     (m, m/s, m/s^2). ``lag[i] > 0`` (s) adds the realized acceleration of axis ``i``
     as a state with ``a' = (u - a) / lag[i]``; the velocity then integrates ``a``.
+    ``jerk[i]`` (m/s^3) bounds that realized jerk where it starts, ``|u - a| / lag[i]``:
+    a multirotor realizes a horizontal acceleration ``a`` by tilting about ``a / g``, so
+    its tilt rate is the jerk over ``g``, and the body-rate limit bounds the jerk
+    (:func:`.scenario.planning_model`). A command that jumps further from the realized
+    acceleration asks a vehicle that honours the lag to tilt faster than it may.
     """
     axes = [i for i in range(3) if lag[i] > 0]
     n = 6 + len(axes)
@@ -208,4 +218,5 @@ def point_mass_model(dt: float, position_lo: tuple[float, float, float],
         state_names=names, input_names=("ax", "ay", "az"),
         state_groups=("position",) * 3 + ("velocity",) * 3 + ("lag",) * len(axes),
         input_groups=("acceleration",) * 3,
-        lag_inputs=tuple(axes), lag_decay=tuple(float(np.exp(-dt / lag[i])) for i in axes))
+        lag_inputs=tuple(axes), lag_decay=tuple(float(np.exp(-dt / lag[i])) for i in axes),
+        lag_gap=tuple(float(jerk[i] * lag[i]) for i in axes))

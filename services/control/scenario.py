@@ -318,7 +318,9 @@ def load_scenario(name_or_path: Path | str | None = None) -> Scenario:
 def planning_model(scenario: Scenario) -> PlanningModel:
     """The linear model the scenario's MPC plans with (:mod:`.models`)."""
     if scenario.model == "point-mass":
-        lim = scenario.limits
+        lim, g = scenario.limits, scenario.vehicle.gravity
+        # x is flown by pitching, y by rolling (rates: roll, pitch, yaw); z by thrust alone
+        jerk = (g * lim.rates[1], g * lim.rates[0], np.inf)
         return point_mass_model(scenario.dt, lim.position_lo, lim.position_hi, lim.velocity,
-                                lim.acceleration, scenario.acceleration_lag)
+                                lim.acceleration, scenario.acceleration_lag, jerk)
     return quadrotor_model(scenario.vehicle, scenario.dt, scenario.limits.box())

@@ -14,6 +14,7 @@ Every branch ``b`` has states ``x_b[0..T]`` and input deviations
                + slack_weight * sum(sigma+ + sigma-) + 1e-6 |sigma|^2            (soft only)
     s.t.       x_b[0] = x0,   x_b[j+1] = A x_b[j] + B du_b[j]
                du_lo <= du_b[j] <= du_hi
+               gap_lo <= du_b[j][i] - x_b[j][l] <= gap_hi    (each lag state l, its input i)
                lo_b[j] <= x_b[j] - d_b <= hi_b[j]   for j = 1..T,  d_b = sigma+_b - sigma-_b
                du_r[0] = du_nominal[0]              (each recovery branch r, with a nominal)
                du_r[j] = du_r'[j] for j < K         (consecutive recovery branches r, r')
@@ -26,8 +27,9 @@ recovery branches of a soft problem and is zero otherwise; ``sigma+, sigma-
 
 The state box ``[lo_b[j], hi_b[j]]``:
 
-* the state, input and region boxes are tightened as the OSQP problem does
-  (``tightened_states``, ``tightened_inputs``, ``planning_box``);
+* the state, input and region boxes and the lag gaps are tightened as the OSQP
+  problem does (``tightened_states``, ``tightened_inputs``, ``planning_box``,
+  ``tightened_lag_gaps``);
 * an excess of ``x0`` over the tightened box (at least ``relax_floor`` on the
   symmetric limits) widens the box of step ``j`` by
   ``excess * clip(1 - (j - relax_lag) / relax_steps, 0, 1)``;
@@ -47,7 +49,13 @@ from dataclasses import dataclass
 import cvxpy as cp
 import numpy as np
 
-from services.control.mpc import MPCConfig, planning_box, tightened_inputs, tightened_states
+from services.control.mpc import (
+    MPCConfig,
+    planning_box,
+    tightened_inputs,
+    tightened_lag_gaps,
+    tightened_states,
+)
 from services.control.planning import PlanningModel
 from services.control.regions import Region
 
@@ -122,6 +130,9 @@ def reference_solve(model: PlanningModel, config: MPCConfig,
         dus.append(du)
         constraints += [x[0] == x0, x[1:] == x[:-1] @ a_dyn.T + du @ b_dyn.T]
         constraints += _within(du, np.tile(du_lo, (horizon, 1)), np.tile(du_hi, (horizon, 1)))
+        for state, channel, gap_lo, gap_hi in tightened_lag_gaps(model, config):
+            constraints += _within(du[:, channel] - x[:-1, state], np.full(horizon, gap_lo),
+                                   np.full(horizon, gap_hi))
         lo, hi = box_lo.copy(), box_hi.copy()
         shifted = x[1:]
         if branch_region is not None:
