@@ -6,9 +6,13 @@ Nothing is timed: every wait polls a condition under a generous deadline.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import subprocess
+import sys
 import time
 import uuid
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import pytest
 
@@ -62,6 +66,27 @@ async def routed(pub: Bus, sub: Bus) -> None:
 @pytest.fixture
 def endpoint() -> str:
     return f"tcp/127.0.0.1:{free_port()}"
+
+
+@contextlib.contextmanager
+def aesop_router(folder: Path, robot: str = "robot0") -> Iterator[str]:
+    """``aesop up``'s router, which lets in only its users (passwords written to
+    ``folder``, ``<user>.password`` each), on a free port: its endpoint."""
+    from tools.stack.acl import new_passwords, users_of, write_credentials
+
+    write_credentials(folder, new_passwords(users_of((robot,))))
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    proc = subprocess.Popen([sys.executable, "-m", "tools.stack.router", "--listen", endpoint,
+                             "--users", str(folder / "users.txt"), "--robot", robot],
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()  # printed once it listens
+        assert "listening" in line, line
+        yield endpoint
+    finally:
+        proc.terminate()
+        proc.wait(10)
 
 
 @pytest.fixture

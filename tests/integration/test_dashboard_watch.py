@@ -19,8 +19,7 @@ from shared.messages import Event
 from shared.process import free_port
 from shared.settings import BusSettings
 from tests.e2e.demo_flight import Flight
-from tests.zenoh_peers import wait_until
-from tools.stack.acl import new_passwords, users_of, write_credentials
+from tests.zenoh_peers import aesop_router, wait_until
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
@@ -134,18 +133,8 @@ def test_watch_all_follows_every_robot_of_a_fleet(listener: Bus, endpoint: str,
 @pytest.fixture
 def hub(tmp_path: Path) -> Iterator[str]:
     """aesop up's router (users and passwords under ``tmp_path/zenoh``): its endpoint."""
-    folder = tmp_path / "zenoh"
-    write_credentials(folder, new_passwords(users_of((ROBOT,))))
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    proc = subprocess.Popen([sys.executable, "-m", "tools.stack.router", "--listen", endpoint,
-                             "--users", str(folder / "users.txt"), "--robot", ROBOT],
-                            stderr=subprocess.PIPE, text=True)
-    assert proc.stderr is not None
-    line = proc.stderr.readline()  # printed once it listens
-    assert "listening" in line, line
-    yield endpoint
-    proc.terminate()
-    proc.wait(10)
+    with aesop_router(tmp_path / "zenoh", ROBOT) as endpoint:
+        yield endpoint
 
 
 @pytest.mark.parametrize("login", [{}, {"AESOP_ZENOH_USER": "monitor",
@@ -199,8 +188,8 @@ def test_watch_as_the_monitor_joins_aesop_ups_router(hub: str, tmp_path: Path) -
 @pytest.mark.parametrize("mode", ["peer", "client"])
 def test_watch_joins_when_any_of_its_endpoints_lets_it_in(hub: str, tmp_path: Path,
                                                           mode: str) -> None:
-    from tools.watch import joined
+    from tools.commands import joined
 
     joined(BusSettings(zenoh_mode=mode, zenoh_connect=[f"tcp/127.0.0.1:{free_port()}", hub],
                        zenoh_user="monitor",
-                       zenoh_password_file=tmp_path / "zenoh" / "monitor.password"))
+                       zenoh_password_file=tmp_path / "zenoh" / "monitor.password"), "watch")

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from tools.commands import CliError, add_url_argument, emit, not_joined
+from tools.commands import ROBOT_LOGIN, CliError, add_url_argument, emit, joined, not_joined
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -99,6 +99,7 @@ def record_command(args: argparse.Namespace) -> int:
                            f"{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}.mcap")
     if out.parent != Path() and not out.parent.is_dir():
         raise CliError(f"--out: no directory {out.parent}")
+    joined(settings, "record")  # exits 2 unless the endpoints let it in (no file made)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):  # also where SIGINT started ignored
         signal.signal(sig, lambda *_: stop.set())
@@ -136,6 +137,9 @@ def replay_command(args: argparse.Namespace) -> int:
     overrides = {k: v for k, v in (("zenoh_connect", args.connect),
                                    ("zenoh_listen", args.listen)) if v}
     settings = BusSettings(**overrides)
+    # exits 2 unless the endpoints let it in (a session that met no one published the
+    # recording into nothing, for ever with --loop)
+    joined(settings, "replay", ROBOT_LOGIN)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
