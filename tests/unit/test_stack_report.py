@@ -13,8 +13,18 @@ import pytest
 from pydantic import ValidationError
 
 from services.control.scenario import load_scenario
-from tools.demo.flights import add_time_lost
-from tools.demo.report import ended_in, flight_measures, judge, summary_table
+from tools.demo.flights import add_time_lost, summary_text
+from tools.demo.report import (
+    AGES,
+    COLUMNS,
+    MEASURES,
+    SUMMARY,
+    ended_in,
+    flight_measures,
+    judge,
+    summary_table,
+    write_report,
+)
 from tools.local_llm import LocalModel
 from tools.scenes.hardware import GOAL, SCENARIOS, observation_text
 from tools.stack.up import (
@@ -133,8 +143,70 @@ def test_summary_table_has_a_row_per_scenario() -> None:
              "duration_s": 12.0, "stale_verdict_alarms": 1, "outcome": "ok"}]
     lines = summary_table(rows).splitlines()
     assert lines[0].startswith("scenario") and "ended in" in lines[0]
-    assert len(lines) == 4
-    assert "holding zone" in lines[3] and "1.2" in lines[3]
+    assert set(lines[1]) == {"-", " "} and len(lines) == 4
+    assert "holding zone (llm)" in lines[3] and lines[3].split()[-1] == "0"
+
+
+def demo_rows() -> list[dict[str, Any]]:
+    """The four flights' rows as the demo writes them (one fell back at K and failed)."""
+    base = {"expected": GOAL, "decision": "continue", "decision_source": "llm",
+            "decision_right": True, "answer": None, "constraint_violations": 0,
+            "over_limits": {}, "duration_s": 22.0, "wall_s": 23.4, "anomaly_at_s": 3.85,
+            "decision_latency_ms": 3104.2, "reasoner_requests": 1, "stale_verdict_alarms": 0,
+            "stale_state_alarms": 0, "state_age_ms": [4.81, 19.2, 35.5],
+            "setpoint_age_ms": [15.8, 56.8, 79.7], "approach_altitude_m": 0.4,
+            "landed_s": 14.2, "speeds": [0.89, 0.18, 0.71], "closest_to_goal_m": 0.0,
+            "time_lost_s": None, "anomalous_verdicts": 12, "ended_in": GOAL, "outcome": "ok",
+            "what_happened": "it flew on.", "rationale": None}
+    return [{**base, "name": "1-nominal", "decision": None, "decision_source": None,
+             "decision_right": None, "decision_latency_ms": None, "anomaly_at_s": None},
+            {**base, "name": "2a-quadrotor-on-red-box", "decision": "alternative landing site",
+             "ended_in": "blue-box", "expected": "blue-box"},
+            {**base, "name": "2b-both-boxes-occupied", "decision": "alternative landing site",
+             "decision_source": "control fallback at K", "decision_right": False,
+             "ended_in": "blue-box", "expected": "holding-zone", "constraint_violations": 3,
+             "outcome": "ended in blue-box, expected holding-zone; decision 'alternative "
+             "landing site', expected 'holding zone'; 3 ticks outside the limits",
+             "what_happened": "the control loop raised an anomaly at 6.95 s; " * 6},
+            {**base, "name": "3-keyboard-on-ground", "time_lost_s": 1.05}]
+
+
+@pytest.mark.parametrize("fleet", [False, True])
+def test_what_the_demo_prints_fits_in_100_columns_and_keeps_every_column(
+        fleet: bool, tmp_path: Path) -> None:
+    rows = [{**r, "robot": f"robot{i}"} if fleet else r for i, r in enumerate(demo_rows())]
+    result = {"ok": False, "scenarios": rows, "wall_s": 88.0}
+    text = summary_text("paper-quadrotor-hardware, the fake LLM", result, tmp_path / "r.html")
+    assert max(len(line) for line in text.splitlines()) <= 100
+    # every column the one wide table had is in one of the narrow ones (the decision's
+    # rightness with a real model in decisions_text; why a flight failed under the tables)
+    kept = {key for group in (SUMMARY, MEASURES, AGES) for key, _ in group}
+    assert {key for key, _ in COLUMNS} - kept == {
+        "decision", "decision_source", "decision_right", "outcome"}
+    words = " ".join(text.split())
+    for _, title in SUMMARY + MEASURES + AGES:  # titles wrap: each word is in the text
+        assert set(title.split()) <= set(words.split()), title
+    for cell in ("3104", "0.89 / 0.18 / 0.71", "1.05", "4.81 / 19.20 / 35.50",
+                 "15.80 / 56.80 / 79.70", "NO"):
+        assert cell in words, cell
+    # a cell too wide for what is left wraps within its column (a fleet's robot column)
+    assert ("alternative landing site (llm)" in text) != fleet
+    # the failure's reasons and story under the tables, wrapped
+    assert "2b-both-boxes-occupied: ended in blue-box, expected holding-zone;" in words
+    assert "3 ticks outside the limits" in words and "SOME FAILED" in text
+    assert words.count("the control loop raised an anomaly at 6.95 s") == 6
+    assert ("robot2 2b-both-boxes-occupied:" in words) == fleet
+
+
+def test_the_report_json_and_html_keep_every_value(tmp_path: Path) -> None:
+    rows = demo_rows()
+    result = {"ok": False, "scenarios": rows, "scene": "paper-quadrotor-hardware",
+              "llm": "the fake LLM", "rate_hz": 20.0, "state_rate_hz": 100.0, "wall_s": 88.0}
+    write_report(tmp_path, result, {}, load_scenario(hardware_scenario()))
+    assert json.loads((tmp_path / "result.json").read_text())["scenarios"] == rows
+    page = (tmp_path / "index.html").read_text()
+    for title in ("right", "outcome", "stale alarms", "state age at the loop p50 / p99 / max"):
+        assert f"<th>{title}" in page, title
 
 
 def options(tmp: Path) -> StackOptions:

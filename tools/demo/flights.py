@@ -25,7 +25,6 @@ import contextlib
 import secrets
 import shlex
 import signal
-import sys
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -54,6 +53,7 @@ from shared.messages import (
 )
 from shared.process import file_sink
 from shared.settings import BusSettings
+from tools import progress
 from tools.recording.record import Background, Totals
 from tools.scenes.hardware import (
     SCENARIOS,
@@ -84,7 +84,7 @@ from .report import (
     flight_measures,
     judge,
     stories_text,
-    summary_table,
+    summary_tables,
     verdict_line,
     what_happened,
     write_report,
@@ -116,7 +116,7 @@ def run_stack_demo(options: StackOptions, environ: Mapping[str, str], out: Path,
         # as `aesop up` keeps it: a generated token in <data dir>/admin-token (0600), so the
         # dashboard's address can be opened (the token is never printed)
         token_file = write_token(options.data_dir, plan.token) if plan.token_generated else None
-        _say(f"starting the stack (logs in {out / 'logs'}) ...")
+        progress.step(f"starting the stack (logs in {out / 'logs'})")
         stack.start()
         k = None
         if plan.local_model is not None:  # a model nobody has timed here: K from it first
@@ -126,9 +126,9 @@ def run_stack_demo(options: StackOptions, environ: Mapping[str, str], out: Path,
             _say(f"dashboard: {dashboard_login(dashboard, token_file)}  (watch the flights "
                  "live; opened once, the browser keeps a session)")
         if len(plan.robots) > 1:
-            _say(f"flying {len(plan.robots)} robots at once: "
-                 + ", ".join(f"{r} {FLEET_ORDER[i % len(FLEET_ORDER)]}"
-                             for i, r in enumerate(plan.robots)))
+            progress.step(f"flying {len(plan.robots)} robots at once: "
+                          + ", ".join(f"{r} {FLEET_ORDER[i % len(FLEET_ORDER)]}"
+                                      for i, r in enumerate(plan.robots)))
             result, flights = fly_fleet(plan, scenario=scenario, model=model,
                                         record_dir=out / "recordings")
         else:
@@ -140,21 +140,19 @@ def run_stack_demo(options: StackOptions, environ: Mapping[str, str], out: Path,
             result["k"] = {"flown_s": k.k_s, "scene_s": k.scene_k_s,
                            "measured_s": k.measured_k_s, "why": k.why,
                            "calibration": dict(k.report)}
+        progress.step("writing the report")
         report = write_report(out, result, flights, scenario)
         if table:
-            print(f"\nAESOP demo — {scenario.name}, {result['llm']}\n")
-            print(summary_table(result["scenarios"]))
-            print(stories_text(result["scenarios"]), end="")
-            if k is not None:
-                print(decisions_text(result))
-            print(f"\n{verdict_line(result)} ({result['wall_s']:.0f} s)\nreport: {report}")
-            if dashboard:
-                print(dashboard_text(dashboard, token_file, keep_up))
+            progress.out(summary_text(f"{scenario.name}, {result['llm']}", result, report)
+                         + ("" if k is None else "\n" + decisions_text(result))
+                         + ("" if not dashboard else
+                            "\n" + dashboard_text(dashboard, token_file, keep_up)))
         else:
             _say(f"report: {report}")
         if keep_up:
             _say("the stack stays up" + (f" (dashboard: {dashboard_login(dashboard, token_file)})"
                                          if dashboard else "") + "; Ctrl-C stops it")
+            progress.step("the stack is up until Ctrl-C")
             died = stack.watch()  # as `aesop up`: a child that dies is started again
             if died is not None:
                 _say(f"{died}; stopping the stack")
@@ -214,15 +212,22 @@ def run_attached_demo(stack: Attached, out: Path, *, names: Sequence[str] | None
                                             model, demos))
     result.update(scene=scenario.name, rate_hz=1.0 / scenario.dt, llm="the stack's",
                   wall_s=round(time.monotonic() - started, 1), dashboard=None)
+    progress.step("writing the report")
     report = write_report(out, result, flights, scenario)
     if table:
-        print(f"\nAESOP demo — {scenario.name}, attached to {stack.control_url}\n")
-        print(summary_table(result["scenarios"]))
-        print(stories_text(result["scenarios"]), end="")
-        print(f"\n{verdict_line(result)} ({result['wall_s']:.0f} s)\nreport: {report}")
+        progress.out(summary_text(f"{scenario.name}, attached to {stack.control_url}", result,
+                                  report))
     else:
         _say(f"report: {report}")
     return result
+
+
+def summary_text(about: str, result: dict[str, Any], report: Path) -> str:
+    """What the terminal shows once the flights are flown: the tables, what happened in a
+    flight that did not end as expected, the verdict and where the report is."""
+    return (f"\nAESOP demo — {about}\n\n{summary_tables(result['scenarios'])}\n"
+            f"{stories_text(result['scenarios'])}"
+            f"\n{verdict_line(result)} ({result['wall_s']:.0f} s)\nreport: {report}")
 
 
 def _interrupt(*_: object) -> None:
@@ -239,11 +244,11 @@ def fly_with_k(stack: Stack, plan: StackPlan, options: StackOptions,
     in flight came later; timed while the cache was built, a few took 20 s), and,
     when the scene can keep it, give the control loop that K (:mod:`.k`): it is started
     again on the scene with that K. The K chosen and the scene now flown."""
-    _say(f"timing the model: {QUERIES} answers to scenario 2a's question while the robot "
-          "flies the nominal scenario (a few minutes) ...")
     url = plan.url("reasoner")
     assert url is not None
     fly_scenarios(plan, [], scenario=scenario, robot=plan.robot)  # the cache, built first
+    progress.step(f"timing the model: {QUERIES} answers to scenario 2a's question while the "
+                  "robot flies the nominal scenario (a few minutes)")
     done = threading.Event()
     with ThreadPoolExecutor(1) as pool:
         flying = pool.submit(fly_scenarios, plan, ["1-nominal"] * LOAD_FLIGHTS,
@@ -267,15 +272,9 @@ def fly_with_k(stack: Stack, plan: StackPlan, options: StackOptions,
 
 def _time_the_model(url: str, token: str) -> dict[str, Any]:
     """The calibration job's report (or why it failed)."""
-    shown: set[int] = set()
-
-    def progress(job: Any) -> None:
-        if job.done % 10 == 0 and job.done not in shown:
-            shown.add(job.done)
-            _say(f"  {job.done} of {job.total}")
-
     try:
-        report = asyncio.run(calibrate(url, token, say=progress))
+        report = asyncio.run(calibrate(url, token, say=lambda job: progress.count(
+            job.done, job.total, "answers")))
     except ServiceError as exc:  # every query failed: the job says why
         report = {"error": str(exc)}
     return report
@@ -292,7 +291,7 @@ def llm_line(plan: StackPlan, k: KChoice | None) -> str:
 
 
 def _say(message: str) -> None:
-    print(message, file=sys.stderr, flush=True)
+    progress.say(message)
 
 
 # --------------------------------------------------------------------------- the flights
@@ -414,6 +413,7 @@ async def scene_cache(embedding_url: str | None, token: str, model: str | None
                        ) -> dict[str, Any]:
     """Build and calibrate the detector's cache of the scene; what it is."""
     assert embedding_url
+    progress.step("building and calibrating the detector's cache")
     async with EmbeddingClient(embedding_url, token=token, timeout_s=60) as client:
         info, cal = await build_scene_cache(client, DETECTOR_CACHE, model=model, say=_say)
     return {"size": info.size, "k": info.k, "calibration": cal.model_dump(mode="json")}
@@ -463,9 +463,11 @@ async def fly_robot(embedding_url: str | None, control_url: str | None, sim_url:
                     SimVehicle(await stack.enter_async_context(
                         SimClient(sim_url, token=token, timeout_s=60)))
                 pilots = Pilots(control, vehicle)
-                for demo in demos:
+                for n, demo in enumerate(demos, 1):
                     if until is not None and until.is_set():
                         break
+                    if until is None and on_start is None:  # (not load, not a fleet's)
+                        progress.step(f"flight {demo.name}", n, len(demos))
                     row, states = await fly(pilots, camera, verdicts, rec, demo, scenario,
                                             None if recorders is None else recorders.of(demo),
                                             real_model=real_model, on_start=on_start)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import html
 import json
+import textwrap
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,11 +32,13 @@ from services.control.regions import Tolerance
 from services.control.scenario import Scenario
 from services.sim.judge import TOLERANCE
 from shared.messages import ControlState, Event, ReasonerDecision, ReasonerRequest
+from shared.tables import fitted
 from tools.scenes.hardware import GOAL, DemoScenario
 from tools.scenes.quadrotor import TASK
 
 GOAL_REACH_M = 0.15  # within this of the goal, and at rest, counts as landed there
 AT_REST_M_S = 0.15
+WIDTH = 100  # characters a line of what the demo prints on the terminal, at most
 
 
 # --------------------------------------------------------------------------- judging
@@ -320,11 +323,19 @@ def _float(value: object) -> float | None:
         else None
 
 
-def stories_text(rows: Sequence[dict[str, Any]]) -> str:
-    """What happened in each flight that did not end as expected (text for the terminal,
-    each line ending in a newline; empty when all did)."""
-    told = [r for r in rows if r.get("outcome") != "ok" and r.get("what_happened")]
-    return "".join(f"\n{_name(r)}: {r['what_happened']}" for r in told) + ("\n" if told else "")
+def stories_text(rows: Sequence[dict[str, Any]], width: int = WIDTH) -> str:
+    """Each flight that did not end as expected: why not, and what happened in it (text for
+    the terminal, wrapped at ``width``, each line ending in a newline; empty when all did)."""
+    told = [r for r in rows if r.get("outcome") != "ok"]
+    return "".join("\n" + _fill(f"{_name(r)}: {r.get('outcome')}", width) + "\n" + (
+        _fill(r["what_happened"], width, "  ") + "\n" if r.get("what_happened") else "")
+        for r in told)
+
+
+def _fill(text: str, width: int, indent: str = "") -> str:
+    """``text`` as lines of at most ``width`` characters, the later ones indented."""
+    return textwrap.fill(text, width, initial_indent=indent, subsequent_indent=indent + "  ",
+                         break_on_hyphens=False)
 
 
 def _name(row: dict[str, Any]) -> str:
@@ -333,15 +344,24 @@ def _name(row: dict[str, Any]) -> str:
 
 # --------------------------------------------------------------------------- output
 
+# what the terminal shows (each table at most WIDTH characters wide): how each flight
+# ended, then what it measured, then how old the state and set-points were; the HTML
+# report has every column in one table, result.json every value
+SUMMARY = (("name", "scenario"), ("decision_shown", "decision (source)"),
+           ("as_expected", "as expected"), ("decision_latency_ms", "latency [ms]"),
+           ("ended_in", "ended in"), ("constraint_violations", "violations"))
+MEASURES = (("name", "scenario"), ("anomaly_at_s", "anomaly at [s]"),
+            ("approach_altitude_m", "approach alt. [m]"),
+            ("speeds", "speed before / slowest waiting / fastest after [m/s]"),
+            ("closest_to_goal_m", "closest to red box after [m]"),
+            ("time_lost_s", "time lost [s]"), ("stale_verdict_alarms", "stale alarms"))
+AGES = (("name", "scenario"),
+        ("state_age_ms", "state age at the loop p50 / p99 / max [ms]"),
+        ("setpoint_age_ms", "set-point age at the vehicle p50 / p99 / max [ms]"))
 COLUMNS = (("name", "scenario"), ("anomaly_at_s", "anomaly at [s]"), ("decision", "decision"),
            ("decision_source", "source"), ("decision_right", "right"),
            ("decision_latency_ms", "latency [ms]"), ("ended_in", "ended in"),
-           ("constraint_violations", "violations"), ("approach_altitude_m", "approach alt. [m]"),
-           ("speeds", "speed before / slowest waiting / fastest after [m/s]"),
-           ("closest_to_goal_m", "closest to red box after [m]"),
-           ("time_lost_s", "time lost [s]"), ("stale_verdict_alarms", "stale alarms"),
-           ("state_age_ms", "state age at the loop p50 / p99 / max [ms]"),
-           ("setpoint_age_ms", "set-point age at the vehicle p50 / p99 / max [ms]"),
+           ("constraint_violations", "violations"), *MEASURES[2:6], MEASURES[6], *AGES[1:],
            ("outcome", "outcome"))
 
 
@@ -357,21 +377,39 @@ def _cell(value: Any) -> str:
     return str(value)
 
 
-def columns(rows: Sequence[dict[str, Any]]) -> tuple[tuple[str, str], ...]:
-    """The table's columns: a fleet's rows (``aesop demo --robots``) name their robot."""
-    return ((("robot", "robot"),) if any("robot" in r for r in rows) else ()) + COLUMNS
+def columns(rows: Sequence[dict[str, Any]],
+            shown: tuple[tuple[str, str], ...] = COLUMNS) -> tuple[tuple[str, str], ...]:
+    """A table's columns: a fleet's rows (``aesop demo --robots``) name their robot."""
+    return ((("robot", "robot"),) if any("robot" in r for r in rows) else ()) + shown
 
 
-def summary_table(rows: Sequence[dict[str, Any]]) -> str:
-    """A fixed-width text table of the scenario rows."""
-    shown = columns(rows)
-    cells = [[_cell(r.get(key)) for key, _ in shown] for r in rows]
-    widths = [max([len(title)] + [len(c[i]) for c in cells]) for i, (_, title) in
-              enumerate(shown)]
-    line = "  ".join(title.ljust(w) for (_, title), w in zip(shown, widths, strict=True))
-    out = [line, "-" * len(line)]
-    out += ["  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)) for row in cells]
-    return "\n".join(out)
+def _shown(row: dict[str, Any], key: str) -> str:
+    """A summary cell: the decision with its source, whether the flight ended as judged
+    right, the latency in whole ms; else the row's value."""
+    if key == "decision_shown":
+        source = row.get("decision_source")
+        return _cell(row.get("decision")) + ("" if source is None else f" ({source})")
+    if key == "as_expected":
+        return "yes" if row.get("outcome") == "ok" else "NO"
+    if key == "decision_latency_ms" and isinstance(row.get(key), int | float):
+        return f"{row[key]:.0f}"
+    return _cell(row.get(key))
+
+
+def summary_table(rows: Sequence[dict[str, Any]], shown: tuple[tuple[str, str], ...] = SUMMARY,
+                  width: int = WIDTH) -> str:
+    """One fixed-width text table of the scenario rows, at most ``width`` characters a
+    line (a long cell wraps)."""
+    cols = columns(rows, shown)
+    return fitted([title for _, title in cols],
+                  [[_shown(r, key) for key, _ in cols] for r in rows], width)
+
+
+def summary_tables(rows: Sequence[dict[str, Any]], width: int = WIDTH) -> str:
+    """The terminal's summary: how each flight ended, what it measured (the paper's
+    hardware appendix), the ages of the state and the set-points; each table at most
+    ``width`` characters a line."""
+    return "\n\n".join(summary_table(rows, shown, width) for shown in (SUMMARY, MEASURES, AGES))
 
 
 def verdict_line(result: dict[str, Any]) -> str:
@@ -395,8 +433,8 @@ def decisions_text(result: dict[str, Any]) -> str:
             continue
         answer = " ".join((r.get("answer") or "(no answer from the model)").split())
         right = "right" if r.get("decision_right") else "WRONG"
-        lines.append(f"{r['name']}: {r['decision']} ({right}; {r['decision_source']}, "
-                     f"{_cell(r.get('decision_latency_ms'))} ms): {answer[:240]}")
+        lines.append(_fill(f"{r['name']}: {r['decision']} ({right}; {r['decision_source']}, "
+                           f"{_cell(r.get('decision_latency_ms'))} ms): {answer[:240]}", WIDTH))
     return "\n".join(lines)
 
 
