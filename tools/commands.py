@@ -37,6 +37,9 @@ ROBOT_LOGIN = ("a robot's user, which may put its own observations and events "
                "(docs/recordings.md)",
                "AESOP_ZENOH_MODE=client AESOP_ZENOH_USER=robot-robot0 "
                "AESOP_ZENOH_PASSWORD_FILE=<data-dir>/zenoh/robot-robot0.password")
+# aesop demo --attach logs in as the robot's user itself, from --data-dir or --secrets
+DATA_DIR_LOGIN = ("the robot's user, from aesop up's data dir as aesop up prints (or "
+                  "compose's --secrets)", "")
 
 
 def joined(settings: BusSettings, command: str,
@@ -85,8 +88,8 @@ def joined(settings: BusSettings, command: str,
     raise CliError(
         f"cannot join the Zenoh network {user}: the router at {', '.join(endpoints)} refused "
         f"this session or did not answer within {JOIN_TIMEOUT_S:g} s ({why}). aesop up's "
-        f"router lets in only its own users; log in as {who}: {line} "
-        f"aesop {command} --connect ...")
+        f"router lets in only its own users; log in as {who}: "
+        + " ".join(filter(None, (line, f"aesop {command} --connect ..."))))
 
 
 def emit(result: dict[str, Any], as_json: bool) -> None:

@@ -3,7 +3,8 @@ router with no user and against an endpoint where nothing listens (issue 44): ea
 wait silently for ever (record: "0 messages" once a second; replay: the whole recording
 published into nothing, for ever with ``--loop``). Now each exits 2 naming the endpoint,
 the user and the line that logs in, as ``aesop watch`` does (tests/integration/
-test_dashboard_watch.py), and leaves no file behind."""
+test_dashboard_watch.py), and leaves no file behind. So does ``aesop demo --attach``, before
+it builds anything."""
 
 from __future__ import annotations
 
@@ -137,3 +138,21 @@ def test_record_as_the_monitor_joins_aesop_ups_router(hub: str, tmp_path: Path) 
     reader.join(10)
     assert "Traceback" not in "\n".join(lines)
     assert {r.key for r in read_messages(out)} == {"aesop/robot0/observation"}
+
+
+@pytest.mark.parametrize("where", ["aesop-ups-router", "nothing-listening"])
+def test_demo_attach_that_cannot_join_exits_2_before_building_its_cache(
+        where: str, request: pytest.FixtureRequest, tmp_path: Path) -> None:
+    """Before: a traceback (no embedding service here; with one, a refused client's once the
+    scene cache was built); now the robot's user is checked first (no service is asked)."""
+    endpoint = (request.getfixturevalue("hub") if where == "aesop-ups-router"
+                else f"tcp/127.0.0.1:{free_port()}")
+    data = tmp_path / "data"
+    (data / "zenoh").mkdir(parents=True)
+    (data / "zenoh" / "robot-robot0.password").write_text("not-the-password\n")
+    (data / "admin-token").write_text("a-token\n")
+    done = aesop("demo", "--attach", "--data-dir", str(data), "--connect", endpoint,
+                 "--embedding-url", f"http://127.0.0.1:{free_port()}", "--out",
+                 str(tmp_path / "report"))
+    assert_refused(done, endpoint, "as user robot-robot0", "demo --attach --data-dir <data-dir>")
+    assert not (tmp_path / "report").exists()

@@ -75,7 +75,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_attached(args: argparse.Namespace) -> int:
     from shared.settings import BusSettings, read_settings
-    from tools.commands import CliError
+    from tools.commands import DATA_DIR_LOGIN, CliError, joined
     from tools.demo.flights import Attached, demo_scenario, run_attached_demo
     from tools.stack.acl import robot_user
     from tools.stack.compose import TOKEN_FILE
@@ -99,6 +99,9 @@ def cmd_attached(args: argparse.Namespace) -> int:
             demo_scenario(name)
     except (ValueError, KeyError) as exc:
         raise CliError(f"demo --attach: {exc}") from None
+    # exits 2 unless the router lets the robot's user in, before the cache is built (a
+    # refused client was a traceback after it; a peer session opened whatever answered)
+    joined(bus, "demo --attach --data-dir <data-dir>", DATA_DIR_LOGIN)
     stack = Attached(args.embedding_url, args.control_url,
                      args.sim_url if args.vehicle == "sim" else None, token, bus)
     result = run_attached_demo(stack, args.out.resolve(), names=args.scenario_name,
