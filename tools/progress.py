@@ -8,7 +8,10 @@ live line (rich) shows the step, its count and the time since the command starte
 the kept lines scroll above it; elsewhere (CI logs, a file) each step is one plain line,
 ``aesop demo [1:05] flight 2a-quadrotor-on-red-box (2 of 4)``, counts are not printed, and
 kept lines are printed as they are. Nothing of it reaches stdout, which stays the
-command's tables or JSON; :func:`out` prints stdout text while the live line is up.
+command's tables or JSON: :func:`out` prints them while the live line is up (above it
+where stdout is that terminal too; as they are into a pipe). A benchmark asks for a line
+that redraws only when something changes (``ticking=False``): no thread of the display's
+wakes during its timings.
 
 The functions reach the display of the innermost :func:`shown` block of the process; with
 none, :func:`step` and :func:`count` do nothing and :func:`say` prints a plain line, so
@@ -61,13 +64,19 @@ def live_wanted(isatty: bool, environ: dict[str, str] | os._Environ[str]) -> boo
 
 
 class Progress:
-    """The display of one command: a live line (``live``) or plain lines, on ``stream``."""
+    """The display of one command: a live line (``live``) or plain lines, on ``stream``.
+    ``ticking``: the live line redraws itself (its clock and spinner) from a thread; without
+    it, only when something changes (a benchmark's timings must not hold that thread)."""
 
-    def __init__(self, title: str, stream: TextIO, *, live: bool,
+    REDRAW_S = 0.25  # a count redraws the line at most this often
+
+    def __init__(self, title: str, stream: TextIO, *, live: bool, ticking: bool = True,
                  clock: Clock = time.monotonic) -> None:
         self.title, self.stream, self.live, self.clock = title, stream, live, clock
+        self.ticking = ticking
         self.started = clock()
         self.step_shown = ""  # the step as shown (none yet: the title alone)
+        self._drawn = -self.REDRAW_S
         self._lock = threading.RLock()
         self._rich: Any = None  # rich.progress.Progress while the live line is up
         self._task: Any = None
@@ -80,7 +89,7 @@ class Progress:
         with self._lock:
             self.step_shown = step_text(label, n, total)
             if self._rich is not None:
-                self._rich.update(self._task, description=self._describe())
+                self._redraw(self._describe(), at_once=True)
             else:
                 self._print(plain_line(self.title, self.elapsed(), self.step_shown))
 
@@ -88,8 +97,7 @@ class Progress:
         """Items done in this step: on the live line only (a log gets a line per step)."""
         with self._lock:
             if self._rich is not None:
-                self._rich.update(self._task, description=self._describe(
-                    count_text(done, total, unit)))
+                self._redraw(self._describe(count_text(done, total, unit)), at_once=False)
 
     def _describe(self, counted: str = "") -> str:
         """The live line's text: the title, the step, the count within it."""
@@ -97,22 +105,32 @@ class Progress:
                                                           if self.step_shown else ""), counted)
                           if part)
 
+    def _redraw(self, description: str, *, at_once: bool) -> None:
+        self._rich.update(self._task, description=description)
+        now = self.clock()
+        if at_once or (not self.ticking and now - self._drawn >= self.REDRAW_S):
+            self._drawn = now
+            self._rich.refresh()
+
     def say(self, message: str) -> None:
         with self._lock:
             if self._rich is not None:
-                self._rich.console.print(message, markup=False, highlight=False,
-                                         soft_wrap=True)
+                self._above(message)
             else:
                 self._print(message)
 
-    def out(self, text: str) -> None:
-        """``text`` on stdout, the live line taken down while it is printed."""
+    def out(self, text: str, file: TextIO | None = None) -> None:
+        """``text`` on stdout (or ``file``): where that is the terminal too, above the live
+        line, as rich prints there; elsewhere (a pipe, a file) as it is."""
+        target = sys.stdout if file is None else file
         with self._lock:
-            if self._rich is not None:
-                self._rich.stop()
-            print(text, file=sys.stdout, flush=True)
-            if self._rich is not None:
-                self._rich.start()
+            if self._rich is not None and _isatty(target):
+                self._above(text)
+            else:
+                print(text, file=target, flush=True)
+
+    def _above(self, text: str) -> None:
+        self._rich.console.print(text, markup=False, highlight=False, soft_wrap=True)
 
     def _print(self, line: str) -> None:
         print(line, file=self.stream, flush=True)
@@ -125,11 +143,14 @@ class Progress:
         from rich.progress import SpinnerColumn, TextColumn, TimeElapsedColumn
 
         console = Console(file=self.stream, force_terminal=True, highlight=False)
-        # stderr's other writers (warnings, a print) above the line; stdout left alone
+        # stderr's other writers (warnings, a print) above the line, and stdout's where it
+        # is a terminal too (else it is left alone: a pipe gets what it always got)
+        ours = self.stream is sys.stderr
         self._rich = RichProgress(SpinnerColumn(), TextColumn("{task.description}", markup=False),
                                   TimeElapsedColumn(), console=console, transient=True,
-                                  redirect_stdout=False,
-                                  redirect_stderr=self.stream is sys.stderr)
+                                  auto_refresh=self.ticking, refresh_per_second=4,
+                                  redirect_stdout=ours and _isatty(sys.stdout),
+                                  redirect_stderr=ours)
         self._task = self._rich.add_task(self._describe(), total=None)
         self._rich.start()
         self._route_logging()
@@ -153,22 +174,30 @@ class Progress:
                 handler.setStream(sys.stderr)
 
 
+def _isatty(stream: Any) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):  # no such method, or closed
+        return False
+
+
 _shown: list[Progress] = []  # the displays of this process, the innermost last
 
 
 @contextmanager
 def shown(title: str, *, stream: TextIO | None = None, live: bool | None = None,
-          clock: Clock = time.monotonic) -> Iterator[Progress]:
+          ticking: bool = True, clock: Clock = time.monotonic) -> Iterator[Progress]:
     """Show the progress of ``title`` (``aesop demo``) until the block ends: on ``stream``
-    (stderr), live where it is a terminal unless ``live`` says otherwise. Inside another
-    block, that block's display goes on."""
+    (stderr), live where it is a terminal unless ``live`` says otherwise; ``ticking=False``
+    for a benchmark (:class:`Progress`). Inside another block, that block's display goes
+    on."""
     if _shown:
         yield _shown[-1]
         return
     stream = sys.stderr if stream is None else stream
     if live is None:
-        live = live_wanted(bool(getattr(stream, "isatty", lambda: False)()), os.environ)
-    display = Progress(title, stream, live=live, clock=clock)
+        live = live_wanted(_isatty(stream), os.environ)
+    display = Progress(title, stream, live=live, ticking=ticking, clock=clock)
     display.start()
     _shown.append(display)
     try:
@@ -198,9 +227,10 @@ def say(message: str) -> None:
         print(message, file=sys.stderr, flush=True)
 
 
-def out(text: str) -> None:
-    """``text`` on stdout (the live line, if any, taken down while it is printed)."""
+def out(text: str, file: TextIO | None = None) -> None:
+    """``text`` on stdout, or ``file`` (the stdout of before a redirection), the live line
+    taken down while it is printed."""
     if _shown:
-        _shown[-1].out(text)
+        _shown[-1].out(text, file)
     else:
-        print(text, flush=True)
+        print(text, file=sys.stdout if file is None else file, flush=True)

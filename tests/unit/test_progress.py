@@ -25,7 +25,8 @@ ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]|\r")
 
 
 def plain(text: str) -> str:
-    return ANSI.sub("\n", text)
+    """What a terminal shows of ``text``, roughly: each drawing on a line of its own."""
+    return "\n".join(line.strip() for line in ANSI.sub("\n", text).splitlines())
 
 
 class Clock:
@@ -76,19 +77,36 @@ def test_a_terminal_gets_one_live_line_with_the_step_its_count_and_the_time(
         capsys: pytest.CaptureFixture[str]) -> None:
     stream = io.StringIO()
     with progress.shown("aesop demo", stream=stream, live=True):
-        progress.step("flight 2a-quadrotor-on-red-box [hover]", 2, 4)
-        progress.count(3, 10, "texts")
-        progress.say("  1-nominal: ok")
+        progress.count(3, 10, "texts")  # on the line at its next redraw (its clock)
+        progress.step("flight 2a-quadrotor-on-red-box [hover]", 2, 4)  # drawn at once
+        progress.say("1-nominal: ok")
         progress.out("scenario  ended in")  # the table: stdout, the line taken down first
         progress.step("writing the report")
     shown = plain(stream.getvalue())
-    assert "aesop demo: flight 2a-quadrotor-on-red-box [hover] (2 of 4) · 3 of 10 texts" \
+    assert "aesop demo: flight 2a-quadrotor-on-red-box [hover] (2 of 4)" \
         in shown  # no markup read into the brackets
-    assert "aesop demo: writing the report" in shown and "  1-nominal: ok" in shown
+    assert "aesop demo: writing the report" in shown and "1-nominal: ok" in shown
     assert re.search(r"\d+:\d\d:\d\d", shown)  # the time since the start
     assert stream.getvalue().endswith("\x1b[2K")  # the live line is gone at the end
     captured = capsys.readouterr()
     assert captured.out == "scenario  ended in\n"  # stdout: only what the command prints
+
+
+def test_a_benchmarks_line_redraws_only_when_it_changes_and_holds_no_thread() -> None:
+    stream, clock = io.StringIO(), Clock()
+    before = set(threading.enumerate())
+    with progress.shown("aesop bench mpc", stream=stream, live=True, ticking=False,
+                        clock=clock):
+        assert set(threading.enumerate()) == before  # nothing wakes during the timings
+        progress.step("N = 200", 1, 2)
+        for n in range(1, 101):  # all at once: drawn at most every REDRAW_S
+            progress.count(n, 100, "ticks")
+        clock.now += 1.0
+        progress.count(100, 100, "ticks")
+        progress.step("N = 400", 2, 2)
+    shown = plain(stream.getvalue())
+    assert "aesop bench mpc: N = 200 (1 of 2)" in shown and "(2 of 2)" in shown
+    assert shown.count("of 100 ticks") == 1 and "100 of 100 ticks" in shown
 
 
 def test_log_lines_go_above_the_live_line_and_the_handler_is_given_back() -> None:
@@ -143,19 +161,8 @@ def test_a_command_on_a_real_terminal_draws_the_line_and_leaves_stdout_alone(
             progress.out("scenario  ended in")
         print("2a        blue-box")
     """)
-    chunks: list[bytes] = []
-
-    def read() -> None:  # all along: a full terminal would stop the command
-        while True:
-            try:
-                chunk = os.read(main, 65536)
-            except OSError:  # the other end closed
-                return
-            if not chunk:
-                return
-            chunks.append(chunk)
-
-    reader = threading.Thread(target=read, daemon=True)
+    chunks: list[bytes] = []  # read all along: a full terminal would stop the command
+    reader = threading.Thread(target=lambda: read_all(main, chunks), daemon=True)
     reader.start()
     proc = subprocess.run([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=side,
                           stdin=subprocess.DEVNULL, cwd=ROOT, env={**os.environ, "TERM": "xterm"},
@@ -167,7 +174,52 @@ def test_a_command_on_a_real_terminal_draws_the_line_and_leaves_stdout_alone(
     assert proc.stdout == "scenario  ended in\n2a        blue-box\n"
     text = drawn.decode()
     assert "\x1b[2K" in text and "aesop demo: flight 2a (2 of 4)" in plain(text)
-    assert "  2a: ok" in plain(text)
+    assert "2a: ok" in plain(text)
+
+
+def test_a_table_on_the_same_terminal_is_printed_above_the_line_not_across_it(
+        terminal: tuple[int, int]) -> None:
+    """stdout and stderr both the terminal, as a plain ``aesop demo``: the table (and a
+    stray print) scroll above the live line, whole."""
+    main, side = terminal
+    script = textwrap.dedent("""
+        from tools import progress
+        with progress.shown("aesop bench loop", ticking=False):
+            progress.step("10 Hz", 1, 2)
+            print("a stray print")
+            progress.out("rate  jitter p50")
+            progress.step("20 Hz", 2, 2)
+        print("after")
+    """)
+    drawn = run_on(main, side, script)
+    lines = [line for line in plain(drawn).splitlines() if line.strip()]
+    assert "a stray print" in lines and "rate  jitter p50" in lines and lines[-1] == "after"
+    assert any(line.startswith("aesop bench loop: 20 Hz (2 of 2)") for line in lines)
+
+
+def run_on(main: int, side: int, script: str) -> str:
+    """``script`` with stdin, stdout and stderr the terminal ``side``: what it drew."""
+    chunks: list[bytes] = []
+    reader = threading.Thread(target=lambda: read_all(main, chunks), daemon=True)
+    reader.start()
+    proc = subprocess.run([sys.executable, "-c", script], stdin=subprocess.DEVNULL,
+                          stdout=side, stderr=side, cwd=ROOT, timeout=60,
+                          env={**os.environ, "TERM": "xterm"})
+    os.close(side)
+    reader.join(30)
+    assert proc.returncode == 0
+    return b"".join(chunks).decode()
+
+
+def read_all(fd: int, chunks: list[bytes]) -> None:
+    while True:
+        try:
+            chunk = os.read(fd, 65536)
+        except OSError:  # the other end closed
+            return
+        if not chunk:
+            return
+        chunks.append(chunk)
 
 
 def test_a_command_in_a_log_prints_a_plain_line_a_step() -> None:
