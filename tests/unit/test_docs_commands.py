@@ -1,7 +1,7 @@
 """Issue 44: the docs said commands the CLI did not take. Every ``aesop`` command in the
 README, docs/ and deploy/README.md (code blocks and inline code) is checked against the
 command tree itself: its subcommands exist and each of its flags is one that subcommand
-takes. (Which of them are also run is up to their own tests.)"""
+takes. (Those in shell blocks marked runnable are also run: test_docs_runnable.py.)"""
 
 from __future__ import annotations
 
