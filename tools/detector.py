@@ -7,6 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from tools import progress
 from tools.commands import CliError, add_url_argument, emit
 
 
@@ -81,6 +82,7 @@ def cmd_detector_eval(args: argparse.Namespace) -> int:
     from services.embedding.evaluation import EvalConfig, evaluate, read_jsonl
     from services.embedding.loading import load_embedder
     from services.embedding.settings import DEFAULT_MODEL
+    from tools.counted import Counted
 
     for name in ("nominal", "calibration", "test", "recording", "adapt"):
         path = getattr(args, name)
@@ -109,9 +111,13 @@ def cmd_detector_eval(args: argparse.Namespace) -> int:
         nominal = read_jsonl(args.nominal)
         test = read_jsonl(args.test)
         calibration = read_jsonl(args.calibration) if args.calibration else []
-        embedder = load_embedder(args.model or DEFAULT_MODEL)
         adapt = read_jsonl(args.adapt) if args.adapt else []
-        result = evaluate(embedder, nominal, test, calibration, config, adapt)
+        with progress.shown("aesop detector eval"):
+            progress.step(f"loading {args.model or DEFAULT_MODEL}")
+            embedder = Counted(load_embedder(args.model or DEFAULT_MODEL))
+            progress.step(f"embedding and scoring {len(nominal)} nominal, {len(calibration)} "
+                          f"calibration, {len(adapt)} adapted and {len(test)} test lines")
+            result = evaluate(embedder, nominal, test, calibration, config, adapt)
     except (DetectorError, EmbedderError, ValueError) as exc:
         raise CliError(str(exc)) from None
     emit(result, args.json)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -59,6 +60,12 @@ def test_eval_prints_exactly_one_json_object(files: dict[str, Path], method: str
     assert 0.0 <= result["auroc"] <= 1.0 and 0.0 <= result["accuracy"] <= 1.0
     # overtly abnormal warehouse concepts are far from packages on a conveyor belt
     assert result["auroc"] > 0.8
+    # stderr not a terminal: a line a step, none a batch of texts embedded
+    steps = [line for line in r.stderr.splitlines() if line.startswith("aesop detector eval")]
+    assert [re.sub(r"\[\d+:\d\d\] ", "", line) for line in steps] == [
+        "aesop detector eval loading sentence-transformers/all-MiniLM-L6-v2",
+        "aesop detector eval embedding and scoring 12 nominal, 9 calibration, 0 adapted and 9 "
+        "test lines"], r.stderr
 
 
 def test_eval_mahalanobis_runs(files: dict[str, Path]) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -86,6 +87,7 @@ def test_import_calibrate_and_rescore_over_rest(flight: Path, service: ServicePr
     assert got == {"cache": "warehouse", "observations": 240, "scenes": 24,
                    "already_in_cache": 0, "added": 24, "size": 24, "version": got["version"]}
     assert "240 observations, 24 distinct scenes" in r.stderr
+    assert "added 24 of 24" in r.stderr and "embedded" not in r.stderr  # no line per poll
     again = aesop("cache", "import", "--recording", str(flight), "--cache", "warehouse",
                   "--until", "23.9", "--url", service.url, "--json")
     assert json.loads(again.stdout)["added"] == 0  # the same scenes: nothing twice
@@ -109,6 +111,8 @@ def test_import_calibrate_and_rescore_over_rest(flight: Path, service: ServicePr
     assert r.returncode == 0, r.stderr
     result = json.loads(r.stdout)
     assert result["observations"] == 245 and result["with_recorded_verdict"] == 5
+    assert re.search(r"^aesop detector eval \[\d+:\d\d\] scoring 25 distinct scenes against "
+                     rf"cache warehouse at {re.escape(service.url)}$", r.stderr, re.M), r.stderr
     # today's cache flags the battery the recorded detector let through
     assert result["changed"] == result["now_anomaly"] == 5 == result["anomalies_now"]
     assert result["threshold"] == json.loads(cal.stdout)["threshold"]
@@ -150,6 +154,10 @@ def test_rescore_offline_against_a_nominal_set(flight: Path, tmp_path: Path) -> 
     result = json.loads(r.stdout)
     assert result["observations"] == 245 and result["now_anomaly"] == 5
     assert result["against"].startswith(str(nominal))
+    steps = [re.sub(r"\[\d+:\d\d\] ", "", line) for line in r.stderr.splitlines()
+             if line.startswith("aesop detector eval")]
+    assert steps == ["aesop detector eval loading sentence-transformers/all-MiniLM-L6-v2",
+                     f"aesop detector eval embedding {nominal} and scoring 25 distinct scenes"]
 
 
 def test_rescore_offline_judges_each_scene_with_its_detections(flight: Path,

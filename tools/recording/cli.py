@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from tools import progress
 from tools.commands import ROBOT_LOGIN, CliError, add_url_argument, emit, joined, not_joined
 
 
@@ -178,23 +179,21 @@ def cache_import_command(args: argparse.Namespace) -> int:
     from tools.recording.importer import import_recording
     from tools.recording.recorded import RecordingError, check_recording
 
-    def say(line: str) -> None:
-        print(line, file=sys.stderr, flush=True)
-
-    def progress(job: Any) -> None:
+    def embedded(job: Any) -> None:  # each poll of a job: on the live line only
         if job.total:
-            say(f"  embedding {job.done}/{job.total}")
+            progress.count(job.done, job.total, "scenes embedded")
 
     async def run() -> Any:
         async with EmbeddingClient(args.url, token=_admin_token(), timeout_s=120) as client:
             return await import_recording(client, args.cache, args.recording,
                                           robot=args.robot, since=args.since,
                                           until=args.until, model=args.model, k=args.k,
-                                          say=say, progress=progress)
+                                          say=progress.say, progress=embedded)
     try:
         for path in args.recording:
             check_recording(path)
-        done = asyncio.run(run())
+        with progress.shown("aesop cache import"):
+            done = asyncio.run(run())
     except RecordingError as exc:
         raise CliError(str(exc)) from None
     except (ServiceError, httpx.TransportError) as exc:
@@ -258,10 +257,13 @@ def rescore_recording(args: argparse.Namespace) -> int:
     scenes = distinct_scenes(recorded)
     print(f"{len(recorded)} observations, {len(scenes)} distinct scenes, {len(old)} recorded "
           "verdicts", file=sys.stderr)
-    if args.cache is not None:
-        new, threshold, source = _scores_over_rest(args, scenes)
-    else:
-        new, threshold, source = _scores_offline(args, scenes)
+    with progress.shown("aesop detector eval"):
+        if args.cache is not None:
+            progress.step(f"scoring {len(scenes)} distinct scenes against cache {args.cache} "
+                          f"at {args.url}")
+            new, threshold, source = _scores_over_rest(args, scenes)
+        else:
+            new, threshold, source = _scores_offline(args, scenes)
     rows = compare(recorded, old, new)
     result = {"recording": str(args.recording), "against": source} | summary(rows, threshold)
     if args.json:
@@ -282,13 +284,16 @@ def _scores_offline(args: argparse.Namespace, scenes: list[Any]
     from services.embedding.evaluation import EvalConfig, read_jsonl
     from services.embedding.loading import load_embedder
     from services.embedding.settings import DEFAULT_MODEL
+    from tools.counted import Counted
     from tools.recording.rescore import scores_offline
 
     try:
         config = EvalConfig(k=args.k, alpha=args.alpha, method=args.method, score=args.score,
                             tpr=args.tpr, pairs=args.pairs)
         calibration = read_jsonl(args.calibration) if args.calibration else []
-        embedder = load_embedder(args.model or DEFAULT_MODEL)
+        progress.step(f"loading {args.model or DEFAULT_MODEL}")
+        embedder = Counted(load_embedder(args.model or DEFAULT_MODEL))
+        progress.step(f"embedding {args.nominal} and scoring {len(scenes)} distinct scenes")
         new, threshold, method = scores_offline(embedder, read_jsonl(args.nominal),
                                                 calibration, config, scenes)
     except (DetectorError, EmbedderError, ValueError) as exc:

@@ -1,0 +1,46 @@
+"""An embedder that shows how many texts it has embedded on the command's progress line
+(:mod:`tools.progress`): ``aesop detector eval`` and ``aesop bench detector`` embed
+thousands of texts through code that knows nothing of a terminal."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from services.embedding.embedders import Embedder, ProgressFn
+from tools.progress import count
+
+
+class Counted(Embedder):
+    """``inner``, each batch counted on the live line (a log gets no line a batch): the
+    texts embedded since this wrapper was made."""
+
+    def __init__(self, inner: Embedder, unit: str = "texts embedded") -> None:
+        self.inner, self.unit = inner, unit
+        self.done = 0
+
+    @property
+    def name(self) -> str:
+        return self.inner.name
+
+    @property
+    def dim(self) -> int:
+        return self.inner.dim
+
+    def close(self) -> None:
+        self.inner.close()
+
+    def embed(self, texts: Sequence[str], *, batch_size: int = 64,
+              progress: ProgressFn | None = None, show_progress_bar: bool = False
+              ) -> np.ndarray:
+        before = self.done
+
+        def seen(done: int, total: int) -> None:
+            self.done = before + done
+            count(self.done, None, self.unit)
+            if progress is not None:
+                progress(done, total)
+
+        return self.inner.embed(texts, batch_size=batch_size, progress=seen,
+                                show_progress_bar=show_progress_bar)
