@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -43,6 +44,15 @@ def test_bench_closed_loop_state_delay_and_rate_make_one_condition_each() -> Non
     assert [c["state"] for c in result["conditions"]] == [
         {"rate_hz": 50.0, "delay_ms": 0.0}, {"rate_hz": 50.0, "delay_ms": 50.0}]
     assert all(set(c["methods"]) == {"aesop"} for c in result["conditions"])
+    # stderr not a terminal: a line a step (the method at each condition, n of N) and the
+    # line each keeps, not one per case
+    steps = [line for line in r.stderr.splitlines() if line.startswith("aesop bench ")]
+    assert len(steps) == 2, r.stderr[-3000:]
+    assert re.fullmatch(r"aesop bench closed-loop \[\d+:\d\d\] aesop at 50 Hz, 0 ms \(1 of 2\)",
+                        steps[0]), steps
+    assert steps[1].endswith("aesop at 50 Hz, 50 ms (2 of 2)"), steps
+    assert "bench closed-loop: aesop at 50 Hz, 50 ms done" in r.stderr
+    assert "cases" not in r.stderr  # the count within a step: on a live line only
 
 
 def test_bench_mpc_json() -> None:
@@ -54,6 +64,8 @@ def test_bench_mpc_json() -> None:
     assert result["step_ms"]["n"] == 3 and result["reference_step_ms"]["n"] == 2
     assert result["speedup_p50"] > 0
     assert result["objective_rel_diff_max"] is None or result["objective_rel_diff_max"] < 1e-2
+    assert re.search(r"^aesop bench mpc \[\d+:\d\d\] paper-quadrotor-sim, N = 40, dt = 0.1 s "
+                     r"\(1 of 1\)$", r.stderr, re.M), r.stderr[-3000:]
 
 
 def test_bench_rejects_bad_arguments() -> None:

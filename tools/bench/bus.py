@@ -40,7 +40,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import secrets
-import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -60,6 +59,7 @@ from shared.messages import AnomalyVerdict, ControlState
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
 from shared.tables import table
+from tools import progress
 from tools.scenes import (
     QUADROTOR_SCENARIOS,
 )
@@ -160,7 +160,7 @@ async def running_stack(tmp: Path, model: str, cache_detections: int):
         embedding = embedding_process(tmp, endpoint, token)
         control = control_process(tmp, endpoint, token)
         sim = sim_process(tmp, endpoint, token)
-        say(f"starting embedding, control and the vehicle on Zenoh {endpoint}")
+        progress.step(f"starting embedding, control and the vehicle on Zenoh {endpoint}")
         with embedding, control, sim:
             async with EmbeddingClient(embedding.url, token=token,
                                        timeout_s=WAIT_S * 5) as detector, \
@@ -290,7 +290,7 @@ async def reaction_phase(stack: Stack, scene: Scene, verdicts: Verdicts, nominal
             verdict = await verdicts.wait(seq)
             reaction.append((got.received_at - sent) * 1000.0)
             after_verdict.append((got.received_at - verdict.received_at) * 1000.0)
-            say(f"  reaction {len(reaction)}/{n}: {reaction[-1]:.1f} ms")
+            progress.count(len(reaction), n, f"anomalies (the last {reaction[-1]:.1f} ms)")
     finally:
         stream.cancel()
         with contextlib.suppress(asyncio.CancelledError):
@@ -375,9 +375,10 @@ async def _bench(observations: int, rate_hz: float, anomalies: int, model: str,
                 await warm_up(scene, verdicts)
                 await fresh_verdicts_at_control(stack.pilot, scene)
                 texts = [observation_text(s.detections) for s in QUADROTOR_SCENARIOS.values()]
-                say(f"phase 1: {observations} observations at {rate_hz:g} Hz")
+                progress.step(f"{observations} observations at {rate_hz:g} Hz", 1, 2)
                 verdict_ms = await verdict_phase(scene, verdicts, texts, observations)
-                say(f"phase 2: {anomalies} anomalies, control at {CONTROL_RATE_HZ:g} Hz")
+                progress.step(f"{anomalies} anomalies, control at {CONTROL_RATE_HZ:g} Hz", 2,
+                              2)
                 reaction_ms, after_ms = await reaction_phase(
                     stack, scene, verdicts, nominal, anomalous, anomalies)
             finally:
@@ -420,4 +421,5 @@ def print_table(result: dict[str, Any]) -> None:
 
 
 def say(message: str) -> None:
-    print(message, file=sys.stderr, flush=True)
+    """A line of the bench's to keep, on stderr (:func:`tools.progress.say`)."""
+    progress.say(message)

@@ -4,12 +4,14 @@ benchmarks, as tables or one JSON object (``--json``). They need the ``bench`` e
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from tools import progress
 from tools.commands import CliError, control_scenario, emit
 from tools.stack.cli import add_llm_options
 
@@ -185,11 +187,22 @@ def _link_parser(bsub: argparse._SubParsersAction) -> None:
     bl.set_defaults(func=cmd_bench_link)
 
 
+def _shown(command: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """The bench's progress on stderr while it runs (:mod:`tools.progress`), redrawn only
+    when it changes: no thread of the display's wakes during the bench's timings."""
+    @functools.wraps(command)
+    def shown(args: argparse.Namespace) -> int:
+        with progress.shown(f"aesop bench {args.bench_command}", ticking=False):
+            return command(args)
+    return shown
+
+
 def _model_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default=None,
                         help="embedding model (default: onnx:all-MiniLM-L6-v2, the service's)")
 
 
+@_shown
 def cmd_bench_detector(args: argparse.Namespace) -> int:
     from tools.bench.detector import run_detector_bench
 
@@ -200,6 +213,7 @@ def cmd_bench_detector(args: argparse.Namespace) -> int:
     return 0
 
 
+@_shown
 def cmd_bench_reasoner(args: argparse.Namespace) -> int:
     from services.reasoner.deciding import keep_up
     from tools.bench.reasoner import run_reasoner_bench
@@ -246,6 +260,7 @@ def bench_templates(args: argparse.Namespace, model: Any) -> int:
     return 0
 
 
+@_shown
 def cmd_bench_mpc(args: argparse.Namespace) -> int:
     from shared.tables import table
     from tools.bench.control import bench_mpc
@@ -281,6 +296,7 @@ def _mpc_row(run: dict) -> dict:
             "obj. diff": "-" if diff is None else f"{diff:.1e}"}
 
 
+@_shown
 def cmd_bench_closed_loop(args: argparse.Namespace) -> int:
     from services.sim.vehicle import Reporting
     from shared.tables import table
@@ -310,6 +326,7 @@ def cmd_bench_closed_loop(args: argparse.Namespace) -> int:
     return 0
 
 
+@_shown
 def cmd_bench_loop(args: argparse.Namespace) -> int:
     from tools.bench.loop import bench_loop, print_loop_table
 
@@ -324,6 +341,7 @@ def cmd_bench_loop(args: argparse.Namespace) -> int:
     return 0
 
 
+@_shown
 def cmd_bench_bus(args: argparse.Namespace) -> int:
     from tools.bench.bus import run_bus_bench
 
@@ -335,6 +353,7 @@ def cmd_bench_bus(args: argparse.Namespace) -> int:
         args.json)
 
 
+@_shown
 def cmd_bench_fairness(args: argparse.Namespace) -> int:
     from tools.bench.fairness import run_fairness_bench
 
@@ -345,6 +364,7 @@ def cmd_bench_fairness(args: argparse.Namespace) -> int:
         model=args.model, table_out=not args.json, same_text=args.same_text), args.json)
 
 
+@_shown
 def cmd_bench_ros2(args: argparse.Namespace) -> int:
     from tools.bench.ros2 import run_ros2_bench
 
@@ -354,6 +374,7 @@ def cmd_bench_ros2(args: argparse.Namespace) -> int:
         seconds=args.seconds, rate_hz=args.rate, table_out=not args.json), args.json)
 
 
+@_shown
 def cmd_bench_fleet(args: argparse.Namespace) -> int:
     from tools.bench.fleet import run_fleet_bench
 
@@ -365,6 +386,7 @@ def cmd_bench_fleet(args: argparse.Namespace) -> int:
         batch=args.batch, model=args.model, table_out=not args.json), args.json)
 
 
+@_shown
 def cmd_bench_link(args: argparse.Namespace) -> int:
     from tools.bench.link import run_link_bench
 

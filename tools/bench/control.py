@@ -12,11 +12,11 @@
 from __future__ import annotations
 
 import itertools
-import sys
 import time
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -25,6 +25,7 @@ from services.control.mpc import SolveStatus, promised_step
 from services.control.scenario import Scenario, load_scenario, planning_model
 from services.sim.plant import make_plant
 from services.sim.vehicle import Reporting
+from tools import progress
 
 from .reference import reference_solve
 from .sim import fly, run_case, sample_cases, summarize, time_lost
@@ -45,13 +46,14 @@ def bench_mpc(scenario: Scenario | None = None, flights: int = 3, ticks: int = 6
     and the growth exponent of the step's p50 in N fitted over them.
     """
     scenario = scenario or load_scenario()
-    result = _mpc_run(scenario, flights, ticks, reference_every, seed)
+    result = _mpc_run(scenario, flights, ticks, reference_every, seed, (1, 1 + len(horizons)))
     if horizons:
         runs = []
-        for n in horizons:
+        for i, n in enumerate(horizons, 2):
             scale = scenario.dt * n / scenario.horizon_s  # ticks per tick of the scene's grid
             runs.append(_mpc_run(scenario.regridded(n), flights, max(2, round(ticks * scale)),
-                                 max(1, round(reference_every * scale)), seed))
+                                 max(1, round(reference_every * scale)), seed,
+                                 (i, 1 + len(horizons))))
         result["horizons"] = runs
         result["growth_exponent_p50"] = _exponent([r["problem"]["horizon"] for r in runs],
                                                   [r["step_ms"]["p50"] for r in runs])
@@ -66,7 +68,7 @@ def _exponent(ns: Sequence[int], values: Sequence[float]) -> float | None:
 
 
 def _mpc_run(scenario: Scenario, flights: int, ticks: int, reference_every: int,
-             seed: int) -> dict:
+             seed: int, run: tuple[int, int] = (1, 1)) -> dict:
     model = planning_model(scenario)
     config = mpc_config(scenario)
     rng = np.random.default_rng(seed)
@@ -74,9 +76,9 @@ def _mpc_run(scenario: Scenario, flights: int, ticks: int, reference_every: int,
     first_ms: list[float] = []
     warm_up_ms, reference_ms, rel_diffs, iterations = [], [], [], []
     infeasible = undecided = referee = 0
-    print(f"bench mpc: {scenario.name}, N = {config.horizon}, dt = {scenario.dt:g} s",
-          file=sys.stderr, flush=True)
-    for _ in range(flights):
+    progress.step(f"{scenario.name}, N = {config.horizon}, dt = {scenario.dt:g} s", *run)
+    for flight in range(flights):
+        progress.count(flight, flights, "flights")
         controller = make_controller("aesop", scenario, config)
         plant = make_plant(scenario, scenario.sample_start(rng))
         start = time.perf_counter()
@@ -146,17 +148,25 @@ def bench_closed_loop(scenarios: int = 500, seed: int = 0, workers: int = 2,
     cases = sample_cases(scenario, scenarios, seed)
     conditions = []
     started = time.perf_counter()
+    steps = 0
     with ProcessPoolExecutor(max(1, workers)) as pool:
         for reporting in reportings or (Reporting(),):
             state = {"rate_hz": reporting.rate_hz, "delay_ms": round(reporting.delay_s * 1e3, 3)}
-            rows, outcomes = {}, {}
+            rows: dict[str, Any] = {}
+            outcomes: dict[str, list[Any]] = {}
             for method in methods:
-                outcomes[method] = list(pool.map(run_case, [(method, scenario, c, reporting)
-                                                            for c in cases]))
+                steps += 1
+                progress.step(f"{method} at {state['rate_hz']:g} Hz, {state['delay_ms']:g} ms",
+                              steps, len(methods) * max(1, len(reportings)))
+                outcomes[method] = []
+                for outcome in pool.map(run_case, [(method, scenario, c, reporting)
+                                                   for c in cases]):
+                    outcomes[method].append(outcome)
+                    progress.count(len(outcomes[method]), len(cases), "cases")
                 rows[method] = summarize(outcomes[method])
-                print(f"bench closed-loop: {method} at {state['rate_hz']:g} Hz, "
-                      f"{state['delay_ms']:g} ms done, {time.perf_counter() - started:.0f} s",
-                      file=sys.stderr)
+                progress.say(f"bench closed-loop: {method} at {state['rate_hz']:g} Hz, "
+                             f"{state['delay_ms']:g} ms done, "
+                             f"{time.perf_counter() - started:.0f} s")
             lost = list(pool.map(_time_lost, [(scenario, c, reporting)
                                                for c in cases[:inconsequential]]))
             losses = [r["time_lost_s"] for r in lost if r["time_lost_s"] is not None]

@@ -50,6 +50,7 @@ from shared.messages import AnomalyVerdict
 from shared.process import free_port
 from shared.settings import BusSettings
 from shared.tables import table
+from tools import progress
 from tools.bench.bus import CACHE, WAIT_S, BenchError, embedding_process, pick_scenes, say
 from tools.scenes.hardware import build_scene_cache, camera_observation
 from tools.stack.acl import new_passwords, robot_user, users_of, write_credentials
@@ -196,20 +197,22 @@ async def _bench(seconds: float, rate_hz: float, flood_hz: float, direct: bool,
         service = stack.enter_context(embedding_process(Path(tmp), endpoint, token, **extra))
         quiet = stack.enter_context(robot_session(endpoint, QUIET, passwords))
         loud = stack.enter_context(robot_session(endpoint, FLOODER, passwords))
-        say(f"embedding up on Zenoh {endpoint} ({'peers' if direct else 'through the hub'})")
+        progress.step(f"embedding up on Zenoh {endpoint} "
+                      f"({'peers' if direct else 'through the hub'})")
         async with EmbeddingClient(service.url, token=token, timeout_s=WAIT_S * 5) as detector:
             info, _ = await build_scene_cache(detector, CACHE, model=model, say=say)
             nominal, _ = await pick_scenes(detector)
             timed = Timed(quiet, nominal)
             try:
                 await _warm_up(timed)
-                say(f"baseline: {QUIET} alone at {rate_hz:g} Hz for {seconds:g} s")
+                progress.step(f"baseline: {QUIET} alone at {rate_hz:g} Hz for {seconds:g} s",
+                              1, 2)
                 base = await timed.phase(seconds, rate_hz)
                 await timed.settle(base)
                 payloads = flood_payloads(nominal, round(flood_hz * (seconds + 1.0)),
                                           same_text=same_text)
-                say(f"flood: {FLOODER} at {flood_hz:g} Hz meanwhile, "
-                    f"{'one text' if same_text else 'distinct texts'}")
+                progress.step(f"flood: {FLOODER} at {flood_hz:g} Hz meanwhile, "
+                              f"{'one text' if same_text else 'distinct texts'}", 2, 2)
                 stop = threading.Event()
                 flooding = asyncio.create_task(
                     asyncio.to_thread(flood, loud, payloads, flood_hz, stop))

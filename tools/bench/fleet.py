@@ -47,6 +47,7 @@ from shared.messages import AnomalyVerdict
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
 from shared.tables import table
+from tools import progress
 from tools.bench.bus import CACHE, WAIT_S, BenchError, embedding_process, say
 from tools.scenes import QUADROTOR_SCENARIOS
 from tools.scenes.hardware import build_scene_cache, camera_observation, observation_text
@@ -147,6 +148,8 @@ async def verdicts(bus: Bus, replicas: list[ServiceProcess], texts: list[str],
                    seconds: float, rate_hz: float, first_seq: int) -> list[dict[str, Any]]:
     rows = []
     for n, robots in enumerate(FLEETS):
+        progress.step(f"{robots} robots on {len(replicas)} replica(s)",
+                      len(FLEETS) * (len(replicas) - 1) + n + 1, 2 * len(FLEETS))
         fleet = Fleet(bus, robots, texts)
         base = first_seq + 100_000 * n  # no verdict of an earlier run counts in this one
         try:
@@ -249,7 +252,7 @@ async def _bench(seconds: float, rate_hz: float, lags: int, adds: int, batch: in
             Bus.open(BusSettings(zenoh_listen=[endpoint]), "bench") as bus:
         tmp = Path(name)
         url = server.url
-        say(f"PostgreSQL on port {server.port}; replicas on Zenoh {endpoint}")
+        progress.step(f"PostgreSQL on port {server.port}; replicas on Zenoh {endpoint}")
         async with replica(tmp, "replica-1", endpoint, token, url) as (one, first):
             await build_scene_cache(first, CACHE, model=model, say=say)
             await _settle(bus, 1)
@@ -257,7 +260,9 @@ async def _bench(seconds: float, rate_hz: float, lags: int, adds: int, batch: in
             async with replica(tmp, "replica-2", endpoint, token, url) as (two, second):
                 await _settle(bus, 2)
                 rows += await verdicts(bus, [one, two], texts, seconds, rate_hz, 1_000_000)
+                progress.step(f"the replica lag: {lags} adds")
                 lag = await replica_lag(first, second, lags)
+        progress.step(f"the stores' cost: {adds} commits of {batch} on PostgreSQL and SQLite")
         cost = await asyncio.to_thread(store_cost, url, tmp, adds, batch)
     lag_ms = [s * 1000.0 for s in lag]
     return {"rate_hz": rate_hz, "seconds": seconds, "model": model, "verdicts": rows,

@@ -25,8 +25,9 @@ after the link returns, no acknowledged write lost. Needs root (the namespace).
 
 from __future__ import annotations
 
+import itertools
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from statistics import median
 from typing import Any
@@ -34,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from shared.tables import table
+from tools import progress
 from tools.bench.bus import BenchError, say
 from tools.link.netns import missing
 from tools.link.proxy import measure_rtt
@@ -52,12 +54,18 @@ def run_link_bench(*, delays: Sequence[float] = (0, 20, 50, 100), jitter_ms: flo
         raise BenchError(f"the robot's network namespace: {why}")
     with tempfile.TemporaryDirectory(prefix="aesop-link-") as tmp, \
             Rig(out or Path(tmp), say=say) as rig:
-        conditions = [_condition(rig, delay(ms, jitter_ms), repeats) for ms in delays]
-        cut_rows = [_cut(rig, Fault(f"cut {s:g} s", cut_s=s)) for s in cuts]
-        fault_rows = [_fault(rig, f) for f in (
-            Fault("stall 1 s", stall_s=1.0), Fault("server's router restarted",
-                                                   restart="server"),
-            Fault("robot's router restarted", restart="robot"))] if faults else []
+        others = (Fault("stall 1 s", stall_s=1.0),
+                  Fault("server's router restarted", restart="server"),
+                  Fault("robot's router restarted", restart="robot")) if faults else ()
+        steps = itertools.count(1)
+        total = len(delays) + len(cuts) + len(others)
+
+        def step(label: str) -> None:
+            progress.step(label, next(steps), total)
+
+        conditions = [_condition(rig, delay(ms, jitter_ms), repeats, step) for ms in delays]
+        cut_rows = [_cut(rig, Fault(f"cut {s:g} s", cut_s=s), step) for s in cuts]
+        fault_rows = [_fault(rig, f, step) for f in others]
     result = {"conditions": conditions, "cuts": cut_rows, "faults": fault_rows,
               "targets": _targets(conditions, cut_rows)}
     if table_out:
@@ -65,8 +73,9 @@ def run_link_bench(*, delays: Sequence[float] = (0, 20, 50, 100), jitter_ms: flo
     return result
 
 
-def _condition(rig: Rig, fault: Fault, repeats: int) -> dict[str, Any]:
-    say(f"{fault.name} ± {fault.jitter_ms:g} ms: the four scenarios x {repeats}")
+def _condition(rig: Rig, fault: Fault, repeats: int, step: Callable[[str], None]
+               ) -> dict[str, Any]:
+    step(f"{fault.name} ± {fault.jitter_ms:g} ms: the four scenarios x {repeats}")
     flights = [rig.fly(fault, s) for _ in range(repeats) for s in SCENARIOS]
     verdicts = [ms for f in flights for ms in f.verdict_ms]
     rtt = measure_rtt(fault.impairment, 50)
@@ -82,15 +91,15 @@ def _condition(rig: Rig, fault: Fault, repeats: int) -> dict[str, Any]:
                          if f.row["outcome"] != "ok"]}
 
 
-def _cut(rig: Rig, fault: Fault) -> dict[str, Any]:
-    say(f"{fault.name} into the nominal flight")
+def _cut(rig: Rig, fault: Fault, step: Callable[[str], None]) -> dict[str, Any]:
+    step(f"{fault.name} into the nominal flight")
     flight = rig.fly(fault, "1")
     return {"cut_s": fault.cut_s, "violations": flight.row["constraint_violations"],
             "fallbacks": int(flight.fallback), **_after(flight)}
 
 
-def _fault(rig: Rig, fault: Fault) -> dict[str, Any]:
-    say(f"{fault.name} in the nominal flight")
+def _fault(rig: Rig, fault: Fault, step: Callable[[str], None]) -> dict[str, Any]:
+    step(f"{fault.name} in the nominal flight")
     flight = rig.fly(fault, "1")
     return {"fault": fault.name, "violations": flight.row["constraint_violations"],
             "fallbacks": int(flight.fallback), **_after(flight)}

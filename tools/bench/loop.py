@@ -26,10 +26,10 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 
@@ -44,6 +44,7 @@ from shared.messages import AnomalyVerdict, ReasonerDecision, VehicleState
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
 from shared.stats import spread
+from tools import progress
 
 ROBOT = "bench"
 
@@ -151,9 +152,11 @@ async def time_loop(scenario: Scenario, rate_hz: float, ticks: int, bus: Bus, si
     switch = sys.getswitchinterval()
     sys.setswitchinterval(settings.tuning.switch_interval_s)
     started = time.monotonic()
+    counting = asyncio.create_task(count_ticks(lambda: k, ticks))
     try:
         await asyncio.to_thread(scheduler.run, tick, on_tick=note, max_ticks=ticks)
     finally:
+        counting.cancel()
         sys.setswitchinterval(switch)
         stop_sync.set()
         states.close()
@@ -167,6 +170,14 @@ async def time_loop(scenario: Scenario, rate_hz: float, ticks: int, bus: Bus, si
             "setpoints": ages.setpoints, "stale_state_ticks": ages.stale_ticks,
             "overruns_by_mode": overruns, **spread(ages.ages_ms, "state_age"),
             **setpoint_ages(flights)}
+
+
+async def count_ticks(flown: Callable[[], int], ticks: int, every_s: float = 2.0) -> None:
+    """The ticks flown so far on the progress line, from the event loop's thread (not the
+    ticks' own), every ``every_s``, until cancelled."""
+    while True:
+        progress.count(flown(), ticks, "ticks")
+        await asyncio.sleep(every_s)
 
 
 def setpoint_ages(flights: Sequence[dict[str, Any]]) -> dict[str, float | None]:
@@ -214,15 +225,16 @@ def bench_loop(rates: Sequence[float] = (10.0, 20.0), minutes: float = 10.0,
     scene = load_scenario(path)
     ticks = max(1, round(minutes * 60.0 / scene.dt))
     runs = []
-    for rate in rates:
-        print(f"bench loop: {ticks} ticks at {rate:g} Hz ({ticks / rate:.0f} s of wall time)",
-              file=sys.stderr, flush=True)
+    for n, rate in enumerate(rates, 1):
+        progress.step(f"{ticks} ticks at {rate:g} Hz ({ticks / rate:.0f} s of wall time)", n,
+                      len(rates))
         runs.append(asyncio.run(fly_rate(scene, path, rate, ticks, seed)))
     return {"scenario": scene.name, "simulated_minutes": minutes, "ticks": ticks,
             "runs": runs}
 
 
-def print_loop_table(result: dict[str, Any], out=sys.stdout) -> None:
+def print_loop_table(result: dict[str, Any], out: TextIO | None = None) -> None:
+    out = sys.stdout if out is None else out  # today's (a progress line may stand in for it)
     print(f"control loop, {result['simulated_minutes']:g} min of simulated flight per rate "
           f"({result['ticks']} ticks, scenario {result['scenario']})", file=out)
     print(f"{'rate':>6} {'jitter p50':>11} {'jitter p99':>11} {'jitter max':>11} "

@@ -77,6 +77,7 @@ from shared.messages import Observation, Option, ReasonerDecision, ReasonerReque
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
 from shared.tables import table
+from tools import progress
 from tools.bench.canary import canary
 
 log = logging.getLogger(__name__)
@@ -236,6 +237,7 @@ def run_reasoner_bench(*, requests: int = 1000, scale: float = 0.1, concurrency:
         logs = Path(tmp)
         log.info("bench reasoner: %d requests, K = %.3f s (scale %g), concurrency %d, seed %d",
                  requests, deadline_s, scale, concurrency, seed)
+        progress.step(f"one backend: {requests} decisions", 1, 2)
         with _fake_servers(logs, scale, [seed], "single") as urls, canary() as platform:
             single, loop_lag = asyncio.run(_phase(urls, model, requests, deadline_s,
                                                   concurrency, None))
@@ -243,6 +245,7 @@ def run_reasoner_bench(*, requests: int = 1000, scale: float = 0.1, concurrency:
         hedge = (hedge_after_s if hedge_after_s is not None else
                  float(np.percentile(single_lat, 50)) if single_lat else deadline_s / 2)
         log.info("bench reasoner: hedged phase, hedge_after_s = %.3f s", hedge)
+        progress.step(f"two backends, hedged after {hedge:.3f} s: {requests} decisions", 2, 2)
         with _fake_servers(logs, scale, [seed, seed + 1], "hedged") as urls, \
                 canary() as hedged_platform:
             hedged, hedged_lag = asyncio.run(_phase(urls, model, requests, deadline_s,
@@ -259,7 +262,7 @@ def run_reasoner_bench(*, requests: int = 1000, scale: float = 0.1, concurrency:
         "load_average_end": list(os.getloadavg()), "wall_s": time.perf_counter() - started,
     }
     if table:
-        print(render(result), file=out, flush=True)
+        progress.out(render(result), file=out)
     return result
 
 
@@ -282,6 +285,14 @@ def _fake_servers(logs: Path, scale: float, seeds: Sequence[int], phase: str
     finally:
         for proc in reversed(procs):
             proc.stop()
+
+
+async def _count(decided: Mapping[str, Any], n: int, stop: asyncio.Event) -> None:
+    """The decisions taken so far, on the progress line, twice a second."""
+    while not stop.is_set():
+        progress.count(len(decided), n, "decisions")
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(stop.wait(), 0.5)
 
 
 async def _phase(urls: Sequence[str], model: str, n: int, deadline_s: float,
@@ -314,11 +325,13 @@ async def _phase(urls: Sequence[str], model: str, n: int, deadline_s: float,
         settle()  # as the service does once started: what exists now is long-lived
         stop = asyncio.Event()
         lag_task = asyncio.create_task(_loop_lag(stop))
+        counting = asyncio.create_task(_count(decided, n, stop))
         ours.send("go")
         heard: list[tuple[ReasonerDecision, float] | None] = await asyncio.to_thread(
             _expect, ours, "heard", n * (deadline_s + LOST_AFTER_S))
         stop.set()
         lags = await lag_task
+        await counting
     finally:
         ours.close()
         await worker.stop()

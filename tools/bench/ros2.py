@@ -35,6 +35,7 @@ from shared.messages import Mode, VehicleSetpoint, VehicleState
 from shared.process import ServiceProcess, free_port
 from shared.settings import BusSettings
 from shared.tables import table
+from tools import progress
 from tools.bench.bus import BenchError
 from tools.bench.fairness import spread
 from tools.fakes.ros2 import odometry_cdr
@@ -141,6 +142,7 @@ def run_ros2_bench(*, seconds: float, rate_hz: float, table_out: bool) -> dict[s
             _wait_through(put_odometry, ins)
             ins.sent.clear()
             ins.arrived.clear()
+            progress.step(f"odometry in at {rate_hz:g} Hz for {seconds:g} s", 1, 2)
             inbound = _phase(bridge, rate_hz, seconds, put_odometry, ins)
 
             def put_setpoint(i: int) -> None:
@@ -152,6 +154,7 @@ def run_ros2_bench(*, seconds: float, rate_hz: float, table_out: bool) -> dict[s
                 outs.sent[round(t * 1000)] = time.monotonic()
                 bus.publish(topics.vehicle_setpoint(ROBOT), sp)
 
+            progress.step(f"set-points out at {rate_hz:g} Hz for {seconds:g} s", 2, 2)
             outbound = _phase(bridge, rate_hz, seconds, put_setpoint, outs)
     result = {"rate_hz": rate_hz, "seconds": seconds, "in": inbound, "out": outbound}
     if table_out:

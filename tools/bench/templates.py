@@ -44,6 +44,7 @@ from services.reasoner.backends import Completion
 from services.reasoner.settings import ReasonerSettings
 from shared.messages import Observation, Option, ReasonerDecision, ReasonerRequest
 from shared.tables import table
+from tools import progress
 from tools.local_llm import REASONER_SETTINGS, THREADS, LocalModel, served
 from tools.scenes.hardware import SCENARIOS, observation_text
 from tools.scenes.registry import generate
@@ -135,6 +136,7 @@ async def ask(url: str, model: LocalModel, template: str, cases: Sequence[Case],
                 used = tokens[0].completion_tokens if tokens else None
                 answers.append(Answer(template, case.name, decision, case.expected, used,
                                       seconds))
+                progress.count(len(answers), repeats * len(cases), "answers")
     finally:
         for decider in deciders.values():
             await decider.aclose()
@@ -189,8 +191,11 @@ def run_templates_bench(model: LocalModel, *, repeats: int = 3, deadline_s: floa
     cases = hardware_cases(deadline_s) + domain_cases(domain_samples, deadline_s)
     with served(model, logs, threads=threads) as url:
         httpx.get(f"{url}/models", timeout=30).raise_for_status()
-        answers = [a for t in templates
-                   for a in asyncio.run(ask(url, model, t, cases, repeats))]
+        answers = []
+        for n, template in enumerate(templates, 1):
+            progress.step(f"template {template}: {repeats} x {len(cases)} cases", n,
+                          len(templates))
+            answers += asyncio.run(ask(url, model, template, cases, repeats))
     return {"model": model.alias, "path": str(model.path), "threads": threads, "repeats": repeats,
             "deadline_s": deadline_s, "domain_samples": domain_samples,
             "cases": {c.name: c.expected for c in cases},

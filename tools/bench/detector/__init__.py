@@ -24,7 +24,8 @@ Ten parts, each one function returning a JSON-able dict (``--only PART``):
 * ``restart``  an HNSW cache on the SQLite store: commit, graph build, index save, and a
   restart that loads the saved index vs one that must rebuild it.
 
-Progress goes to stderr (logging), tables to stdout only when asked; the
+Progress goes to stderr (:mod:`tools.progress`: the part, n of N, texts embedded; logging),
+tables to stdout only when asked; the
 returned dict holds no NaN. Timings on the 2-core machines are noisy: every
 number is a median or p99 and comparisons are ratios measured in one run
 (``meta.load_average`` records how busy the machine was).
@@ -46,6 +47,7 @@ from pathlib import Path
 from typing import Any
 
 from shared.tables import table
+from tools import progress
 
 from .build import bench_build, render_build
 from .common import FULL, QUICK, Bench, jsonable
@@ -93,8 +95,8 @@ def run_detector_bench(
         "restart": lambda: bench_restart(sizes, seed),
     }
     with contextlib.redirect_stdout(sys.stderr):  # stray prints must not reach the JSON
-        for part in parts:
-            log.info("bench %s ...", part)
+        for n, part in enumerate(parts, 1):
+            progress.step(part, n, len(parts))
             t0 = time.perf_counter()
             try:
                 result[part] = runners[part]()
@@ -102,9 +104,9 @@ def run_detector_bench(
                 log.error("bench %s failed:\n%s", part, traceback.format_exc())
                 result[part] = {"error": f"{type(exc).__name__}: {exc}"}
             result[part]["wall_s"] = time.perf_counter() - t0
-            log.info("bench %s done in %.1f s", part, result[part]["wall_s"])
+            progress.say(f"bench detector: {part} done in {result[part]['wall_s']:.1f} s")
             if table:
-                print(render(part, result[part]), file=out, flush=True)
+                progress.out(render(part, result[part]), file=out)
     result["meta"]["wall_s"] = time.perf_counter() - started
     result["meta"]["load_average_end"] = list(os.getloadavg())
     if table:

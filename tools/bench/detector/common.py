@@ -142,9 +142,10 @@ class Bench:
     def embedder(self) -> Embedder:
         from services.embedding.loading import load_embedder
         from services.embedding.settings import DEFAULT_MODEL
+        from tools.counted import Counted
 
         log.info("loading %s", DEFAULT_MODEL)
-        embedder = load_embedder(DEFAULT_MODEL)
+        embedder = Counted(load_embedder(DEFAULT_MODEL))  # texts embedded: the live line's
         embedder.embed(["warm-up"])
         return embedder
 
@@ -167,7 +168,7 @@ class Bench:
         texts = [s.text if form == "prompt" else s.brief
                  for s in self.dataset(name).nominal[:n]]
         log.info("embedding %d %s texts", len(texts), name)
-        return self.embedder.embed(texts, batch_size=64, show_progress_bar=True)
+        return self.embedder.embed(texts, batch_size=64)
 
     def vectors(self, name: str, form: str = "prompt") -> tuple[np.ndarray, np.ndarray]:
         """(nominal, anomaly) unit embeddings of ``dataset(name)``, (n, DIM) float32 each,
@@ -176,7 +177,7 @@ class Bench:
             ds = self.dataset(name)
             texts = [s.text if form == "prompt" else s.brief for s in ds.nominal + ds.anomalies]
             log.info("embedding %d %s texts (%s)", len(texts), name, form)
-            v = self.embedder.embed(texts, batch_size=64, show_progress_bar=True)
+            v = self.embedder.embed(texts, batch_size=64)
             self._vectors[name, form] = (v[: len(ds.nominal)], v[len(ds.nominal):])
         return self._vectors[name, form]
 
