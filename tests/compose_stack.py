@@ -19,7 +19,9 @@ DOCKER = ROOT / "deploy" / "docker"
 BASE_IMAGE = "aesop-base:bookworm"
 POSTGRES_IMAGE = "aesop-postgres:15"
 IMAGE = "aesop-stack:0.1.0"
+SMOLLM2_IMAGE = "aesop-smollm2:0.1.2"
 FLEET = ROOT / "deploy" / "compose.fleet.yml"
+SMOLLM2 = ROOT / "deploy" / "compose.smollm2.yml"
 IMAGE_UID = 10001
 
 
@@ -93,9 +95,11 @@ def build(owner: int = IMAGE_UID) -> list[str]:
     """The images as ``make image`` makes them (what exists is kept: a second build with
     nothing changed is the layer cache's); returns the images this call made, to remove."""
     made = []
-    if not (image_exists(BASE_IMAGE) and image_exists(POSTGRES_IMAGE)):
-        run([DOCKER / "base-image.sh", BASE_IMAGE, "--postgres", POSTGRES_IMAGE])
-        made += [BASE_IMAGE, POSTGRES_IMAGE]
+    bases = [BASE_IMAGE, "--postgres", POSTGRES_IMAGE]
+    if run([DOCKER / "base-image.sh", "--check", *bases], check=False).returncode != 0:
+        had = [name for name in (BASE_IMAGE, POSTGRES_IMAGE) if image_exists(name)]
+        run([DOCKER / "base-image.sh", *bases])
+        made += [name for name in (BASE_IMAGE, POSTGRES_IMAGE) if name not in had]
     run([DOCKER / "wheelhouse.sh"], env={**os.environ, "PYTHON": "python3"})
     had = image_exists(IMAGE)
     run(["docker", "compose", "build"], env={**os.environ, "AESOP_BASE_IMAGE": BASE_IMAGE},
@@ -103,3 +107,15 @@ def build(owner: int = IMAGE_UID) -> list[str]:
     if not had:
         made.append(IMAGE)
     return made
+
+
+def build_smollm2() -> list[str]:
+    """The smollm2 override's image as ``make image-smollm2`` makes it (after ``make llama``,
+    whose wheel it takes): its wheels on the host, then the build, which reaches no network;
+    returns the images this call made."""
+    run([DOCKER / "wheelhouse.sh", "--smollm2"], env={**os.environ, "PYTHON": "python3"})
+    had = image_exists(SMOLLM2_IMAGE)
+    files = ["-f", ROOT / "docker-compose.yml", "-f", SMOLLM2]
+    run(["docker", "compose", *files, "build", "smollm2"],
+        env={**os.environ, "AESOP_BASE_IMAGE": BASE_IMAGE}, timeout=900)
+    return [] if had else [SMOLLM2_IMAGE]

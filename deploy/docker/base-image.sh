@@ -8,18 +8,36 @@
 #       (AESOP_DEBIAN_MIRROR). --postgres: also PostgreSQL 15 for compose.fleet's replicas
 #       (AESOP_POSTGRES_IMAGE=PGNAME), the same base and Debian's postgresql-15, run as uid
 #       10001 by postgres-entrypoint.sh, for a site that cannot pull postgres:15
+#   deploy/docker/base-image.sh --check [NAME] [--postgres PGNAME]
+#       exits 0 when the images are there and NAME holds this script's packages (its label
+#       org.aesop.base.packages), 1 when they must be made (again); no root needed
 # The Dockerfile then builds FROM it: docker compose build --build-arg BASE_IMAGE=NAME, or
 # `make image`, which does both.
 set -euo pipefail
 name=aesop-base:bookworm
 postgres=
+check=
+# Python 3.11 and the run-time libraries the images' wheels load from the system: libgomp1
+# (OpenMP) for llama-cpp-python's, which `make llama` builds on the host (smollm2.Dockerfile).
+# A base made with another list is made again by `make image` (--check).
+packages="python3.11 python3.11-venv libgomp1"
+label="org.aesop.base.packages=\"$packages\""
 while [ $# -gt 0 ]; do
     case $1 in
         --postgres) postgres=${2:?--postgres NAME}; shift 2 ;;
+        --check) check=1; shift ;;
         -*) echo "base-image.sh: unknown option $1" >&2; exit 2 ;;
         *) name=$1; shift ;;
     esac
 done
+if [ -n "$check" ]; then
+    held=$(docker image inspect -f '{{index .Config.Labels "org.aesop.base.packages"}}' \
+        "$name" 2>/dev/null) || exit 1
+    [ "$held" = "$packages" ] || {
+        echo "base-image.sh: $name was not made with $packages: make it again" >&2; exit 1; }
+    [ -z "$postgres" ] || docker image inspect "$postgres" >/dev/null 2>&1 || exit 1
+    exit 0
+fi
 here=$(cd "$(dirname "$0")" && pwd)
 mirror=${AESOP_DEBIAN_MIRROR:-http://deb.debian.org/debian}
 command -v debootstrap >/dev/null || { echo "base-image.sh: debootstrap is missing (apt-get install debootstrap)" >&2; exit 2; }
@@ -30,13 +48,14 @@ debootstrap --variant=minbase --include=ca-certificates bookworm "$rootfs" "$mir
 # Python by apt inside, not debootstrap's --include: its resolver leaves python3.11-venv's
 # dependencies out (python3.11-distutils) and the configure step fails
 chroot "$rootfs" apt-get update -q
+# shellcheck disable=SC2086  # the list, one package a word
 chroot "$rootfs" env DEBIAN_FRONTEND=noninteractive apt-get install -y -q \
-    --no-install-recommends python3.11 python3.11-venv
+    --no-install-recommends $packages
 chroot "$rootfs" python3.11 -m venv /usr/local
 chroot "$rootfs" /usr/local/bin/python -c "import ensurepip, venv, ssl, sqlite3"
 chroot "$rootfs" apt-get clean
 rm -rf "$rootfs"/var/lib/apt/lists/* "$rootfs"/var/cache/apt/*.bin "$rootfs"/tmp/*
-tar --numeric-owner -C "$rootfs" -c . | docker import \
+tar --numeric-owner -C "$rootfs" -c . | docker import --change "LABEL $label" \
     --change 'ENV LANG=C.UTF-8' --change 'CMD ["python"]' - "$name"
 echo "base-image.sh: imported $name"
 [ -n "$postgres" ] || exit 0

