@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -21,6 +22,10 @@ def test_demo_flies_the_papers_hardware_scenarios(tmp_path: Path) -> None:
     assert r.returncode == 0, r.stderr[-3000:] + r.stdout[-3000:]
     lines = r.stdout.strip().splitlines()
     assert len(lines) == 1  # exactly one JSON object on stdout
+    # its progress on stderr, not a terminal here: a line a step, each flight n of 4
+    flights = re.findall(r"^aesop demo \[\d+:\d\d\] flight (\S+) \((\d) of 4\)$", r.stderr,
+                         re.M)
+    assert [n for _, n in flights] == ["1", "2", "3", "4"], r.stderr[-3000:]
     rows = {row["name"]: row for row in json.loads(lines[0])["scenarios"]}
     assert list(rows) == ["1-nominal", "2a-quadrotor-on-red-box", "2b-both-boxes-occupied",
                           "3-keyboard-on-ground"]

@@ -13,7 +13,7 @@ import pytest
 from pydantic import ValidationError
 
 from services.control.scenario import load_scenario
-from tools.demo.flights import add_time_lost, summary_text
+from tools.demo.flights import add_time_lost, dashboard_text, summary_text
 from tools.demo.report import (
     AGES,
     COLUMNS,
@@ -178,6 +178,10 @@ def test_what_the_demo_prints_fits_in_100_columns_and_keeps_every_column(
     result = {"ok": False, "scenarios": rows, "wall_s": 88.0}
     text = summary_text("paper-quadrotor-hardware, the fake LLM", result, tmp_path / "r.html")
     assert max(len(line) for line in text.splitlines()) <= 100
+    token = tmp_path / ("a-long-folder-name-" * 3) / "data" / "admin-token"
+    dashboard = dashboard_text("http://127.0.0.1:8080", token, keep_up=False).splitlines()
+    assert dashboard[0].startswith("dashboard: http://127.0.0.1:8080/?token=$(cat ")
+    assert max(len(line) for line in dashboard[1:]) <= 100  # all but the address itself
     # every column the one wide table had is in one of the narrow ones (the decision's
     # rightness with a real model in decisions_text; why a flight failed under the tables)
     kept = {key for group in (SUMMARY, MEASURES, AGES) for key, _ in group}

@@ -7,6 +7,7 @@ import json
 import os
 from pathlib import Path
 
+from tools import progress
 from tools.stack.cli import add_fleet_options, add_llm_options
 
 
@@ -64,8 +65,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     args.scenario = hardware_scenario()  # the demo flies the hardware scene, whatever the env
     out = args.out.resolve()
-    result = run_stack_demo(stack_options(args, out / "data"), os.environ, out,
-                            model=args.model, table=not args.json, keep_up=args.keep_up)
+    with progress.shown("aesop demo"):
+        result = run_stack_demo(stack_options(args, out / "data"), os.environ, out,
+                                model=args.model, table=not args.json, keep_up=args.keep_up)
     if args.json:
         print(json.dumps({"scenarios": result["scenarios"], **(
             {"k": result["k"]} if "k" in result else {})}, allow_nan=False))
@@ -104,8 +106,9 @@ def cmd_attached(args: argparse.Namespace) -> int:
     joined(bus, "demo --attach --data-dir <data-dir>", DATA_DIR_LOGIN)
     stack = Attached(args.embedding_url, args.control_url,
                      args.sim_url if args.vehicle == "sim" else None, token, bus)
-    result = run_attached_demo(stack, args.out.resolve(), names=args.scenario_name,
-                               model=args.model, table=not args.json)
+    with progress.shown("aesop demo"):
+        result = run_attached_demo(stack, args.out.resolve(), names=args.scenario_name,
+                                   model=args.model, table=not args.json)
     if args.json:
         print(json.dumps({"scenarios": result["scenarios"]}, allow_nan=False))
     return 0 if result["ok"] else 1

@@ -25,6 +25,7 @@ import contextlib
 import secrets
 import shlex
 import signal
+import textwrap
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -78,6 +79,7 @@ from tools.stack.up import (
 
 from .k import QUERIES, KChoice, calibrate, choose_k, scene_with_k
 from .report import (
+    WIDTH,
     decisions_text,
     ended_in,
     flight_facts,
@@ -179,8 +181,9 @@ def dashboard_text(url: str, token_file: Path | None, keep_up: bool) -> str:
     where = ("with AESOP_ADMIN_TOKEN set in that shell" if token_file is None else
              f"the admin token is in {token_file}, readable by you only")
     lines = [f"dashboard: {dashboard_login(url, token_file)}",
-             f"  (open it once, e.g. xdg-open \"<that address>\": {where}; the browser then "
-             "keeps a session)"]
+             textwrap.fill(f"(open it once, e.g. xdg-open \"<that address>\": {where}; the "
+                           "browser then keeps a session)", WIDTH, initial_indent="  ",
+                           subsequent_indent="   ", break_on_hyphens=False)]
     if not keep_up:
         lines.append("  (stopped with the demo; `aesop demo --keep-up` leaves it running)")
     return "\n".join(lines)
