@@ -173,6 +173,10 @@ class MPCConfig:
     # attitude chain reverses slowly: a turn-around planned at the limit overshoots ~0.2 m/s.
     velocity_margin: float = 0.25
     input_margin: float = 0.005  # least tightening of an input bound (OSQP is eps-exact)
+    # share of a lag gap (the realized-jerk bound, i.e. the tilt rate) held back beyond
+    # shrink: a vehicle's attitude loop, lagging the exponential its command asks for, and
+    # its own velocity feedback overshoot the tilt rate that the lag alone implies
+    jerk_margin: float = 0.0
     relax_steps: int = 20  # steps over which an initial-state excess is tapered out (2 s at
     # dt 0.1: the paper vehicle's attitude chain needs about 1 s to take off the margin)
     # steps before the taper starts: the excess is allowed in full up to step relax_lag. The
@@ -210,6 +214,8 @@ class MPCConfig:
     def __post_init__(self) -> None:
         if not 0 <= self.consensus < self.horizon:
             raise ValueError("need 0 <= consensus < horizon")
+        if not 0.0 <= self.jerk_margin < 1.0 - self.shrink:
+            raise ValueError("need 0 <= jerk_margin < 1 - shrink")
         if not 0.0 <= self.recovery_tracking <= 1.0:
             raise ValueError("need 0 <= recovery_tracking <= 1")
         if not 1 <= self.min_region_step <= self.horizon:
@@ -369,13 +375,14 @@ def tightened_lag_gaps(model: PlanningModel, config: MPCConfig
                        ) -> list[tuple[int, int, float, float]]:
     """``(state, input, lo, hi)`` per lag state with a finite ``lag_gap``: the bounds on
     ``du[k] - a[k]`` (input relative to hover, minus the lag state at the same step) that
-    keep ``|u - a|`` within the gap tightened by ``shrink``. The first step is always
-    feasible: ``u_0 = a_0``, a filter of past commands inside the input box."""
+    keep ``|u - a|`` within the gap tightened by ``shrink + jerk_margin``. The first step
+    is always feasible: ``u_0 = a_0``, a filter of past commands inside the input box."""
     first = model.n - model.n_lag
     out = []
     for j, (channel, gap) in enumerate(zip(model.lag_inputs, model.lag_gap, strict=False)):
         if np.isfinite(gap):
-            width, hover = gap * (1.0 - config.shrink), float(model.linear.u_hover[channel])
+            width = gap * (1.0 - config.shrink - config.jerk_margin)
+            hover = float(model.linear.u_hover[channel])
             out.append((first + j, channel, -width - hover, width - hover))
     return out
 

@@ -36,7 +36,8 @@ BUNDLED = ("paper", "hardware")  # scenario names that load the packaged files
 # MPCConfig fields counted in steps of dt (so they scale when the grid changes)
 STEP_FIELDS = ("relax_steps", "min_region_step", "late_region_steps", "reserve_steps")
 # MPCConfig fields a scenario may set (numbers only; the rest belongs to the code)
-MPC_FIELDS = ("velocity_margin", "position_margin", "shrink", "input_margin", "relax_steps",
+MPC_FIELDS = ("velocity_margin", "position_margin", "shrink", "input_margin", "jerk_margin",
+              "relax_steps",
               "recovery_tracking", "relax_lag", "relax_floor", "referee_max_iter",
               "reserve_steps",
               "min_region_step", "late_region_steps", "recovery_weight", "max_iter",

@@ -198,7 +198,9 @@ def test_point_mass_tree_at_the_papers_grid_matches_reference(x, vx, ax, k) -> N
     from services.control.scenario import planning_model
 
     model = planning_model(HARDWARE)
-    config = dataclasses.replace(mpc_config(HARDWARE), eps_abs=1e-6, eps_rel=1e-6,
+    # eps 1e-5: at 1e-6 ADMM ends one of these 'inaccurate' after 200,000 iterations since
+    # the lag gaps' rows (its cost then agrees to 4e-10 all the same)
+    config = dataclasses.replace(mpc_config(HARDWARE), eps_abs=1e-5, eps_rel=1e-5,
                                  max_iter=200_000, max_iter_cold=200_000, referee_max_iter=0,
                                  workers=1)
     state = model.measure(np.array([x, 0.1, 0.5, vx, 0, 0, 0, 0, 0, 0, 0, 0]),
