@@ -9,7 +9,14 @@ from pathlib import Path
 import pytest
 
 from services.control.scenario import load_scenario
-from tools.demo.k import QUERIES, choose_k, scene_with_k, tree_at_start
+from tools.demo.k import (
+    QUERIES,
+    choose_k,
+    control_k,
+    k_record,
+    scene_with_k,
+    tree_at_start,
+)
 from tools.demo.report import decisions_text, destination, judge, verdict_line
 from tools.scenes.hardware import GOAL, SCENARIOS
 from tools.stack.up import hardware_scenario
@@ -51,6 +58,30 @@ def test_the_scene_with_k_loads_as_the_same_scene_but_for_k(tmp_path: Path) -> N
     assert (scene.regions, scene.goal, scene.dt, scene.horizon_s) == (
         SCENE.regions, SCENE.goal, SCENE.dt, SCENE.horizon_s)
     assert tree_at_start(SCENE) is None
+
+
+def test_the_record_keeps_what_was_measured_chosen_and_why() -> None:
+    choice = choose_k(SCENE, calibration(4.9))
+    record = k_record(choice)
+    assert record == {"flown_s": 4.9, "chosen_s": 4.9, "scene_s": SCENE.consensus_s,
+                      "measured_s": 4.9, "why": choice.why,
+                      "calibration": calibration(4.9)}
+    kept = k_record(choose_k(SCENE, calibration(7.5)))  # measured, not kept: the scene's
+    assert (kept["chosen_s"], kept["measured_s"]) == (SCENE.consensus_s, 7.5)
+
+
+def test_controls_k_is_read_from_the_scene_it_names(tmp_path: Path) -> None:
+    """Control's GET /v1/state names its scene, not its K: the hardware scene's is its K,
+    the one scene_with_k wrote carries its K in its name, any other's is not known."""
+    k_s, why = control_k(SCENE.name, SCENE)
+    assert k_s == SCENE.consensus_s and "not its K" in why and "the scene's" in why
+    for k in (4.9, 6.65, 0.35):
+        written = load_scenario(scene_with_k(hardware_scenario(), k, tmp_path / f"{k}.yaml"))
+        k_s, why = control_k(written.name, SCENE)
+        assert k_s == written.consensus_s == k and f"K = {k:g} s" in why
+    for other in ("paper-quadrotor", f"{SCENE.name}-kx", f"{SCENE.name}-k40", f"{SCENE.name}-knan"):
+        k_s, why = control_k(other, SCENE)
+        assert k_s == SCENE.consensus_s and "does not report its K" in why, other
 
 
 def test_a_wrong_decision_is_no_failure_when_the_flight_ends_where_it_sent_it() -> None:

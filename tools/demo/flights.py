@@ -29,7 +29,6 @@ import textwrap
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
@@ -44,7 +43,6 @@ from services.sim.client import SimClient
 from services.sim.judge import count_violations, over_limits
 from shared import topics
 from shared.bus import Bus, Subscription
-from shared.client import ServiceError
 from shared.messages import (
     AnomalyVerdict,
     ControlState,
@@ -77,7 +75,7 @@ from tools.stack.up import (
     hardware_scenario as hardware_path,
 )
 
-from .k import QUERIES, KChoice, calibrate, choose_k, scene_with_k
+from .k import KChoice, k_record, measure_k, scene_with_k
 from .report import (
     WIDTH,
     decisions_text,
@@ -99,7 +97,6 @@ ROUTE_TIMEOUT_S = 60.0
 STALE_WAIT_S = 0.8  # the control loop's verdicts go stale after 0.5 s by default
 CAMERA_PERIOD_S = 0.1  # observations at 10 Hz (the paper's detector ran at 18.8 Hz)
 MAX_ANSWER_CHARS = 1000  # of the model's answer, in the report
-LOAD_FLIGHTS = 20  # nominal flights at most while the model is timed (about 30 s each)
 
 
 def run_stack_demo(options: StackOptions, environ: Mapping[str, str], out: Path, *,
@@ -139,9 +136,7 @@ def run_stack_demo(options: StackOptions, environ: Mapping[str, str], out: Path,
         result.update(scene=scenario.name, rate_hz=1.0 / scenario.dt, llm=llm_line(plan, k),
                       wall_s=round(time.monotonic() - started, 1), dashboard=dashboard)
         if k is not None:
-            result["k"] = {"flown_s": k.k_s, "scene_s": k.scene_k_s,
-                           "measured_s": k.measured_k_s, "why": k.why,
-                           "calibration": dict(k.report)}
+            result["k"] = k_record(k)
         progress.step("writing the report")
         report = write_report(out, result, flights, scenario)
         if table:
@@ -240,30 +235,17 @@ def _interrupt(*_: object) -> None:
 def fly_with_k(stack: Stack, plan: StackPlan, options: StackOptions,
                environ: Mapping[str, str], scenario: Scenario, out: Path
                ) -> tuple[KChoice, Scenario]:
-    """Measure the served model's latency with the reasoner's calibration job while the
-    robot flies the nominal scenario again and again, the detector's cache built before
-    (the model shares these cores with the control loop and the detector, as it will in the
-    scenarios: timed on an idle stack, SmolLM2's 95 % quantile was 2.6 s and every answer
-    in flight came later; timed while the cache was built, a few took 20 s), and,
-    when the scene can keep it, give the control loop that K (:mod:`.k`): it is started
-    again on the scene with that K. The K chosen and the scene now flown."""
+    """Measure K on the served model (:func:`.k.measure_k`: timed while the robot flies
+    the nominal scenario again and again) and, when the scene can keep it, give the
+    control loop that K: it is started again on the scene with that K. The K chosen and
+    the scene now flown."""
     url = plan.url("reasoner")
     assert url is not None
-    fly_scenarios(plan, [], scenario=scenario, robot=plan.robot)  # the cache, built first
-    progress.step(f"timing the model: {QUERIES} answers to scenario 2a's question while the "
-                  "robot flies the nominal scenario (a few minutes)")
-    done = threading.Event()
-    with ThreadPoolExecutor(1) as pool:
-        flying = pool.submit(fly_scenarios, plan, ["1-nominal"] * LOAD_FLIGHTS,
-                             scenario=scenario, robot=plan.robot, until=done)
-        try:
-            report = _time_the_model(url, plan.token)
-        finally:
-            done.set()
-        flown = len(flying.result()[0]["scenarios"])
-    _say(f"  timed during {flown} nominal flights")
-    choice = choose_k(scenario, report)
-    _say(choice.why)
+
+    def fly(names: Sequence[str], until: threading.Event | None) -> dict[str, Any]:
+        return fly_scenarios(plan, names, scenario=scenario, robot=plan.robot, until=until)[0]
+
+    choice = measure_k(scenario, url, plan.token, fly)
     if choice.k_s != scenario.consensus_s:
         path = scene_with_k(plan.scenario, choice.k_s, out / "data" / "scene-with-k.yaml")
         again = plan_stack(replace(options, scenario=path), environ, plan.token,
@@ -271,16 +253,6 @@ def fly_with_k(stack: Stack, plan: StackPlan, options: StackOptions,
         stack.replace(next(s for s in again.services if s.name == "control"))
         scenario = load_scenario(path)
     return choice, scenario
-
-
-def _time_the_model(url: str, token: str) -> dict[str, Any]:
-    """The calibration job's report (or why it failed)."""
-    try:
-        report = asyncio.run(calibrate(url, token, say=lambda job: progress.count(
-            job.done, job.total, "answers")))
-    except ServiceError as exc:  # every query failed: the job says why
-        report = {"error": str(exc)}
-    return report
 
 
 def llm_line(plan: StackPlan, k: KChoice | None) -> str:

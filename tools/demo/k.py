@@ -16,14 +16,21 @@ running stack. :func:`choose_k` turns that job's report into the K the flights u
   every recovery after a longer wait. Otherwise the scene's own K is flown and the report
   says why (the decisions that come later than it become the control loop's fallback).
 
-:func:`scene_with_k` writes the scene with that K for the control loop to load.
+:func:`measure_k` is the whole measurement, shared by ``aesop demo --llm local`` (which
+then starts its control loop again with the K chosen) and ``aesop demo --attach
+--measure-k`` (whose stack's loop is not its own to restart: it flies the K that loop has,
+:func:`control_k`, and says how to fly the one chosen). :func:`scene_with_k` writes the
+scene with that K for a control loop to load; :func:`k_record` is what the report keeps.
 """
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import math
-from collections.abc import Mapping
+import threading
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,10 +42,18 @@ from services.control.loop import rest_at
 from services.control.scenario import Scenario, ScenarioError, load_scenario
 from services.reasoner.client import ReasonerClient
 from services.reasoner.latency import min_samples
+from shared.client import ServiceError
+from tools import progress
 
 QUANTILE = CONFIDENCE = 0.95  # the paper's quantile; the bound's confidence
 QUERIES = min_samples(QUANTILE, CONFIDENCE) + 1  # 60: the bound is the slowest answer
 WARMUP = 2
+LOAD_FLIGHTS = 20  # nominal flights at most while the model is timed (about 30 s each)
+LOAD_SCENARIO = "1-nominal"
+
+# flies the named demo scenarios (none: only builds the detector's cache) until the event
+# is set (None: all of them); the flights' result (``scenarios``: a row per flight)
+Fly = Callable[[Sequence[str], threading.Event | None], Mapping[str, Any]]
 
 
 @dataclass(frozen=True)
@@ -122,3 +137,67 @@ async def calibrate(url: str, token: str, *, n: int = QUERIES,
         done = await client.wait_for_job(job.job, progress=say, poll_s=1.0)
     assert done.result is not None
     return dict(done.result)
+
+
+def time_the_model(url: str, token: str) -> dict[str, Any]:
+    """The calibration job's report (or why it failed)."""
+    try:
+        report = asyncio.run(calibrate(url, token, say=lambda job: progress.count(
+            job.done, job.total, "answers")))
+    except ServiceError as exc:  # every query failed: the job says why
+        report = {"error": str(exc)}
+    return report
+
+
+def measure_k(scenario: Scenario, reasoner_url: str, token: str, fly: Fly) -> KChoice:
+    """The served model timed by the reasoner at ``reasoner_url`` (:func:`calibrate`) while
+    the robot flies the nominal scenario again and again (``fly``), the detector's cache
+    built before, and the K chosen from it (:func:`choose_k`). The model shares the cores
+    with the control loop and the detector, as it will in the scenarios: timed on an idle
+    stack, SmolLM2's 95 % quantile was 2.6 s and every answer in flight came later; timed
+    while the cache was built, a few took 20 s."""
+    fly([], None)  # the cache, built first
+    progress.step(f"timing the model: {QUERIES} answers to scenario 2a's question while the "
+                  "robot flies the nominal scenario (a few minutes)")
+    done = threading.Event()
+    with ThreadPoolExecutor(1) as pool:
+        flying = pool.submit(fly, [LOAD_SCENARIO] * LOAD_FLIGHTS, done)
+        try:
+            report = time_the_model(reasoner_url, token)
+        finally:
+            done.set()
+        flown = len(flying.result()["scenarios"])
+    progress.say(f"  timed during {flown} nominal flights")
+    choice = choose_k(scenario, report)
+    progress.say(choice.why)
+    return choice
+
+
+def k_record(choice: KChoice) -> dict[str, Any]:
+    """What the report and result.json keep of a K measured and chosen (``flown_s``: the
+    K the flights had, the one chosen unless the caller says otherwise)."""
+    return {"flown_s": choice.k_s, "chosen_s": choice.k_s, "scene_s": choice.scene_k_s,
+            "measured_s": choice.measured_k_s, "why": choice.why,
+            "calibration": dict(choice.report)}
+
+
+def control_k(flown: str, scenario: Scenario) -> tuple[float, str]:
+    """The K a control loop flies whose ``GET /v1/state`` names the scene ``flown``, and
+    how that is known: control reports its scene's name, not its K. ``scenario``'s name is
+    ``scenario``'s K; the name :func:`scene_with_k` gives (``<name>-k<K>``) carries the K
+    it wrote; any other scene's K is not known, and ``scenario``'s is assumed."""
+    if flown == scenario.name:
+        return scenario.consensus_s, (
+            f"control flies the scene {flown!r} (its GET /v1/state names the scene, not its "
+            f"K): K = {scenario.consensus_s:g} s, the scene's")
+    prefix = f"{scenario.name}-k"
+    try:
+        k_s = float(flown.removeprefix(prefix)) if flown.startswith(prefix) else math.nan
+    except ValueError:
+        k_s = math.nan
+    if math.isfinite(k_s) and 0.0 < k_s < scenario.horizon_s:
+        return k_s, (f"control flies {flown!r}, the scene written with K = {k_s:g} s (its "
+                     "GET /v1/state names the scene, not its K)")
+    return scenario.consensus_s, (
+        f"control flies a scene of its own, {flown!r}, and does not report its K: taken as "
+        f"{scenario.name}'s K = {scenario.consensus_s:g} s")
