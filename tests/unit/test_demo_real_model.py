@@ -13,6 +13,7 @@ from tools.demo.k import (
     QUERIES,
     choose_k,
     control_k,
+    how_to_fly,
     k_record,
     scene_with_k,
     tree_at_start,
@@ -118,6 +119,40 @@ def test_the_verdict_counts_the_right_decisions_and_the_text_quotes_each_answer(
     assert '"answer": "holding zone"' in text and "the box is taken" in text
     assert "(no answer from the model)" in text
     assert verdict_line({"ok": False, "scenarios": rows}) == "SOME FAILED"
+
+
+def test_an_attached_stack_is_told_the_k_it_flew_and_how_to_fly_the_one_chosen(
+        tmp_path: Path) -> None:
+    """aesop demo --attach --measure-k: the record says what was chosen and why, the K the
+    loop flew (and that later answers were its fallback), and the command to fly the K
+    chosen, on a line of its own; the rest fits in 100 columns."""
+    import shlex
+
+    from tools.demo.report import decisions_section
+
+    path = tmp_path / ("a-long-folder-name-" * 4) / "scene-with-k.yaml"
+    todo, command = how_to_fly(path, compose=False)
+    assert shlex.split(command) == ["aesop", "up", "--scenario", str(path)]
+    assert "the options it ran with" in todo
+    choice = choose_k(SCENE, calibration(5.96))
+    k_s, why = control_k(SCENE.name, SCENE)
+    k = k_record(choice) | {"flown_s": k_s, "control": why, "later": "answers later than "
+                            f"{k_s:g} s end as the control loop's fallback",
+                            "scene_file": str(path),
+                            "to_fly_chosen": list(how_to_fly(path, compose=True))}
+    rows = [{"name": "2a-quadrotor-on-red-box", "decision": "alternative landing site",
+             "decision_right": True, "decision_source": "control fallback at K",
+             "decision_latency_ms": None, "answer": None, "ended_in": "blue-box"}]
+    text = decisions_text({"ok": True, "scenarios": rows, "k": k})
+    lines = text.splitlines()
+    (shown,) = [line for line in lines if "docker compose" in line]
+    assert shown == "  " + k["to_fly_chosen"][1]
+    assert max(len(line) for line in lines if line != shown) <= 100
+    words = " ".join(text.split())
+    assert f"K: {choice.why}" in words and f"flown: {why}; answers later than 4.3 s" in words
+    assert "to fly K = 6 s" in words and "control fallback at K" in words
+    page = decisions_section({"ok": True, "scenarios": rows, "k": k})
+    assert "Flown: control flies the scene" in page and "AESOP_SCENE_FILE=" in page
 
 
 def test_a_flight_lasts_until_a_late_anomalys_t_has_come_due() -> None:

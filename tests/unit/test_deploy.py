@@ -796,6 +796,49 @@ def test_the_smollm2_override_serves_the_trained_model_as_aesop_up_local_does(
     assert str(SMOLLM2.relative_to(ROOT)) in (ROOT / "deploy" / "README.md").read_text()
 
 
+SCENE_OVERRIDE = ROOT / "deploy" / "compose.scene.yml"
+
+
+def test_the_scene_override_gives_control_the_scene_the_demo_wrote_with_its_k(
+        monkeypatch: pytest.MonkeyPatch, compose_secrets: dict[str, Path],
+        tmp_path: Path) -> None:
+    """``-f deploy/compose.scene.yml`` with ``AESOP_SCENE_FILE``: the file `aesop demo
+    --attach --measure-k` writes, bound read-only where control's scene setting points, is
+    the scene control loads (its K); without the variable compose refuses to start, and a
+    file that is not there is not made a folder. The command the demo prints is this."""
+    from services.control.scenario import load_scenario, resolve_scenario
+    from services.control.settings import ControlSettings
+    from tools.demo.k import SCENE_FILE, how_to_fly, scene_with_k
+    from tools.stack.up import hardware_scenario
+
+    override = yaml.safe_load(SCENE_OVERRIDE.read_text())["services"]
+    assert list(override) == ["control"]  # the simulator flies the hardware scene still
+    (bind,) = override["control"]["volumes"]
+    assert bind["type"] == "bind" and bind["read_only"] is True
+    assert bind["bind"] == {"create_host_path": False}
+    with pytest.raises(KeyError, match="AESOP_SCENE_FILE"):
+        interpolate(bind["source"], {})
+    written = scene_with_k(hardware_scenario(), 6.1, tmp_path / SCENE_FILE)
+    assert interpolate(bind["source"], {"AESOP_SCENE_FILE": str(written)}) == str(written)
+    control = aesop_services()["control"]
+    merged = {**control, "environment": {**control["environment"],
+                                         **override["control"]["environment"]}}
+    settings = settings_in_container(merged, monkeypatch, compose_secrets,
+                                     {"AESOP_SCENE_FILE": str(written)})
+    assert isinstance(settings, ControlSettings)
+    assert resolve_scenario(settings.scenario) == Path(bind["target"])
+    assert bind["target"] not in {target for _, target in mounts(control)}
+    assert load_scenario(written).consensus_s == 6.1  # what control loads there
+    todo, command = how_to_fly(written, compose=True)
+    words = shlex.split(command)
+    assert words[0] == f"AESOP_SCENE_FILE={written}" and words[-3:] == ["up", "-d", "control"]
+    files = [words[i + 1] for i, w in enumerate(words) if w == "-f"]
+    assert files[0] == COMPOSE.name and files[-1] == str(SCENE_OVERRIDE.relative_to(ROOT))
+    assert all((ROOT / f).is_file() for f in files)
+    readme = (ROOT / "deploy" / "README.md").read_text()
+    assert str(SCENE_OVERRIDE.relative_to(ROOT)) in readme and "--measure-k" in readme
+
+
 def test_the_smollm2_image_is_built_offline_from_the_hosts_wheels() -> None:
     """smollm2.Dockerfile as the stack's Dockerfile: FROM the base `make image` makes (the
     override passes it as compose.yml does, and builds with no network), llama-cpp-python's

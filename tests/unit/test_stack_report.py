@@ -313,6 +313,10 @@ def test_plan_serves_a_local_model_and_asks_it_as_its_server_wants(tmp_path: Pat
     request = json.loads(reasoner["AESOP_REASONER_REQUEST"])
     assert request["json_schema"] is True and request["response_format"] == "json_object"
     assert request["max_reasoning_chars"] == 200 and request["max_tokens"] == 123
+    # the banner's demo command, with K measured on that model first (not on the fake LLM)
+    reasoner_url = plan.url("reasoner")
+    assert f"add --measure-k --reasoner-url {reasoner_url}\n" in urls_text(plan, None)
+    assert "--measure-k" not in urls_text(plan_stack(options(tmp_path), {}, "t" * 24), None)
 
 
 def test_a_fleet_plan_gives_each_robot_its_loop_vehicle_and_user_and_replicas_a_store(

@@ -51,6 +51,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                         help="its router (default tcp/127.0.0.1:7447, or AESOP_ZENOH_CONNECT)")
     attach.add_argument("--scenario-name", action="append", default=None, metavar="NAME",
                         help="only this scenario (2a, 2b, 3, 1; repeatable)")
+    attach.add_argument("--measure-k", action="store_true",
+                        help="first measure K on the model its reasoner asks, as --llm local "
+                             "does; flies the K its control loop has, and writes the scene "
+                             "with the K chosen to --out, saying how to fly it (default: "
+                             "off, the loop's K, nothing measured)")
+    attach.add_argument("--reasoner-url", default="http://127.0.0.1:8002",
+                        help="its reasoner, for --measure-k (default http://127.0.0.1:8002)")
     add_fleet_options(demo)  # --robots 3: three scenarios flown at once, one per robot
     add_llm_options(demo)  # --llm local: a trained model, K measured on it first
     demo.set_defaults(func=cmd_demo, needs_bench_extra=True)
@@ -105,13 +112,39 @@ def cmd_attached(args: argparse.Namespace) -> int:
     # refused client was a traceback after it; a peer session opened whatever answered)
     joined(bus, "demo --attach --data-dir <data-dir>", DATA_DIR_LOGIN)
     stack = Attached(args.embedding_url, args.control_url,
-                     args.sim_url if args.vehicle == "sim" else None, token, bus)
+                     args.sim_url if args.vehicle == "sim" else None, token, bus,
+                     reasoner_url=args.reasoner_url if args.measure_k else None,
+                     compose=args.data_dir is None)
+    if args.measure_k:  # a reasoner that does not let us in, said before the cache is built
+        _reasoner_answers(args.reasoner_url, token)
     with progress.shown("aesop demo"):
         result = run_attached_demo(stack, args.out.resolve(), names=args.scenario_name,
                                    model=args.model, table=not args.json)
     if args.json:
-        print(json.dumps({"scenarios": result["scenarios"]}, allow_nan=False))
+        print(json.dumps({"scenarios": result["scenarios"], **(
+            {"k": result["k"]} if "k" in result else {})}, allow_nan=False))
     return 0 if result["ok"] else 1
+
+
+def _reasoner_answers(url: str, token: str) -> None:
+    """A usage error (status 2) unless the reasoner at ``url`` answers its admin API."""
+    import asyncio
+
+    import httpx
+
+    from services.reasoner.client import ReasonerClient
+    from shared.client import ServiceError
+    from tools.commands import CliError
+
+    async def ask() -> None:
+        async with ReasonerClient(url, token=token, timeout_s=10) as reasoner:
+            await reasoner.backends()
+
+    try:
+        asyncio.run(ask())
+    except (ServiceError, httpx.HTTPError, OSError) as exc:
+        raise CliError(f"demo --attach --measure-k: the reasoner at {url} does not answer "
+                       f"({exc}); --reasoner-url names it") from None
 
 
 def _first_line(path: Path) -> str:

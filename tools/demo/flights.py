@@ -39,6 +39,7 @@ import numpy as np
 from services.control.client import ControlClient
 from services.control.scenario import Scenario, load_scenario
 from services.embedding.client import EmbeddingClient
+from services.reasoner.client import ReasonerClient
 from services.sim.client import SimClient
 from services.sim.judge import count_violations, over_limits
 from shared import topics
@@ -75,7 +76,15 @@ from tools.stack.up import (
     hardware_scenario as hardware_path,
 )
 
-from .k import KChoice, k_record, measure_k, scene_with_k
+from .k import (
+    SCENE_FILE,
+    KChoice,
+    control_k,
+    how_to_fly,
+    k_record,
+    measure_k,
+    scene_with_k,
+)
 from .report import (
     WIDTH,
     decisions_text,
@@ -194,6 +203,8 @@ class Attached:
     sim_url: str | None  # None: any vehicle on the bus (:class:`.vehicles.BusVehicle`)
     token: str
     bus: BusSettings  # the robot's user: its observations, as its camera publishes them
+    reasoner_url: str | None = None  # K measured on the model it asks (--measure-k)
+    compose: bool = True  # started by compose (else `aesop up`): how control gets a scene
 
 
 def run_attached_demo(stack: Attached, out: Path, *, names: Sequence[str] | None = None,
@@ -201,23 +212,78 @@ def run_attached_demo(stack: Attached, out: Path, *, names: Sequence[str] | None
     """``aesop demo --attach``: the hardware scenarios (``names``, default all) flown against
     ``stack``, whose control loop flies the hardware scene with its simulator (or any
     vehicle on the bus); the cache built over REST, each flight judged on the vehicle's
-    truth, the report in ``out``."""
+    truth, the report in ``out``. With ``stack.reasoner_url``, K is measured on the model
+    first (:func:`attached_k`) and the flights judged as a real model's (on safety)."""
     scenario = load_scenario(hardware_path())
     demos = SCENARIOS if names is None else tuple(demo_scenario(n) for n in names)
     started = time.monotonic()
+    k, detector = (None, None) if stack.reasoner_url is None else \
+        attached_k(stack, scenario, model, out)
     result, flights = asyncio.run(fly_robot(stack.embedding_url, stack.control_url,
                                             stack.sim_url, stack.token, stack.bus, scenario,
-                                            model, demos))
-    result.update(scene=scenario.name, rate_hz=1.0 / scenario.dt, llm="the stack's",
+                                            model, demos, real_model=k is not None,
+                                            detector=detector))
+    result.update(scene=scenario.name, rate_hz=1.0 / scenario.dt,
+                  llm="the stack's" if k is None else k.pop("llm"),
                   wall_s=round(time.monotonic() - started, 1), dashboard=None)
+    if k is not None:
+        result["k"] = k
     progress.step("writing the report")
     report = write_report(out, result, flights, scenario)
     if table:
         progress.out(summary_text(f"{scenario.name}, attached to {stack.control_url}", result,
-                                  report))
+                                  report) + ("" if k is None else "\n" + decisions_text(result)))
     else:
         _say(f"report: {report}")
     return result
+
+
+def attached_k(stack: Attached, scenario: Scenario, model: str | None, out: Path
+               ) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``aesop demo --attach --measure-k``: K measured on the model the stack's reasoner
+    asks, as ``aesop demo --llm local`` measures it (:func:`.k.measure_k`); but the stack's
+    control loop is not ours to restart, so the flights have the K it flies (:func:`.k.control_k`),
+    and where the K chosen is another, the scene with it is written to ``out`` and the
+    record says how to fly it (:func:`.k.how_to_fly`). What the report keeps of it
+    (:func:`.k.k_record`, and ``llm``: the model asked), and the detector's cache built."""
+    assert stack.reasoner_url is not None
+    built: dict[str, Any] = {}
+
+    def fly(names: Sequence[str], until: threading.Event | None) -> dict[str, Any]:
+        result, _ = asyncio.run(fly_robot(
+            stack.embedding_url, stack.control_url, stack.sim_url, stack.token, stack.bus,
+            scenario, model, tuple(demo_scenario(n) for n in names), real_model=True,
+            until=until, detector=built.get("detector")))
+        built.setdefault("detector", result["detector"])
+        return result
+
+    asked, flown = asyncio.run(_attached_llm(stack))
+    choice = measure_k(scenario, stack.reasoner_url, stack.token, fly)
+    k_s, why = control_k(flown, scenario)
+    record = k_record(choice) | {"flown_s": k_s, "control": why,
+                                 "llm": f"{asked}, K = {k_s:g} s (control's)"}
+    _say(why)
+    if choice.k_s != k_s:
+        path = scene_with_k(hardware_path(), choice.k_s, out / SCENE_FILE)
+        path.chmod(0o644)  # control's user in a container reads it (uid 10001)
+        todo, command = how_to_fly(path, stack.compose)
+        record |= {"later": f"the K chosen is not the loop's: answers later than {k_s:g} s "
+                            "end as the control loop's fallback",
+                   "scene_file": str(path), "to_fly_chosen": [todo, command]}
+        _say(f"{record['later']}; to fly K = {choice.k_s:g} s (written to {path}), {todo}\n"
+             f"  {command}")
+    return record, built["detector"]
+
+
+async def _attached_llm(stack: Attached) -> tuple[str, str]:
+    """The model the stack's reasoner asks (its primary backend) and the scene its control
+    loop names."""
+    assert stack.reasoner_url is not None
+    async with ReasonerClient(stack.reasoner_url, token=stack.token, timeout_s=30) as reasoner:
+        primary = (await reasoner.backends()).backends[0]
+    async with ControlClient(stack.control_url, token=stack.token, timeout_s=30) as control:
+        flown = (await control.state()).scenario
+    return f"{primary.model} at {primary.base_url}", flown
 
 
 def summary_text(about: str, result: dict[str, Any], report: Path) -> str:

@@ -28,6 +28,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import math
+import shlex
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -48,6 +49,8 @@ from tools import progress
 QUANTILE = CONFIDENCE = 0.95  # the paper's quantile; the bound's confidence
 QUERIES = min_samples(QUANTILE, CONFIDENCE) + 1  # 60: the bound is the slowest answer
 WARMUP = 2
+SCENE_FILE = "scene-with-k.yaml"  # in aesop demo --attach's --out
+SCENE_OVERRIDE = "deploy/compose.scene.yml"  # mounts $AESOP_SCENE_FILE as control's scene
 LOAD_FLIGHTS = 20  # nominal flights at most while the model is timed (about 30 s each)
 LOAD_SCENARIO = "1-nominal"
 
@@ -201,3 +204,18 @@ def control_k(flown: str, scenario: Scenario) -> tuple[float, str]:
     return scenario.consensus_s, (
         f"control flies a scene of its own, {flown!r}, and does not report its K: taken as "
         f"{scenario.name}'s K = {scenario.consensus_s:g} s")
+
+
+def how_to_fly(path: Path, compose: bool) -> tuple[str, str]:
+    """What to do to fly the scene at ``path`` (its K) on a stack this demo did not start:
+    ``aesop up``'s ``--scenario``, or compose's scene override (``compose``). A sentence,
+    and the command (one line, to copy)."""
+    if not compose:
+        return ("stop aesop up (Ctrl-C) and start it again on that scene, with the options "
+                "it ran with (e.g. --llm local):",
+                f"aesop up --scenario {shlex.quote(str(path))}")
+    return (f"start control again on that scene: {SCENE_OVERRIDE} mounts it (from the "
+            "repository's root; the files the stack came up with, then the override, e.g. "
+            "with deploy/compose.smollm2.yml; deploy/README.md):",
+            f"AESOP_SCENE_FILE={shlex.quote(str(path))} docker compose -f docker-compose.yml "
+            f"-f deploy/compose.smollm2.yml -f {SCENE_OVERRIDE} up -d control")

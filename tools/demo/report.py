@@ -427,7 +427,15 @@ def verdict_line(result: dict[str, Any]) -> str:
 
 def decisions_text(result: dict[str, Any]) -> str:
     """What the model answered in each scenario, and the K flown (text for the terminal)."""
-    lines = [f"\nK: {result['k']['why']}"]
+    k = result["k"]
+    lines = ["", _fill(f"K: {k['why']}", WIDTH)]
+    if "control" in k:  # attached: the loop's K, which the flights had
+        lines.append(_fill(f"flown: {k['control']}" + (f"; {k['later']}" if "later" in k
+                                                        else ""), WIDTH))
+    if "to_fly_chosen" in k:  # the command on a line of its own, to copy
+        todo, command = k["to_fly_chosen"]
+        lines += [_fill(f"to fly K = {k['chosen_s']:g} s (the scene with it: "
+                        f"{k['scene_file']}), {todo}", WIDTH), f"  {command}"]
     for r in result["scenarios"]:
         if r.get("decision") is None:
             continue
@@ -473,8 +481,17 @@ def decisions_section(result: dict[str, Any]) -> str:
                     f"{cal['mean_s']:.2f} s, {quantiles}, max {cal['max_s']:.2f} s; the "
                     f"distribution-free bound on the {cal['quantile']:.0%} quantile at "
                     f"{cal['confidence']:.0%} confidence {cal['k_upper_s']:.2f} s.")
-    return (f"<h2>The model's decisions</h2><p>{html.escape(k['why'])}.{measured}</p><ul>"
-            + "".join(items) + "</ul>")
+    attached = ""
+    if "control" in k:  # aesop demo --attach --measure-k: the loop's K, and how to fly K
+        attached = f"<p>Flown: {html.escape(k['control'])}" + (
+            f"; {html.escape(k['later'])}" if "later" in k else "") + ".</p>"
+    if "to_fly_chosen" in k:
+        todo, command = k["to_fly_chosen"]
+        attached += (f"<p>To fly K = {k['chosen_s']:g} s (the scene with it: "
+                     f"<code>{html.escape(k['scene_file'])}</code>), {html.escape(todo)}</p>"
+                     f"<pre>{html.escape(command)}</pre>")
+    return (f"<h2>The model's decisions</h2><p>{html.escape(k['why'])}.{measured}</p>"
+            f"{attached}<ul>" + "".join(items) + "</ul>")
 
 
 def plot_flights(flights: dict[str, np.ndarray], scenario: Scenario, path: Path) -> None:

@@ -782,6 +782,9 @@ def urls_text(plan: StackPlan, token_file: Path | None) -> str:
     if fly:
         lines += ["  fly the hardware scenarios against it (add --scenario-name 2a for one):",
                   f"    {fly}"]
+        if not plan.fake_llm and plan.url("reasoner"):  # a model nobody has timed here
+            lines.append(f"  K measured on its model first: add --measure-k --reasoner-url "
+                         f"{plan.url('reasoner')}")
     if plan.fake_llm:
         lines.append("  LLM: the fake OpenAI-compatible server (--llm local for a trained "
                      "model here, or AESOP_REASONER_LLM_BASE_URL for any server)")
