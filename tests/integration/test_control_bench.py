@@ -68,6 +68,15 @@ def test_bench_mpc_json() -> None:
                      r"\(1 of 1\)$", r.stderr, re.M), r.stderr[-3000:]
 
 
+def test_bench_mpc_prints_its_table_for_one_horizon() -> None:
+    """One ``--horizons`` value fits no growth exponent (None): the table still prints."""
+    r = _aesop("bench", "mpc", "--flights", "1", "--ticks", "4", "--reference-every", "2",
+               "--horizons", "20")
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert re.search(r"^ +20 +0\.200 ", r.stdout, re.M), r.stdout
+    assert "growth of the step's p50" not in r.stdout
+
+
 def test_bench_rejects_bad_arguments() -> None:
     r = _aesop("bench", "closed-loop", "--scenarios", "0", "--json")
     assert r.returncode == 2 and "--scenarios" in r.stderr and r.stdout == ""

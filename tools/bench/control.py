@@ -95,7 +95,7 @@ def _mpc_run(scenario: Scenario, flights: int, ticks: int, reference_every: int,
                 referee += out.plan.refereed
             infeasible += out.status is SolveStatus.INFEASIBLE
             undecided += not out.status.decided
-            if tick % reference_every == 1:
+            if tick >= 1 and (tick - 1) % reference_every == 0:  # the second tick, then every
                 ref_total, diffs = _reference_tick(model, scenario, config, controller)
                 reference_ms.append(ref_total)
                 rel_diffs += diffs
