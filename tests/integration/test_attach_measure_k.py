@@ -50,6 +50,13 @@ def test_k_is_measured_on_an_attached_stack_and_the_loops_own_k_is_flown(
         fly, reasoner = fly_command(up.plan), up.plan.url("reasoner")
         assert fly is not None and reasoner is not None
         env = {k: v for k, v in os.environ.items() if not k.startswith("AESOP_")}
+        wrong = subprocess.run(  # no reasoner there: said before anything is built
+            [sys.executable, "-m", "tools.cli", *shlex.split(fly)[1:], "--measure-k",
+             "--reasoner-url", f"{up.plan.url('embedding')}/nothing", "--out", str(out)],
+            env={**env, "AESOP_ADMIN_TOKEN": TOKEN}, capture_output=True, text=True,
+            timeout=60, stdin=subprocess.DEVNULL)
+        assert wrong.returncode == 2 and "--reasoner-url" in wrong.stderr, wrong.stderr
+        assert "building" not in wrong.stderr and not out.exists()
         done = subprocess.run(
             [sys.executable, "-m", "tools.cli", *shlex.split(fly)[1:], "--measure-k",
              "--reasoner-url", reasoner, "--scenario-name", "2a", "--json", "--out", str(out)],
