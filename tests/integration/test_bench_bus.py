@@ -7,6 +7,7 @@ themselves are for people reading the benchmark (README), not for asserts.
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -37,7 +38,13 @@ def test_bench_bus_reports_consistent_latencies() -> None:
         assert 0 <= stats["p50"] <= stats["p99"] <= stats["max"], (key, stats)
     # a reaction waits for its verdict first, then for the control loop's tick
     assert result["reaction_ms"]["max"] >= result["reaction_after_verdict_ms"]["max"]
-    assert "phase 1" in r.stderr and "phase 2" in r.stderr  # progress goes to stderr
+    # progress goes to stderr, a line a step (not a tty here): the two phases, n of 2
+    steps = [re.sub(r"\[\d+:\d\d\] ", "", line) for line in r.stderr.splitlines()
+             if line.startswith("aesop bench bus [")]
+    assert f"aesop bench bus {OBSERVATIONS} observations at {RATE_HZ:g} Hz (1 of 2)" in steps, \
+        r.stderr[-3000:]
+    assert any(s.startswith(f"aesop bench bus {ANOMALIES} anomalies, control at ")
+               and s.endswith("(2 of 2)") for s in steps), r.stderr[-3000:]
 
 
 def test_bench_bus_refuses_bad_arguments() -> None:
