@@ -8,28 +8,18 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from services.embedding.embedders import Embedder, ProgressFn
+from services.embedding.embedders import Embedder, ProgressFn, Wrapping
 from tools.progress import count
 
 
-class Counted(Embedder):
+class Counted(Wrapping):
     """``inner``, each batch counted on the live line (a log gets no line a batch): the
     texts embedded since this wrapper was made."""
 
     def __init__(self, inner: Embedder, unit: str = "texts embedded") -> None:
-        self.inner, self.unit = inner, unit
+        super().__init__(inner)
+        self.unit = unit
         self.done = 0
-
-    @property
-    def name(self) -> str:
-        return self.inner.name
-
-    @property
-    def dim(self) -> int:
-        return self.inner.dim
-
-    def close(self) -> None:
-        self.inner.close()
 
     def embed(self, texts: Sequence[str], *, batch_size: int = 64,
               progress: ProgressFn | None = None, show_progress_bar: bool = False

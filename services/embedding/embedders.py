@@ -202,6 +202,25 @@ class Embedder(Closing):
         return _stack(parts, self.dim if not parts else parts[0].shape[1], self.name)
 
 
+class Wrapping(Embedder):
+    """An embedder in front of another, ``inner``: its ``name``, ``dim`` and ``close`` are
+    the inner's; a subclass changes how ``embed`` gets there (counted, memoised)."""
+
+    def __init__(self, inner: Embedder) -> None:
+        self.inner = inner
+
+    @property
+    def name(self) -> str:
+        return self.inner.name
+
+    @property
+    def dim(self) -> int:
+        return self.inner.dim
+
+    def close(self) -> None:
+        self.inner.close()
+
+
 # --- sentence-transformers ---------------------------------------------------
 
 

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from services.embedding.embedders import Embedder
+from services.embedding.embedders import Embedder, Wrapping
 from services.embedding.settings import DEFAULT_MODEL
 
 if TYPE_CHECKING:
@@ -261,21 +261,13 @@ def labelled(samples: Sequence[Any]) -> list[Any]:
     return [Labelled(s.brief, s.label == "anomaly", tuple(s.detections)) for s in samples]
 
 
-class Memo(Embedder):
+class Memo(Wrapping):
     """An embedder that embeds each text once (the kinds part evaluates one domain's
     texts seven times)."""
 
     def __init__(self, inner: Embedder) -> None:
-        self.inner = inner
+        super().__init__(inner)
         self.seen: dict[str, np.ndarray] = {}
-
-    @property
-    def name(self) -> str:
-        return self.inner.name
-
-    @property
-    def dim(self) -> int:
-        return self.inner.dim
 
     def embed(self, texts: Sequence[str], **_: Any) -> np.ndarray:
         new = [t for t in dict.fromkeys(texts) if t not in self.seen]
