@@ -46,7 +46,7 @@ def create_app(
     """The service's FastAPI app. ``worker_factory`` starts the Zenoh worker in the
     lifespan (``aesop serve embedding`` passes one; tests may not)."""
     registry = CollectorRegistry()
-    state: dict[str, bool] = {"started": False}
+    state: dict[str, Any] = {"started": False, "worker": None}
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
@@ -60,7 +60,7 @@ def create_app(
             log.error("refusing to start: %s. The file was left untouched: restore it from a "
                       "backup or move it aside.", exc)
             raise
-        worker = worker_factory(svc, metrics) if worker_factory else None
+        worker = state["worker"] = worker_factory(svc, metrics) if worker_factory else None
         task = asyncio.create_task(worker.run()) if worker else None
         if task is not None:
             task.add_done_callback(_report_worker_exit)
@@ -78,7 +78,11 @@ def create_app(
     metrics = EmbeddingMetrics(registry, service)  # type: ignore[arg-type]
 
     def ready() -> dict[str, Any] | None:
-        return None if state["started"] else {"reason": "starting"}
+        if not state["started"]:
+            return {"reason": "starting"}
+        if getattr(state["worker"], "warming", False):
+            return {"reason": "warming up the detector's model before taking robots"}
+        return None
 
     def refresh() -> None:
         if state["started"]:

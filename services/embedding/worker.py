@@ -93,6 +93,9 @@ class DetectorWorker:
         (:mod:`.replicas`); None: every robot."""
         self.service = service
         self.replicas = replicas
+        # a replica warms its model up before it declares itself and takes robots: /readyz
+        # says not ready meanwhile (compose's healthcheck, a supervisor, a load balancer)
+        self.warming = replicas is not None
         # as over HTTP (AESOP_EMBEDDING_LIMITS__MAX_TEXT_CHARS)
         self.max_text_chars = max_text_chars
         self.bus = bus
@@ -142,6 +145,7 @@ class DetectorWorker:
         if self.replicas is not None:
             await self._warm_up()  # before it takes any robot from the others
             self.replicas.join(self.bus.session)
+            self.warming = False
         reporting = asyncio.create_task(self._report_drops())
         try:
             await asyncio.gather(self._receive(), *(pump.run() for pump in self._learning))

@@ -4,17 +4,21 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import threading
 from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
+from fastapi.testclient import TestClient
 from prometheus_client import CollectorRegistry
 
+from services.embedding.api import create_app
 from services.embedding.drift import DriftMonitor
 from services.embedding.entries import Item
 from services.embedding.errors import Conflict
 from services.embedding.loading import EmbedderPool
 from services.embedding.metrics import EmbeddingMetrics
+from services.embedding.replicas import Replicas, replica_key
 from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingSettings, EmbeddingTuning
 from services.embedding.worker import DetectorWorker
@@ -30,7 +34,7 @@ from shared.messages import (
     ReasonerRequest,
 )
 from tests.fakes.hash_embedder import HashEmbedder
-from tests.zenoh_peers import DEADLINE_S, routed
+from tests.zenoh_peers import DEADLINE_S, routed, wait_until
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -406,3 +410,37 @@ async def test_a_new_wording_is_named_as_drift_once_and_cleared_when_it_passes(
             (verdict,) = await verdicts(sub, 1)
             assert verdict.is_anomaly is True and verdict.drift is None
         assert monitor.drifting() == []
+
+
+def test_a_replica_is_ready_only_once_its_model_is_warm_and_its_token_declared(
+        tmp_path: Path, listener: Bus, connector: Bus) -> None:
+    """/readyz, which compose's healthcheck and a supervisor ask, says ready only once the
+    replica takes robots: its model loaded (10-60 s for a real one) and its liveliness token
+    declared. Found in CI: compose called the fleet healthy while embedding-2 was still
+    warming up, and its token was not on the bus."""
+    gate = threading.Event()
+
+    def slow_load(_: str) -> HashEmbedder:
+        gate.wait(DEADLINE_S)
+        return HashEmbedder()
+
+    settings = EmbeddingSettings(data_dir=tmp_path, fsync=False, zenoh_worker=False,
+                                 model="hash")
+    service = CacheService(settings, embedders=EmbedderPool(loader=slow_load))
+    app = create_app(settings, service=service, worker_factory=lambda svc, _: DetectorWorker(
+        svc, listener, cache="scene", replicas=Replicas("r1")))
+
+    def tokens() -> list[str]:
+        replies = connector.session.liveliness().get(replica_key("*"), timeout=2)
+        return [str(r.ok.key_expr) for r in replies if r.ok is not None]
+
+    with TestClient(app, base_url="http://127.0.0.1:8001") as client:
+        try:
+            warming = client.get("/readyz")
+            assert warming.status_code == 503, warming.text
+            assert "warming up" in warming.text
+            assert tokens() == []
+        finally:
+            gate.set()
+        wait_until(lambda: client.get("/readyz").status_code == 200, "ready after warm-up")
+        assert tokens() == [replica_key("r1")]
