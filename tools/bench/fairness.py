@@ -9,7 +9,7 @@ child processes. Two robots are client sessions of the hub, each with its own
 credential ``robot-<id>``, as a robot's camera is: robot0 publishes the nominal scene
 at ``rate_hz`` and times each verdict (publish to arrival here, both on this process's
 ``time.monotonic``), first alone for ``seconds`` (the baseline), then for another
-``seconds`` while robot1 publishes at ``flood_hz`` on a thread of its own. A robot0
+``seconds`` while robot1, a process of its own, publishes at ``flood_hz``. A robot0
 observation without a verdict ``LOST_AFTER_S`` after the last one was published is
 lost.
 
@@ -31,11 +31,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import multiprocessing
 import secrets
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -124,10 +124,10 @@ def flood_payloads(text: str, n: int, *, same_text: bool) -> list[bytes]:
                                FLOODER).encode() for i in range(1, n + 1)]
 
 
-def flood(bus: Bus, payloads: list[bytes], hz: float, stop: threading.Event) -> int:
-    """robot1's flood at ``hz`` until ``stop``; how many it published. The ``payloads`` in
-    turn (again from the first if the flood outlasts them), through one declared
-    publisher, as a flooding robot would send them."""
+def flood(bus: Bus, payloads: list[bytes], hz: float, stop: Any) -> int:
+    """robot1's flood at ``hz`` until ``stop`` is set; how many it published. The
+    ``payloads`` in turn (again from the first if the flood outlasts them), through one
+    declared publisher, as a flooding robot would send them."""
     publisher = bus.session.declare_publisher(topics.observation(FLOODER))
     period, sent, start = 1.0 / hz, 0, time.monotonic()
     while not stop.is_set():
@@ -138,6 +138,54 @@ def flood(bus: Bus, payloads: list[bytes], hz: float, stop: threading.Event) -> 
             time.sleep(delay)
     publisher.undeclare()
     return sent
+
+
+def flooding_robot(endpoint: str, passwords: dict[str, str] | None, text: str, n: int,
+                   hz: float, same_text: bool, ready: Any, go: Any, stop: Any,
+                   sent: Any) -> None:
+    """robot1 as a process of its own, as a robot is its own computer (on a thread of the
+    bench it took the bench's interpreter lock from robot0's timing): its session and its
+    encoded observations ready, then the flood from ``go`` to ``stop``."""
+    with robot_session(endpoint, FLOODER, passwords) as loud:
+        payloads = flood_payloads(text, n, same_text=same_text)
+        ready.set()
+        go.wait()
+        sent.value = flood(loud, payloads, hz, stop)
+
+
+class Flooder:
+    """:func:`flooding_robot` in a spawned process: entered, its session is open and its
+    observations encoded; ``go`` starts the flood, :meth:`finish` ends it."""
+
+    def __init__(self, endpoint: str, passwords: dict[str, str] | None, text: str,
+                 hz: float, n: int, same_text: bool) -> None:
+        context = multiprocessing.get_context("spawn")
+        self.ready, self.go, self.stop = context.Event(), context.Event(), context.Event()
+        self.sent = context.Value("q", 0)
+        self.process = context.Process(
+            target=flooding_robot, name="aesop-bench-flood", daemon=True,
+            args=(endpoint, passwords, text, n, hz, same_text, self.ready, self.go, self.stop,
+                  self.sent))
+
+    def __enter__(self) -> Flooder:
+        self.process.start()
+        if not self.ready.wait(WAIT_S * 5):
+            self.process.kill()
+            raise BenchError(f"{FLOODER}'s process did not connect to the bus")
+        return self
+
+    def finish(self) -> int:
+        self.go.set()
+        self.stop.set()
+        self.process.join(WAIT_S)
+        return int(self.sent.value)
+
+    def __exit__(self, *_: object) -> None:
+        self.stop.set()
+        self.go.set()
+        self.process.join(WAIT_S)
+        if self.process.is_alive():
+            self.process.kill()
 
 
 def spread(ms: list[float]) -> dict[str, float | int | None]:
@@ -196,12 +244,13 @@ async def _bench(seconds: float, rate_hz: float, flood_hz: float, direct: bool,
                      "AESOP_ZENOH_PASSWORD_FILE": str(zenoh_dir / "embedding.password")}
         service = stack.enter_context(embedding_process(Path(tmp), endpoint, token, **extra))
         quiet = stack.enter_context(robot_session(endpoint, QUIET, passwords))
-        loud = stack.enter_context(robot_session(endpoint, FLOODER, passwords))
         progress.step(f"embedding up on Zenoh {endpoint} "
                       f"({'peers' if direct else 'through the hub'})")
         async with EmbeddingClient(service.url, token=token, timeout_s=WAIT_S * 5) as detector:
             info, _ = await build_scene_cache(detector, CACHE, model=model, say=say)
             nominal, _ = await pick_scenes(detector)
+            loud = stack.enter_context(Flooder(endpoint, passwords, nominal, flood_hz,
+                                               round(flood_hz * (seconds + 1.0)), same_text))
             timed = Timed(quiet, nominal)
             try:
                 await _warm_up(timed)
@@ -209,17 +258,12 @@ async def _bench(seconds: float, rate_hz: float, flood_hz: float, direct: bool,
                               1, 2)
                 base = await timed.phase(seconds, rate_hz)
                 await timed.settle(base)
-                payloads = flood_payloads(nominal, round(flood_hz * (seconds + 1.0)),
-                                          same_text=same_text)
                 progress.step(f"flood: {FLOODER} at {flood_hz:g} Hz meanwhile, "
                               f"{'one text' if same_text else 'distinct texts'}", 2, 2)
-                stop = threading.Event()
-                flooding = asyncio.create_task(
-                    asyncio.to_thread(flood, loud, payloads, flood_hz, stop))
+                loud.go.set()
                 await asyncio.sleep(0.5)  # the flood is on before robot0 is timed
                 flooded = await timed.phase(seconds, rate_hz)
-                stop.set()
-                sent = await flooding
+                sent = await asyncio.to_thread(loud.finish)
                 await timed.settle(flooded)
                 metrics = (await detector.http.get("/metrics")).text
             finally:
