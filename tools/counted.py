@@ -8,7 +8,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from services.embedding.embedders import Embedder, ProgressFn, Wrapping
+from services.embedding.models.base import Embedder, ProgressFn, Wrapping
 from tools.progress import count
 
 

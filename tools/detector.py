@@ -77,10 +77,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_detector_eval(args: argparse.Namespace) -> int:
-    from services.embedding.embedders import EmbedderError
-    from services.embedding.errors import DetectorError
-    from services.embedding.evaluation import EvalConfig, evaluate, read_jsonl
-    from services.embedding.loading import load_embedder
+    from services.embedding.detector.errors import DetectorError
+    from services.embedding.detector.evaluation import EvalConfig, evaluate, read_jsonl
+    from services.embedding.models.base import EmbedderError
+    from services.embedding.models.loading import load_embedder
     from services.embedding.settings import DEFAULT_MODEL
     from tools.counted import Counted
 

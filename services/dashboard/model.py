@@ -48,7 +48,7 @@ class Snapshot(BaseModel):
     # the detector cache's proposals (scenes the LLM answered "continue" for), from the
     # embedding service's proposal_* events: the newest data of each, oldest first
     proposals: list[Json]
-    # the detector's drift (services/embedding/drift.py): the newest ``drift`` event's
+    # the detector's drift (services/embedding/detector/drift.py): the newest ``drift`` event's
     # message, data and stamp while the robot drifts; None once ``drift_cleared`` came
     drift: Json | None = None
     services: dict[str, bool]  # liveliness by service

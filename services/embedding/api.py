@@ -15,8 +15,7 @@ from prometheus_client import CollectorRegistry
 
 from shared.http import error_response, service_app
 
-from .embedders import EmbedderError
-from .errors import (
+from .detector.errors import (
     Busy,
     Conflict,
     DetectorError,
@@ -27,9 +26,10 @@ from .errors import (
     StorageError,
     StorageFull,
 )
+from .detector.scoring import ScoringError
 from .metrics import EmbeddingMetrics
+from .models.base import EmbedderError
 from .routes import router
-from .scoring import ScoringError
 from .service import CacheService
 from .settings import EmbeddingSettings
 

@@ -1,5 +1,5 @@
-"""One cache as the service holds it, the locks and threads its work runs under, and an
-experience to add.
+"""One cache as the service holds it, the locks and threads its work runs under, an
+experience to add and a text to score.
 
 Per cache, writers are serialised by an asyncio lock and the database commit happens
 before the in-memory apply; readers (scoring, leave-one-out) run in worker threads under
@@ -18,15 +18,26 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 from shared.messages import Detection
 
-from .cache import Cache
-from .proposals import Proposal
+from .detector.cache import Cache
+from .detector.proposals import Proposal
 
 if TYPE_CHECKING:
     from .batching import MicroBatcher
-    from .cache import Scored
-    from .scorer import Query
+    from .detector.cache import Scored
 
 T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class Query:
+    """A text to score, with its detection phrases (distinct, in order)."""
+
+    text: str
+    phrases: tuple[str, ...] = ()
+
+    @classmethod
+    def of(cls, text: str, detections: Sequence[Detection] = ()) -> Query:
+        return cls(text, tuple(dict.fromkeys(d.phrase for d in detections)))
 
 
 @dataclass(frozen=True)

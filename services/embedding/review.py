@@ -9,28 +9,55 @@ import asyncio
 import builtins
 import logging
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Literal
+from contextlib import AbstractAsyncContextManager
+from typing import Literal, Protocol
 
-from shared.messages import Observation
+import numpy as np
 
-from .adapt import ACCEPTED, recalibration
-from .cache import Calibrate
+from shared.jobs import Job
+from shared.messages import Detection, Observation
+
+from .detector.adapt import ACCEPTED, recalibration
+from .detector.cache import CacheConfig, Calibrate, Op
+from .detector.errors import Conflict, InvalidInput, NotFound
+from .detector.proposals import Proposal, State, scene_id
 from .entries import Entry, Item
-from .errors import Conflict, InvalidInput, NotFound
-from .proposals import Proposal, State, scene_id
-
-if TYPE_CHECKING:
-    from .service import CacheService
+from .settings import EmbeddingSettings
+from .storage.pgstore import PostgresStore
+from .storage.store import Store
 
 log = logging.getLogger(__name__)
 
 Decided = Literal["accepted", "rejected"]
 
 
+class Reviewed(Protocol):
+    """What the proposal workflow needs of the cache service: its caches, its store, the
+    vectors of a scene and the writer's lock and commit."""
+
+    settings: EmbeddingSettings
+
+    @property
+    def store(self) -> Store | PostgresStore: ...
+
+    def entry(self, name: str) -> Entry: ...
+
+    async def vectors_for(self, config: CacheConfig, items: Sequence[Item], job: Job | None
+                          ) -> np.ndarray: ...
+
+    async def new_phrases(self, entry: Entry, detections: Sequence[Detection]
+                          ) -> dict[str, np.ndarray]: ...
+
+    def writing(self, entry: Entry) -> AbstractAsyncContextManager[None]: ...
+
+    async def commit(self, entry: Entry, op: Op, proposal: Proposal | None = None
+                     ) -> None: ...
+
+
 class Review:
     """The proposal workflow of the caches ``caches`` holds."""
 
-    def __init__(self, caches: CacheService) -> None:
+    def __init__(self, caches: Reviewed) -> None:
         self.caches = caches
         self.settings = caches.settings
         # called with each proposal made, counted, accepted or rejected

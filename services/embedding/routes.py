@@ -16,11 +16,11 @@ from fastapi.responses import JSONResponse
 from shared.http import ApiError, errors, from_state, unless_client_leaves
 from shared.jobs import Job, JobAccepted, JobInfo, TooManyJobs, UnknownJob
 
-from .cache import Labelled
+from .detector.cache import Labelled
+from .detector.errors import DetectorError, InvalidInput, NotFound
+from .detector.proposals import State
 from .entries import Item
-from .errors import DetectorError, InvalidInput, NotFound
 from .metrics import EmbeddingMetrics
-from .proposals import State
 from .review import Decided
 from .schemas import (
     Added,

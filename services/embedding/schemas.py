@@ -32,10 +32,10 @@ from shared.messages import (
     PairMatch,
 )
 
-from .cache import Cache, ScoreKind
-from .calibration import Method
-from .index import IndexKind
-from .proposals import Policy, Proposal, State
+from .detector.cache import Cache, ScoreKind
+from .detector.calibration import Method
+from .detector.index import IndexKind
+from .detector.proposals import Policy, Proposal, State
 
 # any finite number: vectors are scaled to unit length in float64 before they are
 # stored as float32, so neither 1e300 nor 1e-300 overflows or vanishes
@@ -207,7 +207,7 @@ class Score(Body):
 
 
 class CalibrationInfo(Answer):
-    """tau and how it was obtained (``services.embedding.calibration.Calibration``)."""
+    """tau and how it was obtained (``services.embedding.detector.calibration.Calibration``)."""
 
     method: Method
     threshold: Float  # tau: anomaly iff score > tau

@@ -32,27 +32,15 @@ import numpy as np
 from shared.messages import Detection
 
 from .batching import MicroBatcher
-from .cache import CacheConfig, Detections, Labelled, Scored, unit_vectors
-from .detections import embedded_form
-from .embedders import Embedder, ModelNotFound
-from .entries import Entry, on_fresh_thread
-from .errors import Busy, Conflict, InvalidInput
-from .loading import EmbedderPool
+from .detector.cache import CacheConfig, Detections, Labelled, Scored, unit_vectors
+from .detector.detections import embedded_form
+from .detector.errors import Busy, Conflict, InvalidInput
+from .entries import Entry, Query, on_fresh_thread
+from .models.base import Embedder, ModelNotFound
+from .models.loading import EmbedderPool
 from .settings import VERDICT_NEIGHBORS, EmbeddingSettings
 
 T = TypeVar("T")
-
-
-@dataclass(frozen=True)
-class Query:
-    """A text to score, with its detection phrases (distinct, in order)."""
-
-    text: str
-    phrases: tuple[str, ...] = ()
-
-    @classmethod
-    def of(cls, text: str, detections: Sequence[Detection] = ()) -> Query:
-        return cls(text, tuple(dict.fromkeys(d.phrase for d in detections)))
 
 
 class VectorMemo:

@@ -22,24 +22,24 @@ import numpy as np
 from shared.jobs import Job, Jobs
 from shared.messages import Detection
 
-from . import policy
 from .batching import NORMAL, URGENT, ComputeThread
-from .cache import Add, Cache, CacheConfig, Delete, Labelled, Op, ScoreKind, unit_vectors
-from .calibration import Method, roc_curve
-from .detections import embedded_form, floats
+from .detector import policy
+from .detector.cache import Add, Cache, CacheConfig, Delete, Labelled, Op, ScoreKind, unit_vectors
+from .detector.calibration import Method, roc_curve
+from .detector.detections import embedded_form, floats
+from .detector.errors import Behind, Conflict, InvalidInput, NotFound, StorageError
+from .detector.index import IndexKind
+from .detector.policy import Components, Evidence
+from .detector.proposals import Policy, Proposal
 from .entries import Entry, Item, on_fresh_thread
-from .errors import Behind, Conflict, InvalidInput, NotFound
-from .follow import Follower
-from .index import IndexKind
-from .loading import EmbedderPool
-from .pgstore import PostgresStore
-from .policy import Components, Evidence
-from .proposals import Policy, Proposal
+from .fleet.follow import Follower
+from .models.loading import EmbedderPool
 from .review import Review
 from .schemas import Added, CacheInfo, Calibrated, Deleted, Experience, Roc
 from .scorer import Scorer, check_dims
 from .settings import DEFAULT_K, EmbeddingSettings
-from .store import StorageError, Store
+from .storage.pgstore import PostgresStore
+from .storage.store import Store
 
 log = logging.getLogger(__name__)
 

@@ -11,7 +11,7 @@ from pydantic_settings import SettingsConfigDict
 
 from shared.settings import Group, ServiceSettings
 
-from .adapt import DEFAULT_WINDOW, Recalibrate
+from .detector.adapt import DEFAULT_WINDOW, Recalibrate
 
 DEFAULT_MODEL = "sentence-transformers/all-MiniLM-L6-v2"
 # the service's default: the same model run by ONNX Runtime in float32, exported once into
@@ -80,12 +80,12 @@ class EmbeddingAdapt(Group):
     does to the calibration."""
 
     # after accepted scenes: "window" recalibrates split-conformal on the leave-one-out
-    # scores of the last ``window`` accepted scenes (services/embedding/adapt.py);
+    # scores of the last ``window`` accepted scenes (services/embedding/detector/adapt.py);
     # "stale" keeps the calibration, marked stale, until an operator recalibrates
     recalibrate: Recalibrate = "window"
     window: int = Field(default=DEFAULT_WINDOW, ge=1, le=100_000)
     # a robot's last drift_window verdicts are tested against 1 - alpha (binomial); below
-    # drift_significance it is drifting (services/embedding/drift.py)
+    # drift_significance it is drifting (services/embedding/detector/drift.py)
     drift_window: int = Field(default=50, ge=5, le=10_000)
     drift_significance: float = Field(default=1e-7, gt=0.0, lt=0.5)
 

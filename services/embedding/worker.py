@@ -45,11 +45,11 @@ from shared.messages import (
 )
 from shared.pump import MessagePump
 
-from .drift import DriftMonitor, DriftReport
-from .errors import DetectorError
+from .detector.drift import DriftMonitor, DriftReport
+from .detector.errors import DetectorError
+from .detector.proposals import Proposal, scene_id
 from .fairness import OTHER, DropReports, FairInbox, Reason
-from .proposals import Proposal, scene_id
-from .replicas import Replicas
+from .fleet.replicas import Replicas
 from .scorer import ScoreBatch
 from .service import CacheService
 from .settings import EmbeddingSettings

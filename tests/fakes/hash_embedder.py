@@ -12,7 +12,7 @@ import re
 
 import numpy as np
 
-from services.embedding.embedders import Embedder
+from services.embedding.models.base import Embedder
 
 
 class HashEmbedder(Embedder):

@@ -11,8 +11,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from services.embedding.api import create_app
-from services.embedding.embedders import ModelNotFound
-from services.embedding.loading import EmbedderPool
+from services.embedding.models.base import ModelNotFound
+from services.embedding.models.loading import EmbedderPool
 from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingAdapt, EmbeddingLimits, EmbeddingSettings
 from shared.messages import Detection, Observation

@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 
-from services.embedding.embedders import pool_key
+from services.embedding.models.embedders import pool_key
 from shared.tables import table
 from tools.bench.detector.common import BACKENDS, QUICK, jsonable
 

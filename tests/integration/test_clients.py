@@ -17,7 +17,7 @@ from services.control.client import ControlClient
 from services.dashboard.client import DashboardClient
 from services.embedding.api import create_app
 from services.embedding.client import EmbeddingClient
-from services.embedding.loading import EmbedderPool
+from services.embedding.models.loading import EmbedderPool
 from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingSettings
 from services.reasoner.client import ReasonerClient

@@ -14,7 +14,7 @@ import httpx
 import numpy as np
 import pytest
 
-from services.embedding.store import DB_NAME
+from services.embedding.storage.store import DB_NAME
 from shared.process import ServiceFailed, ServiceProcess, free_port
 
 pytestmark = [pytest.mark.timeout(180), pytest.mark.slow]

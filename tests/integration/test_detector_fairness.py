@@ -26,8 +26,8 @@ from prometheus_client import CollectorRegistry, generate_latest
 
 from services.embedding.entries import Item
 from services.embedding.fairness import FairInbox
-from services.embedding.loading import EmbedderPool
 from services.embedding.metrics import EmbeddingMetrics
+from services.embedding.models.loading import EmbedderPool
 from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingSettings
 from services.embedding.worker import DetectorWorker

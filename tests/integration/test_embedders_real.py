@@ -12,12 +12,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from services.embedding.embedders import (
+from services.embedding.models.embedders import (
     DEFAULT_MODEL,
     SentenceTransformerEmbedder,
     resolve_model,
 )
-from services.embedding.loading import EmbedderPool, load_embedder
+from services.embedding.models.loading import EmbedderPool, load_embedder
 
 pytestmark = pytest.mark.slow
 

@@ -25,7 +25,7 @@ import pytest
 
 from services.control.scenario import load_scenario
 from services.embedding.client import EmbeddingClient
-from services.embedding.sharding import assignment
+from services.embedding.fleet.sharding import assignment
 from shared import topics
 from shared.bus import Bus
 from shared.client import ServiceError

@@ -11,11 +11,11 @@ import numpy as np
 import psycopg
 import pytest
 
-from services.embedding.cache import Cache, CacheConfig, CalibrationScores, Delete
-from services.embedding.calibration import loo_quantile
-from services.embedding.errors import Behind, StorageCorrupt, StorageError
-from services.embedding.pgstore import PostgresStore
-from services.embedding.proposals import Proposal
+from services.embedding.detector.cache import Cache, CacheConfig, CalibrationScores, Delete
+from services.embedding.detector.calibration import loo_quantile
+from services.embedding.detector.errors import Behind, StorageCorrupt, StorageError
+from services.embedding.detector.proposals import Proposal
+from services.embedding.storage.pgstore import PostgresStore
 from shared.messages import Detection
 from tests.unit.test_store import commit, commit_add, same, vectors
 from tests.zenoh_peers import wait_until

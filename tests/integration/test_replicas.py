@@ -16,11 +16,11 @@ from fastapi.testclient import TestClient
 
 from services.embedding.api import create_app
 from services.embedding.entries import Item
-from services.embedding.loading import EmbedderPool
-from services.embedding.replicas import Replicas
+from services.embedding.fleet.replicas import Replicas
+from services.embedding.fleet.sharding import assignment
+from services.embedding.models.loading import EmbedderPool
 from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingSettings
-from services.embedding.sharding import assignment
 from services.embedding.worker import DetectorWorker
 from shared import topics
 from shared.bus import Bus

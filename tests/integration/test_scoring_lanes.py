@@ -18,9 +18,9 @@ import pytest
 from fastapi.testclient import TestClient
 
 from services.embedding.api import create_app
+from services.embedding.detector.errors import Busy
 from services.embedding.entries import Item
-from services.embedding.errors import Busy
-from services.embedding.loading import EmbedderPool
+from services.embedding.models.loading import EmbedderPool
 from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingLimits, EmbeddingSettings, EmbeddingTuning
 from tests.fakes.hash_embedder import HashEmbedder

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from services.embedding.cache import Labelled
-from services.embedding.drift import DriftMonitor
-from services.embedding.evaluation import EvalConfig, fit_structured, score_structured
+from services.embedding.detector.cache import Labelled
+from services.embedding.detector.drift import DriftMonitor
+from services.embedding.detector.evaluation import EvalConfig, fit_structured, score_structured
 from tools.scenes.base import Sample
 from tools.scenes.registry import DOMAINS
 from tools.scenes.wording import drift_set
@@ -30,7 +30,7 @@ def labelled_of(samples: tuple[Sample, ...]) -> list[Labelled]:
 
 @pytest.fixture(scope="module")
 def embedder():  # type: ignore[no-untyped-def]
-    from services.embedding.loading import load_embedder
+    from services.embedding.models.loading import load_embedder
     from services.embedding.settings import DEFAULT_MODEL
     from tools.bench.detector.common import Memo
 

@@ -13,12 +13,12 @@ from fastapi.testclient import TestClient
 from prometheus_client import CollectorRegistry
 
 from services.embedding.api import create_app
-from services.embedding.drift import DriftMonitor
+from services.embedding.detector.drift import DriftMonitor
+from services.embedding.detector.errors import Conflict
 from services.embedding.entries import Item
-from services.embedding.errors import Conflict
-from services.embedding.loading import EmbedderPool
+from services.embedding.fleet.replicas import Replicas, replica_key
 from services.embedding.metrics import EmbeddingMetrics
-from services.embedding.replicas import Replicas, replica_key
+from services.embedding.models.loading import EmbedderPool
 from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingSettings, EmbeddingTuning
 from services.embedding.worker import DetectorWorker

@@ -7,10 +7,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from services.embedding.cache import Cache, CacheConfig, CalibrationScores, Detections
-from services.embedding.calibration import loo_quantile
-from services.embedding.errors import Conflict, InvalidInput, NotFound
-from services.embedding.index import VectorIndex
+from services.embedding.detector.cache import Cache, CacheConfig, CalibrationScores, Detections
+from services.embedding.detector.calibration import loo_quantile
+from services.embedding.detector.errors import Conflict, InvalidInput, NotFound
+from services.embedding.detector.index import VectorIndex
 from shared.messages import Detection
 
 

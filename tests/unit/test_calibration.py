@@ -8,7 +8,7 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from services.embedding.calibration import (
+from services.embedding.detector.calibration import (
     Calibration,
     CalibrationError,
     auroc,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.embedding.detections import (
+from services.embedding.detector.detections import (
     NominalDetections,
     combined_p,
     distinct,

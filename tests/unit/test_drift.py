@@ -7,10 +7,10 @@ import random
 import numpy as np
 import pytest
 
-from services.embedding.adapt import ACCEPTED, recalibration, window
-from services.embedding.cache import Cache, CacheConfig, CalibrationScores
-from services.embedding.calibration import Calibration
-from services.embedding.drift import DriftMonitor
+from services.embedding.detector.adapt import ACCEPTED, recalibration, window
+from services.embedding.detector.cache import Cache, CacheConfig, CalibrationScores
+from services.embedding.detector.calibration import Calibration
+from services.embedding.detector.drift import DriftMonitor
 from shared.messages import Detection
 from tools.scenes.registry import DOMAINS
 from tools.scenes.wording import Captioner, drift_set, reword_phrase

@@ -15,18 +15,15 @@ import httpx
 import numpy as np
 import pytest
 
-from services.embedding.embedders import (
+from services.embedding.models.base import Embedder, EmbedderError, ModelNotFound, normalize
+from services.embedding.models.embedders import (
     DEFAULT_MODEL,
-    Embedder,
-    EmbedderError,
-    ModelNotFound,
     OpenAIEmbedder,
-    normalize,
     parse_embeddings_response,
     pool_key,
     resolve_model,
 )
-from services.embedding.loading import EmbedderPool, load_embedder
+from services.embedding.models.loading import EmbedderPool, load_embedder
 from tests.fakes.openai_embeddings import fake_embedding, start_fake_embeddings_server
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -101,8 +98,8 @@ def test_parse_rejects_malformed_payloads(payload: object, fragment: str) -> Non
 def test_importing_and_failing_to_find_a_model_never_imports_torch() -> None:
     code = (
         "import sys\n"
-        "import services.embedding.embedders as e\n"
-        "import services.embedding.loading as loading\n"
+        "import services.embedding.models.embedders as e\n"
+        "import services.embedding.models.loading as loading\n"
         "assert 'torch' not in sys.modules and 'sentence_transformers' not in sys.modules\n"
         "try:\n"
         "    loading.load_embedder('definitely-not-a-model')\n"

@@ -9,10 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.embedding import policy
-from services.embedding.errors import InvalidInput
-from services.embedding.evaluation import EvalConfig
-from services.embedding.policy import Components, Evidence
+from services.embedding.detector import policy
+from services.embedding.detector.errors import InvalidInput
+from services.embedding.detector.evaluation import EvalConfig
+from services.embedding.detector.policy import Components, Evidence
 
 RNG = np.random.default_rng(0)
 LOO = Components(RNG.normal(size=60), RNG.normal(size=60), None)

@@ -41,13 +41,15 @@ def _type_checking_only(node: ast.AST) -> bool:
     return isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test)
 
 
-def _imports(name: str, path: Path) -> set[str]:
+def _imports(name: str, path: Path, *, typing: bool = False, outside: bool = False
+             ) -> set[str]:
     """Every project module ``name`` imports, at the top or inside a function; what is
-    imported only for type checking does not count."""
+    imported only for type checking counts only with ``typing``. ``outside``: the top-level
+    names of what it imports from outside the project instead (``httpx``, ``zenoh``)."""
     tree = ast.parse(path.read_text())
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
-    skipped = {id(n) for node in ast.walk(tree) if _type_checking_only(node)
-               for n in ast.walk(node)}
+    skipped = set() if typing else {id(n) for node in ast.walk(tree)
+                                    if _type_checking_only(node) for n in ast.walk(node)}
     found: set[str] = set()
     for node in ast.walk(tree):
         if id(node) in skipped:
@@ -62,12 +64,20 @@ def _imports(name: str, path: Path) -> set[str]:
                 anchor = anchor[:len(anchor) - node.level + 1]
                 base = ".".join(anchor + ([base] if base else []))
             targets = [f"{base}.{alias.name}" for alias in node.names] + [base]
+        if outside:
+            found |= {t.split(".")[0] for t in targets if t and not node_is_relative(node)
+                      and t.split(".")[0] not in PACKAGES}
+            continue
         for target in targets:
             while target and target not in MODULES:
                 target = target.rpartition(".")[0]
             if target and target != name:
                 found.add(target)
     return found
+
+
+def node_is_relative(node: ast.AST) -> bool:
+    return isinstance(node, ast.ImportFrom) and node.level > 0
 
 
 GRAPH = {name: _imports(name, path) for name, path in MODULES.items()}
@@ -100,11 +110,11 @@ def test_a_service_never_imports_another_service() -> None:
     assert sorted(bad) == []
 
 
-def test_the_import_graph_has_no_circle() -> None:
+def _circles(graph: dict[str, set[str]]) -> list[list[str]]:
     # packages import their own modules through __init__ re-exports; a module's edge to
     # the package that holds it is not a circle of design
     def edges(module: str) -> set[str]:
-        return {t for t in GRAPH[module] if not module.startswith(t + ".")}
+        return {t for t in graph.get(module, set()) if not module.startswith(t + ".")}
 
     state: dict[str, int] = {}
     circles: list[list[str]] = []
@@ -118,10 +128,72 @@ def test_the_import_graph_has_no_circle() -> None:
                 visit(target, path + [target])
         state[module] = 2
 
-    for module in sorted(GRAPH):
+    for module in sorted(graph):
         if module not in state:
             visit(module, [module])
-    assert circles == []
+    return circles
+
+
+def test_the_import_graph_has_no_circle() -> None:
+    assert _circles(GRAPH) == []
+
+
+EMBEDDING = "services.embedding"
+# The detector service's floors (docs/architecture.md, section 2): each folder imports only
+# from itself and the floors named here; the service's shell (api, routes, service, worker
+# and their helpers, directly in services/embedding) may import any of them, none of them
+# the shell.
+FLOORS = {"models": ("models",), "detector": ("detector", "models.base"),
+          "storage": ("storage", "detector"), "fleet": ("fleet", "storage", "detector")}
+# what a pure core never imports: the network, the bus, a database, a web framework, an
+# event loop (files are allowed: an index's own files, a JSONL of labelled scenes)
+IO = {"httpx", "zenoh", "fastapi", "starlette", "uvicorn", "psycopg", "psycopg_pool",
+      "sqlite3", "socket", "requests", "asyncio", "subprocess", "threading"}
+CORES = (f"{EMBEDDING}.detector",)
+
+
+def _folder(module: str) -> str | None:
+    rest = module.removeprefix(EMBEDDING + ".").split(".")
+    return rest[0] if module.startswith(EMBEDDING + ".") and rest[0] in FLOORS else None
+
+
+def test_the_detectors_folders_import_only_their_own_floor_and_those_below() -> None:
+    bad = []
+    for module in sorted(m for m in MODULES if m.startswith(EMBEDDING + ".")):
+        folder = _folder(module)
+        if folder is None:
+            continue
+        allowed = tuple(f"{EMBEDDING}.{floor}" for floor in FLOORS[folder])
+        for target in _imports(module, MODULES[module], typing=True):
+            inside = target.startswith(EMBEDDING + ".") or target == EMBEDDING
+            if inside and not any(target == a or target.startswith(a + ".") for a in allowed):
+                bad.append((module, target))
+    assert bad == []
+
+
+def test_the_detectors_imports_have_no_circle_even_for_type_checking() -> None:
+    graph = {m: _imports(m, p, typing=True) for m, p in MODULES.items()
+             if m.startswith(EMBEDDING)}
+    assert _circles(graph) == []
+
+
+def test_a_pure_core_imports_no_network_bus_database_or_event_loop() -> None:
+    bad = sorted((m, lib) for m, p in MODULES.items() if m.startswith(CORES)
+                 for lib in _imports(m, p, typing=True, outside=True) & IO)
+    assert bad == []
+
+
+def test_the_layout_rules_can_fail() -> None:
+    """The rules above catch what they are for (a check that cannot fail is a defect): the
+    shell's own imports would break each of them."""
+    assert _circles({"a": {"b"}, "b": {"a"}}) == [["a", "b", "a"]]
+    assert (_folder(f"{EMBEDDING}.detector.cache"), _folder(f"{EMBEDDING}.service")) == \
+        ("detector", None)
+    shell = f"{EMBEDDING}.service"
+    assert {"asyncio"} <= _imports(shell, MODULES[shell], outside=True) & IO
+    assert f"{EMBEDDING}.storage.store" in _imports(shell, MODULES[shell])
+    review = f"{EMBEDDING}.review"  # its type-only imports count where typing=True
+    assert _imports(review, MODULES[review], typing=True) >= _imports(review, MODULES[review])
 
 
 def _too_long() -> list[str]:
@@ -141,7 +213,7 @@ def test_no_function_over_100_lines_and_no_class_over_400() -> None:
     assert _too_long() == []
 
 
-@pytest.mark.parametrize("module", ["services.embedding.embedders",
-                                    "services.embedding.onnx_backend"])
+@pytest.mark.parametrize("module", ["services.embedding.models.embedders",
+                                    "services.embedding.models.onnx_backend"])
 def test_the_embedders_do_not_import_each_others_chooser(module: str) -> None:
-    assert "services.embedding.loading" not in GRAPH[module]
+    assert "services.embedding.models.loading" not in GRAPH[module]

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from services.embedding.detections import p_values
-from services.embedding.scoring import (
+from services.embedding.detector.detections import p_values
+from services.embedding.detector.scoring import (
     MahalanobisModel,
     ScoringError,
     loo_topk_scores,

@@ -1,12 +1,12 @@
-"""Rendezvous hashing of robots over detector replicas (services/embedding/sharding.py) and
-the replica set's bookkeeping (services/embedding/replicas.py)."""
+"""Rendezvous hashing of robots over detector replicas (services/embedding/fleet/sharding.py) and
+the replica set's bookkeeping (services/embedding/fleet/replicas.py)."""
 
 from __future__ import annotations
 
 import pytest
 
-from services.embedding.replicas import Replicas, replica_key
-from services.embedding.sharding import assignment, owner
+from services.embedding.fleet.replicas import Replicas, replica_key
+from services.embedding.fleet.sharding import assignment, owner
 
 ROBOTS = [f"robot{i}" for i in range(1000)]
 

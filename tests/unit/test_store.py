@@ -9,10 +9,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.embedding.cache import Cache, CacheConfig, CalibrationScores, Op
-from services.embedding.calibration import loo_quantile
+from services.embedding.detector.cache import Cache, CacheConfig, CalibrationScores, Op
+from services.embedding.detector.calibration import loo_quantile
 from services.embedding.schemas import CacheInfo
-from services.embedding.store import DB_NAME, StorageCorrupt, StorageError, StorageFull, Store
+from services.embedding.storage.store import (
+    DB_NAME,
+    StorageCorrupt,
+    StorageError,
+    StorageFull,
+    Store,
+)
 from shared.messages import Detection
 
 LOGGER = "services.embedding"  # the store and its index files (.indexfiles)

@@ -187,9 +187,9 @@ async def replica_lag(first: EmbeddingClient, second: EmbeddingClient, n: int) -
 
 def store_cost(pg_url: str, tmp: Path, adds: int, batch: int) -> dict[str, Any]:
     """Commit ``adds`` batches into each store, then load the cache again (no index file)."""
-    from services.embedding.cache import Cache, CacheConfig
-    from services.embedding.pgstore import PostgresStore
-    from services.embedding.store import Store
+    from services.embedding.detector.cache import Cache, CacheConfig
+    from services.embedding.storage.pgstore import PostgresStore
+    from services.embedding.storage.store import Store
 
     rng = np.random.default_rng(0)
     out: dict[str, Any] = {"adds": adds, "batch": batch}

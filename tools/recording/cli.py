@@ -279,10 +279,10 @@ def rescore_recording(args: argparse.Namespace) -> int:
 
 def _scores_offline(args: argparse.Namespace, scenes: list[Any]
                     ) -> tuple[dict[Any, Any], float | None, str]:
-    from services.embedding.embedders import EmbedderError
-    from services.embedding.errors import DetectorError
-    from services.embedding.evaluation import EvalConfig, read_jsonl
-    from services.embedding.loading import load_embedder
+    from services.embedding.detector.errors import DetectorError
+    from services.embedding.detector.evaluation import EvalConfig, read_jsonl
+    from services.embedding.models.base import EmbedderError
+    from services.embedding.models.loading import load_embedder
     from services.embedding.settings import DEFAULT_MODEL
     from tools.counted import Counted
     from tools.recording.rescore import scores_offline

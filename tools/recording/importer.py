@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from services.embedding.client import EmbeddingClient
-from services.embedding.proposals import scene_id
+from services.embedding.detector.proposals import scene_id
 from shared.client import Progress, ServiceError
 
 from .recorded import RecordedObservation, RecordingError, observations

@@ -14,17 +14,17 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from services.embedding.cache import Labelled
 from services.embedding.client import EmbeddingClient
-from services.embedding.embedders import Embedder
-from services.embedding.errors import InvalidInput
-from services.embedding.evaluation import (
+from services.embedding.detector.cache import Labelled
+from services.embedding.detector.errors import InvalidInput
+from services.embedding.detector.evaluation import (
     EvalConfig,
     fit,
     fit_structured,
     score_all,
     score_structured,
 )
+from services.embedding.models.base import Embedder
 from shared.messages import AnomalyVerdict, Detection, Observation
 
 from .recorded import RecordedObservation

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from services.embedding.embedders import Embedder, Wrapping
+from services.embedding.models.base import Embedder, Wrapping
 from services.embedding.settings import DEFAULT_MODEL
 
 if TYPE_CHECKING:
@@ -140,7 +140,7 @@ class Bench:
 
     @cached_property
     def embedder(self) -> Embedder:
-        from services.embedding.loading import load_embedder
+        from services.embedding.models.loading import load_embedder
         from services.embedding.settings import DEFAULT_MODEL
         from tools.counted import Counted
 
@@ -256,7 +256,7 @@ def jsonable(value: Any) -> Any:
 
 
 def labelled(samples: Sequence[Any]) -> list[Any]:
-    from services.embedding.cache import Labelled
+    from services.embedding.detector.cache import Labelled
 
     return [Labelled(s.brief, s.label == "anomaly", tuple(s.detections)) for s in samples]
 
@@ -280,7 +280,7 @@ class Memo(Wrapping):
 async def open_service(embedder: Embedder, data_dir: Path, *, microbatch: bool = True,
                    fsync: bool = False) -> CacheService:
     """A started ``CacheService`` on ``data_dir`` that shares the already-loaded model."""
-    from services.embedding.loading import EmbedderPool
+    from services.embedding.models.loading import EmbedderPool
     from services.embedding.service import CacheService
     from services.embedding.settings import EmbeddingSettings, EmbeddingTuning
 
@@ -311,7 +311,7 @@ async def score_one(service: CacheService, text: str) -> float:
 
 
 def cache_of(vectors: np.ndarray) -> Any:
-    from services.embedding.evaluation import EvalConfig, build_cache
+    from services.embedding.detector.evaluation import EvalConfig, build_cache
 
     return build_cache(vectors, EvalConfig(k=K), None)
 

@@ -15,7 +15,7 @@ anomaly) and the reviewed scenes. Measured, per score kind:
 
 each for a captioner that changes its words only (the robot's own line template kept) and
 for one that changes its line style too;
-* the drift monitor (:mod:`services.embedding.drift`) on the combined verdicts: frames from
+* the drift monitor (:mod:`services.embedding.detector.drift`) on the combined verdicts: frames from
   the switch to the ``drift`` event, and drift events on 10,000 frames of the unchanged
   wording (held-out nominal scenes, drawn with repeats).
 """
@@ -33,8 +33,8 @@ from shared.tables import table
 from .common import ALPHA, QUALITY_DOMAINS, Bench, K, Memo, labelled
 
 if TYPE_CHECKING:
-    from services.embedding.cache import Labelled
-    from services.embedding.evaluation import EvalScore
+    from services.embedding.detector.cache import Labelled
+    from services.embedding.detector.evaluation import EvalScore
     from tools.scenes.wording import DriftSet
 
 KINDS: tuple[EvalScore, ...] = ("topk", "detections", "combined")
@@ -72,7 +72,7 @@ def bench_drift(bench: Bench) -> dict[str, Any]:
 def _domain(memo: Memo, data: DriftSet) -> dict[str, Any]:
     """Zero-shot per kind, the curve, and the same detector without drift (the ceiling),
     each on every anomaly and on the object anomalies alone."""
-    from services.embedding.evaluation import EvalConfig, evaluate
+    from services.embedding.detector.evaluation import EvalConfig, evaluate
 
     nominal, calibration = labelled(data.nominal), labelled(data.calibration)
     test, reviewed = labelled(data.test), labelled(data.reviewed)
@@ -102,8 +102,8 @@ def _monitor(memo: Memo, nominal: Sequence[Labelled], calibration: Sequence[Labe
              test: Sequence[Labelled], seed: int) -> dict[str, Any]:
     """The drift monitor on the combined verdicts: a stream of the old wording (held-out
     nominal scenes, :data:`NOMINAL_FRAMES` frames drawn with repeats), then the new."""
-    from services.embedding.drift import DriftMonitor
-    from services.embedding.evaluation import EvalConfig, fit_structured, score_structured
+    from services.embedding.detector.drift import DriftMonitor
+    from services.embedding.detector.evaluation import EvalConfig, fit_structured, score_structured
 
     half = len(calibration) // 2
     cache, _ = fit_structured(memo, nominal, calibration[:half],

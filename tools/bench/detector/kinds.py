@@ -11,11 +11,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from services.embedding.embedders import Embedder
+from services.embedding.models.base import Embedder
 from shared.tables import table
 
 if TYPE_CHECKING:
-    from services.embedding.evaluation import EvalScore
+    from services.embedding.detector.evaluation import EvalScore
 from .common import ALPHA, HOLDOUT, PAPER_MPNET_VTOL, QUANTILES, Bench, K, Memo, labelled
 from .quality import _split
 
@@ -41,8 +41,8 @@ def bench_kinds(bench: Bench) -> dict[str, Any]:
     at alpha 0.95, k 5; then ``combined`` (with and without pairs) calibrated
     split-conformal (the cache's nominal set halved: cache and calibration) at each alpha:
     its FPR on the held-out nominal test samples against the ``1 - alpha`` it promises."""
-    from services.embedding.errors import InvalidInput
-    from services.embedding.evaluation import EvalConfig, evaluate
+    from services.embedding.detector.errors import InvalidInput
+    from services.embedding.detector.evaluation import EvalConfig, evaluate
 
     memo = Memo(bench.embedder)
     domains = {}
@@ -79,7 +79,7 @@ def _kind_quantiles(bench: Bench, memo: Embedder) -> dict[str, Any]:
     nominal samples (brief form, with detections), loo-quantile at alpha = each quantile,
     accuracy on the rest and every anomaly, averaged over ``threshold_seeds`` splits
     (the same splits as the top-k table of the quality part)."""
-    from services.embedding.evaluation import EvalConfig, evaluate
+    from services.embedding.detector.evaluation import EvalConfig, evaluate
 
     ds = bench.dataset("vtol", kinds=True)
     nominal, anomalies = labelled(ds.nominal), labelled(ds.anomalies)

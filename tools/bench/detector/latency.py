@@ -65,7 +65,7 @@ async def _latency(n: int, size: int, seed: int, model: str = DEFAULT_MODEL,
     from concurrent.futures import ThreadPoolExecutor
 
     from services.embedding.entries import on_fresh_thread
-    from services.embedding.loading import load_embedder
+    from services.embedding.models.loading import load_embedder
     from tools.scenes import generate
 
     embedder = await on_fresh_thread(partial(load_embedder, model, threads=threads))

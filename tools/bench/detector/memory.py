@@ -32,8 +32,8 @@ def memory_probe(size: int, seed: int = 0) -> dict[str, Any]:
     import sentence_transformers  # noqa: F401
     import torch  # noqa: F401
 
-    from services.embedding.cache import Cache, CacheConfig
-    from services.embedding.loading import load_embedder
+    from services.embedding.detector.cache import Cache, CacheConfig
+    from services.embedding.models.loading import load_embedder
 
     process = psutil.Process()
 

@@ -92,8 +92,8 @@ def _split(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
 def _detect(cache_x: np.ndarray, test_x: np.ndarray, test_y: np.ndarray,
             alphas: Sequence[float] = (ALPHA,)) -> dict[str, Any]:
     """Detector built on ``cache_x`` with tau from eq. (2), evaluated on the test set."""
-    from services.embedding.calibration import auroc, binary_metrics, loo_quantile
-    from services.embedding.evaluation import EvalConfig, build_cache
+    from services.embedding.detector.calibration import auroc, binary_metrics, loo_quantile
+    from services.embedding.detector.evaluation import EvalConfig, build_cache
 
     cache = build_cache(cache_x, EvalConfig(k=K), None)
     loo = cache.loo_scores(K)

@@ -25,9 +25,9 @@ def bench_restart(sizes: Sizes, seed: int) -> dict[str, Any]:
     """An HNSW cache of ``restart_cache`` 384-d vectors on the store (fsync on): the time to
     commit it, build its graph, save its index, and open it again with the index file
     (loaded, graph included) and without it (built from the stored vectors)."""
-    from services.embedding.cache import Cache, CacheConfig
-    from services.embedding.indexfiles import INDEX_DIR
-    from services.embedding.store import Store
+    from services.embedding.detector.cache import Cache, CacheConfig
+    from services.embedding.storage.indexfiles import INDEX_DIR
+    from services.embedding.storage.store import Store
 
     n, dim, batch = sizes.restart_cache, 384, 50_000
     x = np.random.default_rng(seed).standard_normal((n, dim)).astype(np.float32)

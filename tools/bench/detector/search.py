@@ -66,7 +66,7 @@ def _search_at(n: int, m: int, projected: float | None, clusters: Clusters,
                queries: np.ndarray, sizes: Sizes, seed: int) -> dict[str, Any]:
     import faiss
 
-    from services.embedding.index import VectorIndex
+    from services.embedding.detector.index import VectorIndex
 
     log.info("search: %d vectors, HNSW M=%d%s", n, m,
              f" (projected build {projected:.0f} s)" if projected else "")
@@ -120,7 +120,7 @@ def _recall(index: Any, queries: np.ndarray, truth: np.ndarray) -> float:
 
 def bench_loo(sizes: Sizes, seed: int) -> dict[str, Any]:
     """``Cache.loo_scores`` at 20k vs FAISS's own batched ``search(x, k+1)`` on the same data."""
-    from services.embedding.scoring import loo_topk_scores
+    from services.embedding.detector.scoring import loo_topk_scores
 
     n = sizes.loo_size
     x = Clusters(DIM, seed).sample(n, np.random.default_rng([seed, 4]))

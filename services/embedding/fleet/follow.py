@@ -1,8 +1,9 @@
 """A replica following the others' writes to the shared store (:mod:`.pgstore`).
 
 A thread listens on PostgreSQL and hands each notice to the event loop, where the cache
-service applies it (:meth:`~.service.CacheService.follow`): a cache's new version is read
-from the change log and applied to this replica's copy and index, a proposal is read again.
+service applies it (``CacheService.follow``, through :class:`Followed`): a cache's new
+version is read from the change log and applied to this replica's copy and index, a
+proposal is read again.
 Every ``poll_s`` the stored versions are compared too (one query), and after the listener
 was cut off everything is read again, so a lost notice costs at most ``poll_s`` of lag.
 Its own notices (its ``origin``) are skipped.
@@ -13,21 +14,31 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
-from typing import TYPE_CHECKING
+from typing import Protocol
 
-from .errors import StorageError
-from .pgstore import Notice
-
-if TYPE_CHECKING:
-    from .service import CacheService
+from ..detector.errors import StorageError
+from ..storage.pgstore import Notice, PostgresStore
 
 log = logging.getLogger(__name__)
 
 POLL = "poll"
 
 
+class Followed(Protocol):
+    """What a follower needs of the cache service: the shared store, and the catch-ups
+    it applies to this replica's copies."""
+
+    def shared_store(self) -> PostgresStore: ...
+
+    async def sync(self, *, proposals: bool) -> None: ...
+
+    async def follow(self, name: str) -> None: ...
+
+    async def follow_proposal(self, name: str, ident: str) -> None: ...
+
+
 class Follower:
-    def __init__(self, caches: CacheService, poll_s: float = 5.0) -> None:
+    def __init__(self, caches: Followed, poll_s: float = 5.0) -> None:
         self.caches = caches
         self.poll_s = poll_s
         self._stop = threading.Event()

@@ -20,9 +20,9 @@ from pathlib import Path
 from types import TracebackType
 from typing import Self
 
-from .cache import Cache, Header
-from .errors import StorageError
-from .index import VectorIndex
+from ..detector.cache import Cache, Header
+from ..detector.errors import StorageError
+from ..detector.index import VectorIndex
 
 log = logging.getLogger(__name__)
 

@@ -30,7 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from .embedders import Embedder, EmbedderError, ModelSource, resolve_model
+from .base import Embedder, EmbedderError
+from .embedders import ModelSource, resolve_model
 
 INPUTS = ("input_ids", "attention_mask", "token_type_ids")
 

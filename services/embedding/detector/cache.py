@@ -27,9 +27,9 @@ import numpy as np
 
 from shared.messages import Detection, DetectionMatch, Neighbor, PairMatch
 
+from ..models.base import normalize
 from . import detections as det
 from .calibration import Calibration
-from .embedders import normalize
 from .errors import Conflict, InvalidInput, NotFound
 from .index import IndexKind, VectorIndex
 from .proposals import Policy
@@ -214,7 +214,7 @@ class Header:
 
 
 def unit_vectors(rows: np.ndarray) -> np.ndarray:
-    """Finite rows scaled to unit length as float32 (``embedders.normalize``: in float64,
+    """Finite rows scaled to unit length as float32 (``models.base.normalize``: in float64,
     so neither huge nor tiny numbers overflow or vanish); a zero row is InvalidInput
     naming it."""
     x = np.asarray(rows, dtype=np.float64)

@@ -49,8 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from . import records as rec
-from .cache import (
+from ..detector.cache import (
     Add,
     Cache,
     CacheConfig,
@@ -59,10 +58,11 @@ from .cache import (
     Header,
     Op,
 )
-from .errors import StorageCorrupt, StorageError, StorageFull
-from .index import VectorIndex
+from ..detector.errors import StorageCorrupt, StorageError, StorageFull
+from ..detector.index import VectorIndex
+from ..detector.proposals import Proposal
+from . import records as rec
 from .indexfiles import IndexFiles, WithIndexFiles
-from .proposals import Proposal
 
 log = logging.getLogger(__name__)
 

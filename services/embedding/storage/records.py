@@ -16,7 +16,7 @@ import numpy as np
 
 from shared.messages import Detection
 
-from .cache import (
+from ..detector.cache import (
     Add,
     CacheConfig,
     Calibrate,
@@ -27,8 +27,8 @@ from .cache import (
     Header,
     Op,
 )
-from .calibration import Calibration
-from .proposals import Proposal
+from ..detector.calibration import Calibration
+from ..detector.proposals import Proposal
 
 
 def f4(blob: bytes) -> np.ndarray:

@@ -51,8 +51,7 @@ import numpy as np
 import psycopg
 from psycopg import errors as pgerrors
 
-from . import records as rec
-from .cache import (
+from ..detector.cache import (
     Add,
     Cache,
     CacheConfig,
@@ -62,11 +61,12 @@ from .cache import (
     Header,
     Op,
 )
-from .calibration import Calibration
-from .errors import Behind, StorageCorrupt, StorageError, StorageFull
-from .index import VectorIndex
+from ..detector.calibration import Calibration
+from ..detector.errors import Behind, StorageCorrupt, StorageError, StorageFull
+from ..detector.index import VectorIndex
+from ..detector.proposals import Proposal
+from . import records as rec
 from .indexfiles import IndexFiles, WithIndexFiles
-from .proposals import Proposal
 from .store import LOCK_NAME, take_lock
 
 log = logging.getLogger(__name__)

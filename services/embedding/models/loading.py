@@ -15,13 +15,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 from . import onnx_backend
+from .base import Closing, Embedder, ModelNotFound
 from .embedders import (
     DEFAULT_MODEL,
     DEFAULT_OPENAI_BASE_URL,
     OPENAI_PREFIX,
-    Closing,
-    Embedder,
-    ModelNotFound,
     NotFoundLocally,
     OpenAIEmbedder,
     SentenceTransformerEmbedder,

@@ -5,7 +5,7 @@ tau with the chosen method, scores a labelled test set and reports AUROC and
 the confusion-matrix rates at tau. Nothing is written to disk.
 
 ``--score detections`` and ``combined`` use each line's ``detections``
-(:mod:`services.embedding.detections`): the worst detection against the nominal
+(:mod:`services.embedding.detector.detections`): the worst detection against the nominal
 set's distinct detections, alone or combined with the whole-observation top-k score
 (and, with ``--pairs``, the worst pair of detections) through conformal p-values
 (Bonferroni), judged by the service's own cache (``Cache.judge``). Their scores are
@@ -27,6 +27,7 @@ import numpy as np
 
 from shared.messages import Detection
 
+from ..models.base import Embedder
 from .adapt import ACCEPTED, DEFAULT_WINDOW, Recalibrate, recalibration
 from .cache import (
     Cache,
@@ -40,7 +41,6 @@ from .cache import (
 )
 from .calibration import Calibration, Method, auroc, binary_metrics
 from .detections import distinct, embedded_form, floats, p_values_sorted
-from .embedders import Embedder
 from .errors import InvalidInput
 from .policy import DEFAULT_ALPHA, DEFAULT_TPR, Components, Evidence, needs_loo, threshold
 from .policy import calibrate as calibrate_with

@@ -79,7 +79,7 @@ class Calibration:
         auroc: AUROC of the scores on the calibration set (labelled sets only).
         target_tpr: the requested TPR ("tpr-target" only).
         pairs: the calibration kept pair scores too: a verdict with detections combines
-            three p-values (:mod:`services.embedding.detections`).
+            three p-values (:mod:`services.embedding.detector.detections`).
     """
 
     method: Method

@@ -1,0 +1,2 @@
+"""Detector replicas: who is alive on the bus (``replicas``), which robots are whose
+(``sharding``), and following the other replicas' writes to a shared store (``follow``)."""
