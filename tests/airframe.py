@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.control.scenario import load_scenario
+from services.control.core.scenario import load_scenario
 from shared import topics
 from shared.bus import Bus
 from shared.messages import VehicleClock, VehicleReset, VehicleSetpoint, VehicleState

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from services.control.scenario import load_scenario
+from services.control.core.scenario import load_scenario
 from shared.process import file_sink
 from shared.settings import BusSettings, read_settings
 from tools.local_llm import LocalModel

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from services.control.scenario import Scenario
+from services.control.core.scenario import Scenario
 from services.ros2 import convert, wire
 from services.ros2.config import BridgeConfig
 from services.sim.vehicle import Reporting, SimVehicle

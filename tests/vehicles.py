@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from services.control.core.scenario import Scenario
 from services.control.loop import ControlRuntime, TickResult, rest_at
-from services.control.scenario import Scenario
 from services.control.settings import ControlSettings
 from services.sim.vehicle import Reporting, SimVehicle
 from shared import topics

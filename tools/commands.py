@@ -115,7 +115,7 @@ def add_url_argument(parser: argparse.ArgumentParser) -> None:
 def control_scenario(path: Path | str | None, *, flag: bool = True):  # -> control's Scenario
     """The scene a command flies, or a usage error naming the file and field (and
     ``--scenario`` when the flag gave it, ``flag``)."""
-    from services.control.scenario import ScenarioError, load_scenario
+    from services.control.core.scenario import ScenarioError, load_scenario
 
     try:
         return load_scenario(path)

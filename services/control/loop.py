@@ -55,17 +55,17 @@ from shared.messages import (
     VehicleState,
 )
 
-from . import handshake, outbox
-from .aesop import ControlOutput
-from .controllers import Controller, make_controller, mpc_config
-from .dynamics import N_STATE, POS
-from .handshake import Asked, Handshake
-from .mpc import SolveStatus
-from .regions import Region
-from .scenario import Scenario, ScenarioError
+from .core import handshake, outbox
+from .core.aesop import ControlOutput
+from .core.controllers import Controller, make_controller, mpc_config
+from .core.dynamics import N_STATE, POS
+from .core.handshake import Asked, Handshake
+from .core.mpc import SolveStatus
+from .core.regions import Region
+from .core.scenario import Scenario, ScenarioError
+from .core.verdicts import Cause, Sightings, verdict_age
 from .settings import ControlSettings
 from .vehicle import StateInput, StateReading, setpoint
-from .verdicts import Cause, Sightings, verdict_age
 
 log = logging.getLogger(__name__)
 

@@ -12,8 +12,8 @@ from fastapi import APIRouter, Depends
 
 from shared.http import ApiError, errors, from_state
 
+from .core.scenario import ScenarioError, regions_from_list
 from .loop import ControlRuntime, NotNominal
-from .scenario import ScenarioError, regions_from_list
 from .schemas import RegionsAnswer, RegionsBody, ResetAnswer, ResetBody, State
 from .service import ControlService, regions_message
 from .settings import ControlSettings

@@ -36,9 +36,9 @@ from shared.messages import (
 )
 from shared.stats import spread
 
-from . import outbox
+from .core import outbox
+from .core.scenario import Scenario
 from .loop import ControlRuntime, FixedRateScheduler, TickResult, TickTiming
-from .scenario import Scenario
 from .settings import ControlSettings
 from .vehicle import ClockMap
 

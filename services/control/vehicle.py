@@ -50,10 +50,10 @@ from shared.bus import Received
 from shared.frames import euler_from_quaternion
 from shared.messages import MAX_AHEAD, Mode, VehicleSetpoint, VehicleState
 
-from .aesop import ControlOutput
-from .dynamics import N_STATE
-from .handshake import Note, NoteData
-from .planning import PlanningModel
+from .core.aesop import ControlOutput
+from .core.dynamics import N_STATE
+from .core.handshake import Note, NoteData
+from .core.planning import PlanningModel
 
 ClockSource = Literal["sync", "arrival"]
 RefusalKind = Literal["frame", "finite", "attitude", "speed", "older", "seq", "future", "late",

@@ -10,7 +10,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 from prometheus_client import CollectorRegistry
 
-from services.control.scenario import Scenario
+from services.control.core.scenario import Scenario
 from shared.bus import Bus
 from shared.http import service_app
 

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.control.regions import Tolerance
-from services.control.scenario import Scenario, planning_model
+from services.control.core.regions import Tolerance
+from services.control.core.scenario import Scenario, planning_model
 
 TOLERANCE = Tolerance()  # how close to a region's box counts as inside (control's regions.py)
 

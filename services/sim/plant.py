@@ -1,8 +1,8 @@
 """The simulated quadrotor's truth and flight controller (the simulator's physics).
 
 The truth is always the nonlinear 12-state quadrotor of
-:mod:`services.control.dynamics`, integrated with RK4. What a set-point's command
-means depends on the scenario's planning model (:mod:`services.control.planning`):
+:mod:`services.control.core.dynamics`, integrated with RK4. What a set-point's command
+means depends on the scenario's planning model (:mod:`services.control.core.planning`):
 
 * ``quadrotor``: thrust and torques, applied to the motors
   (:class:`SimulatedQuadrotor`), clipped to what the rotors can produce;
@@ -27,8 +27,8 @@ from typing import Protocol
 
 import numpy as np
 
-from services.control.dynamics import QuadrotorParams, body_z, simulate_step
-from services.control.scenario import Scenario
+from services.control.core.dynamics import QuadrotorParams, body_z, simulate_step
+from services.control.core.scenario import Scenario
 
 
 class Plant(Protocol):

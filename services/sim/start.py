@@ -6,8 +6,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from services.control.dynamics import N_STATE, POS
-from services.control.scenario import Scenario
+from services.control.core.dynamics import N_STATE, POS
+from services.control.core.scenario import Scenario
 
 
 class StartError(ValueError):

@@ -32,8 +32,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from services.control.dynamics import N_STATE, QuadrotorParams
-from services.control.scenario import Scenario
+from services.control.core.dynamics import N_STATE, QuadrotorParams
+from services.control.core.scenario import Scenario
 from shared.frames import quaternion_from_euler
 from shared.messages import VehicleSetpoint, VehicleState
 from shared.stats import spread

@@ -87,7 +87,7 @@ def keywords_json_schema_lacks(schema: object, path: str = "") -> list[str]:
 
 
 def test_published_schemas_use_json_schema_keywords_only() -> None:
-    from services.control.scenario import load_scenario
+    from services.control.core.scenario import load_scenario
     from services.control.schemas import RegionsAnswer, RegionsBody, ResetAnswer, ResetBody, State
     from services.dashboard.fleet import FleetSnapshot
     from services.dashboard.model import Snapshot

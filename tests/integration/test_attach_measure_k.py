@@ -26,7 +26,7 @@ from pathlib import Path
 import pytest
 
 from services.control.client import ControlClient
-from services.control.scenario import load_scenario
+from services.control.core.scenario import load_scenario
 from tests.demo_stack import running_stack
 from tools.demo.k import QUERIES, SCENE_FILE, control_k, how_to_fly
 from tools.stack.up import fly_command, hardware_scenario, plan_stack

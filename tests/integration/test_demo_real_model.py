@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 
 from services.control.client import ControlClient
-from services.control.scenario import load_scenario
+from services.control.core.scenario import load_scenario
 from tests.demo_stack import running_stack
 from tools.demo.flights import fly_scenarios, fly_with_k
 from tools.local_llm import bundled_model

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import pytest
 
-from services.control.scenario import load_scenario
+from services.control.core.scenario import load_scenario
 from services.embedding.client import EmbeddingClient
 from services.embedding.fleet.sharding import assignment
 from shared import topics

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.control.scenario import load_scenario
+from services.control.core.scenario import load_scenario
 from services.embedding.client import EmbeddingClient
 from services.ros2.config import load_config
 from shared.settings import BusSettings

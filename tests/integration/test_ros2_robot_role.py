@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from services.control.scenario import load_scenario
+from services.control.core.scenario import load_scenario
 from services.embedding.client import EmbeddingClient
 from services.ros2 import convert, wire
 from services.ros2.config import load_config

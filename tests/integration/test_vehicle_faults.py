@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from services.control.scenario import load_scenario
+from services.control.core.scenario import load_scenario
 from services.sim.judge import count_violations
 from services.sim.vehicle import Reporting
 from tests.vehicles import Flown, Vehicle, fly

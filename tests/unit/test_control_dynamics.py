@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from services.control.dynamics import (
+from services.control.core.dynamics import (
     LinearModel,
     QuadrotorParams,
     continuous_dynamics,
@@ -14,8 +14,8 @@ from services.control.dynamics import (
     rotor_thrusts,
     simulate_step,
 )
-from services.control.regions import Region, Tolerance
-from services.control.scenario import Limits, ScenarioError, bundled_path, load_scenario
+from services.control.core.regions import Region, Tolerance
+from services.control.core.scenario import Limits, ScenarioError, bundled_path, load_scenario
 
 PARAMS = QuadrotorParams()
 

@@ -18,10 +18,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from services.control.controllers import make_controller, mpc_config
-from services.control.mpc import SolveStatus, promised_step
-from services.control.scenario import load_scenario, planning_model
-from services.control.selection import SubsetSelector
+from services.control.core.controllers import make_controller, mpc_config
+from services.control.core.mpc import SolveStatus, promised_step
+from services.control.core.scenario import load_scenario, planning_model
+from services.control.core.selection import SubsetSelector
 from services.sim.plant import make_plant
 from shared.messages import Mode
 from tools.bench.reference import reference_solve

@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from services.control.handshake import (
+from services.control.core.handshake import (
     Asked,
     Handshake,
     Inputs,
@@ -18,7 +18,7 @@ from services.control.handshake import (
     forget_request,
     step,
 )
-from services.control.verdicts import Cause
+from services.control.core.verdicts import Cause
 from shared.messages import AnomalyVerdict, Mode, ReasonerDecision
 
 LIMIT = 0.5  # s: verdict freshness

@@ -10,6 +10,8 @@ import time
 import numpy as np
 import pytest
 
+from services.control.core.regions import Region
+from services.control.core.scenario import Scenario
 from services.control.loop import (
     ControlRuntime,
     FixedRateScheduler,
@@ -19,8 +21,6 @@ from services.control.loop import (
     TickTiming,
     next_index,
 )
-from services.control.regions import Region
-from services.control.scenario import Scenario
 from services.control.settings import ControlSettings
 from shared.bus import Received
 from shared.messages import (

@@ -6,7 +6,7 @@ import json
 import subprocess
 import sys
 
-from services.control.scenario import load_scenario, resolve_scenario
+from services.control.core.scenario import load_scenario, resolve_scenario
 from tools.bench.loop import FlightScript, fly_rate
 
 SCENARIO = load_scenario()

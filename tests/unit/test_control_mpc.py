@@ -7,12 +7,12 @@ few tens of centimetres away and a 3 s horizon keep every solve small.
 import numpy as np
 import pytest
 
-from services.control.aesop import AESOP, NAIVE, Controller, Route
-from services.control.dynamics import QuadrotorParams, simulate_step
-from services.control.mpc import BranchProblem, MPCConfig
-from services.control.planning import quadrotor_model
-from services.control.regions import Region
-from services.control.scenario import Limits
+from services.control.core.aesop import AESOP, NAIVE, Controller, Route
+from services.control.core.dynamics import QuadrotorParams, simulate_step
+from services.control.core.mpc import BranchProblem, MPCConfig
+from services.control.core.planning import quadrotor_model
+from services.control.core.regions import Region
+from services.control.core.scenario import Limits
 from shared.messages import Mode
 
 PARAMS = QuadrotorParams()

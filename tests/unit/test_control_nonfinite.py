@@ -13,13 +13,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from services.control.aesop import AESOP, Controller, Route
-from services.control.dynamics import QuadrotorParams, simulate_step
-from services.control.mpc import BranchProblem, MPCConfig, SolveStatus
-from services.control.planning import quadrotor_model
-from services.control.regions import Region
-from services.control.scenario import Limits
-from services.control.selection import Selection, SubsetSelector
+from services.control.core.aesop import AESOP, Controller, Route
+from services.control.core.dynamics import QuadrotorParams, simulate_step
+from services.control.core.mpc import BranchProblem, MPCConfig, SolveStatus
+from services.control.core.planning import quadrotor_model
+from services.control.core.regions import Region
+from services.control.core.scenario import Limits
+from services.control.core.selection import Selection, SubsetSelector
 from shared.messages import Mode
 
 PARAMS = QuadrotorParams()

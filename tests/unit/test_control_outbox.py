@@ -1,4 +1,4 @@
-"""What a tick says (services/control/outbox.py), table by table: the request to the
+"""What a tick says (services/control/core/outbox.py), table by table: the request to the
 reasoner for each cause, and the events of each change of mode."""
 
 from __future__ import annotations
@@ -8,11 +8,11 @@ from typing import NamedTuple
 import numpy as np
 import pytest
 
-from services.control import outbox
-from services.control.aesop import ControlOutput
-from services.control.mpc import SolveStatus
-from services.control.regions import Region
-from services.control.verdicts import Cause
+from services.control.core import outbox
+from services.control.core.aesop import ControlOutput
+from services.control.core.mpc import SolveStatus
+from services.control.core.regions import Region
+from services.control.core.verdicts import Cause
 from shared.messages import AnomalyVerdict, DetectionMatch, Mode, Observation, PairMatch
 
 REGIONS = (Region(1, "hold", "holding zone", "hover", (0.3, -0.8, 0.8), (1.3, -0.3, 1.2)),

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from services.control.aesop import Route
-from services.control.controllers import mpc_config
-from services.control.dynamics import QuadrotorParams
-from services.control.mpc import BranchProblem, decouple, promised_step
-from services.control.planning import point_mass_model
-from services.control.scenario import load_scenario, planning_model
+from services.control.core.aesop import Route
+from services.control.core.controllers import mpc_config
+from services.control.core.dynamics import QuadrotorParams
+from services.control.core.mpc import BranchProblem, decouple, promised_step
+from services.control.core.planning import point_mass_model
+from services.control.core.scenario import load_scenario, planning_model
 from services.sim.plant import TrackedQuadrotor
 from tools.bench.reference import reference_solve
 

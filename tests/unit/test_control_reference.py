@@ -25,10 +25,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from services.control.dynamics import QuadrotorParams
-from services.control.mpc import BranchProblem, MPCConfig, Plan
-from services.control.planning import quadrotor_model
-from services.control.scenario import load_scenario
+from services.control.core.dynamics import QuadrotorParams
+from services.control.core.mpc import BranchProblem, MPCConfig, Plan
+from services.control.core.planning import quadrotor_model
+from services.control.core.scenario import load_scenario
 from tools.bench.reference import reference_solve
 
 SCENARIO = load_scenario()
@@ -193,9 +193,9 @@ HARDWARE = load_scenario("hardware")
 @pytest.mark.parametrize(("x", "vx", "ax", "k"), [(-4.0, 0.0, 0.0, 0), (0.0, 0.87, 0.0, 0),
                                                   (1.5, 0.5, -0.5, 10), (1.0, -0.8, 0.3, 60)])
 def test_point_mass_tree_at_the_papers_grid_matches_reference(x, vx, ax, k) -> None:
-    from services.control.controllers import mpc_config
-    from services.control.mpc import promised_step
-    from services.control.scenario import planning_model
+    from services.control.core.controllers import mpc_config
+    from services.control.core.mpc import promised_step
+    from services.control.core.scenario import planning_model
 
     model = planning_model(HARDWARE)
     # eps 1e-5: at 1e-6 ADMM ends one of these 'inaccurate' after 200,000 iterations since

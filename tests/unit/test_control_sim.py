@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.control.dynamics import QuadrotorParams
-from services.control.scenario import load_scenario, planning_model
+from services.control.core.dynamics import QuadrotorParams
+from services.control.core.scenario import load_scenario, planning_model
 from services.sim.judge import count_violations, over_limits
 from tools.bench.sim import Case, Flight, fly, judge, sample_cases
 
@@ -77,7 +77,7 @@ def test_judge_counts_state_and_input_violations():
 GOLDEN_FLIGHT = """
 import sys
 import numpy as np
-from services.control.scenario import load_scenario
+from services.control.core.scenario import load_scenario
 from tools.bench.sim import fly, sample_cases
 scenario = load_scenario()
 flight = fly("aesop", scenario, sample_cases(scenario, 10, 0)[4])

@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from services.control.aesop import ControlOutput, carry_forward
-from services.control.mpc import SolveStatus
-from services.control.scenario import load_scenario, planning_model
+from services.control.core.aesop import ControlOutput, carry_forward
+from services.control.core.mpc import SolveStatus
+from services.control.core.scenario import load_scenario, planning_model
 from services.control.vehicle import ClockMap, StateInput, setpoint, state_vector
 from shared.bus import Received
 from shared.frames import euler_from_quaternion, quaternion_from_euler

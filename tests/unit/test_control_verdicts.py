@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.control.verdicts import Cause, Directive, Sightings, directive, verdict_age
+from services.control.core.verdicts import Cause, Directive, Sightings, directive, verdict_age
 
 A, S = Cause.ANOMALY, Cause.SILENCE
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from services.control.scenario import load_scenario
+from services.control.core.scenario import load_scenario
 from tools.demo.k import (
     QUERIES,
     choose_k,

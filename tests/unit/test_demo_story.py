@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from services.control.outbox import event, request
-from services.control.scenario import load_scenario
-from services.control.verdicts import Cause
+from services.control.core.outbox import event, request
+from services.control.core.scenario import load_scenario
+from services.control.core.verdicts import Cause
 from shared.messages import ControlState, Event, Observation, ReasonerDecision, ReasonerRequest
 from tools.demo.flights import Recorder, summarize
 from tools.scenes.hardware import SCENARIOS, observation_text

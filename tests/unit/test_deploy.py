@@ -692,7 +692,7 @@ def test_control_and_sim_fly_the_hardware_scene_that_the_demo_attaches_to(
     simulator as fast as the loop; the detector scores the cache `aesop demo` builds;
     `aesop demo --attach` finds the services at their published ports, the secrets where
     compose reads them."""
-    from services.control.scenario import bundled_path, load_scenario, resolve_scenario
+    from services.control.core.scenario import bundled_path, load_scenario, resolve_scenario
     from services.control.settings import ControlSettings
     from services.embedding.settings import EmbeddingSettings
     from services.sim.settings import SimSettings
@@ -806,7 +806,7 @@ def test_the_scene_override_gives_control_the_scene_the_demo_wrote_with_its_k(
     --attach --measure-k` writes, bound read-only where control's scene setting points, is
     the scene control loads (its K); without the variable compose refuses to start, and a
     file that is not there is not made a folder. The command the demo prints is this."""
-    from services.control.scenario import load_scenario, resolve_scenario
+    from services.control.core.scenario import load_scenario, resolve_scenario
     from services.control.settings import ControlSettings
     from tools.demo.k import SCENE_FILE, how_to_fly, scene_with_k
     from tools.stack.up import hardware_scenario
@@ -1372,7 +1372,7 @@ def test_each_robot_of_the_fleet_has_its_loop_vehicle_user_secret_ports_and_rate
     with the robot's id, its own Zenoh users and password files, host ports of their own
     on loopback; every loop at the fleet's rate (as `aesop up --robots N`), its simulator
     as much slower than real time."""
-    from services.control.scenario import load_scenario
+    from services.control.core.scenario import load_scenario
     from services.control.settings import ControlSettings
     from services.sim.settings import SimSettings
     from tools.stack.up import FLEET_RATE_HZ

@@ -17,8 +17,8 @@ ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("shared", "services", "tools")
 SERVICES = ("embedding", "reasoner", "control", "dashboard", "sim")
 # what one service may read of another: the scene and the truth it flies
-BORROWED = {("sim", "services.control.scenario"), ("sim", "services.control.dynamics"),
-            ("sim", "services.control.regions"), ("sim", "services.control.planning")}
+BORROWED = {("sim", "services.control.core.scenario"), ("sim", "services.control.core.dynamics"),
+            ("sim", "services.control.core.regions"), ("sim", "services.control.core.planning")}
 MAX_FUNCTION_LINES = 100
 MAX_CLASS_LINES = 400
 
@@ -149,7 +149,7 @@ FLOORS = {"models": ("models",), "detector": ("detector", "models.base"),
 # event loop (files are allowed: an index's own files, a JSONL of labelled scenes)
 IO = {"httpx", "zenoh", "fastapi", "starlette", "uvicorn", "psycopg", "psycopg_pool",
       "sqlite3", "socket", "requests", "asyncio", "subprocess", "threading"}
-CORES = (f"{EMBEDDING}.detector",)
+CORES = (f"{EMBEDDING}.detector", "services.control.core")
 
 
 def _folder(module: str) -> str | None:
@@ -168,6 +168,13 @@ def test_the_detectors_folders_import_only_their_own_floor_and_those_below() -> 
             inside = target.startswith(EMBEDDING + ".") or target == EMBEDDING
             if inside and not any(target == a or target.startswith(a + ".") for a in allowed):
                 bad.append((module, target))
+    assert bad == []
+
+
+def test_controls_core_imports_nothing_of_the_loop_around_it() -> None:
+    bad = sorted((m, t) for m, p in MODULES.items() if m.startswith("services.control.core")
+                 for t in _imports(m, p, typing=True)
+                 if t.startswith("services.control") and not t.startswith("services.control.core"))
     assert bad == []
 
 
@@ -217,3 +224,10 @@ def test_no_function_over_100_lines_and_no_class_over_400() -> None:
                                     "services.embedding.models.onnx_backend"])
 def test_the_embedders_do_not_import_each_others_chooser(module: str) -> None:
     assert "services.embedding.models.loading" not in GRAPH[module]
+
+
+def test_the_readme_is_a_front_door_of_at_most_250_lines() -> None:
+    """The README says what the stack is, the two commands and one paragraph per part with
+    links into docs/ (the developers' guide caps it at about 250 lines)."""
+    lines = (ROOT / "README.md").read_text().count("\n")
+    assert lines <= 250, f"README.md has {lines} lines: move detail into docs/"

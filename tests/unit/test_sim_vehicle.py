@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.control.scenario import load_scenario
+from services.control.core.scenario import load_scenario
 from services.sim.vehicle import HOLD_EASE_S, Reporting, SimVehicle
 from shared.frames import euler_from_quaternion
 from shared.messages import Mode, VehicleSetpoint

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from services.control.scenario import load_scenario
+from services.control.core.scenario import load_scenario
 from tools.demo.flights import add_time_lost, dashboard_text, summary_text
 from tools.demo.report import (
     AGES,

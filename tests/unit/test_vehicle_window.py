@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.control.handshake import Note
+from services.control.core.handshake import Note
 from services.control.vehicle import StateInput, StateReading
 from shared.bus import Received
 from shared.messages import VehicleState

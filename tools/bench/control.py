@@ -20,9 +20,9 @@ from typing import Any
 
 import numpy as np
 
-from services.control.controllers import METHODS, make_controller, mpc_config
-from services.control.mpc import SolveStatus, promised_step
-from services.control.scenario import Scenario, load_scenario, planning_model
+from services.control.core.controllers import METHODS, make_controller, mpc_config
+from services.control.core.mpc import SolveStatus, promised_step
+from services.control.core.scenario import Scenario, load_scenario, planning_model
 from services.sim.plant import make_plant
 from services.sim.vehicle import Reporting
 from tools import progress

@@ -33,8 +33,8 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from services.control.core.scenario import Scenario, load_scenario, resolve_scenario
 from services.control.loop import ControlRuntime, FixedRateScheduler, TickTiming
-from services.control.scenario import Scenario, load_scenario, resolve_scenario
 from services.control.service import VehicleAges, sync_clock
 from services.control.settings import ControlSettings, ControlTuning
 from services.sim.client import SimClient

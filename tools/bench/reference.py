@@ -49,15 +49,15 @@ from dataclasses import dataclass
 import cvxpy as cp
 import numpy as np
 
-from services.control.mpc import (
+from services.control.core.mpc import (
     MPCConfig,
     planning_box,
     tightened_inputs,
     tightened_lag_gaps,
     tightened_states,
 )
-from services.control.planning import PlanningModel
-from services.control.regions import Region
+from services.control.core.planning import PlanningModel
+from services.control.core.regions import Region
 
 SLACK_QUADRATIC = 1e-6  # the small quadratic price on the slacks that mpc.py uses
 

@@ -29,9 +29,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.control.controllers import METHODS, Method, make_controller
-from services.control.mpc import MPCConfig
-from services.control.scenario import Scenario
+from services.control.core.controllers import METHODS, Method, make_controller
+from services.control.core.mpc import MPCConfig
+from services.control.core.scenario import Scenario
 from services.control.vehicle import ClockMap, StateInput, setpoint
 from services.sim.judge import LIMIT_TOLERANCE, TOLERANCE, LimitTolerance, count_violations
 from services.sim.vehicle import Reporting, SimVehicle

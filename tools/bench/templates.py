@@ -37,8 +37,8 @@ from typing import Any
 import httpx
 import numpy as np
 
-from services.control.outbox import options_for
-from services.control.scenario import load_scenario
+from services.control.core.outbox import options_for
+from services.control.core.scenario import load_scenario
 from services.reasoner.api import build_decider
 from services.reasoner.backends import Completion
 from services.reasoner.settings import ReasonerSettings

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from services.control.client import ControlClient
-from services.control.scenario import Scenario, load_scenario
+from services.control.core.scenario import Scenario, load_scenario
 from services.embedding.client import EmbeddingClient
 from services.reasoner.client import ReasonerClient
 from services.sim.client import SimClient

@@ -27,9 +27,9 @@ from typing import Any
 
 import numpy as np
 
-from services.control.outbox import BLIND
-from services.control.regions import Tolerance
-from services.control.scenario import Scenario
+from services.control.core.outbox import BLIND
+from services.control.core.regions import Tolerance
+from services.control.core.scenario import Scenario
 from services.sim.judge import TOLERANCE
 from shared.messages import ControlState, Event, ReasonerDecision, ReasonerRequest
 from shared.tables import fitted

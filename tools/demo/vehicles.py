@@ -3,7 +3,7 @@ over the vehicle contract alone (docs/architecture.md, section 3a).
 
 A flight needs three things of its vehicle: to start at rest at the scenario's start
 (:meth:`reset`), where it really flew (:meth:`flown`: 12-state rows, the layout of
-:mod:`services.control.dynamics`, judged by :func:`services.sim.judge.count_violations`)
+:mod:`services.control.core.dynamics`, judged by :func:`services.sim.judge.count_violations`)
 and, where the vehicle says, how old the set-points were when they reached it.
 
 - :class:`SimVehicle`: ``aesop serve sim``'s ``/v1/reset``, its truth trace and its

@@ -38,7 +38,7 @@ from typing import Any
 import httpx
 from prometheus_client.parser import text_string_to_metric_families
 
-from services.control.scenario import load_scenario
+from services.control.core.scenario import load_scenario
 from shared import topics
 from shared.bus import Bus
 from shared.messages import AnomalyVerdict, Observation, ReasonerRequest

@@ -217,7 +217,7 @@ def cmd_zenoh_credentials(args: argparse.Namespace) -> int:
 def stack_options(args: argparse.Namespace, data_dir: Path):
     import importlib.util
 
-    from services.control.scenario import resolve_scenario
+    from services.control.core.scenario import resolve_scenario
     from services.control.settings import ControlSettings
     from shared.settings import BusSettings
     from tools.stack.up import (

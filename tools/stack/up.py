@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from services.control.scenario import bundled_path, load_scenario, resolve_scenario
+from services.control.core.scenario import bundled_path, load_scenario, resolve_scenario
 from services.control.settings import ControlSettings
 from services.dashboard.settings import DashboardSettings
 from services.embedding.settings import EmbeddingSettings

@@ -7,9 +7,11 @@ it is all the control loop and the closed-loop benchmark rely on.
 from __future__ import annotations
 
 from dataclasses import fields
-from typing import Literal
+from typing import Any, Literal
 
 from .aesop import POLICIES, Controller, Route
+
+__all__ = ["Controller", "Method", "make_controller", "mpc_config"]
 from .mpc import MPCConfig
 from .planning import PlanningModel
 from .scenario import Scenario, planning_model
@@ -21,7 +23,7 @@ METHODS: tuple[Method, ...] = ("naive", "fsmpc", "aesop")
 _INT_FIELDS = {f.name for f in fields(MPCConfig) if f.type in ("int", int)}
 
 
-def mpc_config(scenario: Scenario, **overrides) -> MPCConfig:
+def mpc_config(scenario: Scenario, **overrides: Any) -> MPCConfig:
     """The MPC settings a scenario implies: T and K in steps, its ``mpc`` overrides, then
     ``overrides``."""
     merged = {**dict(scenario.mpc), **overrides}

@@ -252,14 +252,14 @@ def _vec3(values: Any) -> tuple[float, float, float]:
     return cast(tuple[float, float, float], tuple(float(v) for v in values))
 
 
-def _mapping(data: dict, key: str) -> dict:
+def _mapping(data: dict[str, Any], key: str) -> dict[str, Any]:
     value = data.get(key) or {}
     if not isinstance(value, dict):
         raise ScenarioError(key, "expected a mapping")
     return value
 
 
-def _vehicle(data: dict) -> QuadrotorParams:
+def _vehicle(data: dict[str, Any]) -> QuadrotorParams:
     """``vehicle:`` fields of :class:`QuadrotorParams` (mass, arm, inertia, rotor_max, ...)."""
     known = {f.name for f in fields(QuadrotorParams)}
     for key in data:
@@ -273,7 +273,7 @@ def _vehicle(data: dict) -> QuadrotorParams:
         raise ScenarioError("vehicle", str(exc)) from None
 
 
-def _mpc_overrides(data: dict) -> tuple[tuple[str, float], ...]:
+def _mpc_overrides(data: dict[str, Any]) -> tuple[tuple[str, float], ...]:
     out = []
     for key, value in data.items():
         if key not in MPC_FIELDS:
@@ -289,7 +289,7 @@ def bundled_path(name: str) -> Path:
     if name not in BUNDLED:
         raise ScenarioError("scenario", f"no bundled scenario {name!r} (bundled: "
                             f"{', '.join(BUNDLED)})")
-    return Path(str(resources.files(__package__).joinpath(f"scenarios/{name}.yaml")))
+    return Path(str(resources.files("services.control").joinpath(f"scenarios/{name}.yaml")))
 
 
 def resolve_scenario(name_or_path: Path | str | None) -> Path:
