@@ -18,7 +18,7 @@ from shared.jobs import Job
 from shared.messages import Detection, Observation
 
 from .detector.adapt import ACCEPTED, recalibration
-from .detector.cache import CacheConfig, Calibrate, Op
+from .detector.cache import CacheConfig, Op, SetCalibration
 from .detector.errors import Conflict, InvalidInput, NotFound
 from .detector.proposals import Proposal, State, scene_id
 from .entries import Entry, Item
@@ -167,7 +167,7 @@ class Review:
                          entry.cache.name, op.calibration.n)
 
     @staticmethod
-    def _planned(entry: Entry, size: int) -> Calibrate | None:
+    def _planned(entry: Entry, size: int) -> SetCalibration | None:
         with entry.rw.read():
             return recalibration(entry.cache, size)
 

@@ -28,7 +28,7 @@ from typing import Literal
 
 import numpy as np
 
-from .cache import Cache, Calibrate
+from .cache import Cache, SetCalibration
 from .errors import DetectorError
 from .policy import Components, Evidence, calibrate
 
@@ -44,7 +44,7 @@ def window(cache: Cache, size: int) -> list[int]:
     return found[-size:] if size else []
 
 
-def recalibration(cache: Cache, size: int) -> Calibrate | None:
+def recalibration(cache: Cache, size: int) -> SetCalibration | None:
     """The calibration of the ``size`` most recently accepted scenes, split-conformal at the
     current calibration's alpha (pairs if it had them); None when there is nothing to
     recalibrate (no calibration with an alpha) or the window is too short to ever flag."""

@@ -56,7 +56,7 @@ MAX_MATCHES = 3  # detections a verdict names
 
 
 @dataclass(frozen=True)
-class Experience:
+class CachedExperience:
     id: str
     text: str | None
     metadata: Mapping[str, Any] = field(default_factory=dict)
@@ -155,7 +155,7 @@ class Add:
     and the vectors of the detection phrases the cache has not seen before."""
 
     labels: tuple[int, ...]
-    experiences: tuple[Experience, ...]
+    experiences: tuple[CachedExperience, ...]
     vectors: np.ndarray
     version: int
     detection_vectors: Mapping[str, np.ndarray] = field(default_factory=dict)
@@ -169,7 +169,7 @@ class Delete:
 
 
 @dataclass(frozen=True, eq=False)
-class Calibrate:
+class SetCalibration:
     calibration: Calibration
     version: int
     scores: CalibrationScores | None = None  # loo-quantile and conformal keep theirs
@@ -183,7 +183,7 @@ class Configure:
     proposals: Policy = "review"
 
 
-Op = Add | Delete | Calibrate | Configure
+Op = Add | Delete | SetCalibration | Configure
 
 
 @dataclass(frozen=True)
@@ -205,7 +205,7 @@ class Header:
                            stale=calibrated)
         if isinstance(op, Delete):
             return replace(self, version=op.version, stale=calibrated)
-        if isinstance(op, Calibrate):
+        if isinstance(op, SetCalibration):
             return replace(self, version=op.version, calibration=op.calibration, stale=False)
         config = replace(self.config, k=op.k, score=op.score, proposals=op.proposals)
         scoring = (op.k, op.score) != (self.config.k, self.config.score)
@@ -233,7 +233,7 @@ class Cache:
         self.calibration: Calibration | None = None
         self.stale = False  # the experiences or the score changed since the calibration
         self.index = index if index is not None else VectorIndex(config.dim, config.index)
-        self.experiences: dict[int, Experience] = {}
+        self.experiences: dict[int, CachedExperience] = {}
         self.labels_by_id: dict[str, int] = {}
         self.detection_vectors: dict[str, np.ndarray] = {}  # every phrase seen: unit float32
         self.detection_counts: dict[str, int] = {}  # phrase: experiences holding it (> 0)
@@ -245,7 +245,7 @@ class Cache:
         self._pairs: tuple[int, det.NominalPairs] | None = None
 
     @classmethod
-    def restored(cls, header: Header, experiences: Mapping[int, Experience],
+    def restored(cls, header: Header, experiences: Mapping[int, CachedExperience],
                  index: VectorIndex, detection_vectors: Mapping[str, np.ndarray] | None = None,
                  calibration_scores: CalibrationScores | None = None) -> Cache:
         """A cache as stored: ``index`` holds exactly the labels of ``experiences``,
@@ -505,7 +505,7 @@ class Cache:
             resolved.append(ident)
         first = self.next_label
         held = [tuple(d) for d in detections] or [()] * n
-        experiences = tuple(Experience(ident, text, dict(meta), found) for ident, text, meta,
+        experiences = tuple(CachedExperience(ident, text, dict(meta), found) for ident, text, meta,
                             found in zip(resolved, texts, metadata, held, strict=True))
         new: dict[str, np.ndarray] = {}
         for exp in experiences:
@@ -523,10 +523,10 @@ class Cache:
         return Delete(ident, self.labels_by_id[ident], self.version + 1)
 
     def plan_calibration(self, calibration: Calibration,
-                         scores: CalibrationScores | None = None) -> Calibrate:
+                         scores: CalibrationScores | None = None) -> SetCalibration:
         if not math.isfinite(calibration.threshold):
             raise InvalidInput("calibration gave a non-finite threshold", field="calibration")
-        return Calibrate(calibration, self.version + 1, scores)
+        return SetCalibration(calibration, self.version + 1, scores)
 
     def plan_configure(self, *, k: int, score: ScoreKind, proposals: Policy | None = None
                        ) -> Configure | None:
@@ -550,11 +550,11 @@ class Cache:
             del self.labels_by_id[op.id]
             self._count(self.experiences.pop(op.label), -1)
             self.index.remove(np.array([op.label], dtype=np.int64))
-        elif isinstance(op, Calibrate):
+        elif isinstance(op, SetCalibration):
             self.calibration_scores = op.scores
         self.header = header
 
-    def _count(self, exp: Experience, step: int) -> None:
+    def _count(self, exp: CachedExperience, step: int) -> None:
         phrases = sorted(exp.phrases)
         for phrase in phrases:
             _step(self.detection_counts, phrase, step)

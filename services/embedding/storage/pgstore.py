@@ -55,11 +55,11 @@ from ..detector.cache import (
     Add,
     Cache,
     CacheConfig,
-    Calibrate,
     CalibrationScores,
     Delete,
     Header,
     Op,
+    SetCalibration,
 )
 from ..detector.calibration import Calibration
 from ..detector.errors import Behind, StorageCorrupt, StorageError, StorageFull
@@ -386,7 +386,7 @@ def _op(db: psycopg.Connection[Any], name: str, dim: int, version: int, op: str,
     if op == "delete":
         return rec.delete_op(detail, version)
     if op == "calibrate":
-        return Calibrate(Calibration(**detail), version, _scores(db, name))
+        return SetCalibration(Calibration(**detail), version, _scores(db, name))
     if op == "configure":
         return rec.configure_op(detail, version)
     raise StorageCorrupt(Path("postgresql"), f"cache {name!r} version {version}: unknown "
@@ -445,7 +445,7 @@ def _write_op(db: psycopg.Connection[Any], name: str, op: Op) -> None:
                             [(name, *row, op.version) for row in rec.phrase_rows(op)])
     elif isinstance(op, Delete):
         db.execute("DELETE FROM experiences WHERE cache = %s AND label = %s", (name, op.label))
-    elif isinstance(op, Calibrate):
+    elif isinstance(op, SetCalibration):
         db.execute("DELETE FROM calibration_scores WHERE cache = %s", (name,))
         if op.scores is not None:
             db.execute("INSERT INTO calibration_scores VALUES (%s, %s, %s, %s)",

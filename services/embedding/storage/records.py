@@ -19,13 +19,13 @@ from shared.messages import Detection
 from ..detector.cache import (
     Add,
     CacheConfig,
-    Calibrate,
+    CachedExperience,
     CalibrationScores,
     Configure,
     Delete,
-    Experience,
     Header,
     Op,
+    SetCalibration,
 )
 from ..detector.calibration import Calibration
 from ..detector.proposals import Proposal
@@ -53,8 +53,8 @@ def header_of(config: str, version: int, next_label: int, calibration: str | Non
                   bool(stale))
 
 
-def experience_of(ident: str, text: str | None, metadata: str, detections: str) -> Experience:
-    return Experience(ident, text, json.loads(metadata),
+def experience_of(ident: str, text: str | None, metadata: str, detections: str) -> CachedExperience:
+    return CachedExperience(ident, text, json.loads(metadata),
                       tuple(Detection(**d) for d in json.loads(detections)))
 
 
@@ -81,7 +81,7 @@ def change_of(op: Op) -> tuple[str, dict[str, Any]]:
         return "add", detail
     if isinstance(op, Delete):
         return "delete", {"id": op.id, "label": op.label}
-    if isinstance(op, Calibrate):
+    if isinstance(op, SetCalibration):
         return "calibrate", op.calibration.to_dict()
     return "configure", {"k": op.k, "score": op.score, "proposals": op.proposals}
 

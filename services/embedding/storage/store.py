@@ -53,10 +53,10 @@ from ..detector.cache import (
     Add,
     Cache,
     CacheConfig,
-    Calibrate,
     Delete,
     Header,
     Op,
+    SetCalibration,
 )
 from ..detector.errors import StorageCorrupt, StorageError, StorageFull
 from ..detector.index import VectorIndex
@@ -321,7 +321,7 @@ def _write_op(db: sqlite3.Connection, name: str, op: Op) -> None:
                        ((name, *row) for row in rec.phrase_rows(op)))
     elif isinstance(op, Delete):
         db.execute("DELETE FROM experiences WHERE cache = ? AND label = ?", (name, op.label))
-    elif isinstance(op, Calibrate):
+    elif isinstance(op, SetCalibration):
         db.execute("DELETE FROM calibration_scores WHERE cache = ?", (name,))
         if op.scores is not None:
             db.execute("INSERT INTO calibration_scores VALUES (?, ?, ?, ?)",
