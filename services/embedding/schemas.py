@@ -35,6 +35,7 @@ from shared.messages import (
 from .detector.cache import Cache, ScoreKind
 from .detector.calibration import Method
 from .detector.index import IndexKind
+from .detector.policy import NEEDS_LABELLED, needs_labelled
 from .detector.proposals import Policy, Proposal, State
 
 # any finite number: vectors are scaled to unit length in float64 before they are
@@ -152,7 +153,7 @@ class Calibrate(Body):
     ``tpr-target`` need a labelled ``calibration`` set."""
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"if": {
-        "properties": {"method": {"enum": ["conformal", "tpr-target"]}}},
+        "properties": {"method": {"enum": list(NEEDS_LABELLED)}}},
         "then": {"required": ["calibration"], "properties": {
             "calibration": {"type": "array", "minItems": 1}}}})
 
@@ -169,7 +170,7 @@ class Calibrate(Body):
     def _labelled_set(cls, value: list[LabelledIn] | None, info: ValidationInfo
                       ) -> list[LabelledIn] | None:
         method = info.data.get("method")
-        if method not in (None, "loo-quantile") and not value:
+        if method is not None and needs_labelled(method) and not value:
             raise ValueError(f"{method} calibration needs a labelled calibration set")
         return value
 

@@ -26,7 +26,7 @@ from .batching import NORMAL, URGENT, ComputeThread
 from .detector import policy
 from .detector.cache import Add, Cache, CacheConfig, Delete, Labelled, Op, ScoreKind, unit_vectors
 from .detector.calibration import Method, roc_curve
-from .detector.detections import embedded_form, floats
+from .detector.detections import embedded_form
 from .detector.errors import Behind, Conflict, InvalidInput, NotFound, StorageError
 from .detector.index import IndexKind
 from .detector.policy import Components, Evidence
@@ -317,10 +317,7 @@ class CacheService:
             labelled = labels = None
             if calibration:
                 scored = await self.scorer.score_labelled(entry, calibration, pairs=pairs)
-                labelled = Components(np.array([r.score for r in scored]),
-                                      floats(r.detection_score for r in scored),
-                                      floats(r.pair_score for r in scored) if pairs else None)
-                labels = np.array([x.is_anomaly for x in calibration], dtype=bool)
+                labelled, labels = policy.labelled_components(scored, calibration, pairs=pairs)
             loo = (await on_fresh_thread(self._loo_all, entry, pairs)
                    if policy.needs_loo(method) else None)
             evidence = Evidence(loo, labelled, labels)
@@ -334,15 +331,9 @@ class CacheService:
         return Calibrated(**cal.to_dict(), cache=name, version=version, roc=roc)
 
     def _loo_all(self, entry: Entry, pairs: bool) -> Components:
-        """Each member's leave-one-out scores: the whole observation's, its worst
-        detection's (NaN without detections; none for a cache without any) and, if asked,
-        its worst pair's (NaN with fewer than two detections)."""
+        """The cache's leave-one-out evidence, under its read lock."""
         with entry.rw.read():
-            cache = entry.cache
-            return Components(
-                cache.loo_scores(),
-                cache.loo_detection_scores() if cache.has_detections else np.zeros(0),
-                cache.loo_pair_scores() if pairs else None)
+            return policy.loo_components(entry.cache, pairs=pairs)
 
     @asynccontextmanager
     async def writing(self, entry: Entry) -> AsyncIterator[None]:

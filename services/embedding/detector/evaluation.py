@@ -42,7 +42,16 @@ from .cache import (
 from .calibration import Calibration, Method, auroc, binary_metrics
 from .detections import distinct, embedded_form, floats, p_values_sorted
 from .errors import InvalidInput
-from .policy import DEFAULT_ALPHA, DEFAULT_TPR, Components, Evidence, needs_loo, threshold
+from .policy import (
+    DEFAULT_ALPHA,
+    DEFAULT_TPR,
+    Components,
+    Evidence,
+    labelled_components,
+    loo_components,
+    needs_loo,
+    threshold,
+)
 from .policy import calibrate as calibrate_with
 
 EvalScore = Literal["topk", "mahalanobis", "detections", "combined"]
@@ -116,8 +125,7 @@ def build_cache(vectors: np.ndarray, config: EvalConfig, model: str | None) -> C
 def calibrate(cache: Cache, config: EvalConfig, cal_scores: np.ndarray | None,
               cal_labels: np.ndarray | None) -> Calibration:
     """Tau of a text-only cache by the service's policy (:mod:`.policy`)."""
-    loo = (Components(cache.loo_scores(config.k), np.zeros(0), None)
-           if needs_loo(config.method) else None)
+    loo = loo_components(cache, pairs=False, k=config.k) if needs_loo(config.method) else None
     labelled = None if cal_scores is None else Components(cal_scores, np.zeros(0), None)
     try:
         return threshold(config.method, Evidence(loo, labelled, cal_labels),
@@ -282,17 +290,13 @@ def fit_structured(embedder: Embedder, nominal: Sequence[Labelled],
                            field="pairs")
     loo = labelled = labels = None
     if needs_loo(config.method):
-        loo = Components(cache.loo_scores(config.k), cache.loo_detection_scores(),
-                         cache.loo_pair_scores() if pairs else None)
+        loo = loo_components(cache, pairs=pairs, k=config.k)
     else:
         if not any(not x.is_anomaly for x in calibration):
             raise InvalidInput("--method conformal needs nominal lines in --calibration",
                                field="calibration")
         scored = score_structured(cache, embedder, calibration, pairs=pairs)
-        labelled = Components(np.array([r.score for r in scored]),
-                              floats(r.detection_score for r in scored),
-                              floats(r.pair_score for r in scored) if pairs else None)
-        labels = np.array([x.is_anomaly for x in calibration], dtype=bool)
+        labelled, labels = labelled_components(scored, calibration, pairs=pairs)
     # the whole observation's tau serves observations without detections
     cal, kept = calibrate_with(config.method, Evidence(loo, labelled, labels),
                                alpha=config.alpha, pairs=pairs,

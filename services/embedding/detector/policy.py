@@ -14,12 +14,13 @@ never fall below ``1 - alpha`` is refused naming ``alpha`` (:meth:`CalibrationSc
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
 
-from .cache import CalibrationScores
+from .cache import Cache, CalibrationScores, Labelled, Scored
 from .calibration import (
     Calibration,
     CalibrationError,
@@ -29,6 +30,7 @@ from .calibration import (
     loo_quantile,
     tpr_target,
 )
+from .detections import floats
 from .errors import InvalidInput
 
 DEFAULT_ALPHA = 0.95
@@ -58,6 +60,25 @@ class Evidence:
         return self.labels is not None and bool(self.labels.any() and (~self.labels).any())
 
 
+def loo_components(cache: Cache, *, pairs: bool, k: int | None = None) -> Components:
+    """The members' leave-one-out scores of each component (``loo-quantile``'s evidence):
+    the whole observation's at ``k`` (the cache's by default), the detections' where the
+    cache has any, the pairs' if asked for."""
+    return Components(cache.loo_scores(k),
+                      cache.loo_detection_scores() if cache.has_detections else np.zeros(0),
+                      cache.loo_pair_scores() if pairs else None)
+
+
+def labelled_components(scored: Sequence[Scored], labelled: Sequence[Labelled], *,
+                        pairs: bool) -> tuple[Components, np.ndarray]:
+    """A labelled set's scores of each component (``scored``, one per item of
+    ``labelled``) and its labels (True: anomaly)."""
+    return (Components(np.array([r.score for r in scored]),
+                       floats(r.detection_score for r in scored),
+                       floats(r.pair_score for r in scored) if pairs else None),
+            np.array([x.is_anomaly for x in labelled], dtype=bool))
+
+
 def check(method: Method, pairs: bool) -> None:
     """Refuse what no evidence can make: pairs with ``tpr-target``."""
     if pairs and method == "tpr-target":
@@ -65,8 +86,19 @@ def check(method: Method, pairs: bool) -> None:
                            "tpr-target", field="pairs")
 
 
+# what each method needs beyond the cache (the module's docstring says why)
+NEEDS_LABELLED: tuple[Method, ...] = ("conformal", "tpr-target")  # a labelled set
+
+
 def needs_loo(method: Method) -> bool:
-    return method == "loo-quantile"
+    """The members' leave-one-out scores: ``loo-quantile``."""
+    return method not in NEEDS_LABELLED
+
+
+def needs_labelled(method: Method) -> bool:
+    """A labelled calibration set (``conformal``: its nominal lines; ``tpr-target``: both
+    classes)."""
+    return method in NEEDS_LABELLED
 
 
 def threshold(method: Method, evidence: Evidence, *, alpha: float | None = None,
@@ -129,4 +161,5 @@ def calibrate(method: Method, evidence: Evidence, *, alpha: float | None = None,
 
 
 __all__ = ["DEFAULT_ALPHA", "DEFAULT_TPR", "Components", "Evidence", "calibrate", "check",
-           "kept", "needs_loo", "threshold"]
+           "kept", "labelled_components", "loo_components", "needs_labelled", "needs_loo",
+           "NEEDS_LABELLED", "threshold"]
