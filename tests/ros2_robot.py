@@ -31,7 +31,7 @@ from shared.bus import zenoh_config
 from shared.messages import Mode, VehicleSetpoint
 from shared.settings import BusSettings
 from tests.zenoh_peers import wait_until
-from tools.fakes.ros2 import detections_cdr, odometry_cdr, string_cdr
+from tools.fakes.ros2_cdr import detections_cdr, odometry_cdr, string_cdr
 from tools.scenes.hardware import DemoScenario, observation_text
 
 HOLD_S = 0.5  # PX4's offboard loss timeout, roughly: past it the vehicle holds

@@ -55,6 +55,7 @@ from shared.messages import (
     VehicleState,
 )
 
+from .contract import StateInput, StateReading, setpoint
 from .core import handshake, outbox
 from .core.aesop import ControlOutput
 from .core.controllers import Controller, make_controller, mpc_config
@@ -65,7 +66,6 @@ from .core.regions import Region
 from .core.scenario import Scenario, ScenarioError
 from .core.verdicts import Cause, Sightings, verdict_age
 from .settings import ControlSettings
-from .vehicle import StateInput, StateReading, setpoint
 
 log = logging.getLogger(__name__)
 

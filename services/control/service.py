@@ -36,11 +36,11 @@ from shared.messages import (
 )
 from shared.stats import spread
 
+from .contract import ClockMap
 from .core import outbox
 from .core.scenario import Scenario
 from .loop import ControlRuntime, FixedRateScheduler, TickResult, TickTiming
 from .settings import ControlSettings
-from .vehicle import ClockMap
 
 log = logging.getLogger(__name__)
 

@@ -47,7 +47,7 @@ from shared.messages import (
 )
 from shared.settings import BusSettings
 from tests.zenoh_peers import endpoint, wait_until  # noqa: F401  (a fixture)
-from tools.fakes.ros2 import detections_cdr, odometry_cdr, string_cdr
+from tools.fakes.ros2_cdr import detections_cdr, odometry_cdr, string_cdr
 
 QUADROTOR = Path(__file__).resolve().parents[2] / "deploy" / "ros2" / "quadrotor.yaml"
 CONFIG = load_config(QUADROTOR)

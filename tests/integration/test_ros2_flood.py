@@ -49,7 +49,7 @@ from tests.integration.test_ros2_bridge import (
     status,
 )
 from tests.zenoh_peers import endpoint, wait_until  # noqa: F401  (a fixture)
-from tools.fakes.ros2 import detections_cdr, odometry_cdr, string_cdr
+from tools.fakes.ros2_cdr import detections_cdr, odometry_cdr, string_cdr
 
 # a CDR header (little-endian) and garbage: the callback's skim of the layout refuses it
 GARBAGE = b"\x00\x01\x00\x00" + b"\xff" * 800

@@ -1,4 +1,4 @@
-"""The vehicle as the control loop sees it (services/control/vehicle.py): freshness by
+"""The vehicle as the control loop sees it (services/control/contract.py): freshness by
 arrival and seq, refusals, the clock map, delay compensation, and the set-point."""
 
 from __future__ import annotations
@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
+from services.control.contract import ClockMap, StateInput, setpoint, state_vector
 from services.control.core.aesop import ControlOutput, carry_forward
 from services.control.core.mpc import SolveStatus
 from services.control.core.scenario import load_scenario, planning_model
-from services.control.vehicle import ClockMap, StateInput, setpoint, state_vector
 from shared.bus import Received
 from shared.frames import euler_from_quaternion, quaternion_from_euler
 from shared.messages import Mode, VehicleState

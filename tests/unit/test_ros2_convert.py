@@ -13,7 +13,7 @@ from services.ros2 import convert
 from services.ros2.config import DetectionsIn
 from shared.frames import quaternion_from_euler, rotate
 from shared.messages import Detection, Mode, VehicleSetpoint, VehicleState
-from tools.fakes.ros2 import detections_cdr, odometry_cdr, string_cdr
+from tools.fakes.ros2_cdr import detections_cdr, odometry_cdr, string_cdr
 
 TYPES = convert.typestore().types
 CLASSES = {"0": "a red box on the ground", "10": "a quadrotor on the red box"}

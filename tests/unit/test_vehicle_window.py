@@ -1,5 +1,5 @@
 """The window a vehicle state must fall in before the control loop takes it (issue 43,
-findings 2, 3 and 9; services/control/vehicle.py): one state out of it is refused with an
+findings 2, 3 and 9; services/control/contract.py): one state out of it is refused with an
 alarm naming why, and locks no real state out; a sustained, self-consistent stream outside
 it is taken after ``reset_s``; a clock that answers in another time base than the states
 is refused with an alarm."""
@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import pytest
 
+from services.control.contract import StateInput, StateReading
 from services.control.core.handshake import Note
-from services.control.vehicle import StateInput, StateReading
 from shared.bus import Received
 from shared.messages import VehicleState
 

@@ -38,7 +38,7 @@ from shared.tables import table
 from tools import progress
 from tools.bench.bus import BenchError
 from tools.bench.fairness import spread
-from tools.fakes.ros2 import odometry_cdr
+from tools.fakes.ros2_cdr import odometry_cdr
 
 ROBOT = "robot0"
 ODOMETRY, SETPOINT = "/bench/odom", "/bench/accel"

@@ -15,7 +15,7 @@ the way, both judged on the nonlinear truth (:mod:`services.sim.judge`).
 The vehicle is the simulator's own (:class:`services.sim.vehicle.SimVehicle`), in
 process: it reports its state as configured (:class:`~services.sim.vehicle.Reporting`:
 rate, delay, noise, drop-outs) and follows the set-points; the loop reads the states
-through the control service's :class:`~services.control.vehicle.StateInput` (with
+through the control service's :class:`~services.control.contract.StateInput` (with
 the vehicle's clock known exactly, as a clock query on loopback nearly gives it), so
 a late state is carried forward as the service carries it. Time is simulated: a
 set-point reaches the vehicle at the instant of its tick.
@@ -29,10 +29,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from services.control.contract import ClockMap, StateInput, setpoint
 from services.control.core.controllers import METHODS, Method, make_controller
 from services.control.core.mpc import MPCConfig
 from services.control.core.scenario import Scenario
-from services.control.vehicle import ClockMap, StateInput, setpoint
 from services.sim.judge import LIMIT_TOLERANCE, TOLERANCE, LimitTolerance, count_violations
 from services.sim.vehicle import Reporting, SimVehicle
 from shared.bus import Received

@@ -7,7 +7,7 @@ from types import MappingProxyType
 
 from .base import Dataset, Domain, sample_dataset
 from .quadrotor import QUADROTOR
-from .vehicle import VEHICLE
+from .robotaxi import VEHICLE
 from .vtol import VTOL
 from .warehouse import WAREHOUSE
 
