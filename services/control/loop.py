@@ -14,7 +14,7 @@ returns.
   ends after the next deadline, counts an overrun and skips to the first
   deadline still in the future, counting the ticks missed. Clock and sleep are injectable.
 * :class:`ControlRuntime` is one robot's closed loop: the vehicle's newest state
-  read by :mod:`.vehicle`'s rules (fresh by arrival, refused when it cannot be
+  read by :mod:`.contract`'s rules (fresh by arrival, refused when it cannot be
   right, carried forward to the tick's time by the controller), the detector read by
   :mod:`.detector`'s rules, reasoner decisions routed by ``request_id``, the
   controller's ``make_step``, and the messages of the tick, the vehicle's set-point
@@ -257,7 +257,7 @@ class ControlRuntime:
     fresh state shows the vehicle is there; then it flies (the same after a reset).
     The detector is read by :mod:`.detector`'s rules: freshness from the
     observation a verdict answers, silence as an anomaly that "continue" cannot
-    end; a stale or refused vehicle state is such an anomaly too (:mod:`.vehicle`).
+    end; a stale or refused vehicle state is such an anomaly too (:mod:`.contract`).
     ``tick`` holds ``lock`` while it runs; ``replace_regions`` and ``reset`` take it
     too, so a controller is only ever swapped between ticks.
     """

@@ -8,7 +8,7 @@ behind a slow tick), runs the runtime, then publishes the ``VehicleSetpoint`` fi
 ``ControlState`` (every tick), ``PlanSnapshot`` (when the step produced a plan),
 ``ReasonerRequest`` (on the detection tick), ``Event``s and ``Regions`` (on start,
 when they change and every ``REGIONS_EVERY_S``). A second thread queries the
-vehicle's clock every ``clock_sync_s`` (:class:`.vehicle.ClockMap`). The bus declares
+vehicle's clock every ``clock_sync_s`` (:class:`.contract.ClockMap`). The bus declares
 ``aesop/health/control``.
 """
 

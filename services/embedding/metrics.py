@@ -62,7 +62,7 @@ class Dropped(Collector):
 
 class Drifting(Collector):
     """``aesop_embedding_drifting{robot}``: 1 for each robot whose verdicts flag more than
-    the calibration allows (:mod:`.drift`), read at scrape time from the bus worker."""
+    the calibration allows (:mod:`.detector.drift`), read at scrape time from the bus worker."""
 
     def __init__(self) -> None:
         self.source: Callable[[], list[str]] | None = None

@@ -1,4 +1,4 @@
-"""Scenes the slow reasoner let pass, proposed to a cache (:mod:`.proposals` holds the
+"""Scenes the slow reasoner let pass, proposed to a cache (:mod:`.detector.proposals` holds the
 pure rules): made or counted, accepted (the scene added as a nominal experience in the same
 transaction as the proposal's new state) or rejected, each told to the listeners (the
 worker publishes them as events)."""
@@ -107,7 +107,7 @@ class Review:
     async def accept(self, name: str, ident: str, *, now: float) -> Proposal:
         """Add a pending proposal's scene as a nominal experience (id = the scene's): one
         transaction with the proposal's new state; then the calibration by the policy
-        ``AESOP_EMBEDDING_ADAPT__RECALIBRATE`` (:mod:`.adapt`)."""
+        ``AESOP_EMBEDDING_ADAPT__RECALIBRATE`` (:mod:`.detector.adapt`)."""
         self._pending(self.caches.entry(name), ident)  # an error names "id"
         return (await self.decide_many(name, [ident], "accepted", now=now))[0]
 

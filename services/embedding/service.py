@@ -1,9 +1,10 @@
 """The vector-cache service: named caches on disk, their lifecycle and every change to them.
 
 What it holds apart: scoring (:mod:`.scorer`: the compute thread, its lanes and batchers),
-the proposal workflow (:mod:`.review`), the calibration policy (:mod:`.policy`), one cache's
-locks (:mod:`.entries`). A change is planned on the cache, committed to the database (a 2xx
-after that is durable), then applied in memory; embedding happens outside every lock.
+the proposal workflow (:mod:`.review`), the calibration policy (:mod:`.detector.policy`),
+one cache's locks (:mod:`.entries`). A change is planned on the cache, committed to the
+database (a 2xx after that is durable), then applied in memory; embedding happens outside
+every lock.
 """
 
 from __future__ import annotations
@@ -305,9 +306,10 @@ class CacheService:
         calibration: Sequence[Labelled] = (),
         pairs: bool = False,
     ) -> Calibrated:
-        """Compute tau by the calibration policy (:mod:`.policy`) and store it with the
-        cache. The answer adds, for a labelled calibration set with both classes, its ROC
-        curve (at most 201 points). ``pairs``: keep pair scores too (:mod:`.detections`)."""
+        """Compute tau by the calibration policy (:mod:`.detector.policy`) and store it with
+        the cache. The answer adds, for a labelled calibration set with both classes, its ROC
+        curve (at most 201 points). ``pairs``: keep pair scores too
+        (:mod:`.detector.detections`)."""
         entry = self.entry(name)
         policy.check(method, pairs)
         async with self.writing(entry):

@@ -5,7 +5,7 @@ detector cache through the service's micro-batcher (concurrent observations
 share one embedding call) and answered with an ``AnomalyVerdict`` on
 ``aesop/{robot}/anomaly``. An uncalibrated cache answers "anomaly" (fail-safe).
 With detector replicas sharing a PostgreSQL store, each scores only its own robots
-(rendezvous hashing over the live replicas, :mod:`.replicas`), so an observation is
+(rendezvous hashing over the live replicas, :mod:`.fleet.replicas`), so an observation is
 answered once. Observations wait per robot and are scored in turn (:mod:`.fairness`): a robot past
 its rate is refused before its message is decoded, and a robot has one observation being
 scored at a time, so it has at most one in any embedding batch, and one robot's flood
@@ -15,7 +15,7 @@ it is scored beside the embeddings, :mod:`.scorer`); refusals are counted per ro
 (``aesop_embedding_observations_dropped_total``) and said, at most every 10 s, in an
 ``observations_dropped`` alarm on that robot's event key.
 
-It also learns from the slow reasoner (:mod:`.proposals`): it remembers the
+It also learns from the slow reasoner (:mod:`.detector.proposals`): it remembers the
 observations it flagged and the reasoner requests it sees, and when an LLM's decision
 (never a fallback) answers "continue" to a request that offered it, for an observation
 this worker flagged, the observation is proposed to the detector cache. Each proposal
@@ -90,7 +90,7 @@ class DetectorWorker:
                  max_robots: int = 256, drift: DriftMonitor | None = None,
                  replicas: Replicas | None = None) -> None:
         """``replicas``: this replica among others, scoring only its own robots
-        (:mod:`.replicas`); None: every robot."""
+        (:mod:`.fleet.replicas`); None: every robot."""
         self.service = service
         self.replicas = replicas
         # a replica warms its model up before it declares itself and takes robots: /readyz

@@ -1,8 +1,8 @@
 """The loop's conversation with the detector and the reasoner, one tick at a time.
 
-Pure logic: no clock, no I/O, no messages built (the runtime in :mod:`.loop` feeds it
-ages and answers and turns its notes into ``Event``s). A tick is two transitions of one
-immutable :class:`Handshake`:
+Pure logic: no clock, no I/O, no messages built (the runtime in
+:mod:`services.control.loop` feeds it ages and answers and turns its notes into ``Event``s).
+A tick is two transitions of one immutable :class:`Handshake`:
 
 * :func:`step` (before the controller's ``make_step``): the tick's inputs in, what the
   controller is handed (:class:`Reading`) and the state after out;

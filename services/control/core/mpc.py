@@ -1,7 +1,7 @@
 """The AESOP multi-branch MPC, eq. 3 of the paper, on OSQP.
 
 ``J_t(Y, K, T)``: one nominal branch (index 0) and one recovery branch per
-region in ``Y``, each a trajectory of the planning model (:mod:`.models`: the
+region in ``Y``, each a trajectory of the planning model (:mod:`.planning`: the
 12-state hover model, or the point mass the hardware scene plans with) over
 ``T`` steps:
 
@@ -138,7 +138,7 @@ _NO_TIME_LIMIT = 1e10  # s, OSQP's default (it refuses 0)
 @dataclass(frozen=True)
 class Weights:
     """Diagonal quadratic weights of the tracking cost, per kind of coordinate
-    (:attr:`.models.PlanningModel.state_groups` and ``input_groups``)."""
+    (:attr:`.planning.PlanningModel.state_groups` and ``input_groups``)."""
 
     position: float = 1.0  # 1/m^2
     velocity: float = 0.2  # s^2/m^2

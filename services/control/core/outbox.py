@@ -1,7 +1,7 @@
 """What one tick says, as pure functions: the request to the reasoner, the controller's
 state and plan, and the events of a mode change.
 
-:class:`~.loop.ControlRuntime` owns the time and the counters (the tick's ``t``, the
+:class:`~services.control.loop.ControlRuntime` owns the time and the counters (the tick's ``t``, the
 set-point's ``seq``, the seconds left to the reasoner, a fresh ``request_id``) and hands
 them in; everything here is data in, messages out, so the rules can be read and tested
 apart from the loop.

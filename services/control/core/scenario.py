@@ -12,7 +12,7 @@ Two ship with the package and load by name (:data:`BUNDLED`):
   model whose accelerations the vehicle's flight controller tracks.
 
 Besides limits and regions a scenario names its planning ``model``
-(:mod:`.models`), its ``vehicle`` (:class:`.dynamics.QuadrotorParams`), an
+(:mod:`.planning`), its ``vehicle`` (:class:`.dynamics.QuadrotorParams`), an
 ``approach_height`` (the nominal task flies to a waypoint that far above the
 goal, then descends) and ``mpc`` overrides of :class:`.mpc.MPCConfig` fields.
 """
@@ -317,7 +317,7 @@ def load_scenario(name_or_path: Path | str | None = None) -> Scenario:
 
 
 def planning_model(scenario: Scenario) -> PlanningModel:
-    """The linear model the scenario's MPC plans with (:mod:`.models`)."""
+    """The linear model the scenario's MPC plans with (:mod:`.planning`)."""
     if scenario.model == "point-mass":
         lim, g = scenario.limits, scenario.vehicle.gravity
         # x is flown by pitching, y by rolling (rates: roll, pitch, yaw); z by thrust alone

@@ -1,6 +1,6 @@
 """How the control loop reads the fast detector: freshness, and what silence means.
 
-Pure logic: no clock, no I/O (the runtime in :mod:`.loop` feeds it).
+Pure logic: no clock, no I/O (the runtime in :mod:`services.control.loop` feeds it).
 
 * :class:`Sightings` — when this service first saw each observation, by ``seq``.
   A verdict is as old as the observation it answers: a backlog of verdicts on old

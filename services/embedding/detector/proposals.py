@@ -23,8 +23,8 @@ so.
 
 Only an LLM's answer makes a proposal (never a fallback), only for an observation the
 detector itself flagged, and only for a request that offered "continue": the worker
-checks all three (:mod:`.worker`). Pure: the upsert and the state changes; the store
-keeps them.
+checks all three (:mod:`services.embedding.worker`). Pure: the upsert and the state
+changes; the store keeps them.
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""A replica following the others' writes to the shared store (:mod:`.pgstore`).
+"""A replica following the others' writes to the shared store
+(:mod:`services.embedding.storage.pgstore`).
 
 A thread listens on PostgreSQL and hands each notice to the event loop, where the cache
 service applies it (``CacheService.follow``, through :class:`Followed`): a cache's new

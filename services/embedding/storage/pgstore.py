@@ -8,8 +8,9 @@ Two things are added for replicas:
 
 * **Ordering.** A write is planned on the replica's copy of the cache at version ``v`` and
   committed only if the stored cache is still at ``v`` (its row locked ``FOR UPDATE``);
-  otherwise nothing is written and :class:`~.errors.Behind` says so (the replica catches
-  up; the caller may retry). Versions are therefore one total order shared by all.
+  otherwise nothing is written and :class:`~services.embedding.detector.errors.Behind`
+  says so (the replica catches up; the caller may retry). Versions are therefore one total
+  order shared by all.
 * **Following.** Every write notifies channel ``aesop_embedding`` in its transaction
   (delivered on commit) with the cache and the version or proposal it wrote. A replica
   listens (:meth:`PostgresStore.listen`) and reads what it lacks: :meth:`changes_since`
