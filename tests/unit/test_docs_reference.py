@@ -170,12 +170,14 @@ def variables() -> dict[str, type[BaseModel] | None]:
     return out
 
 
+def parts(text: str) -> list[str]:
+    """Each table row and each paragraph."""
+    return re.split(r"\n\s*\n|\n(?=\|)", text)
+
+
 def paragraph(text: str, needle: str) -> str:
     """The table row, or the paragraph, that names ``needle``."""
-    for part in re.split(r"\n\s*\n|\n(?=\|)", text):
-        if needle in part:
-            return part
-    return ""
+    return next((part for part in parts(text) if needle in part), "")
 
 
 def settings_drift(text: str) -> list[str]:
@@ -197,7 +199,7 @@ def settings_drift(text: str) -> list[str]:
             problems.append(f"not named: AESOP_FAKE_LLM_{short.upper()}")
     # the tables and the services' paragraphs (the prose names prefixes and the old flat
     # names that are pointed to new ones)
-    rows = [part for part in re.split(r"\n\s*\n|\n(?=\|)", page)
+    rows = [part for part in parts(page)
             if part.startswith("|") or re.match(r"\*\*[\w ]+\*\* \(`", part)]
     said = set(re.findall(r"`(AESOP_[A-Z0-9_]*[A-Z0-9])`", "\n".join(rows)))
     for variable in sorted(said - set(known)):

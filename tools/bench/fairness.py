@@ -175,15 +175,13 @@ class Flooder:
         return self
 
     def finish(self) -> int:
-        self.go.set()
         self.stop.set()
+        self.go.set()
         self.process.join(WAIT_S)
         return int(self.sent.value)
 
     def __exit__(self, *_: object) -> None:
-        self.stop.set()
-        self.go.set()
-        self.process.join(WAIT_S)
+        self.finish()  # a flood never started sends nothing: stop is set before go
         if self.process.is_alive():
             self.process.kill()
 
