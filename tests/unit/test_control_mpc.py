@@ -185,10 +185,10 @@ def test_recovery_whose_region_is_out_of_reach_by_its_step_is_planned_to_reach_i
     the slow attitude chain to kill that velocity, so the deadline moves back."""
     controller = aesop()
     chosen = controller.make_step(state(), True).request[-1]  # t = 0: the anomaly
-    controller.memory.t = CONFIG.horizon + 5  # the decision comes long after it
+    controller.t = CONFIG.horizon + 5  # the decision comes long after it
     region = {r.index: r for r in REGIONS}[chosen]
     x = state(region.center[:3], vel=(0.3, 0.0, 0.0))
-    hard = controller._recovery_problem(False)
+    hard = controller.problems.recovery(False)
     assert not hard.solve(x, GOAL, [region], 0, CONFIG.min_region_step).feasible
     out = controller.make_step(x, False, chosen)
     assert out.mode is Mode.RECOVERING and out.status.value == "solved"
@@ -202,7 +202,7 @@ def test_warm_up_leaves_the_first_tick_nothing_to_solve(kind: str):
         MODEL, CONFIG, REGIONS, Route([GOAL]), policy=NAIVE)
     x0 = state()
     controller.warm_up(x0)
-    assert controller.memory.t == 0 and controller.mode is Mode.NOMINAL
+    assert controller.t == 0 and controller.mode is Mode.NOMINAL
     first = controller.make_step(x0, False)
     assert first.plan is not None and first.plan.iterations == 0  # answered by the memo
     cold = aesop() if kind == "aesop" else Controller(

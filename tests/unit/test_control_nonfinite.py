@@ -103,7 +103,7 @@ def test_a_non_finite_solver_output_is_never_flown(mode: str):
     ctrl, selector = controller()
     ticks, anomaly_at, _ = MODES[mode]
     x = fly(ctrl, ticks, START, anomaly_at)
-    kept = ctrl.memory.inputs.copy()
+    kept = ctrl.kept.inputs.copy()
     selector.poisoned = True
     out = ctrl.make_step(x, False)
     assert np.all(np.isfinite(out.u)) and out.plan is None and out.alarms

@@ -7,7 +7,7 @@ apply and what it did. A step never raises: a failed solve makes the
 controller follow its last feasible plan, shifted one step, and report the
 status.
 
-Modes (``ControlState.mode``):
+Modes (``ControlState.mode``; one anomaly's life is an :class:`.episode.Episode`):
 
 * ``nominal``: solve ``J_t(Y_t, K, T)`` with the cheapest feasible subset
   ``Y_t``; on an anomaly remember ``t_anom`` and ``Y_tanom`` and ask the
@@ -22,7 +22,7 @@ The horizon to the region never shrinks below ``MPCConfig.min_region_step``
 so that the nonlinear plant's small model errors never pin a region to the
 very next step (documented deviation from ``max(0, T - k)``). While
 recovering, a region out of reach by that step is planned to be reached
-later (``Controller._late``): the nonlinear truth arrives a little after
+later (:func:`.deadlines.late`): the nonlinear truth arrives a little after
 Theorem 1's ``t_anom + T`` rather than not at all.
 
 Holding (beyond the paper). In nominal operation nothing guarantees that
@@ -56,21 +56,23 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from shared.messages import Mode
 
+from .deadlines import late, promise, region_step
 from .dynamics import N_STATE
-from .mpc import BranchProblem, MPCConfig, Plan, SolveStatus, promised_step, tightened_inputs
+from .episode import Episode, commit, decide, detect
+from .kept import AHEAD, Flown, Kept
+from .mpc import BranchProblem, MPCConfig, Plan, SolveStatus, tightened_inputs
 from .planning import PlanningModel
 from .regions import Region
 from .selection import SubsetSelector
 
 SENT_KEPT = 64  # inputs remembered for delay compensation (3.2 s at 20 Hz)
-AHEAD = 16  # the plan's next inputs an output carries (the set-point sends some of them)
 
 
 def carry_forward(model: PlanningModel, x: np.ndarray, age: float,
@@ -179,26 +181,52 @@ class ControlOutput:
     ahead: np.ndarray = field(default_factory=lambda: np.empty((0, 0)))
 
 
-@dataclass
-class _Memory:
-    mode: Mode = Mode.NOMINAL
-    t: int = 0
-    t_anom: int | None = None
-    options: tuple[int, ...] = ()
-    chosen: int | None = None
-    fallback: bool = False
-    inputs: np.ndarray | None = None  # last feasible plan's inputs (T, m)
-    states: np.ndarray | None = None  # and its states (T+1, n), the branch those inputs fly
-    age: int = 0  # ticks since that plan
-    held: int = 0  # ticks since a subset was feasible at full K and T (holding if > 0)
-    degraded: bool = False  # recovering on the least-violating plan
-    spent: int = 0  # consensus ticks already used by a hold when the anomaly came
-    region_step: int | None = None  # the step the last plan reached its regions by (s)
-    events: list[str] = field(default_factory=list)
+class Problems:
+    """What a :class:`Controller` solves, as its :class:`Policy` says: the tree of the
+    cheapest feasible subset (``selector``) or, without one, the nominal branch alone; and
+    the recovering problem toward one region, hard and least-violating (built when first
+    needed)."""
+
+    def __init__(self, model: PlanningModel, config: MPCConfig, regions: Sequence[Region],
+                 policy: Policy, min_size: int = 2, selector: SubsetSelector | None = None
+                 ) -> None:
+        self.model, self.config, self.policy = model, config, policy
+        self.regions = tuple(regions)
+        self.selector: SubsetSelector | None = None
+        self.nominal: BranchProblem | None = None  # without a tree: the nominal branch
+        if policy.keeps_tree:
+            tree = config if policy.shares_k else replace(config, consensus=0)
+            self.selector = selector or SubsetSelector(model, tree, regions, min_size=min_size)
+        else:
+            self.nominal = BranchProblem(model, config, 0)
+        self._recover: dict[bool, BranchProblem] = {}
+
+    def recovery(self, soft: bool) -> BranchProblem:
+        if soft not in self._recover:
+            self._recover[soft] = BranchProblem(self.model, self.config, 1, nominal=False,
+                                                soft=soft)
+        return self._recover[soft]
+
+    def warm_up(self, x: np.ndarray, goal: np.ndarray) -> None:
+        """Cold-solve a first tick's problems at the model state ``x``: the nominal ones,
+        and the recovering ones (the hard one and the least-violating one it falls back to)
+        toward each region, so that the first recovering tick starts warm too."""
+        if self.selector is not None:
+            self.selector.select(x, goal)
+        elif self.nominal is not None:
+            self.nominal.solve(x, goal, [])
+        for soft in (True,) if self.policy.soft_recovery else (False, True):
+            for region in self.regions:
+                self.recovery(soft).solve(x, goal, [region], 0, self.config.horizon)
 
 
 class Controller:
-    """Algorithm 1's loop body, one ``make_step`` per tick, as its :class:`Policy` says."""
+    """Algorithm 1's loop body, one ``make_step`` per tick, as its :class:`Policy` says.
+
+    What a tick changes is three values, each replaced as a whole: the anomaly's life
+    (:class:`.episode.Episode`), the plan kept to fly blind (:class:`.kept.Kept`) and the
+    nominal flight's hold (``held``, ``region_step``); the rest is the flight's fixed
+    configuration, its solvers and the commands sent (delay compensation)."""
 
     def __init__(self, model: PlanningModel, config: MPCConfig, regions: Sequence[Region],
                  route: Route, policy: Policy = AESOP, fallback: str | int = "cheapest",
@@ -210,29 +238,25 @@ class Controller:
                                                       and fallback in self.regions)):
             raise ValueError("fallback must be 'cheapest', 'first' or a region index")
         self.fallback = fallback
-        self.selector: SubsetSelector | None = None
-        self._nominal: BranchProblem | None = None  # without a tree: the nominal branch
-        if policy.keeps_tree:
-            tree = config if policy.shares_k else replace(config, consensus=0)
-            self.selector = selector or SubsetSelector(model, tree, regions, min_size=min_size)
-        else:
-            self._nominal = BranchProblem(model, config, 0)
-        self._recover: dict[bool, BranchProblem] = {}  # the recovering problem, hard/soft
+        self.problems = Problems(model, config, regions, policy, min_size, selector)
+        self.selector = self.problems.selector
+        self.episode = Episode()
+        self.kept = Kept(ahead=np.empty((0, model.m)))
+        self.t = 0  # ticks flown (K is counted in them)
         self._active: tuple[int, ...] = ()  # the subset whose recovery plans are kept
-        self.memory = _Memory()
+        self.held = 0  # ticks since a subset was feasible at full K and T (holding if > 0)
+        self.region_step: int | None = None  # the step the last plan reached its regions by
+        self.degraded = False  # recovering on the least-violating plan
+        self._said: list[str] = []  # events of this step
+        self._alarms: list[str] = []  # what went wrong in this step
         self._x = np.zeros(N_STATE)  # the measured plant state of this step
         self._lag = np.zeros(model.n_lag)  # the model's lag states, from the commands sent
         self._thrust_hi = model.linear.u_hover[0] + tightened_inputs(model, config)[1][0]
         self.goal = route.goal  # this step's nominal target (model state)
         self.measured = model.rest_state(np.zeros(3))  # the model state of the last step
-        self._alarms: list[str] = []  # what went wrong in this step
         # (input, lag states before it) of the steps sent, newest last: what a state that
         # arrives late has not yet seen (make_step's ``age``)
         self._sent: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=SENT_KEPT)
-        self._reference: np.ndarray | None = None  # this step's, for ControlOutput
-        self._blind_left: int | None = None
-        # the plan's inputs after this step's (model units), flown through missed ticks
-        self._ahead = np.empty((0, model.m))
 
     @property
     def state(self) -> np.ndarray:
@@ -250,139 +274,64 @@ class Controller:
         self.route.index = other.route.index
         self._lag = other.lag.copy()
         self._sent = deque(other._sent, maxlen=SENT_KEPT)
-        self._ahead = other._ahead.copy()
+        self.kept = replace(self.kept, ahead=other.kept.ahead.copy())
 
     @property
     def mode(self) -> Mode:
-        return self.memory.mode
+        return self.episode.mode
 
-    def _region_step(self, k: int) -> int:
-        """Algorithm 1's ``s = T - k``, at least ``min_region_step``, and never earlier than
-        one step before the last plan's (a deadline pushed back stays pushed back)."""
-        s = max(self.config.min_region_step, self.config.horizon - k)
-        last = self.memory.region_step
-        return s if last is None else min(max(s, last - 1), self.config.horizon)
-
-    def _promise(self, k: int) -> int:
-        """While the reasoner thinks (or a hold lasts), ``k`` ticks into the consensus
-        budget: the tree's relaxing promise (:func:`.mpc.promised_step`), never later than
-        :meth:`_region_step`."""
-        return min(max(self.config.min_region_step, promised_step(self.config, k)),
-                   self._region_step(k))
-
-    def _late(self, solve: Callable[[int], Plan], s: int, what: str) -> Plan:
-        """``solve(s)``; if infeasible, ``solve`` again with the region due later.
-
-        On the nonlinear plant the measured state drifts from the linear
-        plan, and a region due in ``s`` steps can be out of reach while it is
-        still reachable a little later (killing a small residual velocity
-        takes the attitude chain about 1 s). Feasibility only grows with
-        ``s``, so this pushes the deadline back in ``late_region_steps``
-        increments up to ``T``, and last drops it (``s = T + 1``: the plan
-        only heads for the region) so that the state and input limits stay
-        hard for as long as they can be met. Reported once (beyond the paper).
-        """
-        mem, cfg = self.memory, self.config
-        plan = solve(s)
-        first = s
-        while not plan.feasible and s <= cfg.horizon:
-            if not plan.status.decided or s == cfg.horizon:
-                s = cfg.horizon + 1  # a rung that did not decide: straight to the last one
-            else:
-                s = min(cfg.horizon, s + cfg.late_region_steps)
-            plan = solve(s)
-        if plan.feasible:
-            if s > first and (mem.region_step is None or s > mem.region_step):
-                due = "with no deadline" if s > cfg.horizon else f"by step {s}"
-                mem.events.append(f"{what}: region out of reach by step {first}; "
-                                  f"heading for it {due}")
-            mem.region_step = s
-        return plan
-
-    def _recovery_problem(self, soft: bool) -> BranchProblem:
-        if soft not in self._recover:
-            self._recover[soft] = BranchProblem(self.model, self.config, 1, nominal=False,
-                                                soft=soft)
-        return self._recover[soft]
-
-    def _follow(self, plan: Plan | None, accept: bool) -> tuple[np.ndarray, Plan | None]:
-        """Apply ``plan`` if usable, else the last plan shifted by one more step.
-
-        What is kept for later is a recovery branch when the plan has one:
-        its first inputs are the shared prefix that keeps every region of
-        the subset reachable, the safest thing to fly blind.
-        """
-        mem = self.memory
+    def _follow(self, plan: Plan | None, accept: bool) -> Flown:
+        """Fly ``plan`` if usable (and keep it), else the kept plan one step further on."""
         if plan is not None and accept:
             if np.all(np.isfinite(plan.u0)) and np.all(np.isfinite(plan.inputs)):
-                mem.inputs = next(iter(plan.recovery_inputs.values()), plan.inputs)
-                mem.states = next(iter(plan.recovery.values()), plan.nominal)
-                mem.age = 0
-                self._reference, self._blind_left = self.measured, None
-                self._ahead = plan.inputs[1:1 + AHEAD]
-                return plan.u0, plan
+                self.kept, flown = self.kept.keep(plan, self.measured)
+                return flown
             self._alarms.append("non-finite plan from the solver: flying the last plan's "
                                 "recovery branch")
-        return self._blind(), None
+        return self._blind()
 
-    def _blind(self) -> np.ndarray:
-        """The last kept plan's next input (it ends at rest in its region), or hover."""
-        mem = self.memory
-        if mem.inputs is None:
-            self._reference, self._blind_left = None, 0
-            self._ahead = self._ahead[:0]
-            return self.model.linear.u_hover.copy()
-        mem.age += 1
-        step = min(mem.age, len(mem.inputs) - 1)
-        self._blind_left = len(mem.inputs) - 1 - step
-        self._reference = None if mem.states is None else mem.states[step]
-        self._ahead = mem.inputs[step + 1:step + 1 + AHEAD]
-        return mem.inputs[step].copy()
+    def _blind(self) -> Flown:
+        self.kept, flown = self.kept.blind(self.model.linear.u_hover)
+        return flown
 
     def skip(self, ticks: int, ahead: int = AHEAD) -> None:
         """``ticks`` ticks passed unstepped (a late loop); the vehicle flew the first ``ahead``
         inputs sent ahead, then held (hover). They count as stepped: K is the vehicle's time."""
-        mem = self.memory
-        flown = self._ahead[:min(max(ahead, 0), ticks)]
+        flown = self.kept.ahead[:min(max(ahead, 0), ticks)]
         for i in range(ticks):
             u = flown[i] if i < len(flown) else self.model.linear.u_hover
             self._sent.append((np.array(u, dtype=float), self._lag))
             self._lag = self.model.advance(self._lag, self._sendable(u))
-            mem.t += 1
-            mem.age += mem.inputs is not None
-            mem.held += mem.held > 0
-        self._ahead = self._ahead[ticks:]
+        self.t += ticks
+        self.held += ticks * (self.held > 0)
+        self.kept = self.kept.skipped(ticks)
 
-    def _select(self, selector: SubsetSelector, x: np.ndarray
-                ) -> tuple[np.ndarray, Plan | None, SolveStatus]:
+    def _select(self, selector: SubsetSelector, x: np.ndarray) -> tuple[Flown, SolveStatus]:
         """One selection tick: keep the cheapest feasible subset active and follow its plan.
 
         With no subset shown feasible, hold the last one with the consensus
         and horizon shrunk by the ticks since it was (module docstring).
         """
-        mem = self.memory
         selection = selector.select(x, self.goal)
         if selection.feasible or not self._active:
             if selection.feasible:
                 self._active = selection.subset
-                if mem.held:
-                    mem.events.append(f"full tree feasible again with regions {self._active}")
-                mem.held, mem.region_step = 0, None
+                if self.held:
+                    self._said.append(f"full tree feasible again with regions {self._active}")
+                self.held, self.region_step = 0, None
             status = selection.plan.status if selection.plan else selection.status
-            u, used = self._follow(selection.plan, selection.feasible)
-            return u, used, status
-        mem.held += 1
-        if mem.held == 1:
+            return self._follow(selection.plan, selection.feasible), status
+        self.held += 1
+        if self.held == 1:
             why = ("no subset feasible" if selection.decided else
                    "no subset shown feasible yet (a solve stopped at its cap)")
-            mem.events.append(f"{why} at full K and T: holding regions {self._active}")
+            self._said.append(f"{why} at full K and T: holding regions {self._active}")
         plan = selector.solve(self._active, x, self.goal,
-                              max(0, selector.config.consensus - mem.held),
-                              self._promise(mem.held))
-        u, used = self._follow(plan, plan.feasible)
-        return u, used, plan.status
+                              max(0, selector.config.consensus - self.held),
+                              promise(self.config, self.held, self.region_step))
+        return self._follow(plan, plan.feasible), plan.status
 
-    def _recovering(self, x: np.ndarray) -> tuple[np.ndarray, Plan | None, SolveStatus]:
+    def _recovering(self, x: np.ndarray) -> tuple[Flown, SolveStatus]:
         """Fly toward the chosen region: ``J({y}, 0, T - k)``.
 
         If the hard problem is infeasible even with no deadline (the nonlinear
@@ -391,29 +340,31 @@ class Controller:
         its budget, fly the last verified plan. The status reported is the hard
         problem's.
         """
-        mem = self.memory
-        k = mem.t - (mem.t_anom or 0) + mem.spent
-        if mem.chosen is None:  # RECOVERING is always entered with a region chosen
+        chosen = self.episode.chosen
+        if chosen is None:  # RECOVERING is always entered with a region chosen
             raise RuntimeError("recovering with no region chosen")
-        region = [self.regions[mem.chosen]]
+        region, s = [self.regions[chosen]], self._due()
         if self.policy.soft_recovery:
-            plan = self._recovery_problem(True).solve(x, self.goal, region, 0,
-                                                      self._region_step(k))
+            plan = self.problems.recovery(True).solve(x, self.goal, region, 0, s)
         else:
-            plan = self._late(lambda s: self._recovery_problem(False).solve(
-                x, self.goal, region, 0, s), self._region_step(k), "recovering")
+            plan, self.region_step, said = late(lambda s: self.problems.recovery(False).solve(
+                x, self.goal, region, 0, s), s, self.config, self.region_step, "recovering")
+            self._said.extend([said] if said else [])
         status = plan.status
         if not plan.feasible and not self.policy.soft_recovery:
             if not status.decided:  # no verdict within the budget: the last verified plan
-                u, used = self._follow(None, False)
-                return u, used, status
-            plan = self._recovery_problem(True).solve(x, self.goal, region, 0, self.config.horizon)
-            if not mem.degraded:
-                mem.events.append(f"recovery to region {mem.chosen} infeasible ({status}): "
+                return self._follow(None, False), status
+            plan = self.problems.recovery(True).solve(x, self.goal, region, 0, self.config.horizon)
+            if not self.degraded:
+                self._said.append(f"recovery to region {chosen} infeasible ({status}): "
                                   "flying the least-violating plan")
-        mem.degraded = not status.feasible
-        u, used = self._follow(plan, plan.status in (SolveStatus.SOLVED, SolveStatus.INACCURATE))
-        return u, used, status
+        self.degraded = not status.feasible
+        return self._follow(plan, plan.status in (SolveStatus.SOLVED, SolveStatus.INACCURATE)), \
+            status
+
+    def _due(self) -> int:
+        """The step this tick's plan must reach its region by (:func:`.deadlines.region_step`)."""
+        return region_step(self.config, self.episode.k(self.t), self.region_step)
 
     def warm_up(self, x: np.ndarray) -> None:
         """Build and cold-solve the problems of a first tick at the 12-state ``x``, off the
@@ -421,26 +372,13 @@ class Controller:
 
         The first solve of a problem has no warm start (up to ``max_iter_cold``
         iterations, a few hundred ms); after this the first tick at ``x`` is
-        answered by each chain's memo and later ones start warm. The flight has
-        not begun: nothing else changes (the route moves on only if ``x`` is already at
-        its waypoint, as the first tick would).
+        answered by each chain's memo and later ones start warm; the recovering problems
+        (the hard one and the least-violating one it falls back to) are cold-solved toward
+        each region. The flight has not begun: nothing else changes (the route moves on
+        only if ``x`` is already at its waypoint, as the first tick would).
         """
         xm = self.model.measure(x, self._lag)
-        goal = self.route.target(xm, self.model)
-        if self.selector is not None:
-            self.selector.select(xm, goal)
-        elif self._nominal is not None:
-            self._nominal.solve(xm, goal, [])
-        self._warm_recovery(xm, goal)
-
-    def _warm_recovery(self, x: np.ndarray, goal: np.ndarray) -> None:
-        """Cold-solve the recovering problems (the hard one, and the least-violating one it
-        falls back to) toward each region from ``x``, so that the first recovering tick
-        starts warm: a cold solve at 200 steps is a few hundred ms."""
-        kinds = (True,) if self.policy.soft_recovery else (False, True)
-        for soft in kinds:
-            for region in self.regions.values():
-                self._recovery_problem(soft).solve(x, goal, [region], 0, self.config.horizon)
+        self.problems.warm_up(xm, self.route.target(xm, self.model))
 
     def make_step(self, x: np.ndarray | None, anomaly: bool, decision: int | None = None,
                   age: float = 0.0) -> ControlOutput:
@@ -467,133 +405,109 @@ class Controller:
         take the decision, and on an anomaly in nominal flight ask the reasoner among the
         regions the kept tree holds (as a solved step would); a non-finite state raises an
         alarm (``alarm``). The next usable state resumes the loop."""
-        self._take_decision(decision)
-        mem = self.memory
-        if self.policy.commits_at_k and mem.mode is Mode.PENDING \
-                and self._k() >= self.config.consensus:
-            self._commit_fallback(None)
+        self._decide(decision, None)
         if alarm:
             self._alarms.append("non-finite state measured: flying the last plan's recovery "
                                 "branch")
         request = None
-        if anomaly and mem.mode is Mode.NOMINAL:
-            options = self._active or tuple(sorted(self.regions))
-            mem.mode, mem.t_anom, mem.options = Mode.PENDING, mem.t, options
-            mem.chosen, mem.fallback, mem.spent = None, False, mem.held
-            mem.events.append(f"anomaly while flying blind: asking the reasoner among regions "
-                              f"{options}")
-            request = options
-        active = {Mode.RECOVERING: (mem.chosen,), Mode.PENDING: mem.options}.get(
-            mem.mode, self._active)
-        return self._output(self._blind(), SolveStatus.FAILED, None, active, request)
-
-    def _k(self) -> int:
-        """Ticks of the consensus budget used since the anomaly (a hold's included)."""
-        mem = self.memory
-        return 0 if mem.t_anom is None else mem.t - mem.t_anom + mem.spent
+        if anomaly:
+            request = self._detect(self._active or tuple(sorted(self.regions)), self.held,
+                                   blind=True)
+        return self._output(self._blind(), SolveStatus.FAILED,
+                            self.episode.active(self._active), request)
 
     def _step(self, x: np.ndarray, anomaly: bool, decision: int | None) -> ControlOutput:
-        mem, policy = self.memory, self.policy
-        self._take_decision(decision)
-        if policy.commits_at_k and mem.mode is Mode.PENDING \
-                and self._k() >= self.config.consensus:
-            self._commit_fallback(x)
-        if mem.mode is Mode.RECOVERING:
-            u, plan, status = self._recovering(x)
-            return self._output(u, status, plan, (mem.chosen,))
-        if mem.mode is Mode.PENDING and policy.waits_on_tree:
+        ep, policy = self._decide(decision, x), self.policy
+        if ep.mode is Mode.RECOVERING:
+            flown, status = self._recovering(x)
+            return self._output(flown, status, ep.active(()))
+        if ep.mode is Mode.PENDING and policy.waits_on_tree:
             assert self.selector is not None
-            k = self._k()
-            plan = self.selector.solve(mem.options, x, self.goal, self.config.consensus - k,
-                                       self._promise(k))
-            u, used = self._follow(plan, plan.feasible)
-            return self._output(u, plan.status, used, mem.options)
+            k = ep.k(self.t)
+            plan = self.selector.solve(ep.options, x, self.goal, self.config.consensus - k,
+                                       promise(self.config, k, self.region_step))
+            return self._output(self._follow(plan, plan.feasible), plan.status, ep.options)
         if self.selector is not None:
-            u, used, status = self._select(self.selector, x)
+            flown, status = self._select(self.selector, x)
             active = self._active
         else:
-            assert self._nominal is not None
-            nominal = self._nominal.solve(x, self.goal, [])
-            (u, used), status, active = self._follow(nominal, nominal.feasible), \
-                nominal.status, ()
+            assert self.problems.nominal is not None
+            nominal = self.problems.nominal.solve(x, self.goal, [])
+            flown, status, active = self._follow(nominal, nominal.feasible), nominal.status, ()
         request = None
-        # AESOP asks among the subset its tree keeps (none kept: it cannot offer any);
-        # a baseline among every region when it keeps none
-        options = active if policy.waits_on_tree else (active or tuple(sorted(self.regions)))
-        if anomaly and mem.mode is Mode.NOMINAL and options:
-            mem.mode, mem.t_anom, mem.options = Mode.PENDING, mem.t, options
-            mem.chosen, mem.fallback = None, False
-            if policy.waits_on_tree:
-                mem.spent = mem.held  # a hold's ticks come off the consensus budget
-            mem.events.append(f"anomaly: asking the reasoner among regions {options}")
-            request = options
-        return self._output(u, status, used, active, request)
+        if anomaly:
+            # AESOP asks among the subset its tree keeps (none kept: it cannot offer any);
+            # a baseline among every region when it keeps none; a hold's ticks come off
+            # AESOP's consensus budget
+            waits = policy.waits_on_tree
+            request = self._detect(active if waits else (active or tuple(sorted(self.regions))),
+                                   self.held if waits else ep.spent)
+        return self._output(flown, status, active, request)
 
-    def _commit_fallback(self, x: np.ndarray | None) -> None:
-        """Commit to the fallback region: the configured one, or the cheapest feasible
-        recovery from ``x`` (the first offered when ``x`` is unknown or none is)."""
-        mem = self.memory
-        choice = self.fallback if isinstance(self.fallback, int) else mem.options[0]
-        if self.fallback == "cheapest" and x is not None:
-            k = self._k()
-            costs = {}
-            for y in mem.options:
-                plan = self._recovery_problem(False).solve(x, self.goal, [self.regions[y]], 0,
-                                                           self._region_step(k))
-                if plan.feasible:
-                    costs[y] = plan.cost
-            choice = min(costs, key=costs.__getitem__) if costs else mem.options[0]
-        mem.mode, mem.chosen, mem.fallback = Mode.RECOVERING, choice, True
-        mem.events.append(f"no decision by K: fallback to region {choice}")
+    def _detect(self, options: tuple[int, ...], spent: int, blind: bool = False
+                ) -> tuple[int, ...] | None:
+        """An anomaly this tick: the options asked, or None when none is asked."""
+        before = self.episode
+        self.episode, said = detect(before, self.t, options, spent, blind)
+        self._said.extend([said] if said else [])
+        return self.episode.options if self.episode is not before else None
+
+    def _decide(self, decision: int | None, x: np.ndarray | None) -> Episode:
+        """Take the reasoner's decision; pending with the budget spent (and the policy
+        commits at K), commit the fallback chosen from ``x``. The episode after both."""
+        self.episode, said = decide(self.episode, decision)
+        if said is not None and self.episode.mode is Mode.NOMINAL:
+            self.region_step = None  # "continue": the hold's deadline no longer stands
+        self._said.extend([said] if said else [])
+        if self.policy.commits_at_k and self.episode.due(self.t, self.config.consensus):
+            self.episode, said = commit(self.episode, self._fallback_region(x))
+            self._said.append(said)
+        return self.episode
+
+    def _fallback_region(self, x: np.ndarray | None) -> int:
+        """The configured fallback region, or the cheapest feasible recovery from ``x`` (the
+        first offered when ``x`` is unknown or none is)."""
+        options = self.episode.options
+        if isinstance(self.fallback, int):
+            return self.fallback
+        if self.fallback == "first" or x is None:
+            return options[0]
+        costs = {}
+        for y in options:
+            plan = self.problems.recovery(False).solve(x, self.goal, [self.regions[y]], 0,
+                                                       self._due())
+            if plan.feasible:
+                costs[y] = plan.cost
+        return min(costs, key=costs.__getitem__) if costs else options[0]
 
     def _sendable(self, u: np.ndarray) -> np.ndarray:
         return sendable(self.model, self._x, np.asarray(u, dtype=float), self._thrust_hi)
 
-    def _output(self, u, status, plan, active, request=None) -> ControlOutput:
-        mem = self.memory
+    def _output(self, flown: Flown, status: SolveStatus, active: tuple[int, ...],
+                request: tuple[int, ...] | None = None) -> ControlOutput:
         alarms, self._alarms = tuple(self._alarms), []
-        if alarms:
+        planned = np.asarray(flown.u, dtype=float)
+        u = self._sendable(planned)
+        if alarms or not np.all(np.isfinite(u)):
             status = SolveStatus.FAILED
-        u = np.asarray(u, dtype=float)
-        planned = u
-        u = self._sendable(u)
         if not np.all(np.isfinite(u)):
-            u, plan, status = self._blind(), None, SolveStatus.FAILED
-            if not np.all(np.isfinite(u)):
-                mem.inputs, u = None, self.model.linear.u_hover.copy()
-                self._ahead = self._ahead[:0]
+            flown = self._blind()
+            if not np.all(np.isfinite(flown.u)):
+                self.kept = self.kept.forget()
+                flown = replace(flown, u=self.model.linear.u_hover.copy())
             alarms += ("non-finite input from the solver: flying the last plan's recovery "
                        "branch",)
-            planned = u
-        if not np.all(np.isfinite(self._ahead)):
-            self._ahead = self._ahead[:0]
-        ahead = self._sendable(self._ahead)  # every row at once: this runs each tick
-        self._sent.append((np.asarray(planned, dtype=float).copy(), self._lag))
+            planned = u = np.asarray(flown.u, dtype=float)
+        self.kept = self.kept.finite_ahead()
+        ahead = self._sendable(self.kept.ahead)  # every row at once: this runs each tick
+        self._sent.append((planned.copy(), self._lag))
         self._lag = self.model.advance(self._lag, u)
-        left = self.config.consensus - self._k() if mem.mode is Mode.PENDING else None
-        out = ControlOutput(u=u, mode=mem.mode, status=status, plan=plan, active_regions=active,
-                            t_anom=mem.t_anom, chosen=mem.chosen, request=request,
-                            events=tuple(mem.events), fallback=mem.fallback,
-                            consensus_left=left, alarms=alarms, reference=self._reference,
-                            blind=self._blind_left, ahead=ahead)
-        self._reference, self._blind_left = None, None
-        mem.events.clear()
-        mem.t += 1
+        ep, events, self._said = self.episode, tuple(self._said), []
+        out = ControlOutput(u=u, mode=ep.mode, status=status, plan=flown.plan,
+                            active_regions=active, t_anom=ep.t_anom, chosen=ep.chosen,
+                            request=request, events=events, fallback=ep.fallback,
+                            consensus_left=ep.left(self.t, self.config.consensus),
+                            alarms=alarms, reference=flown.reference, blind=flown.blind,
+                            ahead=ahead)
+        self.t += 1
         return out
-
-    def _take_decision(self, decision: int | None) -> None:
-        """Apply the reasoner's decision to a pending anomaly."""
-        mem = self.memory
-        if decision is None or mem.mode is not Mode.PENDING:
-            if decision is not None and mem.mode is Mode.RECOVERING:
-                mem.events.append(f"late decision {decision} ignored: already recovering")
-            return
-        if decision == 0:
-            mem.events.append("continue (y = 0): back to nominal")
-            mem.mode, mem.t_anom, mem.options = Mode.NOMINAL, None, ()
-            mem.region_step = None
-        elif decision in mem.options:
-            mem.mode, mem.chosen = Mode.RECOVERING, decision
-            mem.events.append(f"reasoner chose region {decision}; recovering")
-        else:
-            mem.events.append(f"decision {decision} was not offered {mem.options}; ignored")
