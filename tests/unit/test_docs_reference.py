@@ -93,10 +93,13 @@ def modules() -> Iterator[tuple[str, str]]:
 
 def list_drift(text: str) -> list[str]:
     names = listed(text)
+    # a folder named in a row stands for its modules unless it has rows of its own (then
+    # the name is prose: "its pure core in core/")
+    wholes = [f"{f}/{sub.rstrip('/')}" for f, subs in names.items() for sub in subs
+              if sub.endswith("/") and f"{f}/{sub.rstrip('/')}" not in names]
     missing = [f"{folder}/{name}" for folder, name in sorted(modules())
                if name not in names.get(folder, set())
-               and not any(folder.startswith(f"{f}/{sub.rstrip('/')}")
-                           for f, subs in names.items() for sub in subs if sub.endswith("/"))]
+               and not any(folder.startswith(whole) for whole in wholes)]
     present = set(modules())
 
     def there(folder: str, name: str) -> bool:  # in it, or in a folder its row names
