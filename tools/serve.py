@@ -67,9 +67,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if args.service == "dashboard":
         return serve_dashboard(overrides)
 
-    from services.embedding.api import create_app
+    from services.embedding.api import served_app
     from services.embedding.settings import EmbeddingSettings
-    from services.embedding.worker import DetectorWorker
     from shared.serving import serve
 
     settings = _exposed(EmbeddingSettings(**overrides))
@@ -77,8 +76,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         import torch
 
         torch.set_num_threads(settings.tuning.torch_threads)
-    factory = DetectorWorker.factory(settings) if settings.zenoh_worker else None
-    serve(create_app(settings, worker_factory=factory), settings)
+    serve(served_app(settings), settings)
     return 0
 
 

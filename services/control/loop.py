@@ -59,7 +59,7 @@ from .contract import StateInput, StateReading, setpoint
 from .core import handshake, outbox
 from .core.aesop import ControlOutput
 from .core.controllers import Controller, make_controller, mpc_config
-from .core.dynamics import N_STATE, POS
+from .core.dynamics import POS, rest_at
 from .core.handshake import Asked, Handshake
 from .core.mpc import SolveStatus
 from .core.regions import Region
@@ -228,13 +228,6 @@ def scene_key(observation: Observation) -> str:
     detection behind it (a scene it cleared is cleared only with the same detections)."""
     phrases = sorted(d.phrase for d in observation.detections)
     return "\n".join([observation.text, *phrases]) if phrases else observation.text
-
-
-def rest_at(position: Sequence[float]) -> np.ndarray:
-    """The 12-state at rest at ``position`` (m)."""
-    x = np.zeros(N_STATE)
-    x[POS] = np.asarray(position, dtype=float)
-    return x
 
 
 def check_fence(scenario: Scenario, regions: Sequence[Region]) -> None:

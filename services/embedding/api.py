@@ -32,10 +32,18 @@ from .models.base import EmbedderError
 from .routes import router
 from .service import CacheService
 from .settings import EmbeddingSettings
+from .worker import DetectorWorker
 
 log = logging.getLogger(__name__)
 
 STATUS = {InvalidInput: 422, NotFound: 404, Conflict: 409, NotCalibrated: 409, Busy: 429}
+
+
+def served_app(settings: EmbeddingSettings) -> FastAPI:
+    """The app ``aesop serve embedding`` runs: with its bus worker unless ``zenoh_worker``
+    is off."""
+    factory = DetectorWorker.factory(settings) if settings.zenoh_worker else None
+    return create_app(settings, worker_factory=factory)
 
 
 def create_app(

@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import asyncio
 import threading
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING
 
 from shared.messages import Detection
 
@@ -24,9 +24,6 @@ from .detector.proposals import Proposal
 if TYPE_CHECKING:
     from .batching import MicroBatcher
     from .detector.cache import Scored
-
-T = TypeVar("T")
-
 
 @dataclass(frozen=True)
 class Query:
@@ -38,17 +35,6 @@ class Query:
     @classmethod
     def of(cls, text: str, detections: Sequence[Detection] = ()) -> Query:
         return cls(text, tuple(dict.fromkeys(d.phrase for d in detections)))
-
-
-@dataclass(frozen=True)
-class Item:
-    """An experience to add: text (embedded by the cache's model) or a raw vector."""
-
-    text: str | None = None
-    vector: Sequence[float] | None = None
-    id: str | None = None
-    metadata: Mapping[str, Any] = field(default_factory=dict)
-    detections: tuple[Detection, ...] = ()
 
 
 class RWLock:
@@ -101,31 +87,3 @@ class Entry:
         """The saved index file is missing, older than the cache, or lacks a built graph."""
         return (self.saved is None or self.saved[0] != self.cache.version
                 or (self.cache.index.graph_ready and not self.saved[1]))
-
-
-async def on_fresh_thread(fn: Callable[..., T], *args: Any) -> T:
-    """Run ``fn`` on a new thread that ends with it. Heavy admin work that uses OpenMP
-    (leave-one-out, loading a model) runs so: libgomp keeps a team of threads per calling
-    thread for as long as that thread lives, and a second long-lived team doubled the
-    compute thread's embedding time; a short-lived thread takes its team with it."""
-    loop = asyncio.get_running_loop()
-    future: asyncio.Future[T] = loop.create_future()
-
-    def settle(result: Any, error: BaseException | None) -> None:
-        if future.done():
-            return
-        if error is not None:
-            future.set_exception(error)
-        else:
-            future.set_result(result)
-
-    def run() -> None:
-        try:
-            result = fn(*args)
-        except BaseException as exc:  # handed to the awaiting coroutine
-            loop.call_soon_threadsafe(settle, None, exc)
-        else:
-            loop.call_soon_threadsafe(settle, result, None)
-
-    threading.Thread(target=run, name="aesop-oneoff", daemon=True).start()
-    return await future

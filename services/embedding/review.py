@@ -21,7 +21,8 @@ from .detector.adapt import ACCEPTED, recalibration
 from .detector.cache import CacheConfig, Op, SetCalibration
 from .detector.errors import Conflict, InvalidInput, NotFound
 from .detector.proposals import Proposal, State, scene_id
-from .entries import Entry, Item
+from .entries import Entry
+from .schemas import Item
 from .settings import EmbeddingSettings
 from .storage.pgstore import PostgresStore
 from .storage.store import Store

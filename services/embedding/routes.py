@@ -19,7 +19,6 @@ from shared.jobs import Job, JobAccepted, JobInfo, TooManyJobs, UnknownJob
 from .detector.cache import Labelled
 from .detector.errors import DetectorError, InvalidInput, NotFound
 from .detector.proposals import State
-from .entries import Item
 from .metrics import EmbeddingMetrics
 from .review import Decided
 from .schemas import (
@@ -32,6 +31,7 @@ from .schemas import (
     CreateCache,
     Deleted,
     Experience,
+    Item,
     ProposalInfo,
     ProposalList,
     Reviewed,

@@ -7,7 +7,8 @@ definition for the server, its clients and its tests.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import (
@@ -73,6 +74,18 @@ def refuse_nulls(data: Any, *keys: str) -> Any:
             if key in data and data[key] is None:
                 raise ValueError(f"'{key}' may be left out but not null")
     return data
+
+
+@dataclass(frozen=True)
+class Item:
+    """An experience to add as ``CacheService.add`` takes it (the routes make one of each
+    :class:`ItemIn` or vector): text (embedded by the cache's model) or a raw vector."""
+
+    text: str | None = None
+    vector: Sequence[float] | None = None
+    id: str | None = None
+    metadata: Mapping[str, Any] = field(default_factory=dict)
+    detections: tuple[Detection, ...] = ()
 
 
 class Body(BaseModel):

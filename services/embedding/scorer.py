@@ -30,12 +30,13 @@ from typing import Any, TypeVar
 import numpy as np
 
 from shared.messages import Detection
+from shared.threads import on_fresh_thread
 
 from .batching import MicroBatcher
 from .detector.cache import CacheConfig, Detections, Labelled, Scored, unit_vectors
 from .detector.detections import embedded_form
 from .detector.errors import Busy, Conflict, InvalidInput
-from .entries import Entry, Query, on_fresh_thread
+from .entries import Entry, Query
 from .models.base import Embedder, ModelNotFound
 from .models.loading import EmbedderPool
 from .settings import VERDICT_NEIGHBORS, EmbeddingSettings
@@ -275,7 +276,7 @@ class Scorer:
 
     async def embedder(self, model: str) -> Embedder:
         """The model, loaded on a thread of its own (not the compute thread: see
-        :func:`.entries.on_fresh_thread`); a model there is none of is an InvalidInput."""
+        :func:`shared.threads.on_fresh_thread`); a model there is none of is an InvalidInput."""
         try:
             return await on_fresh_thread(self.embedders.get, model)
         except ModelNotFound as exc:

@@ -22,6 +22,7 @@ import numpy as np
 
 from shared.jobs import Job, Jobs
 from shared.messages import Detection
+from shared.threads import on_fresh_thread
 
 from .batching import NORMAL, URGENT, ComputeThread
 from .detector import policy
@@ -32,11 +33,11 @@ from .detector.errors import Behind, Conflict, InvalidInput, NotFound, StorageEr
 from .detector.index import IndexKind
 from .detector.policy import Components, Evidence
 from .detector.proposals import Policy, Proposal
-from .entries import Entry, Item, on_fresh_thread
+from .entries import Entry
 from .fleet.follow import Follower
 from .models.loading import EmbedderPool
 from .review import Review
-from .schemas import Added, CacheInfo, Calibrated, Deleted, Experience, Roc
+from .schemas import Added, CacheInfo, Calibrated, Deleted, Experience, Item, Roc
 from .scorer import Scorer, check_dims
 from .settings import DEFAULT_K, EmbeddingSettings
 from .storage.pgstore import PostgresStore

@@ -24,10 +24,10 @@ import numpy as np
 import pytest
 from prometheus_client import CollectorRegistry, generate_latest
 
-from services.embedding.entries import Item
 from services.embedding.fairness import FairInbox
 from services.embedding.metrics import EmbeddingMetrics
 from services.embedding.models.loading import EmbedderPool
+from services.embedding.schemas import Item
 from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingSettings
 from services.embedding.worker import DetectorWorker

@@ -15,10 +15,10 @@ import pytest
 from fastapi.testclient import TestClient
 
 from services.embedding.api import create_app
-from services.embedding.entries import Item
 from services.embedding.fleet.replicas import Replicas
 from services.embedding.fleet.sharding import assignment
 from services.embedding.models.loading import EmbedderPool
+from services.embedding.schemas import Item
 from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingSettings
 from services.embedding.worker import DetectorWorker

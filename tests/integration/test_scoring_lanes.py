@@ -19,8 +19,8 @@ from fastapi.testclient import TestClient
 
 from services.embedding.api import create_app
 from services.embedding.detector.errors import Busy
-from services.embedding.entries import Item
 from services.embedding.models.loading import EmbedderPool
+from services.embedding.schemas import Item
 from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingLimits, EmbeddingSettings, EmbeddingTuning
 from tests.fakes.hash_embedder import HashEmbedder

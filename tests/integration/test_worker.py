@@ -15,10 +15,10 @@ from prometheus_client import CollectorRegistry
 from services.embedding.api import create_app
 from services.embedding.detector.drift import DriftMonitor
 from services.embedding.detector.errors import Conflict
-from services.embedding.entries import Item
 from services.embedding.fleet.replicas import Replicas, replica_key
 from services.embedding.metrics import EmbeddingMetrics
 from services.embedding.models.loading import EmbedderPool
+from services.embedding.schemas import Item
 from services.embedding.service import CacheService
 from services.embedding.settings import EmbeddingSettings, EmbeddingTuning
 from services.embedding.worker import DetectorWorker

@@ -190,6 +190,38 @@ def test_a_pure_core_imports_no_network_bus_database_or_event_loop() -> None:
     assert bad == []
 
 
+# What a tool may read of a service that has a pure core: the core, and the service's front:
+# its client, route models and settings, its app (what ``aesop serve`` runs) and its
+# in-process service (what a bench measures); of control also its runtime (the loop a bench
+# ticks, no I/O) and its vehicle contract (what a simulated vehicle flies through). The rest
+# of the shell (embedding's entries, worker, scorer, batching, review, routes ...) is its own.
+FRONT = {EMBEDDING: ("client", "schemas", "settings", "api", "service",
+                     "detector", "models", "storage", "fleet"),
+         "services.control": ("client", "schemas", "settings", "api", "service", "loop",
+                              "contract", "core")}
+
+
+def _behind_the_front(target: str) -> bool:
+    for service, front in FRONT.items():
+        if target.startswith(service + "."):
+            return target.removeprefix(service + ".").split(".")[0] not in front
+    return False
+
+
+def test_tools_use_a_services_front_or_its_core_never_its_shell() -> None:
+    bad = sorted((m, t) for m, p in MODULES.items() if m.startswith("tools")
+                 for t in _imports(m, p, typing=True) if _behind_the_front(t))
+    assert bad == []
+
+
+def test_controls_controller_holds_little() -> None:
+    """Algorithm 1's ``Controller`` stays well under the class limit because the anomaly's
+    life, the kept plan and the deadlines are values of their own (issue 45: <= 300)."""
+    tree = ast.parse(MODULES["services.control.core.aesop"].read_text())
+    node = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "Controller")
+    assert (node.end_lineno or 0) - node.lineno + 1 <= 300
+
+
 def test_the_layout_rules_can_fail() -> None:
     """The rules above catch what they are for (a check that cannot fail is a defect): the
     shell's own imports would break each of them."""
@@ -199,6 +231,11 @@ def test_the_layout_rules_can_fail() -> None:
     shell = f"{EMBEDDING}.service"
     assert {"asyncio"} <= _imports(shell, MODULES[shell], outside=True) & IO
     assert f"{EMBEDDING}.storage.store" in _imports(shell, MODULES[shell])
+    assert _behind_the_front(f"{EMBEDDING}.worker") and _behind_the_front(f"{EMBEDDING}.entries")
+    assert not _behind_the_front(f"{EMBEDDING}.detector.cache")
+    assert not _behind_the_front("services.control.core.aesop")
+    assert _behind_the_front("services.control.routes")
+    assert not _behind_the_front("services.reasoner.worker")  # no core yet: not ruled
     review = f"{EMBEDDING}.review"  # its type-only imports count where typing=True
     assert _imports(review, MODULES[review], typing=True) >= _imports(review, MODULES[review])
 

@@ -39,8 +39,8 @@ from typing import Any
 import yaml
 
 from services.control.core.controllers import make_controller
+from services.control.core.dynamics import rest_at
 from services.control.core.scenario import Scenario, ScenarioError, load_scenario
-from services.control.loop import rest_at
 from services.reasoner.client import ReasonerClient
 from services.reasoner.latency import min_samples
 from shared.client import ServiceError

@@ -22,6 +22,7 @@ input deviations ``du = u - u_hover``.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -207,3 +208,10 @@ class LinearModel:
     @property
     def m(self) -> int:
         return int(self.b.shape[1])
+
+
+def rest_at(position: Sequence[float]) -> np.ndarray:
+    """The 12-state at rest at ``position`` (m)."""
+    x = np.zeros(N_STATE)
+    x[POS] = np.asarray(position, dtype=float)
+    return x

@@ -29,7 +29,7 @@ def bench_build(bench: Bench) -> dict[str, Any]:
 
 
 async def _build(bench: Bench) -> dict[str, Any]:
-    from services.embedding.entries import Item
+    from services.embedding.schemas import Item
     from tools.scenes import generate
 
     n = bench.sizes.build_texts

@@ -293,7 +293,7 @@ async def open_service(embedder: Embedder, data_dir: Path, *, microbatch: bool =
 
 async def fill(service: CacheService, name: str, vectors: np.ndarray) -> None:
     """Create cache ``name`` pinned to the default model and add ``vectors`` as experiences."""
-    from services.embedding.entries import Item
+    from services.embedding.schemas import Item
     from services.embedding.settings import DEFAULT_MODEL
 
     await service.create(name, model=DEFAULT_MODEL, k=K)

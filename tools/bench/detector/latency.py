@@ -64,8 +64,8 @@ async def _latency(n: int, size: int, seed: int, model: str = DEFAULT_MODEL,
     paper's full prompt is timed too, to show what its fixed preamble costs."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from services.embedding.entries import on_fresh_thread
     from services.embedding.models.loading import load_embedder
+    from shared.threads import on_fresh_thread
     from tools.scenes import generate
 
     embedder = await on_fresh_thread(partial(load_embedder, model, threads=threads))
