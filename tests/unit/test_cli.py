@@ -174,3 +174,16 @@ def says_default(action: argparse.Action) -> bool:
     shown = (f"{default:g}" if isinstance(default, float) else
              " ".join(map(str, default)) if isinstance(default, list) else str(default))
     return "default" in action.help or shown in action.help
+
+
+def test_the_cli_offers_the_calibration_methods_the_detector_has() -> None:
+    """The parser stays light (no numpy at ``aesop --help``), so ``detector eval --method``
+    restates the methods: adding one to the detector must reach the CLI (issue 45's
+    "add a calibration method")."""
+    from typing import get_args
+
+    from services.embedding.detector.calibration import Method
+
+    methods = {tuple(a.choices) for path, a in every_argument(cli.build_parser())
+               if "--method" in a.option_strings and path.endswith("detector eval")}
+    assert methods == {get_args(Method)}
