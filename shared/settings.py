@@ -69,34 +69,53 @@ class BusSettings(BaseSettings):
                                       env_nested_delimiter="__")
 
     robot: str = Field(default="robot0", pattern=r"^[A-Za-z0-9_\-]+$",
-                       validation_alias=shared("robot"))
+                       validation_alias=shared("robot"),
+                       description="the robot that control and the dashboard follow; the "
+                                   "workers answer any robot")
     zenoh_mode: Literal["peer", "client"] = Field(default="peer",
-                                                  validation_alias=shared("zenoh_mode"))
-    zenoh_listen: Endpoints = Field(default_factory=list, validation_alias=shared("zenoh_listen"))
+                                                  validation_alias=shared("zenoh_mode"),
+                                                  description="`peer` or `client`")
+    zenoh_listen: Endpoints = Field(
+        default_factory=list, validation_alias=shared("zenoh_listen"),
+        description="endpoints to listen on, e.g. `tcp/127.0.0.1:7447`; a peer with neither "
+                    "a listen endpoint nor a config file listens on `tcp/127.0.0.1:0`")
     zenoh_connect: Endpoints = Field(default_factory=list,
-                                     validation_alias=shared("zenoh_connect"))
-    zenoh_multicast: bool = Field(default=False, validation_alias=shared("zenoh_multicast"))
-    # the session's Zenoh ID (hex), which names it in the router's log; one session per ID
-    # at a router, so every process its own (random when unset)
-    zenoh_id: str | None = Field(default=None, pattern=r"^[0-9a-f]{1,32}$",
-                                 validation_alias=shared("zenoh_id"))
-    # a zenoh JSON5 config file, applied first
-    zenoh_config: Path | None = Field(default=None, validation_alias=shared("zenoh_config"))
-    # user/password authentication to the router (its dictionary must list the user);
-    # the password from the environment, or from a file (a secret mounted by compose)
-    zenoh_user: str | None = Field(default=None, min_length=1, max_length=64,
-                                   pattern=r"^[A-Za-z0-9_\-]+$",
-                                   validation_alias=shared("zenoh_user"))
-    zenoh_password: SecretStr | None = Field(default=None,
-                                             validation_alias=shared("zenoh_password"))
-    zenoh_password_file: Path | None = Field(default=None,
-                                             validation_alias=shared("zenoh_password_file"))
-    # mutual TLS on tls/ endpoints (a link that leaves the host): the CA the router's
-    # certificate must chain to, and this session's own certificate and key, whose common
-    # name the router's access-control list knows it by (``aesop zenoh certs``)
-    zenoh_tls_ca: Path | None = Field(default=None, validation_alias=shared("zenoh_tls_ca"))
-    zenoh_tls_cert: Path | None = Field(default=None, validation_alias=shared("zenoh_tls_cert"))
-    zenoh_tls_key: Path | None = Field(default=None, validation_alias=shared("zenoh_tls_key"))
+                                     validation_alias=shared("zenoh_connect"),
+                                     description="endpoints to connect to, e.g. "
+                                                 "`tcp/127.0.0.1:7447`")
+    zenoh_multicast: bool = Field(default=False, validation_alias=shared("zenoh_multicast"),
+                                  description="multicast scouting")
+    zenoh_id: str | None = Field(
+        default=None, pattern=r"^[0-9a-f]{1,32}$", validation_alias=shared("zenoh_id"),
+        description="the session's Zenoh ID (hex, up to 32 digits), which names it in the "
+                    "router's log; a router takes one session per ID, so every process its "
+                    "own (none: random)")
+    zenoh_config: Path | None = Field(
+        default=None, validation_alias=shared("zenoh_config"),
+        description="Zenoh JSON5 file, applied first; only settings set explicitly override it")
+    zenoh_user: str | None = Field(
+        default=None, min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_\-]+$",
+        validation_alias=shared("zenoh_user"),
+        description="the session's user at the router, whose dictionary must list it (needs "
+                    "`AESOP_ZENOH_PASSWORD` or `AESOP_ZENOH_PASSWORD_FILE`)")
+    zenoh_password: SecretStr | None = Field(
+        default=None, validation_alias=shared("zenoh_password"),
+        description="the session's password at the router (needs `AESOP_ZENOH_USER`)")
+    zenoh_password_file: Path | None = Field(
+        default=None, validation_alias=shared("zenoh_password_file"),
+        description="the password from a file instead (a secret mounted by compose)")
+    zenoh_tls_ca: Path | None = Field(
+        default=None, validation_alias=shared("zenoh_tls_ca"),
+        description="mutual TLS on `tls/` endpoints (a link that leaves the host): the CA "
+                    "the router's certificate must chain to")
+    zenoh_tls_cert: Path | None = Field(
+        default=None, validation_alias=shared("zenoh_tls_cert"),
+        description="this session's certificate (`aesop zenoh certs`): its common name is "
+                    "its subject at the router's access-control list (needs "
+                    "`AESOP_ZENOH_TLS_CA` and `AESOP_ZENOH_TLS_KEY`)")
+    zenoh_tls_key: Path | None = Field(
+        default=None, validation_alias=shared("zenoh_tls_key"),
+        description="this session's certificate's key (needs `AESOP_ZENOH_TLS_CERT`)")
 
     _split_listen = field_validator("zenoh_listen", "zenoh_connect", mode="before")(_split)
 
@@ -149,24 +168,35 @@ class BusSettings(BaseSettings):
         return None
 
 
+BODY_LIMIT = "request body limit, counted as the body streams in (413 past it)"
+
+
 class ServiceSettings(BusSettings):
     """A service: the Zenoh bus plus an HTTP admin API and a data directory. ``host`` and
     ``port`` are the service's own (``AESOP_<SERVICE>_HOST``, ``_PORT``)."""
 
-    host: str = "127.0.0.1"
-    port: int = Field(default=8000, ge=0, le=65535)
-    admin_token: SecretStr | None = Field(default=None, validation_alias=shared("admin_token"))
-    # or its first line from a file (a secret mounted by compose: not in `docker inspect`)
-    admin_token_file: Path | None = Field(default=None,
-                                          validation_alias=shared("admin_token_file"))
-    data_dir: Path = Field(default=Path("data"), validation_alias=shared("data_dir"))
+    host: str = Field(default="127.0.0.1",
+                      description="bind address; an address off loopback needs a token")
+    port: int = Field(default=8000, ge=0, le=65535, description="HTTP port")
+    admin_token: SecretStr | None = Field(
+        default=None, validation_alias=shared("admin_token"),
+        description="bearer token, at least 16 characters (empty: none)")
+    admin_token_file: Path | None = Field(
+        default=None, validation_alias=shared("admin_token_file"),
+        description="the token's first line from a file instead (a compose secret: not in "
+                    "`docker inspect`)")
+    data_dir: Path = Field(default=Path("data"), validation_alias=shared("data_dir"),
+                           description="data directory; only embedding stores anything")
     log_level: Literal["debug", "info", "warning", "error"] = Field(
-        default="info", validation_alias=shared("log_level"))
-    # text, or JSON lines for a log collector (shared.logs); the CLI reads it first
-    log_format: Literal["text", "json"] = Field(default="text",
-                                                validation_alias=shared("log_format"))
-    # the largest request body, counted as it streams in (413 past it)
-    max_body_bytes: int = Field(default=1024 * 1024, ge=1024)
+        default="info", validation_alias=shared("log_level"),
+        description="`debug`, `info`, `warning` or `error`")
+    # the CLI reads it first (shared.logs)
+    log_format: Literal["text", "json"] = Field(
+        default="text", validation_alias=shared("log_format"),
+        description="`text` (time, level, logger, message), or `json`: one object per line "
+                    "(`time` UTC ISO 8601, `level`, `logger`, `message`, `pid`, `exception`) "
+                    "for a log collector; uvicorn's lines too (`shared/logs.py`)")
+    max_body_bytes: int = Field(default=1024 * 1024, ge=1024, description=BODY_LIMIT)
 
     @field_validator("admin_token", mode="before")
     @classmethod

@@ -9,7 +9,7 @@ from pathlib import Path
 from pydantic import AliasChoices, Field, SecretStr, field_validator
 from pydantic_settings import SettingsConfigDict
 
-from shared.settings import Group, ServiceSettings
+from shared.settings import BODY_LIMIT, Group, ServiceSettings
 
 from .detector.adapt import DEFAULT_WINDOW, Recalibrate
 
@@ -26,52 +26,71 @@ class EmbeddingLimits(Group):
     """What one caller may ask for (``AESOP_EMBEDDING_LIMITS``); past a limit, a 4xx that
     names it."""
 
-    max_items: int = Field(default=10_000, ge=1)  # per request that adds or calibrates
-    max_score_items: int = Field(default=256, ge=1)  # texts or vectors per score request
-    max_text_chars: int = Field(default=4_000, ge=1)
-    # REST texts being scored or waiting, over all requests: past it, 429 (the bus's
-    # observations are never refused, and go first: see batching.ComputeThread)
-    max_pending_texts: int = Field(default=1024, ge=1)
-    max_jobs: int = Field(default=8, ge=1)  # add jobs running at once (429 past it)
-    # pending proposals (scenes the reasoner answered "continue" for) a cache keeps; past
-    # it a new scene is not proposed (logged), a known one is still counted
-    max_pending_proposals: int = Field(default=1_000, ge=0)
-    # observations per second scored per robot (a burst of one second's worth); past it
-    # refused before decoding, counted, and said in an alarm on the robot's event key
-    robot_hz: float = Field(default=25.0, gt=0.0, le=10_000.0)
-    max_robots: int = Field(default=256, ge=1)  # robots tracked at once by the bus worker
+    max_items: int = Field(default=10_000, ge=1,
+                           description="items per add or calibration request, 413")
+    max_score_items: int = Field(default=256, ge=1,
+                                 description="texts or vectors per score request, 413")
+    max_text_chars: int = Field(default=4_000, ge=1, description="characters per text, 422")
+    # (see batching.ComputeThread)
+    max_pending_texts: int = Field(
+        default=1024, ge=1,
+        description="REST texts scoring or waiting, over all requests, 429; the bus's "
+                    "observations are never refused, and go first")
+    max_jobs: int = Field(default=8, ge=1, description="add jobs at once, 429")
+    max_pending_proposals: int = Field(
+        default=1_000, ge=0,
+        description="pending proposals, scenes the reasoner answered continue for, a cache "
+                    "keeps; past it a new scene is not proposed (logged), a known one still "
+                    "counted")
+    robot_hz: float = Field(
+        default=25.0, gt=0.0, le=10_000.0,
+        description="observations a second scored per robot, a second's burst; past it "
+                    "refused before decoding, counted, and said in an alarm on the robot's "
+                    "event key")
+    max_robots: int = Field(default=256, ge=1,
+                            description="robots the bus worker tracks at once")
 
 
 class EmbeddingTuning(Group):
     """How the work is cut and run (``AESOP_EMBEDDING_TUNING``): the defaults are the
     measured ones (docs/benchmarks.md)."""
 
-    embed_batch_size: int = Field(default=64, ge=1)
-    # a REST score request runs as chunks of this many texts, so a bus verdict waits for
-    # at most one chunk, and a caller that leaves stops its request at the next chunk
-    score_chunk: int = Field(default=16, ge=1)
-    microbatch: bool = True  # coalesce concurrent score requests into one embedding call
-    # how long a lone request waits for company; 0: none, yet requests that arrive while
-    # a batch is being embedded still form the next batch
-    microbatch_window_ms: float = Field(default=0.0, ge=0.0)
-    microbatch_max: int = Field(default=64, ge=1)
-    # save a cache's index file once this many experiences were added or deleted since
-    # the last save (0: only on close); a restart loads it and catches up from the database
-    index_save_changes: int = Field(default=50_000, ge=0)
-    # torch intra-op threads; 0 keeps torch's default (one per core). One thread keeps a
-    # single observation's embedding at ~15 ms on a busy machine, where a pool of
-    # spinning threads stalled verdicts for 1-2 s (measured with `aesop bench bus`)
-    torch_threads: int = Field(default=1, ge=0, le=256)
-    # ONNX Runtime threads per inference (onnx: and onnx-int8: models). Its pool is told
-    # not to spin, so a second thread costs nothing while idle; measured with
-    # `aesop bench detector --only latency` and `aesop bench bus` (docs/benchmarks.md)
-    onnx_threads: int = Field(default=1, ge=1, le=256)
-    # observation texts whose vectors are kept (the most recent; 0: none): a text seen again
-    # is scored without embedding it again (a camera's scene repeats frame after frame)
-    text_memo: int = Field(default=4096, ge=0, le=1_000_000)
-    # with a shared store: how often a replica compares the stored versions with its own
-    # besides following the others' notices (the most a lost notice delays a change)
-    follow_poll_s: float = Field(default=5.0, gt=0.0, le=3600.0)
+    embed_batch_size: int = Field(default=64, ge=1, description="texts per embedding call")
+    score_chunk: int = Field(
+        default=16, ge=1,
+        description="texts per compute job of a REST request: a bus verdict waits for at "
+                    "most one chunk, and a caller that leaves stops its request at the next")
+    microbatch: bool = Field(default=True,
+                             description="coalesce concurrent scoring into one embedding call")
+    microbatch_window_ms: float = Field(
+        default=0.0, ge=0.0,
+        description="how long a lone request waits for company; 0: not at all, yet requests "
+                    "that arrive while a batch is embedded still form the next batch")
+    microbatch_max: int = Field(default=64, ge=1, description="most texts per batch")
+    index_save_changes: int = Field(
+        default=50_000, ge=0,
+        description="save a cache's index file after this many changes, 0: only on close; "
+                    "a restart loads it and catches up from the database")
+    # measured with `aesop bench bus`
+    torch_threads: int = Field(
+        default=1, ge=0, le=256,
+        description="torch intra-op threads, 0: torch's default (one per core); one keeps "
+                    "an observation's embedding at ~15 ms on a busy machine, where a pool of "
+                    "spinning threads stalled verdicts for 1-2 s")
+    # measured with `aesop bench detector --only latency` and `aesop bench bus`
+    onnx_threads: int = Field(
+        default=1, ge=1, le=256,
+        description="ONNX Runtime threads per inference of `onnx:` and `onnx-int8:` models; "
+                    "the pool does not spin, so another thread costs nothing while idle")
+    text_memo: int = Field(
+        default=4096, ge=0, le=1_000_000,
+        description="observation texts whose vectors are kept, the most recent (0: none): "
+                    "one seen again, as a camera's scene repeats frame after frame, is not "
+                    "embedded again")
+    follow_poll_s: float = Field(
+        default=5.0, gt=0.0, le=3600.0,
+        description="with a shared store, how often (s) the stored versions are compared "
+                    "besides the notices: the most a lost notice delays a change")
 
 
 class EmbeddingAdapt(Group):
@@ -79,47 +98,81 @@ class EmbeddingAdapt(Group):
     verdicts flag more than the calibration allows, and what accepting reviewed scenes
     does to the calibration."""
 
-    # after accepted scenes: "window" recalibrates split-conformal on the leave-one-out
-    # scores of the last ``window`` accepted scenes (services/embedding/detector/adapt.py);
-    # "stale" keeps the calibration, marked stale, until an operator recalibrates
-    recalibrate: Recalibrate = "window"
-    window: int = Field(default=DEFAULT_WINDOW, ge=1, le=100_000)
-    # a robot's last drift_window verdicts are tested against 1 - alpha (binomial); below
-    # drift_significance it is drifting (services/embedding/detector/drift.py)
-    drift_window: int = Field(default=50, ge=5, le=10_000)
-    drift_significance: float = Field(default=1e-7, gt=0.0, lt=0.5)
+    # services/embedding/detector/adapt.py
+    recalibrate: Recalibrate = Field(
+        default="window",
+        description="after accepted scenes: `window` recalibrates split-conformal on the "
+                    "leave-one-out scores of the last `window` accepted ones; `stale` keeps "
+                    "the calibration, marked stale, until an operator recalibrates")
+    window: int = Field(default=DEFAULT_WINDOW, ge=1, le=100_000,
+                        description="the accepted scenes a `window` recalibration uses")
+    # services/embedding/detector/drift.py
+    drift_window: int = Field(
+        default=50, ge=5, le=10_000,
+        description="a robot's last verdicts, tested against 1 - alpha by a binomial test")
+    drift_significance: float = Field(
+        default=1e-7, gt=0.0, lt=0.5,
+        description="the binomial tail below which a robot is drifting")
 
 
 class EmbeddingSettings(ServiceSettings):
     model_config = SettingsConfigDict(env_prefix="AESOP_EMBEDDING_", extra="ignore",
                                       validate_by_name=True)
 
-    port: int = Field(default=8001, ge=0, le=65535)
-    model: str = SERVICE_MODEL  # default model of new caches
-    # a model named by a directory must be in here (default: <data_dir>/models); names
-    # (the bundled model, the Hugging Face cache, openai:<name>) are looked up as before
-    model_dir: Path | None = None
-    max_models: int = Field(default=4, ge=1)  # loaded at once; the least used goes first
-    openai_base_url: str = "https://api.openai.com/v1"  # for models named "openai:<name>"
-    openai_api_key: SecretStr | None = Field(default=None, validation_alias=AliasChoices(
-        "AESOP_EMBEDDING_OPENAI_API_KEY", "OPENAI_API_KEY"))
-    detector_cache: str = "default"  # the cache the Zenoh worker scores observations against
-    zenoh_worker: bool = True
-    max_body_bytes: int = Field(default=64 * 1024 * 1024, ge=1024)
-    # the most the database file may grow to (0: no limit but the disk's); a write past
-    # it is answered 507 and nothing of it is stored, as on a full disk
-    max_db_bytes: int = Field(default=0, ge=0)
-    fsync: bool = True
-    # the durable record: unset, the SQLite file in data_dir (one replica); a PostgreSQL
-    # URL (postgresql://user:password@host:port/database) shared by detector replicas,
-    # each with its own data_dir for its index files (docs/embedding.md)
-    store: SecretStr | None = None
-    # this replica's name among detector replicas (one Zenoh key chunk): robots are shared
-    # among the live ones by rendezvous hashing (docs/embedding.md); default <host>-<pid>
-    replica: str = ""
-    limits: EmbeddingLimits = EmbeddingLimits()
-    tuning: EmbeddingTuning = EmbeddingTuning()
-    adapt: EmbeddingAdapt = EmbeddingAdapt()
+    port: int = Field(default=8001, ge=0, le=65535, description="HTTP port")
+    model: str = Field(
+        default=SERVICE_MODEL,
+        description="the model of new caches: a name, a path, `openai:<model>`, "
+                    "`onnx:<model>` or `onnx-int8:<model>` (the default: the bundled model "
+                    "run by ONNX Runtime in float32, exported on first use)")
+    model_dir: Path | None = Field(
+        default=None,
+        description="where a model named by a directory must be (none: "
+                    "`<data-dir>/models`); names (the bundled model, the Hugging Face "
+                    "cache, `openai:<name>`) are looked up elsewhere")
+    max_models: int = Field(default=4, ge=1,
+                            description="models loaded at once (the least recently used let "
+                                        "go)")
+    openai_base_url: str = Field(default="https://api.openai.com/v1",
+                                 description="server for `openai:` models")
+    openai_api_key: SecretStr | None = Field(
+        default=None,
+        validation_alias=AliasChoices("AESOP_EMBEDDING_OPENAI_API_KEY", "OPENAI_API_KEY"),
+        description="key for `openai:` models")
+    detector_cache: str = Field(default="default",
+                                description="the cache the Zenoh worker scores observations "
+                                            "against")
+    zenoh_worker: bool = Field(default=True,
+                               description="run that worker (the detector on the bus)")
+    max_body_bytes: int = Field(default=64 * 1024 * 1024, ge=1024, description=BODY_LIMIT)
+    max_db_bytes: int = Field(
+        default=0, ge=0,
+        description="the most the database may grow to (0: the disk's size); a write past "
+                    "it is answered 507 and nothing of it is stored, as on a full disk")
+    fsync: bool = Field(default=True,
+                        description="SQLite `synchronous=FULL` (else `OFF`) and fsync of "
+                                    "index files")
+    # docs/embedding.md
+    store: SecretStr | None = Field(
+        default=None,
+        description="the durable record: unset, the SQLite file in `<data-dir>` (one "
+                    "replica); a PostgreSQL URL, `postgresql://user:password@host:port/"
+                    "database` (a secret: never echoed), one database shared by detector "
+                    "replicas, each with its own data directory for its index files "
+                    "(section 9)")
+    replica: str = Field(
+        default="",
+        description="this replica's name among the detector replicas (one Zenoh key "
+                    "chunk): its token `aesop/health/embedding/<name>`; robots are shared "
+                    "among the live ones by rendezvous hashing (empty: `<host>-<pid>`)")
+    limits: EmbeddingLimits = Field(
+        default=EmbeddingLimits(),
+        description="what one caller may ask for; past a limit, a 4xx that names it")
+    tuning: EmbeddingTuning = Field(
+        default=EmbeddingTuning(),
+        description="how the work is cut and run; the defaults are the measured ones")
+    adapt: EmbeddingAdapt = Field(default=EmbeddingAdapt(),
+                                  description="drift and re-learning (section 1a)")
 
     def replica_name(self) -> str:
         return self.replica or f"{socket.gethostname()}-{os.getpid()}"

@@ -16,37 +16,53 @@ class StateReports(Group):
     """How it reports its state (``AESOP_SIM_REPORTS``): the faults a real vehicle's
     estimator and link bring, on purpose."""
 
-    rate_hz: float = Field(default=100.0, gt=0.0, le=1000.0)
-    delay_s: float = Field(default=0.0, ge=0.0, le=10.0)  # valid instant -> publication
-    position_noise_m: float = Field(default=0.0, ge=0.0, le=10.0)  # std per axis
-    velocity_noise_m_s: float = Field(default=0.0, ge=0.0, le=10.0)
-    drop_rate: float = Field(default=0.0, ge=0.0, lt=1.0)  # states lost at random
-    clock_offset_s: float = Field(default=0.0, ge=-1e6, le=1e6)  # its clock minus the true one
+    rate_hz: float = Field(default=100.0, gt=0.0, le=1000.0, description="states a second")
+    delay_s: float = Field(
+        default=0.0, ge=0.0, le=10.0,
+        description="s from the instant a state is valid to its publication")
+    position_noise_m: float = Field(default=0.0, ge=0.0, le=10.0,
+                                    description="m: standard deviation per axis")
+    velocity_noise_m_s: float = Field(default=0.0, ge=0.0, le=10.0,
+                                      description="m/s: standard deviation per axis")
+    drop_rate: float = Field(default=0.0, ge=0.0, lt=1.0,
+                             description="the fraction of states lost at random")
+    clock_offset_s: float = Field(default=0.0, ge=-1e6, le=1e6,
+                                  description="s: its clock minus the true one")
 
 
 class Trace(Group):
     """The truth it keeps for ``GET /v1/trace`` (``AESOP_SIM_TRACE``)."""
 
-    points: int = Field(default=20_000, ge=100, le=1_000_000)
-    hz: float = Field(default=20.0, gt=0.0, le=1000.0)
+    points: int = Field(default=20_000, ge=100, le=1_000_000, description="points kept")
+    hz: float = Field(default=20.0, gt=0.0, le=1000.0, description="points a second")
 
 
 class SimSettings(ServiceSettings):
     model_config = SettingsConfigDict(env_prefix="AESOP_SIM_", extra="ignore",
                                       validate_by_name=True)
 
-    port: int = Field(default=8004, ge=0, le=65535)
-    # the scene whose vehicle, fence and start box it simulates (as control's: a bundled
-    # name or a YAML/JSON file; None: paper)
-    scenario: Path | None = None
-    seed: int = 0  # draws the start from the scene's start box, and the noise
-    start_position: tuple[float, float, float] | None = None  # m; overrides the draw
-    # simulated seconds per wall second: 1 for real time; the control loop flying a scene
-    # faster than its 1/dt needs the simulator as fast (rate_hz * dt)
-    time_scale: float = Field(default=1.0, gt=0.0, le=100.0)
-    frame: str = Field(default="world", min_length=1, max_length=64)
-    reports: StateReports = StateReports()
-    trace: Trace = Trace()
+    port: int = Field(default=8004, ge=0, le=65535, description="HTTP port")
+    scenario: Path | None = Field(
+        default=None,
+        description="the scene whose vehicle, fence and start box it simulates, as "
+                    "control's: `paper`, `hardware` or a YAML/JSON file (none: `paper`)")
+    seed: int = Field(default=0,
+                      description="draws the start from the scene's start box, and the noise")
+    start_position: tuple[float, float, float] | None = Field(
+        default=None,
+        description="a JSON `[x,y,z]` (m) instead of the draw (none: drawn from the start "
+                    "box)")
+    time_scale: float = Field(
+        default=1.0, gt=0.0, le=100.0,
+        description="simulated seconds per second (1: real time); a control loop flying a "
+                    "scene faster than its 1/dt needs the simulator as fast (`rate_hz * dt`)")
+    frame: str = Field(default="world", min_length=1, max_length=64,
+                       description="the frame its states name")
+    reports: StateReports = Field(
+        default=StateReports(),
+        description="how it reports its state: the faults a real vehicle's estimator and "
+                    "link bring, on purpose")
+    trace: Trace = Field(default=Trace(), description="the truth kept for `GET /v1/trace`")
 
     @field_validator("scenario", "start_position", mode="before")
     @classmethod

@@ -662,16 +662,22 @@ class FakeLLMSettings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="AESOP_FAKE_LLM_", extra="ignore")
 
-    profile: Profile = "fixed"
-    fixed_s: float = Field(default=0.0, ge=0)
-    mean_s: float = Field(default=3.1, ge=0)
-    std_s: float = Field(default=0.85, ge=0)
-    time_scale: float = Field(default=1.0, ge=0)
-    seed: int = 0
-    rate_429: float = Field(default=0.0, ge=0, le=1)
-    rate_5xx: float = Field(default=0.0, ge=0, le=1)
-    rate_garbage: float = Field(default=0.0, ge=0, le=1)
-    retry_after_s: int = Field(default=1, ge=0)
+    profile: Profile = Field(
+        default="fixed",
+        description="the latency profile: `fixed`, `normal`, `bimodal` (the paper's "
+                    "GPT-3.5-turbo latencies) or `stall` (never answers)")
+    fixed_s: float = Field(default=0.0, ge=0, description="the latency of profile `fixed` (s)")
+    mean_s: float = Field(default=3.1, ge=0, description="the mean of profile `normal` (s)")
+    std_s: float = Field(default=0.85, ge=0,
+                         description="the standard deviation of profile `normal` (s)")
+    time_scale: float = Field(default=1.0, ge=0, description="multiplies every delay")
+    seed: int = Field(default=0, description="seeds the latencies and the failures injected")
+    rate_429: float = Field(default=0.0, ge=0, le=1, description="the fraction answered 429")
+    rate_5xx: float = Field(default=0.0, ge=0, le=1, description="the fraction answered 500")
+    rate_garbage: float = Field(default=0.0, ge=0, le=1,
+                                description="the fraction answered with malformed output")
+    retry_after_s: int = Field(default=1, ge=0,
+                               description="the `Retry-After` header of a 429 (s)")
 
     def to_config(self) -> FakeLLMConfig:
         return FakeLLMConfig(**self.model_dump())
@@ -697,7 +703,7 @@ class FakeLLMServiceSettings(ServiceSettings):
     model_config = SettingsConfigDict(env_prefix="AESOP_FAKE_LLM_", extra="ignore",
                                       validate_by_name=True)
 
-    port: int = Field(default=DEFAULT_PORT, ge=0, le=65535)
+    port: int = Field(default=DEFAULT_PORT, ge=0, le=65535, description="HTTP port")
 
 
 def main(argv: list[str] | None = None) -> int:
