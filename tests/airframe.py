@@ -13,7 +13,8 @@
   ``ahead``), which it realizes with the scene's ``acceleration_lag`` (the planning
   model's); a new set-point's plan is reached over ``BLEND_S``, not stepped to; past
   ``valid_until`` it holds, easing from the last command into a hold where its reference is
-  over ``EASE_S``. It answers the reset query, publishes its state at
+  over ``EASE_S``. It answers the reset query (and takes no set-point for an instant before
+  it: the loop sent it before the reset), publishes its state at
   ``--rate-hz`` ``--delay-s`` after the instant it is valid for, and its truth on
   ``vehicle/truth`` at 100 Hz; it answers clock queries (its clock is the wall clock), so
   the loop compensates the delay.
@@ -242,6 +243,7 @@ def main() -> None:
         now = time.monotonic()
         t = now  # the body's time
         reset_at, taken, holding = now, None, False
+        since = now + offset  # its clock at the last reset
         next_state, next_truth, next_stats = t, t, t + 1.0
         outbox: deque[tuple[float, VehicleState]] = deque()
         while not stop.is_set():
@@ -249,6 +251,7 @@ def main() -> None:
             while resets:
                 body.reset(resets.popleft())
                 reset_at, taken, holding = now, None, False
+                since = now + offset
             if t < now - 0.2:  # more than 0.2 s behind (a stall): skip, not catch up
                 stats.stalls += 1
                 t = now - 0.2
@@ -257,7 +260,8 @@ def main() -> None:
                 clock = t + offset
                 got = setpoints.get()
                 if got is not None and got is not taken and reset_at < got.received_at <= t \
-                        and got.message.acceleration is not None:  # arrived by now
+                        and got.message.t >= since \
+                        and got.message.acceleration is not None:  # arrived by now, this flight's
                     sp = got.message
                     if holding and taken is not None:
                         stats.holds += 1  # the flight went on after a hold

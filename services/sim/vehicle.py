@@ -111,7 +111,8 @@ class SetpointAges:
     received: int = 0
     refused: int = 0
     # "kind" (a command this vehicle does not take), "older" (than the one it follows),
-    # "future" (for an instant past MAX_AHEAD_S of its clock), "validity" (past MAX_VALID_S)
+    # "future" (for an instant past MAX_AHEAD_S of its clock), "validity" (past MAX_VALID_S),
+    # "before_reset" (for an instant before the vehicle's last reset: the flight before's)
     refusals: dict[str, int] = field(default_factory=dict)
 
     def refuse(self, reason: str) -> None:
@@ -135,15 +136,19 @@ MAX_VALID_S = 10.0  # a loop's set-point is valid for a few ticks; one valid lon
 
 
 def refusal(sp: VehicleSetpoint, followed: VehicleSetpoint | None, clock: float,
-            accelerations: bool) -> str | None:
+            accelerations: bool, reset_at: float = -math.inf) -> str | None:
     """Why a vehicle whose clock reads ``clock`` and that follows ``followed`` does not
     take ``sp`` (None: it does). It must be of the kind the vehicle takes, newer than the one
-    it follows (a higher ``seq``, or a later ``t``: a restarted loop counts again), and
-    bounded: for an instant at most :data:`MAX_AHEAD_S` past the vehicle's clock, valid for at
-    most :data:`MAX_VALID_S`, so that no one set-point, forged or broken, can lock out the
-    loop's next ones by a far-future ``t`` or be flown for ever."""
+    it follows (a higher ``seq``, or a later ``t``: a restarted loop counts again), for an
+    instant after the vehicle's last reset (``reset_at``, its clock: one from before belongs
+    to the flight before, planned from where the vehicle was), and bounded: for an instant
+    at most :data:`MAX_AHEAD_S` past the vehicle's clock, valid for at most
+    :data:`MAX_VALID_S`, so that no one set-point, forged or broken, can lock out the loop's
+    next ones by a far-future ``t`` or be flown for ever."""
     if (sp.acceleration is not None) != accelerations:
         return "kind"
+    if sp.t < reset_at:
+        return "before_reset"
     if sp.t > clock + MAX_AHEAD_S:
         return "future"
     if not 0.0 <= sp.valid_until - sp.t <= MAX_VALID_S:
@@ -179,6 +184,7 @@ class SimVehicle:
         """At rest at ``x0`` (12-state) from ``now``: no set-point, holding there."""
         self.plant: Plant = make_plant(self.scenario, np.asarray(x0, dtype=float))
         self.now = now
+        self._reset_clock = self.clock(now)  # a set-point for an instant before: refused
         self.seq = getattr(self, "seq", -1) + 1  # the count goes on across resets
         self._next_report = now
         self._reports.clear()
@@ -213,7 +219,8 @@ class SimVehicle:
         self._integrate(now)
         if self.faults.deaf_until is not None and now < self.faults.deaf_until:
             return False
-        reason = refusal(sp, self._setpoint, self.clock(now), self.accelerations)
+        reason = refusal(sp, self._setpoint, self.clock(now), self.accelerations,
+                         self._reset_clock)
         if reason is not None:
             self.ages.refuse(reason)
             return False

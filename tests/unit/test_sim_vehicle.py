@@ -146,6 +146,21 @@ def test_a_set_point_from_the_far_future_is_refused_and_locks_nothing_out() -> N
     assert v.ages.summary()["refused"] == 2
 
 
+def test_after_a_reset_a_set_point_for_an_instant_before_it_is_refused() -> None:
+    """Issue 46: a set-point the loop sent before a reset, delivered after it (a busy hub
+    delays one by hundreds of ms), belongs to the flight before: its reference is where the
+    vehicle was. The test airframe took one 0.15 s after being moved 4.2 m and flew at
+    8 rad/s. A set-point for an instant before the reset is refused ("before_reset"); the
+    next flight's are taken."""
+    v = vehicle()
+    assert v.receive(accel(7, 100.0), 100.0)
+    v.reset(START, 100.2)
+    assert not v.receive(accel(8, 100.1, valid_s=0.5), 100.25)  # planned before the reset
+    assert v.holding and v.ages.refusals == {"before_reset": 1}
+    assert v.receive(accel(9, 100.3), 100.3)  # the new flight's first: taken
+    assert not v.holding
+
+
 def test_faults_a_drop_out_a_stop_lost_set_points_and_a_jump() -> None:
     v = vehicle()
     v.faults.silent_until = 100.5
