@@ -140,6 +140,20 @@ def test_record_as_the_monitor_joins_aesop_ups_router(hub: str, tmp_path: Path) 
     assert {r.key for r in read_messages(out)} == {"aesop/robot0/observation"}
 
 
+def test_demo_attach_names_the_service_that_does_not_answer(hub: str, tmp_path: Path) -> None:
+    """With no detector at --embedding-url, ``demo --attach`` ended in an httpx traceback
+    once the router let its robot in. Now each service it needs is asked first: a usage
+    error (2) naming the URL and its flag, before anything is built."""
+    (tmp_path / "admin-token").write_text("a-token-of-sixteen-chars\n")
+    closed = f"http://127.0.0.1:{free_port()}"
+    done = aesop("demo", "--attach", "--data-dir", str(tmp_path), "--connect", hub,
+                 "--embedding-url", closed, "--out", str(tmp_path / "report"))
+    assert done.returncode == 2, done.stderr
+    assert "Traceback" not in done.stderr and "cannot join" not in done.stderr
+    assert f"nothing answers at {closed}" in done.stderr and "--embedding-url" in done.stderr
+    assert not (tmp_path / "report").exists()
+
+
 @pytest.mark.parametrize("where", ["aesop-ups-router", "nothing-listening"])
 def test_demo_attach_that_cannot_join_exits_2_before_building_its_cache(
         where: str, request: pytest.FixtureRequest, tmp_path: Path) -> None:

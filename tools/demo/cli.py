@@ -111,6 +111,8 @@ def cmd_attached(args: argparse.Namespace) -> int:
     # exits 2 unless the router lets the robot's user in, before the cache is built (a
     # refused client was a traceback after it; a peer session opened whatever answered)
     joined(bus, "demo --attach --data-dir <data-dir>", DATA_DIR_LOGIN)
+    _services_answer({"--embedding-url": args.embedding_url, "--control-url": args.control_url,
+                      **({"--sim-url": args.sim_url} if args.vehicle == "sim" else {})})
     stack = Attached(args.embedding_url, args.control_url,
                      args.sim_url if args.vehicle == "sim" else None, token, bus,
                      reasoner_url=args.reasoner_url if args.measure_k else None,
@@ -124,6 +126,22 @@ def cmd_attached(args: argparse.Namespace) -> int:
         print(json.dumps({"scenarios": result["scenarios"], **(
             {"k": result["k"]} if "k" in result else {})}, allow_nan=False))
     return 0 if result["ok"] else 1
+
+
+def _services_answer(urls: dict[str, str]) -> None:
+    """A usage error (status 2) naming the URL and its flag unless each service answers its
+    ``/healthz`` (no token needed): one that is not up was an httpx traceback mid-demo."""
+    import httpx
+
+    from tools.commands import CliError
+
+    for flag, url in urls.items():
+        try:
+            httpx.get(f"{url.rstrip('/')}/healthz", timeout=5.0).raise_for_status()
+        except (httpx.HTTPError, OSError) as exc:
+            raise CliError(f"demo --attach: nothing answers at {url} ({exc}): start the stack "
+                           f"(aesop up, or docker compose up) or name the service with "
+                           f"{flag}") from None
 
 
 def _reasoner_answers(url: str, token: str) -> None:
