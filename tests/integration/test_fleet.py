@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import shutil
 import signal
 import tempfile
 import threading
@@ -66,6 +67,13 @@ def test_three_robots_fly_through_a_killed_replica_and_a_postgresql_restart(
         tmp_path: Path) -> None:
     root = Path(tempfile.mkdtemp(prefix="aesop-fleet-"))
     root.chmod(0o711)  # the postgres user reaches the stack's PostgreSQL folder in it
+    try:
+        _fly_three(tmp_path, root)
+    finally:
+        shutil.rmtree(root, ignore_errors=True)  # its PostgreSQL cluster: 220 MB
+
+
+def _fly_three(tmp_path: Path, root: Path) -> None:
     with running_stack(tmp_path, TOKEN, robots=3, replicas=2, data_dir=root / "data") as up:
         plan, stack = up.plan, up.stack
         owners = assignment(plan.robots, REPLICAS)
