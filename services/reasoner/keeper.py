@@ -257,7 +257,7 @@ class Keeper:
                 self._armed[ident] = _Armed(robot, received.received_at,
                                             received.received_at + request.deadline_s,
                                             fallback, handle,
-                                            self._owner(received.received_at))
+                                            self._owner(ident, received.received_at))
                 self._per_robot[robot] = self._per_robot.get(robot, 0) + 1
         self._tell(refused or received)
 
@@ -282,9 +282,10 @@ class Keeper:
                 return
         self._send(armed, armed.answer or armed.fallback)
 
-    def _owner(self, received_at: float) -> Any:
-        """Who else sends the decision for a request that arrived at ``received_at``
-        (None: this keeper). The keeper's own is always itself."""
+    def _owner(self, ident: tuple[str, str], received_at: float) -> Any:
+        """Who else sends the decision for request ``ident`` that arrived at
+        ``received_at`` (None: this keeper; under the lock). The keeper's own is always
+        itself."""
         return None
 
     def _defers(self, armed: _Armed) -> bool:

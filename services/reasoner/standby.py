@@ -22,7 +22,8 @@ A keeper whose process has exited is never deferred to, whether or not the watch
 noticed yet (on a loaded machine it notices late, and a deadline may come first).
 
 A request is the keeper's (``owner``) when the keeper told the service it has it
-(:meth:`Standby.cover`), or when it arrived after the keeper had been listening for
+(:meth:`Standby.cover`; its word can come before the standby's own session hears the
+request, and is kept for it until the deadline), or when it arrived after the keeper had been listening for
 ``SETTLE_S`` (its subscription has reached every publisher by then). Otherwise it is the
 standby's to send. The standby's timer is a thread of the service's process, so it is late
 by what the service's GIL makes it (collections of up to 110 ms under load: see
@@ -37,6 +38,7 @@ endpoint (the robots connect to the keeper's) has no standby, which would reach 
 from __future__ import annotations
 
 import json
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import wait as ready_of
@@ -94,8 +96,18 @@ class Standby(Keeper):
                  keeper: Callable[[], Watched | None], **kw: Any) -> None:
         super().__init__(settings, policy, margin_s, publish, tell, timer, **kw)
         self._keeper = keeper
+        # a keeper's word for a request this session has not heard yet: (keeper, deadline)
+        self._told: OrderedDict[tuple[str, str], tuple[Watched, float]] = OrderedDict()
 
-    def _owner(self, received_at: float) -> Any:
+    @property
+    def covered(self) -> int:
+        """Requests a keeper said it has that this session has not heard (yet)."""
+        return len(self._told)
+
+    def _owner(self, ident: tuple[str, str], received_at: float) -> Any:
+        told = self._told.pop(ident, None)
+        if told is not None:
+            return told[0]  # the keeper said it has it before this session heard it
         keeper = self._keeper()
         return keeper if keeper is not None and keeper.settled(received_at) else None
 
@@ -106,12 +118,22 @@ class Standby(Keeper):
         owner = armed.owner
         return owner is not None and owner.lost is None and not owner.exited()
 
-    def cover(self, robot: str, request_id: str, keeper: Watched) -> None:
-        """``keeper`` has the request: it sends the decision while it is not lost."""
+    def cover(self, robot: str, request_id: str, keeper: Watched, *, until: float) -> None:
+        """``keeper`` has the request (its deadline: ``until``): it sends the decision
+        while it is not lost. The keeper's word may come before this session hears the
+        request (two sessions, each at its own pace): it is kept for when it does, until
+        the deadline."""
+        ident = (robot, request_id)
         with self._lock:
-            armed = self._armed.get((robot, request_id))
+            armed = self._armed.get(ident)
             if armed is not None:
                 armed.owner = keeper
+                return
+            now = self._clock()
+            while self._told and (next(iter(self._told.values()))[1] <= now
+                                  or len(self._told) >= self._max_pending):
+                self._told.popitem(last=False)
+            self._told[ident] = (keeper, until)
 
     def left(self, robot: str, request_id: str) -> None:
         """The keeper sent the request's decision: forget it."""

@@ -341,7 +341,8 @@ class ReasonerWorker:
         robot, request_id = topics.robot_of(received.key), received.message.request_id
         ident = (robot, request_id)
         if watched is not None and self._standby is not None:
-            self._standby.cover(robot, request_id, watched)
+            self._standby.cover(robot, request_id, watched,
+                                until=received.received_at + received.message.deadline_s)
         if ident in self._decided:
             decision = self._decided[ident]
             if decision is not None:

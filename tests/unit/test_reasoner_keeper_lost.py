@@ -193,10 +193,37 @@ def test_a_request_no_settled_keeper_has_is_the_standbys_unless_one_says_it_has_
     current[0] = keeper = watched(listening_since=10.0 - SETTLE_S / 2)
     sb.arrived(arrived("new keeper", 10.0))
     sb.arrived(arrived("covered", 10.0))
-    sb.cover("drone7", "covered", keeper)
+    sb.cover("drone7", "covered", keeper, until=11.0)
     clock.now = 10.99
     timer.fire(until=10.99)
     assert sorted(d.request_id for d in out.published) == ["new keeper", "nobody"]
+
+
+def test_a_keepers_word_that_comes_before_the_standby_hears_the_request_still_counts() -> None:
+    """Two Zenoh sessions hear a request at their own pace: the new keeper's Received can
+    reach the service (its ``cover``) before the standby's own subscriber hears the same
+    request. The standby must then leave it to that keeper: it sent the fallback too, and
+    the robot got two decisions (CI, test_a_killed_keeper_leaves_no_request_unanswered:
+    a request asked just after the SIGKILL, while the next keeper was settling). A word
+    for a request that never reaches the standby is forgotten after its deadline."""
+    out, timer, clock = Outlets(), HandTimer(), Clock(10.0)
+    keeper = watched(listening_since=10.0 - SETTLE_S / 2)  # the next keeper, settling
+    sb = standby(out, timer, clock, lambda: keeper)
+    sb.cover("drone7", "told first", keeper, until=11.0)
+    sb.arrived(arrived("told first", 10.0))
+    sb.arrived(arrived("not told", 10.0))
+    clock.now = 10.99
+    timer.fire(until=10.99)
+    assert [d.request_id for d in out.published] == ["not told"]
+    for i in range(3):
+        clock.now = 20.0 + i
+        sb.cover("drone7", f"never heard {i}", keeper, until=clock.now + 1.0)
+    assert sb.covered == 1  # the two past their deadline are gone
+    keeper.lost = "exited"  # and a word from a keeper since lost counts for nothing
+    sb.arrived(arrived("never heard 2", 22.0))
+    clock.now = 22.99
+    timer.fire(until=22.99)
+    assert [d.request_id for d in out.published] == ["not told", "never heard 2"]
 
 
 # --------------------------------------------------------------------------- the worker
