@@ -23,11 +23,12 @@ noticed yet (on a loaded machine it notices late, and a deadline may come first)
 
 A request is the keeper's (``owner``) when the keeper told the service it has it
 (:meth:`Standby.cover`; its word can come before the standby's own session hears the
-request, and is kept for it until the deadline), or when it arrived after the keeper had been listening for
-``SETTLE_S`` (its subscription has reached every publisher by then). Otherwise it is the
-standby's to send. The standby's timer is a thread of the service's process, so it is late
-by what the service's GIL makes it (collections of up to 110 ms under load: see
-:mod:`.keeper`); it is the second line, and what it cannot send by the deadline it drops.
+request, and is kept for it until the deadline), or when it arrived after the keeper had
+been listening for ``SETTLE_S`` (its subscription has reached every publisher by then).
+Otherwise it is the standby's to send. The standby's timer is a thread of the service's
+process, so it is late by what the service's GIL makes it (collections of up to 110 ms
+under load: see :mod:`.keeper`); it is the second line, and what it cannot send by the
+deadline it drops.
 
 What it cannot cover: a keeper stopped less than ``STALL_S`` before a deadline misses that
 one (the robot's own fallback at K); requests that waited in a stopped keeper's socket
