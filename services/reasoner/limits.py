@@ -13,6 +13,8 @@ from shared.messages import Observation, Option
 
 from .settings import ReasonerSettings
 
+VARIABLE = "AESOP_REASONER_LIMITS__"  # a refusal names the variable that raises its limit
+
 
 class LimitError(ValueError):
     """A request over a limit; ``field`` names what (``observation.text``, ``options``,
@@ -31,12 +33,14 @@ def check_request(settings: ReasonerSettings, *, observation: Observation | None
     A deadline must be a positive, finite number of seconds: an infinite one would let
     the backends run with no timeout, and NaN compares false with every limit.
     """
-    if observation is not None and len(observation.text) > settings.limits.max_observation_chars:
+    limits = settings.limits
+    if observation is not None and len(observation.text) > limits.max_observation_chars:
         raise LimitError("observation.text", f"observation has {len(observation.text)} "
-                         f"characters; the limit is {settings.limits.max_observation_chars}")
-    if options is not None and len(options) > settings.limits.max_options:
+                         f"characters; the limit is {limits.max_observation_chars} "
+                         f"({VARIABLE}MAX_OBSERVATION_CHARS)")
+    if options is not None and len(options) > limits.max_options:
         raise LimitError("options", f"{len(options)} options; the limit is "
-                         f"{settings.limits.max_options}")
+                         f"{limits.max_options} ({VARIABLE}MAX_OPTIONS)")
     if deadline_s is None:
         return
     if not math.isfinite(deadline_s):
@@ -44,6 +48,6 @@ def check_request(settings: ReasonerSettings, *, observation: Observation | None
                          f"got {deadline_s}")
     if deadline_s <= 0:
         raise LimitError("deadline_s", f"deadline_s must be positive, got {deadline_s:g}")
-    if deadline_s > settings.limits.max_deadline_s:
+    if deadline_s > limits.max_deadline_s:
         raise LimitError("deadline_s", f"deadline_s {deadline_s} is over the limit "
-                         f"{settings.limits.max_deadline_s}")
+                         f"{limits.max_deadline_s:g} ({VARIABLE}MAX_DEADLINE_S)")

@@ -167,9 +167,13 @@ def unchecked(**change: Any) -> ReasonerRequest:
 
 
 @pytest.mark.parametrize(("req", "field", "problem"), [
-    (request(text="x" * 101), "observation.text", "101 characters; the limit is 100"),
-    (request(options=(*OPTIONS, Option(index=3, label="land"))), "options", "4 options"),
-    (request(deadline_s=10.5), "deadline_s", "over the limit 10"),
+    # a limit's refusal names the variable that raises it (docs/operations.md)
+    (request(text="x" * 101), "observation.text",
+     "101 characters; the limit is 100 (AESOP_REASONER_LIMITS__MAX_OBSERVATION_CHARS)"),
+    (request(options=(*OPTIONS, Option(index=3, label="land"))), "options",
+     "4 options; the limit is 3 (AESOP_REASONER_LIMITS__MAX_OPTIONS)"),
+    (request(deadline_s=10.5), "deadline_s",
+     "over the limit 10 (AESOP_REASONER_LIMITS__MAX_DEADLINE_S)"),
     (unchecked(deadline_s=math.inf), "deadline_s", "finite"),
     (unchecked(deadline_s=math.nan), "deadline_s", "finite"),
     (unchecked(deadline_s=-1.0), "deadline_s", "positive"),
