@@ -123,14 +123,16 @@ def control_scenario(path: Path | str | None, *, flag: bool = True):  # -> contr
         raise CliError(f"--scenario: {exc}" if flag else str(exc)) from None
 
 
-def ros2_config(path: Path | None):  # -> services.ros2.config.BridgeConfig
-    """The ROS 2 bridge's config at ``path``, or a usage error naming what is wrong."""
+def ros2_config(path: Path | None, *,
+                frame: str | None = None):  # -> services.ros2.config.BridgeConfig
+    """The ROS 2 bridge's config at ``path``, or a usage error naming what is wrong;
+    ``frame``: the frame control flies in, which the odometry's must be."""
     from services.ros2.config import ConfigError, load_config
 
     if path is None:
         raise CliError("the bridge needs its config: --config FILE or AESOP_ROS2_CONFIG "
                        "(deploy/ros2/quadrotor.yaml is the quadrotor's)")
     try:
-        return load_config(path)
+        return load_config(path, frame=frame)
     except ConfigError as exc:
         raise CliError(str(exc)) from None

@@ -146,6 +146,7 @@ def serve_sim(overrides: dict[str, Any], scenario: str | None = None) -> int:
 
 
 def serve_ros2(overrides: dict[str, Any]) -> int:
+    from services.control.settings import ControlSettings
     from services.ros2.api import create_app
     from services.ros2.bridge import SERVICE
     from services.ros2.settings import Ros2Settings
@@ -153,7 +154,9 @@ def serve_ros2(overrides: dict[str, Any]) -> int:
     from shared.serving import serve
 
     settings = _exposed(Ros2Settings(**overrides))
-    config = ros2_config(settings.config)
+    # its states must be in control's frame, as this environment says it (compose: set
+    # AESOP_CONTROL_VEHICLE__FRAME alike for both), or control refuses every one
+    config = ros2_config(settings.config, frame=ControlSettings().vehicle.frame)
     serve(create_app(settings, config, bus_factory=lambda: Bus.open(settings, SERVICE)),
           settings)
     return 0

@@ -187,3 +187,24 @@ def test_the_cli_offers_the_calibration_methods_the_detector_has() -> None:
     methods = {tuple(a.choices) for path, a in every_argument(cli.build_parser())
                if "--method" in a.option_strings and path.endswith("detector eval")}
     assert methods == {get_args(Method)}
+
+
+@pytest.mark.parametrize("control_frame", [None, "odom"])
+def test_serve_ros2_refuses_a_config_in_a_frame_control_does_not_fly_in(
+        control_frame: str | None, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    # only `aesop up --ros2` checked it: the bridge run on its own (compose's `ros2`
+    # service) took `frame: wrld`, and control then refused every state it bridged
+    config = (Path(__file__).parents[2] / "deploy" / "ros2" / "quadrotor.yaml").read_text()
+    path = tmp_path / "bridge.yaml"
+    path.write_text(config.replace("frame: world", "frame: wrld"))
+    monkeypatch.delenv("AESOP_CONTROL_VEHICLE", raising=False)
+    if control_frame is None:
+        monkeypatch.delenv("AESOP_CONTROL_VEHICLE__FRAME", raising=False)
+    else:
+        monkeypatch.setenv("AESOP_CONTROL_VEHICLE__FRAME", control_frame)
+    monkeypatch.setenv("AESOP_ROS2_CONFIG", str(path))
+    assert cli.main(["serve", "ros2", "--port", "1"]) == 2
+    err = capsys.readouterr().err
+    expected = control_frame or "world"
+    assert f"{path}: inputs.odometry.frame: 'wrld' is not '{expected}'" in err
