@@ -66,9 +66,17 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+# read by docker-compose.yml and the image's scripts (deploy/), not by a service
+DEPLOY_VARIABLES = frozenset({
+    "AESOP_BASE_IMAGE", "AESOP_DEBIAN_MIRROR", "AESOP_DOCKER_ROOT", "AESOP_DOCKER_STATE",
+    "AESOP_IMAGE", "AESOP_POSTGRES_IMAGE", "AESOP_SCENARIO", "AESOP_SCENE_FILE",
+    "AESOP_SECRETS"})
+
+
 def warn_unknown_settings(environ: Mapping[str, str]) -> list[str]:
     """Say which ``AESOP_*`` variables no service reads (an old or misspelt name is
-    otherwise silently ignored); the lines said."""
+    otherwise silently ignored), but for compose's and the image scripts' own; the lines
+    said."""
     from pydantic_settings import BaseSettings
 
     from services.control.settings import ControlSettings
@@ -85,9 +93,10 @@ def warn_unknown_settings(environ: Mapping[str, str]) -> list[str]:
                                           FakeLLMServiceSettings, FakeLLMSettings]
     lines = [f"aesop: {name} is not a setting of any service" +
              (f" (did you mean {meant}?)" if meant else "")
-             for name, meant in unknown_names(environ, classes).items()]
-    for line in lines:
-        print(line, file=sys.stderr)
+             for name, meant in unknown_names(environ, classes).items()
+             if name not in DEPLOY_VARIABLES]
+    for line in lines:  # a log line: one JSON object under AESOP_LOG_FORMAT=json
+        logging.getLogger("aesop").warning("%s", line.removeprefix("aesop: "))
     return lines
 
 

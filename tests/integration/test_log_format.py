@@ -24,7 +24,8 @@ pytestmark = pytest.mark.timeout(120)
 def test_json_logs_are_one_object_per_line_for_every_logger(tmp_path: Path) -> None:
     port, log = free_port(), tmp_path / "sim.log"
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    env = {"AESOP_LOG_FORMAT": "json", "AESOP_ZENOH_LISTEN": endpoint, "AESOP_ROBOT": "r1"}
+    env = {"AESOP_LOG_FORMAT": "json", "AESOP_ZENOH_LISTEN": endpoint, "AESOP_ROBOT": "r1",
+           "AESOP_SIM_NOT_A_KNOB": "1"}  # said to be unknown: in JSON too
     with ServiceProcess(["serve", "sim", "--port", str(port), "--scenario", "hardware"],
                         port=port, env=env, log_path=log, ready_timeout_s=60,
                         unset=["AESOP_ADMIN_TOKEN"]), \
@@ -37,6 +38,8 @@ def test_json_logs_are_one_object_per_line_for_every_logger(tmp_path: Path) -> N
     records = [json.loads(line) for line in lines]  # every line: one JSON object
     assert all({"time", "level", "logger", "message", "pid"} <= set(r) for r in records)
     assert any(r["logger"].startswith("uvicorn") for r in records), records  # theirs too
+    assert any(r["logger"] == "aesop" and r["level"] == "WARNING"
+               and "AESOP_SIM_NOT_A_KNOB is not a setting" in r["message"] for r in records)
     assert any(r["logger"] == "services.sim.service" and r["level"] == "WARNING"
                and "reset query refused" in r["message"] for r in records), records
 

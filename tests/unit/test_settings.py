@@ -119,6 +119,21 @@ def test_an_old_or_misspelt_name_is_pointed_out() -> None:
     assert len(said) == 3
 
 
+def test_the_variables_of_compose_and_the_image_scripts_are_not_called_misspelt() -> None:
+    # `AESOP_DOCKER_ROOT=... make image` then any aesop command (the suite's services) said
+    # "AESOP_DOCKER_ROOT is not a setting of any service", in plain text under JSON logs
+    import re
+
+    from tools.cli import warn_unknown_settings
+
+    root = Path(__file__).resolve().parents[2]
+    files = [root / "docker-compose.yml", root / "Makefile", *root.glob("deploy/*.yml"),
+             *root.glob("deploy/docker/*.sh")]
+    used = {name for f in files for name in re.findall(r"\$\{?(AESOP_[A-Z0-9_]+)", f.read_text())}
+    assert {"AESOP_DOCKER_ROOT", "AESOP_BASE_IMAGE", "AESOP_SECRETS"} <= used
+    assert warn_unknown_settings(dict.fromkeys(used, "x")) == []
+
+
 def test_a_knob_moved_into_a_group_is_pointed_to_its_new_name() -> None:
     from tools.cli import warn_unknown_settings
 
