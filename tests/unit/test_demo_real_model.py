@@ -170,3 +170,22 @@ def test_a_flight_lasts_until_a_late_anomalys_t_has_come_due() -> None:
     assert flight_end(rec, SCENE) == pytest.approx(27.0)
     rec.states.append(at(40.0, 39.0))  # never longer than twice the flight
     assert flight_end(rec, SCENE) == 2 * FLIGHT_S
+
+
+def test_the_summary_does_not_call_a_wrong_decision_as_expected() -> None:
+    # aesop demo --attach --measure-k against compose's SmolLM2: 2a "holding zone (llm)",
+    # "as expected: yes" in the table, and "2a: holding zone (WRONG ...)" below it
+    from tools.demo.report import summary_table
+
+    rows = [{"name": "1-nominal", "decision": None, "decision_right": None, "outcome": "ok"},
+            {"name": "2a", "decision": "holding zone", "decision_right": False,
+             "decision_source": "llm", "outcome": "ok"},
+            {"name": "2b", "decision": "continue", "decision_right": True,
+             "decision_source": "llm", "outcome": "ok"},
+            {"name": "3", "decision": "continue", "decision_right": True,
+             "decision_source": "llm", "outcome": "ended in blue-box"}]
+    lines = summary_table(rows).splitlines()[2:]
+    said = {line.split()[0]: line for line in lines}
+    assert " yes " in said["1-nominal"] and " yes " in said["2b"]
+    assert "no, safe" in said["2a"] and " yes " not in said["2a"]
+    assert " NO " in said["3"] + " "

@@ -384,13 +384,16 @@ def columns(rows: Sequence[dict[str, Any]],
 
 
 def _shown(row: dict[str, Any], key: str) -> str:
-    """A summary cell: the decision with its source, whether the flight ended as judged
-    right, the latency in whole ms; else the row's value."""
+    """A summary cell: the decision with its source, whether the flight went as expected
+    (a wrong decision flown safely is "no, safe"), the latency in whole ms; else the row's
+    value."""
     if key == "decision_shown":
         source = row.get("decision_source")
         return _cell(row.get("decision")) + ("" if source is None else f" ({source})")
-    if key == "as_expected":
-        return "yes" if row.get("outcome") == "ok" else "NO"
+    if key == "as_expected":  # a real model's wrong choice, flown safely: not as expected
+        if row.get("outcome") != "ok":
+            return "NO"
+        return "no, safe" if row.get("decision_right") is False else "yes"
     if key == "decision_latency_ms" and isinstance(row.get(key), int | float):
         return f"{row[key]:.0f}"
     return _cell(row.get(key))
