@@ -6,6 +6,7 @@ dashboard shows the services gone, then back; the flight still ends in a region.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import threading
 import time
@@ -76,7 +77,11 @@ def test_the_router_restarts_mid_flight_and_the_stack_carries_on(tmp_path: Path)
         assert silent, states  # the silence was seen ...
         assert {st["mode"] for st in silent} - {"nominal"}, silent  # ... as an anomaly
         metrics = http.get(f"{control}/metrics").text
-        assert "aesop_control_stale_verdict_alarms_total 1.0" in metrics  # one silent spell
+        alarms = re.search(r"^aesop_control_stale_verdict_alarms_total (\S+)$", metrics, re.M)
+        # a silent spell at least: the verdicts may come back and pause once more while the
+        # detector's and control's sessions find the new hub one after the other (a CI run
+        # on a loaded machine counted more than one)
+        assert alarms is not None and float(alarms.group(1)) >= 1.0, alarms
         assert "aesop_control_tick_errors_total 0.0" in metrics
         assert died == [] and all(c.exited() is None for c in stack.children)
         assert {c.name: c.pid for c in stack.children} == pids  # nobody restarted
