@@ -1,4 +1,4 @@
-"""The one Zenoh <-> asyncio bridge of the stack.
+"""The one Zenoh <-> asyncio bridge: drop-oldest subscriptions, latest values, queries, liveliness.
 
 Zenoh runs callbacks on its own threads. Here a callback only decodes the
 sample and hands it on: to an asyncio loop with ``call_soon_threadsafe`` into

@@ -1,4 +1,4 @@
-"""Attitude conventions of the vehicle contract (pure).
+"""The vehicle contract's axes and attitudes: quaternions <-> Z-Y-X Euler angles, rotation (pure).
 
 The world frame is x forward, y left, z up (ROS REP 103's ENU-style axes, metres);
 the body frame is x forward, y left, z up (FLU). An attitude travels as the unit

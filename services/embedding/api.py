@@ -1,5 +1,7 @@
-"""The vector-cache service's app: its lifespan (caches, the Zenoh worker), metrics and
-error mapping; the routes are in :mod:`.routes` (shapes in docs/architecture.md)."""
+"""The vector-cache service's app: its lifespan (caches, the Zenoh worker), metrics, errors.
+
+It maps the service's errors to HTTP; the routes are in :mod:`.routes` (shapes in
+docs/architecture.md)."""
 
 from __future__ import annotations
 

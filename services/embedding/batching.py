@@ -1,4 +1,4 @@
-"""The compute thread and micro-batching.
+"""The compute thread and its lanes, and the micro-batcher of concurrent requests.
 
 ``ComputeThread`` is one long-lived thread that runs what is submitted to it,
 the most urgent lane first (the bus's verdicts before REST scoring and admin

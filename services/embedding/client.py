@@ -1,5 +1,6 @@
-"""The vector-cache service's typed client: every caller's way to build, calibrate and
-query a cache over HTTP (the demo, ``aesop bench bus``, the tests)."""
+"""The vector-cache service's typed client: build, calibrate and query a cache over HTTP.
+
+Every caller's way to the service: the demo, ``aesop bench bus``, the tests."""
 
 from __future__ import annotations
 

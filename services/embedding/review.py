@@ -1,7 +1,8 @@
-"""Scenes the slow reasoner let pass, proposed to a cache (:mod:`.detector.proposals` holds the
-pure rules): made or counted, accepted (the scene added as a nominal experience in the same
-transaction as the proposal's new state) or rejected, each told to the listeners (the
-worker publishes them as events)."""
+"""The proposal workflow: scenes the slow reasoner let pass, proposed to a cache and reviewed.
+
+A proposal (:mod:`.detector.proposals` holds the pure rules) is made or counted, accepted
+(the scene added as a nominal experience in the same transaction as the proposal's new
+state) or rejected, each told to the listeners (the worker publishes them as events)."""
 
 from __future__ import annotations
 

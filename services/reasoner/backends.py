@@ -1,4 +1,4 @@
-"""OpenAI-compatible chat-completions clients for the slow reasoner.
+"""OpenAI-compatible chat-completions clients for the slow reasoner: streaming, no retries.
 
 One adapter, :class:`OpenAIChatBackend`, speaks ``POST {base_url}/chat/completions`` to
 cloud OpenAI, Ollama (``/v1``), vLLM, llama.cpp's server and the fake LLM

@@ -1,8 +1,9 @@
-"""What one request may ask of the slow reasoner, checked the same way over HTTP and on
-the bus: the observation's length, the number of options and the deadline, against
-:class:`~.settings.ReasonerSettings` (``max_observation_chars``, ``max_options``,
-``max_deadline_s``). The message's own shape is pydantic's to check; these limits
-depend on the settings."""
+"""What one request may ask of the slow reasoner (text, options, deadline), on HTTP and bus alike.
+
+The same checks over HTTP and on the bus: the observation's length, the number of options
+and the deadline, against :class:`~.settings.ReasonerSettings` (``max_observation_chars``,
+``max_options``, ``max_deadline_s``). The message's own shape is pydantic's to check; these
+limits depend on the settings."""
 
 from __future__ import annotations
 

@@ -1,6 +1,7 @@
-"""The bridge's app: its lifespan opens the bus and runs :class:`.bridge.Bridge`;
-``GET /v1/bridge`` says what each topic did; ``/healthz``, ``/readyz``, ``/metrics`` from
-``service_app``."""
+"""The bridge's app: the bridge run on the bus, and ``GET /v1/bridge``, what each topic did.
+
+Its lifespan opens the bus and runs :class:`.bridge.Bridge`; ``/healthz``, ``/readyz``,
+``/metrics`` from ``service_app``."""
 
 from __future__ import annotations
 

@@ -1,4 +1,6 @@
-"""The bridge's queues: named lanes, each a bounded drop-oldest FIFO (at most so many items
+"""The bridge's queues: bounded drop-oldest lanes, taken by priority or in turn by one worker.
+
+Named lanes, each a bounded drop-oldest FIFO (at most so many items
 and so many bytes), behind one condition, from which one worker takes either by priority
 (the first lane with something in it: the set-points before the rest) or in turn (each
 lane one item at a time: a flood on one ROS topic waits behind the others' samples, not

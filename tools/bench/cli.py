@@ -1,5 +1,7 @@
-"""``aesop bench detector|reasoner|mpc|closed-loop|loop|bus|fairness|ros2|fleet|link``: the
-benchmarks, as tables or one JSON object (``--json``). They need the ``bench`` extra."""
+"""``aesop bench ...``: the benchmarks, as tables or one JSON object (``--json``).
+
+``aesop bench detector|reasoner|mpc|closed-loop|loop|bus|fairness|ros2|fleet|link``; they
+need the ``bench`` extra."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""``aesop demo``: the paper's hardware scenarios flown by the whole stack, with a report."""
+"""``aesop demo``'s flags and handlers: a stack of its own, or one attached to (``--attach``)."""
 
 from __future__ import annotations
 

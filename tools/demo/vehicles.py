@@ -1,5 +1,7 @@
-"""The vehicle a demo flight is flown with: the simulator over its HTTP API, or any vehicle
-over the vehicle contract alone (docs/architecture.md, section 3a).
+"""The vehicle a demo flight is flown with: the simulator over HTTP, or any vehicle on the bus.
+
+The simulator over its HTTP API, or any vehicle over the vehicle contract alone
+(docs/architecture.md, section 3a).
 
 A flight needs three things of its vehicle: to start at rest at the scenario's start
 (:meth:`reset`), where it really flew (:meth:`flown`: 12-state rows, the layout of

@@ -1,7 +1,8 @@
-"""A ROS 2 robot's messages as its nodes write them, in CDR, from the message definitions
-(``rosbags``), never from the bridge's own conversions (:mod:`services.ros2.convert` reads
-them), so a mistake in those cannot cancel out: for the tests' robot and ``aesop bench
-ros2``."""
+"""A ROS 2 robot's messages in CDR, from their definitions: the tests' robot, ``aesop bench ros2``.
+
+Written as a robot's nodes write them, from the message definitions (``rosbags``), never
+from the bridge's own conversions (:mod:`services.ros2.convert` reads them), so a mistake in
+those cannot cancel out: for the tests' robot and ``aesop bench ros2``."""
 
 from __future__ import annotations
 

@@ -1,1 +1,3 @@
-"""The robot-to-server link as tests and ``aesop bench link`` impair it: :mod:`.proxy`."""
+"""Two hosts on one machine and a lossy link between them, for tests and ``aesop bench link``.
+
+The robot-to-server link as they impair it: :mod:`.proxy`."""

@@ -1,5 +1,6 @@
-"""Two hosts on one machine: a network namespace for the robot, joined to this one (the
-server's) by a veth pair, so what the robot and the server say to each other crosses a real
+"""Two hosts on one machine: a network namespace for the robot, joined to ours by a veth pair.
+
+This namespace is the server's, so what the robot and the server say to each other crosses a real
 network interface between real addresses, not loopback.
 
 The robot's namespace has its own loopback (its router is open there, as on a robot's own

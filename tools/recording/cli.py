@@ -1,5 +1,6 @@
-"""The ``aesop`` commands on recordings: ``record``, ``replay``, ``cache import``,
-``cache calibrate`` (their flags and handlers), and ``detector eval --recording``
+"""The ``aesop`` commands on recordings: their flags and handlers.
+
+``record``, ``replay``, ``cache import``, ``cache calibrate``, and ``detector eval --recording``
 (:mod:`tools.detector` calls it). Each turns user errors into a
 :class:`~tools.commands.CliError`.
 """

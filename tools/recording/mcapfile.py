@@ -1,5 +1,6 @@
-"""The stack's messages as MCAP: one channel per Zenoh key, JSON messages, and a JSON
-Schema per message type generated from its pydantic model, so Foxglove opens a file
+"""The stack's messages as MCAP: a channel per Zenoh key, JSON messages, a JSON Schema per type.
+
+Each type's schema is generated from its pydantic model, so Foxglove opens a file
 and plots any field.
 
 :class:`FlightWriter` is the file side (no Zenoh): ``add(key, payload, received_ns)``

@@ -1,4 +1,4 @@
-"""Labelled text observations for the paper's synthetic domains (§V-A, App. prompting).
+"""What a domain is, and its labelled observations sampled by seed (§V-A, App. prompting).
 
 A *domain* is a robot, its task(s), and concept lists: nominal concepts grouped
 by category, anomalous concepts, and anomalous *combinations* (two nominal

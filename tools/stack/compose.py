@@ -1,6 +1,8 @@
-"""Docker compose's inputs that code writes: the secrets (``aesop zenoh credentials``,
-:func:`write_secrets`) and a fleet's override (``aesop zenoh fleet-compose``,
-:func:`fleet_override`, pure: the base file in, the override out).
+"""Docker compose's inputs that code writes: the secrets and a fleet's override.
+
+The secrets (``aesop zenoh credentials``, :func:`write_secrets`) and a fleet's override
+(``aesop zenoh fleet-compose``, :func:`fleet_override`, pure: the base file in, the override
+out).
 
 The base ``docker-compose.yml`` runs one robot (``control`` and ``sim``, ``AESOP_ROBOT``) and
 one detector. The override adds, for every further robot, its control loop and simulated

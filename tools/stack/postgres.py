@@ -1,5 +1,7 @@
-"""A PostgreSQL server of the stack's own, in one directory: the shared record of detector
-replicas on one machine (``aesop up --replicas``), the fleet benchmark and the tests.
+"""A PostgreSQL server of the stack's own, in one directory: the detector replicas' record.
+
+The shared record of detector replicas on one machine (``aesop up --replicas``), the fleet
+benchmark and the tests.
 
 Debian's PostgreSQL binaries (``/usr/lib/postgresql/<major>/bin``) run it: ``initdb``
 once (:meth:`PostgresServer.init`), then the server in the foreground as a child of

@@ -1,5 +1,6 @@
-"""The Zenoh routers of ``aesop up``: a session in router mode (the ``eclipse-zenoh`` wheel
-ships no ``zenohd``; this process stands in for it), in one of three roles.
+"""The Zenoh routers of ``aesop up``: a session in router mode, in one of three roles.
+
+The ``eclipse-zenoh`` wheel ships no ``zenohd``; this process stands in for it.
 
 * ``hub`` (one machine): on a loopback endpoint; with ``--users`` every session must
   authenticate (a ``user:password`` dictionary) and the access-control list of :mod:`.acl`

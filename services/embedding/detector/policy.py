@@ -1,5 +1,7 @@
-"""What each calibration method needs and what it keeps: one pure policy for the service
-(``POST /v1/caches/{name}/calibrate``) and for offline evaluation (``aesop detector eval``).
+"""The calibration policy: what each method needs and what it keeps (pure).
+
+One policy for the service (``POST /v1/caches/{name}/calibrate``) and for offline evaluation
+(``aesop detector eval``).
 
 - ``loo-quantile`` (eq. 2) needs the members' leave-one-out scores; tau is their alpha
   quantile and they are kept as the nominal scores behind the p-values;

@@ -1,8 +1,9 @@
-"""What the detector needs of an embedding model: ``Embedder`` (a ``name``, a ``dim`` and
-``embed``, which batches, reports progress and L2-normalises what a backend's ``_encode``
-returns), ``Wrapping`` (one in front of another), ``normalize`` and the errors a backend
-raises. Numpy only: the backends that load models or call servers are in ``.embedders``
-and ``.onnx_backend``.
+"""What the detector needs of an embedding model: ``Embedder``, ``Wrapping``, the errors (numpy).
+
+``Embedder`` has a ``name``, a ``dim`` and ``embed``, which batches, reports progress and
+L2-normalises what a backend's ``_encode`` returns; ``Wrapping`` is one in front of another;
+then ``normalize`` and the errors a backend raises. Numpy only: the backends that load
+models or call servers are in ``.embedders`` and ``.onnx_backend``.
 
 Exceptions::
 

@@ -1,5 +1,7 @@
-"""A sentence-transformers model run by ONNX Runtime: ``onnx:<model>`` (float32) or
-``onnx-int8:<model>`` (weights quantized to int8, activations quantized per call).
+"""A sentence-transformers model run by ONNX Runtime, in float32 or with int8 weights.
+
+``onnx:<model>`` (float32) or ``onnx-int8:<model>`` (weights quantized to int8, activations
+quantized per call).
 
 The model is exported from its local files (``resolve_model``: the bundled model, a
 directory, the Hugging Face cache; nothing is downloaded) the first time it is asked

@@ -1,4 +1,6 @@
-"""A replica's index files: each cache's FAISS index as of a version, under
+"""A replica's index files: each cache's versioned FAISS index beside its store, saved safely.
+
+Each cache's FAISS index as of a version is under
 ``<data_dir>/indexes/<cache>/v<version>.faiss`` (and its HNSW graph, once built,
 ``v<version>.hnsw``).
 

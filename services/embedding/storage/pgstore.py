@@ -1,5 +1,7 @@
-"""Durable storage of detector replicas on one PostgreSQL database (``AESOP_EMBEDDING_STORE=
-postgresql://...``): the shared record of every replica, each with its own FAISS index.
+"""Durable storage shared by detector replicas: one PostgreSQL database, change log and notices.
+
+The shared record of every replica (``AESOP_EMBEDDING_STORE=postgresql://...``), each with
+its own FAISS index.
 
 The schema and the transactions are the SQLite store's (:mod:`.store`): a cache's header,
 its experiences with their vectors, the versioned change log, detection vectors, the

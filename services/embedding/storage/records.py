@@ -1,5 +1,7 @@
-"""What the stores write and read, row by row (pure): the SQLite store (:mod:`.store`) and the
-PostgreSQL one (:mod:`.pgstore`) keep the same tables and differ only in their SQL.
+"""What the stores write and read, row by row (pure): the same tables in SQLite and PostgreSQL.
+
+The SQLite store (:mod:`.store`) and the PostgreSQL one (:mod:`.pgstore`) keep the same
+tables and differ only in their SQL.
 
 JSON columns are text (``json.dumps`` of the values), vectors little-endian float32 bytes,
 calibration scores float64 bytes.

@@ -1,4 +1,6 @@
-"""``kinds``: per domain (three synthetic, quadrotor), brief form with detections: AUROC,
+"""``kinds``: each score kind's AUROC, balanced accuracy and FPR, per domain.
+
+Per domain (three synthetic, quadrotor), brief form with detections: AUROC,
 balanced accuracy and FPR of the top-k, detection and combined scores, and the
 split-conformal FPR of the combined score against alpha.
 """

@@ -1,6 +1,7 @@
-"""``latency``: one observation end to end through ``Scorer.score_texts`` against a 20k
-cache, with the embed-only and search-only parts, per embedding backend (torch, ONNX
-float32, ONNX int8).
+"""``latency``: one observation end to end against a 20k cache, per embedding backend.
+
+Through ``Scorer.score_texts``, with the embed-only and search-only parts, per embedding
+backend (torch, ONNX float32, ONNX int8).
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
-"""``quality``: accuracy / AUROC vs cache size and vs concept coverage on the synthetic
-domains (paper §V-A, ``fig:synthetic-results``), top-5 scoring, tau = 95th LOO quantile
-(eq. 2); plus the threshold-quantile table of the appendix (``supp:threshold-analysis``)
-on VTOL.
+"""``quality``: accuracy and AUROC vs cache size and concept coverage (paper §V-A).
+
+Accuracy / AUROC vs cache size and vs concept coverage on the synthetic domains (paper §V-A,
+``fig:synthetic-results``), top-5 scoring, tau = 95th LOO quantile (eq. 2); plus the
+threshold-quantile table of the appendix (``supp:threshold-analysis``) on VTOL.
 """
 
 from __future__ import annotations
