@@ -312,9 +312,13 @@ class VehicleState(Message):
     and reads the offset from ``aesop/{robot}/vehicle/clock`` when the vehicle answers
     it). ``frame`` names the world frame (x forward, y left, z up, m); ``attitude`` is the
     unit quaternion ``(w, x, y, z)`` from the body frame (x forward, y left, z up) to it,
-    ``body_rates`` the angular velocity in the body frame. Numbers are not checked for
-    finiteness here: control refuses a non-finite state with an alarm, it does not
-    drop it unseen.
+    ``body_rates`` the angular velocity in the body frame. ``acceleration`` (optional) is
+    the acceleration the vehicle realizes of the commands at ``stamp`` (world frame,
+    gravity excluded: the planning model's lag state, e.g. the lagged command its flight
+    controller tracks): with it control bounds each command's step from what the vehicle
+    does, not from what it predicts of the commands it sent. Numbers are not checked for
+    finiteness here: control refuses a non-finite state with an alarm, it does not drop it
+    unseen.
     """
 
     seq: Int = Field(ge=0)
@@ -323,6 +327,7 @@ class VehicleState(Message):
     velocity: Point3  # m/s, world frame
     attitude: Quaternion4 = (1.0, 0.0, 0.0, 0.0)
     body_rates: Point3 = (0.0, 0.0, 0.0)  # rad/s
+    acceleration: Point3 | None = None  # m/s^2, world frame, realized (optional)
     position_covariance: Covariance3 | None = None  # m^2, row-major 3x3
     velocity_covariance: Covariance3 | None = None  # (m/s)^2, row-major 3x3
 

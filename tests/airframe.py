@@ -15,7 +15,8 @@
   ``valid_until`` it holds, easing from the last command into a hold where its reference is
   over ``EASE_S``. It answers the reset query (and takes no set-point for an instant before
   it: the loop sent it before the reset), publishes its state at
-  ``--rate-hz`` ``--delay-s`` after the instant it is valid for, and its truth on
+  ``--rate-hz`` ``--delay-s`` after the instant it is valid for (with the acceleration it
+  realizes of the commands: its reference's), and its truth on
   ``vehicle/truth`` at 100 Hz; it answers clock queries (its clock is the wall clock), so
   the loop compensates the delay.
 
@@ -185,7 +186,8 @@ class Airframe:
                             position=tuple(float(x) for x in self.p),
                             velocity=tuple(float(x) for x in self.v),
                             attitude=quaternion(self.r),
-                            body_rates=tuple(float(x) for x in self.w))
+                            body_rates=tuple(float(x) for x in self.w),
+                            acceleration=tuple(float(x) for x in self.a_ref))
 
 
 class Stats:

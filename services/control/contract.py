@@ -156,6 +156,7 @@ class StateReading:
     clock: ClockSource | None
     notes: tuple[Note, ...] = ()
     refusals: tuple[RefusalKind, ...] = ()  # why each state refused since the last read was
+    acceleration: np.ndarray | None = None  # m/s^2 realized, where the vehicle reports it
 
     @property
     def position(self) -> tuple[float, float, float] | None:
@@ -180,6 +181,7 @@ class _State:
     seq: int
     stamp: float
     arrived: float
+    acceleration: np.ndarray | None = None  # as the vehicle reported it
 
     def newer(self, than: _State) -> bool:
         """A higher seq, or a later stamp (a restarted vehicle counts again)."""
@@ -242,7 +244,8 @@ class StateInput:
         last = self._last
         if last is not None and (msg.seq, msg.stamp) == (last.seq, last.stamp):
             return  # a repeat: nothing new
-        here = _State(state_vector(msg), msg.seq, msg.stamp, got.received_at)
+        here = _State(state_vector(msg), msg.seq, msg.stamp, got.received_at,
+                      None if msg.acceleration is None else np.array(msg.acceleration))
         why = self._check(msg, here.x)
         if why is None:
             why = self._window(here, last)
@@ -268,7 +271,8 @@ class StateInput:
     def _check(self, msg: VehicleState, x: np.ndarray) -> Refusal | None:
         if msg.frame != self.frame:
             return Refusal("frame", f"frame {msg.frame!r} is not the loop's {self.frame!r}")
-        if not (np.all(np.isfinite(x)) and math.isfinite(msg.stamp)):
+        if not (np.all(np.isfinite(x)) and math.isfinite(msg.stamp)
+                and all(math.isfinite(a) for a in msg.acceleration or ())):
             return Refusal("finite", "not finite")
         norm = math.sqrt(sum(v * v for v in msg.attitude))
         if abs(norm - 1.0) > QUATERNION_SLACK:
@@ -393,7 +397,9 @@ class StateInput:
         return StateReading(None if last is None else last.x.copy(), fresh,
                             None if last is None else last.seq,
                             None if last is None else last.stamp, arrival_age, age, source,
-                            tuple(notes), refusals)
+                            tuple(notes), refusals,
+                            None if last is None or last.acceleration is None
+                            else last.acceleration.copy())
 
     def _clock_notes(self, now: float, mapped: tuple[float, ClockSource] | None
                      ) -> list[Note]:

@@ -348,7 +348,8 @@ class ControlRuntime:
             x = reading.x if reading.fresh else None
             age = (reading.age or 0.0) * self.time_scale if x is not None else 0.0
             started = time.perf_counter()
-            output = self.controller.make_step(x, inputs.anomaly, inputs.decision, age)
+            output = self.controller.make_step(x, inputs.anomaly, inputs.decision, age,
+                                               reading.acceleration)
             step_ms = (time.perf_counter() - started) * 1000.0
             result = self._finish(output, inputs, step_ms, deadline, seen, reading)
             self.last = result

@@ -141,3 +141,30 @@ def test_a_solve_stopped_by_its_time_limit_is_undecided_too():
     moved = selector.select(at_rest(-3.9), goal())  # warm, cut at once
     assert not moved.feasible and not moved.decided
     assert moved.status is SolveStatus.TIME_LIMIT
+
+
+def test_a_realized_acceleration_the_vehicle_reports_replaces_the_predicted_lag_state():
+    """Issue 46: the loop's lag states are predicted from the commands it sent; a vehicle
+    that reports the acceleration it realizes has the loop plan from that instead (clipped
+    to the inputs a command may take), so each command stays within the lag gap of what
+    the vehicle does. Without a report, or with a non-finite one, the prediction stands."""
+    controller = make_controller("aesop", SCENE)
+    x0 = np.zeros(12)
+    x0[:3] = SCENE.start_center
+    controller.warm_up(x0)
+    controller.make_step(x0, False)
+    predicted = controller.lag.copy()
+    first = MODEL.n - MODEL.n_lag
+    realized = np.array([-0.8, 0.3, 0.0])
+    axes = list(MODEL.lag_inputs)
+    out = controller.make_step(x0, False, realized=realized)
+    assert controller.measured[first:] == pytest.approx(realized[axes])
+    gap = np.asarray(MODEL.lag_gap)
+    assert np.all(np.abs(out.u[axes] - realized[axes]) <= gap + 1e-6)
+    assert not np.allclose(controller.measured[first:], predicted)
+    controller.make_step(x0, False, realized=np.array([50.0, -50.0, 0.0]))
+    assert controller.measured[first:] == pytest.approx(np.asarray(MODEL.u_hi)[axes[0]]
+                                                        * np.array([1.0, -1.0]))
+    kept = controller.lag.copy()
+    controller.make_step(x0, False, realized=np.array([np.nan, 0.0, 0.0]))
+    assert controller.measured[first:] == pytest.approx(kept)

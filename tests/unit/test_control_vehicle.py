@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from services.control.contract import ClockMap, StateInput, setpoint, state_vector
-from services.control.core.aesop import ControlOutput, carry_forward
+from services.control.core.aesop import ControlOutput, carried_lag, carry_forward
 from services.control.core.mpc import SolveStatus
 from services.control.core.scenario import load_scenario, planning_model
 from shared.bus import Received
@@ -73,6 +73,7 @@ def test_a_restarted_vehicle_counts_again_and_an_old_message_is_ignored() -> Non
     ({"velocity": (0.0, math.inf, 0.0)}, "finite", "not finite"),
     ({"frame": "odom"}, "frame", "'odom' is not the loop's 'world'"),
     ({"attitude": (2.0, 0.0, 0.0, 0.0)}, "attitude", "not a unit quaternion"),
+    ({"acceleration": (0.0, math.nan, 0.0)}, "finite", "not finite"),
 ])
 def test_a_state_that_cannot_be_right_is_refused_with_an_alarm(bad: dict, kind: str,
                                                                 words: str) -> None:
@@ -185,6 +186,50 @@ def test_delay_compensation_carries_the_state_forward_with_the_inputs_sent(name:
         carried = carry_forward(model, plant(mid), age, sent)
         assert carried[0:6] == pytest.approx(now[0:6], abs=1e-9)
     assert carry_forward(model, plant(now), 0.0, sent)[0:6] == pytest.approx(now[0:6])
+
+
+def test_a_reported_acceleration_is_read_with_its_state() -> None:
+    """A vehicle that says what acceleration it realizes (optional) has it read with the
+    state; one that does not, None."""
+    v = view()
+    v.offer(got(state(1, 0.0, acceleration=(0.4, -0.2, 0.0)), 0.0))
+    assert v.read(0.01).acceleration == pytest.approx([0.4, -0.2, 0.0])
+    v.offer(got(state(2, 0.01), 0.01))
+    assert v.read(0.02).acceleration is None
+
+
+def test_a_measured_lag_state_is_carried_forward_in_place_of_the_predicted_one() -> None:
+    """Issue 46: the vehicle realized something other than the loop predicted from the
+    commands it sent (a late set-point, its own tracking). With the acceleration it reports
+    at the state's instant, the state and the lag states are carried to now from that,
+    not from the prediction: both land where the vehicle is."""
+    scenario = load_scenario("hardware")
+    model = planning_model(scenario)
+    rng = np.random.default_rng(1)
+    first = model.n - model.n_lag
+    z = model.measure(np.r_[-4.0, 0.0, 1.2, 0.5, 0.0, 0.0, np.zeros(6)],
+                      np.array([-0.9, 0.3]))  # what the vehicle really realizes
+    predicted = np.array([0.4, 0.0])  # what the loop thought it realized
+    path, sent = [z], []
+    for _ in range(4):
+        u = rng.normal(0.0, 0.3, model.m)
+        sent.append((u, predicted.copy()))
+        predicted = model.advance(predicted, u)
+        z = model.linear.a @ z + model.linear.b @ (u - model.linear.u_hover)
+        path.append(z)
+    now = path[-1]
+    for back, f in ((2, 0.0), (3, 0.4)):  # whole steps old; part of a step
+        j = 4 - back
+        a, b = model.linear.over(f * scenario.dt)
+        then = a @ path[j] + b @ (sent[j][0] - model.linear.u_hover)
+        x = np.r_[then[0:6], np.zeros(6)]
+        age = (back - f) * scenario.dt
+        realized = then[first:]
+        carried = carry_forward(model, x, age, sent, lag=realized)
+        assert carried[0:6] == pytest.approx(now[0:6], abs=1e-9)
+        assert carried_lag(model, realized, age, sent) == pytest.approx(now[first:], abs=1e-9)
+        assert carry_forward(model, x, age, sent)[0:6] != pytest.approx(now[0:6], abs=1e-3)
+    assert carried_lag(model, now[first:], 0.0, sent) == pytest.approx(now[first:])
 
 
 def test_the_set_point_is_on_the_vehicles_clock_and_none_when_the_branch_is_spent() -> None:

@@ -75,21 +75,60 @@ from .selection import SubsetSelector
 SENT_KEPT = 64  # inputs remembered for delay compensation (3.2 s at 20 Hz)
 
 
+def _missed(dt: float, age: float, sent: Sequence[tuple[np.ndarray, np.ndarray]]
+            ) -> tuple[int, float]:
+    """Of a state ``age`` seconds old, how many of the steps ``sent`` it has not seen, and
+    how much of the oldest of them it missed (s)."""
+    back = min(math.ceil(age / dt - 1e-9), len(sent))
+    return back, (min(age - (back - 1) * dt, dt) if back > 0 else 0.0)
+
+
 def carry_forward(model: PlanningModel, x: np.ndarray, age: float,
-                  sent: Sequence[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+                  sent: Sequence[tuple[np.ndarray, np.ndarray]],
+                  lag: np.ndarray | None = None) -> np.ndarray:
     """Delay compensation: ``x``, measured ``age`` seconds (model time) before this step,
     carried forward under the inputs ``sent`` since ((input, lag states before it), newest
     last): the step it was measured in for the rest of that step, then each later one (as
-    far back as ``sent`` reaches)."""
-    dt = model.dt
-    back = min(math.ceil(age / dt - 1e-9), len(sent))
+    far back as ``sent`` reaches). The lag states at ``x``'s instant are ``lag`` where the
+    vehicle reported them, else predicted from the steps sent."""
+    back, first_s = _missed(model.dt, age, sent)
     if back <= 0:
         return x
-    first_s = min(age - (back - 1) * dt, dt)  # of the oldest step, what the state missed
     u_first, lag_first = sent[-back]
-    lag = model.advance_by(lag_first, u_first, dt - first_s) if model.n_lag else lag_first
+    if lag is None:
+        lag = (model.advance_by(lag_first, u_first, model.dt - first_s) if model.n_lag
+               else lag_first)
     inputs = [u for u, _ in list(sent)[len(sent) - back:]]
     return model.predict(x, lag, inputs, first_s)
+
+
+def carried_lag(model: PlanningModel, lag: np.ndarray, age: float,
+                sent: Sequence[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """The lag states ``lag``, measured ``age`` seconds before this step, carried to it
+    under the inputs ``sent`` since (as :func:`carry_forward` carries the state)."""
+    back, first_s = _missed(model.dt, age, sent)
+    if back <= 0:
+        return np.asarray(lag, dtype=float)
+    inputs = [u for u, _ in list(sent)[len(sent) - back:]]
+    lag = model.advance_by(lag, inputs[0], first_s)
+    for u in inputs[1:]:
+        lag = model.advance(lag, u)
+    return lag
+
+
+def measured_lag(model: PlanningModel, realized: np.ndarray | None) -> np.ndarray | None:
+    """The model's lag states as the vehicle reports them (the acceleration it realizes, on
+    the lagged axes), within the inputs a command may take; None where the model has none or
+    the report is missing or not finite (the prediction from the commands sent stands)."""
+    if realized is None or not model.n_lag:
+        return None
+    axes = list(model.lag_inputs)
+    lag = np.asarray(realized, dtype=float)[axes]
+    if not np.all(np.isfinite(lag)):
+        return None
+    clipped: np.ndarray = np.clip(lag, np.asarray(model.u_lo)[axes],
+                                  np.asarray(model.u_hi)[axes])
+    return clipped
 
 
 def sendable(model: PlanningModel, x: np.ndarray, u: np.ndarray, thrust_hi: float
@@ -381,19 +420,24 @@ class Controller:
         self.problems.warm_up(xm, self.route.target(xm, self.model))
 
     def make_step(self, x: np.ndarray | None, anomaly: bool, decision: int | None = None,
-                  age: float = 0.0) -> ControlOutput:
+                  age: float = 0.0, realized: np.ndarray | None = None) -> ControlOutput:
         """One tick: the vehicle's 12-state ``x`` measured ``age`` seconds ago (model time),
         ``anomaly`` from the detector, the reasoner's ``decision`` for the pending anomaly
         (``None`` while it thinks). ``x`` is carried forward to now with the planning model
-        and the inputs sent since (delay compensation). ``x`` None: no usable state (the
-        caller raised the alarm); the step flies blind as for a non-finite one, silently."""
+        and the inputs sent since (delay compensation). ``realized``: the acceleration the
+        vehicle reported with ``x`` (world frame), the model's lag states measured rather
+        than predicted (:func:`measured_lag`). ``x`` None: no usable state (the caller
+        raised the alarm); the step flies blind as for a non-finite one, silently."""
         if x is None:
             return self._measurement_lost(decision, anomaly, alarm=False)
         self._x = np.asarray(x, dtype=float)
         if not np.all(np.isfinite(self._x)):
             return self._measurement_lost(decision, anomaly)
+        lag = measured_lag(self.model, realized)
+        if lag is not None:
+            self._lag = carried_lag(self.model, lag, age, self._sent)
         if age > 0.0:
-            self._x = carry_forward(self.model, self._x, age, self._sent)
+            self._x = carry_forward(self.model, self._x, age, self._sent, lag)
         xm = self.model.measure(self._x, self._lag)
         self.measured = xm
         self.goal = self.route.target(xm, self.model)
