@@ -1,5 +1,7 @@
-"""The settings and CLI references, generated from the code (issue 45): the hand-written
-tables had drifted from what the services read and the commands take.
+"""The settings, CLI and module references, generated from the code (issue 45).
+
+The hand-written tables and module list had drifted from what the services read, the commands
+take and the source tree holds.
 
 :func:`settings_reference` renders section 7 of docs/architecture.md from the settings
 classes: per service a table of the variables it reads, with each field's default and its
@@ -8,19 +10,24 @@ named as the classes read them: the ``env_prefix`` plus the field's name, or the
 field names itself (``AESOP_ROBOT``, ``..._API_KEY``, else ``OPENAI_API_KEY``).
 :func:`cli_reference` renders docs/cli.md from ``build_parser()``: every command and
 subcommand, and each argument with what it takes, its default and its help.
+:func:`modules_reference` renders section 2's module list from the source tree: every folder
+and module of ``shared/``, ``services/`` and ``tools/``, each with its docstring's first
+sentence (read from the source, not imported).
 
-``python -m tools.reference settings|cli`` prints one; with ``--write`` it goes into its
-place (section 7 between the markers, or the whole of docs/cli.md), and
-tests/unit/test_reference.py fails when the pages and the code differ. Pure but for
-:func:`main`: nothing is read or written on import.
+``python -m tools.reference settings|cli|modules`` prints one and says whether its page holds
+it (exit status 1 when not); with ``--write`` it goes into its place (section 7 or section 2
+between their markers, or the whole of docs/cli.md), and tests/unit/test_reference.py fails
+when the pages and the code differ. Nothing is read or written on import.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import re
 import sys
+import textwrap
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -33,6 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 ARCHITECTURE = ROOT / "docs" / "architecture.md"
 CLI_PAGE = ROOT / "docs" / "cli.md"
 BEGIN = "<!-- generated: python -m tools.reference settings --write -->"
+MODULES_BEGIN = "<!-- generated: python -m tools.reference modules --write -->"
 END = "<!-- end of generated text -->"
 CLI_HEADER = ("Generated from the parser (`build_parser()` in `tools/cli.py`) by `python -m "
               "tools.reference cli --write`: change the help there, not here.")
@@ -189,21 +197,31 @@ def settings_reference() -> str:
     return "\n".join(parts)
 
 
-def settings_in(page: str) -> str:
-    """What the markers of ``page`` hold (without the blank lines around it)."""
-    _, begin, rest = page.partition(BEGIN)
+def between(page: str, begin: str) -> str:
+    """What ``page`` holds between ``begin`` and the first end marker after it (without the
+    blank lines around it)."""
+    _, found, rest = page.partition(begin)
     held, end, _ = rest.partition(END)
-    if not begin or not end:
-        raise ValueError(f"the page has no {BEGIN} ... {END}")
+    if not found or not end:
+        raise ValueError(f"the page has no {begin} ... {END}")
     return held.removeprefix("\n\n").removesuffix("\n")
 
 
-def with_settings(page: str, text: str) -> str:
-    """``page`` with ``text`` between its markers."""
-    head, _, rest = page.partition(BEGIN)
+def with_between(page: str, text: str, begin: str) -> str:
+    """``page`` with ``text`` between ``begin`` and the end marker after it."""
+    head, _, rest = page.partition(begin)
     _, _, tail = rest.partition(END)
-    settings_in(page)  # both markers are there
-    return f"{head}{BEGIN}\n\n{text}\n{END}{tail}"
+    between(page, begin)  # both markers are there
+    return f"{head}{begin}\n\n{text}\n{END}{tail}"
+
+
+def settings_in(page: str) -> str:
+    """What section 7's markers hold."""
+    return between(page, BEGIN)
+
+
+def with_settings(page: str, text: str) -> str:
+    return with_between(page, text, BEGIN)
 
 
 # -- the CLI (docs/cli.md) --------------------------------------------------------------------
@@ -329,27 +347,154 @@ def cli_reference() -> str:
     return "\n".join(out).rstrip("\n") + "\n"
 
 
+# -- the module list (section 2) ---------------------------------------------------------------
+
+FLOORS = ("shared", "services", "tools")
+# the folders in the list's order where it is not the alphabet's: the services as section 2's
+# prose names them, and a service's core folders by floor, each before those that import it;
+# the rest follow their siblings in alphabetical order
+FOLDER_ORDER = ("services/embedding", "services/embedding/detector", "services/embedding/models",
+                "services/embedding/storage", "services/embedding/fleet", "services/reasoner",
+                "services/control", "services/sim", "services/ros2", "services/dashboard",
+                "tools/stack", "tools/link", "tools/recording", "tools/demo", "tools/bench",
+                "tools/scenes", "tools/fakes")
+SHELL = "the service around its core, which imports none of it"
+LIST_WIDTH = 100
+
+
+def summary(doc: str | None) -> str:
+    """A docstring's first sentence on one line, for the module list: its first paragraph up
+    to the first ``.``, ``?`` or ``!`` that ends a sentence (outside brackets and code, then
+    the end or a capital), the full stop dropped; reST's ``code`` and roles
+    (``:mod:`.routes```) as markdown's `code`. Empty without a docstring."""
+    text = " ".join((doc or "").strip().split("\n\n")[0].split())
+    text = re.sub(r":[a-z]+:`~?([^`]+)`", r"`\1`", text).replace("``", "`")
+    depth, in_code = 0, False
+    for i, char in enumerate(text):
+        if char == "`":
+            in_code = not in_code
+        elif in_code:
+            continue
+        elif char in "([":
+            depth += 1
+        elif char in ")]":
+            depth = max(depth - 1, 0)
+        elif char in ".?!" and depth == 0 and re.match(r"(\s+[A-Z`\"]|$)", text[i + 1:]):
+            return text[:i] if char == "." else text[:i + 1]
+    return text.removesuffix(".")
+
+
+def docstring(path: Path) -> str | None:
+    """A module's docstring, read from its source (nothing is imported)."""
+    return ast.get_docstring(ast.parse(path.read_text()), clean=True) if path.is_file() else None
+
+
+def folder_key(folder: Path) -> tuple[int, str]:
+    name = folder.relative_to(ROOT).as_posix()
+    return (FOLDER_ORDER.index(name), "") if name in FOLDER_ORDER else (len(FOLDER_ORDER), name)
+
+
+def packages(folder: Path) -> list[Path]:
+    """The folders of ``folder`` that hold Python modules (not ``static/``, ``templates/``,
+    ``scenarios/``), in the list's order."""
+    subs = [sub for sub in folder.iterdir() if sub.is_dir() and sub.name != "__pycache__"
+            and any(sub.rglob("*.py"))]
+    return sorted(subs, key=folder_key)
+
+
+def rows(folder: Path, depth: int = 0) -> list[tuple[int, str, str]]:
+    """The list's rows of ``folder`` and all below it, as (depth, name, what it is): the
+    folder (its ``__init__``'s docstring), its modules and its folders; a service's core
+    folders come before its own modules, the shell."""
+    head = [(depth, f"{folder.name}/", summary(docstring(folder / "__init__.py")))]
+    own = [(depth + 1, path.name, summary(docstring(path)))
+           for path in sorted(folder.glob("*.py")) if path.name != "__init__.py"]
+    below = [row for sub in packages(folder) for row in rows(sub, depth + 1)]
+    if folder.parent.name == "services" and below and own:
+        return head + below + [(depth + 1, "the shell:", SHELL)] + own
+    return head + own + below
+
+
+def wrapped(text: str, width: int) -> list[str]:
+    """``text`` in lines of at most ``width`` characters, a code span kept on one line where
+    that fits."""
+    def wrap(words: str) -> list[str]:
+        return textwrap.wrap(words, width, break_long_words=False, break_on_hyphens=False)
+
+    kept = wrap(re.sub(r"`[^`]*`", lambda span: span.group().replace(" ", "\0"), text))
+    if any(len(line) > width for line in kept):
+        kept = wrap(text)
+    return [line.replace("\0", " ") for line in kept] or [""]
+
+
+def modules_in(page: str) -> str:
+    """What section 2's markers hold."""
+    return between(page, MODULES_BEGIN)
+
+
+def with_modules(page: str, text: str) -> str:
+    return with_between(page, text, MODULES_BEGIN)
+
+
+def modules_reference() -> str:
+    """Section 2's module list, as markdown (what sits between its markers): a code block,
+    one row per folder and module of ``shared/``, ``services/`` and ``tools/``, each its
+    docstring's first sentence, wrapped under its column."""
+    listed = [row for floor in FLOORS for row in rows(ROOT / floor)]
+    column = max(2 * depth + len(name) for depth, name, _ in listed) + 2
+    out = ["```"]
+    for depth, name, about in listed:
+        lines = wrapped(about, LIST_WIDTH - column)
+        out.append(f"{'  ' * depth}{name}".ljust(column) + lines[0])
+        out += [" " * column + line for line in lines[1:]]
+    return "\n".join(line.rstrip() for line in out) + "\n```\n"
+
+
 # -- running it -------------------------------------------------------------------------------
+
+def rendered(which: str) -> str:
+    return {"settings": settings_reference, "cli": cli_reference,
+            "modules": modules_reference}[which]()
+
+
+def held(which: str, page: str) -> str:
+    """What ``page`` holds of reference ``which``."""
+    if which == "cli":
+        return page
+    return settings_in(page) if which == "settings" else modules_in(page)
+
+
+def placed(which: str, page: str, text: str) -> str:
+    """``page`` with ``text`` in the place of reference ``which``."""
+    if which == "cli":
+        return text
+    return (with_settings if which == "settings" else with_modules)(page, text)
+
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m tools.reference",
-        description="the settings and CLI references, generated from the code")
-    parser.add_argument("which", choices=["settings", "cli"],
-                        help="settings: section 7 of docs/architecture.md; cli: docs/cli.md")
+        description="the settings, CLI and module references, generated from the code")
+    parser.add_argument("which", choices=["settings", "cli", "modules"],
+                        help="settings: section 7 of docs/architecture.md; cli: docs/cli.md; "
+                             "modules: section 2's module list")
     parser.add_argument("--write", action="store_true",
-                        help="write it into its place (default: print it)")
+                        help="write it into its place (default: print it, and exit 1 when "
+                             "its page differs)")
     args = parser.parse_args(argv)
-    if args.which == "settings":
-        text = settings_reference()
-        if args.write:
-            ARCHITECTURE.write_text(with_settings(ARCHITECTURE.read_text(), text))
-    else:
-        text = cli_reference()
-        if args.write:
-            CLI_PAGE.write_text(text)
-    if not args.write:
-        sys.stdout.write(text)
+    path = CLI_PAGE if args.which == "cli" else ARCHITECTURE
+    where = {"settings": "docs/architecture.md section 7", "cli": "docs/cli.md",
+             "modules": "docs/architecture.md section 2"}[args.which]
+    text = rendered(args.which)
+    if args.write:
+        path.write_text(placed(args.which, path.read_text(), text))
+        return 0
+    sys.stdout.write(text)
+    if held(args.which, path.read_text()) != text:
+        print(f"{where} differs from the code: run python -m tools.reference {args.which} "
+              "--write", file=sys.stderr)
+        return 1
+    print(f"{where} is up to date", file=sys.stderr)
     return 0
 
 

@@ -1,9 +1,11 @@
 """docs/architecture.md's three references against the code they describe (issue 45: the
 module list had missed 12 modules): the module list of section 2 names every module of
-``shared``, ``services`` and ``tools`` under its folder and nothing that is not there; the
-CLI table of section 6 has a row for every command of the tree; section 7 names every
-variable each service reads and every knob of its groups, and no variable nobody reads.
-Each check is shown failing on a page that drifted (a check that cannot fail is a defect)."""
+``shared``, ``services`` and ``tools`` under its folder and nothing that is not there (the
+list is generated now, tests/unit/test_reference.py; this reads the page against the files
+on disk, so a folder the generator skipped would show here); the CLI table of section 6 has
+a row for every command of the tree; section 7 names every variable each service reads and
+every knob of its groups, and no variable nobody reads. Each check is shown failing on a
+page that drifted (a check that cannot fail is a defect)."""
 
 from __future__ import annotations
 
@@ -38,48 +40,27 @@ def section(text: str, heading: str) -> str:
 
 # -- the module list (section 2) -----------------------------------------------------------
 
-# a label at the start of a line of the list, as the folder it stands for
-LABEL = re.compile(r"^(\s{0,2})([a-z0-9_]+/)(?=\s)")
-TOP = {"shared/": "shared", "tools/": "tools"}  # else services/<label>, or tools/<label>
-TOOLS = {"stack/", "link/", "recording/", "demo/", "bench/", "scenes/", "fakes/"}
+# a row of the list: its indent (two spaces a floor) and a folder or a module; a description's
+# continuation lines are indented further, and `the shell:` (a service's own modules) names none
+ROW = re.compile(r"^((?:  ){0,4})([a-z0-9_]+/|[a-z0-9_]+\.py)(?=\s|$)")
 
 
 def listed(text: str) -> dict[str, set[str]]:
     """The module list's names by the folder they are listed under: ``{"services/embedding/
-    detector": {"cache.py", ...}, ...}``; a folder named with a slash (``detector/`` in
-    bench's row) stands for every module in it."""
+    detector": {"cache.py", ...}, ...}``. The list is a tree: a module's folder is the folders
+    above it, each one indent further out."""
     block = section(text, "2. Layout").split("```")[1]
     names: dict[str, set[str]] = {}
-    folder = parent = ""
-    for line in block.splitlines()[1:]:
-        if line.startswith("shared/"):  # each of its lines names its module in full
-            folder, rest = "shared", line.removeprefix("shared/")
-        elif line.startswith("local_llm.py"):
-            folder, rest = "tools", line
-        elif (match := LABEL.match(line)) is not None:
-            indent, label = match.groups()
-            if indent:  # a folder inside the last one
-                folder = f"{parent}/{label.rstrip('/')}"
-            else:
-                folder = TOP.get(label) or (f"tools/{label.rstrip('/')}" if label in TOOLS
-                                            else f"services/{label.rstrip('/')}")
-                parent = folder
-            rest = line[match.end():]
-        elif line.lstrip().startswith("the shell:"):
-            folder, rest = parent, ""
+    folders: list[str] = []
+    for line in block.splitlines():
+        match = ROW.match(line)
+        if match is None:
+            continue
+        depth, name = len(match.group(1)) // 2, match.group(2)
+        if name.endswith("/"):
+            folders[depth:] = [name.rstrip("/")]
         else:
-            rest = line
-        found = names.setdefault(folder, set())
-        for token in re.findall(r"[a-z0-9_/]+\.py\b|\b[a-z0-9_]+/(?=[\s(])", rest):
-            if token.endswith("/"):
-                found.add(token)
-            elif "/" in token and (ROOT / folder / token).is_file():  # a path from here
-                where, _, name = f"{folder}/{token}".rpartition("/")
-                names.setdefault(where, set()).add(name)
-            elif "/" in token and (ROOT / token).is_file():  # another floor's, in full
-                continue
-            else:  # warehouse/robotaxi/vtol/quadrotor.py: four of this folder
-                found.update(f"{part}.py" for part in token.removesuffix(".py").split("/"))
+            names.setdefault("/".join(folders[:depth]), set()).add(name)
     return names
 
 
@@ -92,23 +73,10 @@ def modules() -> Iterator[tuple[str, str]]:
 
 
 def list_drift(text: str) -> list[str]:
-    names = listed(text)
-    # a folder named in a row stands for its modules unless it has rows of its own (then
-    # the name is prose: "its pure core in core/")
-    wholes = [f"{f}/{sub.rstrip('/')}" for f, subs in names.items() for sub in subs
-              if sub.endswith("/") and f"{f}/{sub.rstrip('/')}" not in names]
-    missing = [f"{folder}/{name}" for folder, name in sorted(modules())
-               if name not in names.get(folder, set())
-               and not any(folder.startswith(whole) for whole in wholes)]
+    shown = {(folder, name) for folder, found in listed(text).items() for name in found}
     present = set(modules())
-
-    def there(folder: str, name: str) -> bool:  # in it, or in a folder its row names
-        subs = [sub.rstrip("/") for sub in names.get(folder, set()) if sub.endswith("/")]
-        return any((f, name) in present for f in [folder, *(f"{folder}/{s}" for s in subs)])
-
-    stale = [f"{folder}/{name}" for folder, found in sorted(names.items())
-             for name in sorted(found) if not name.endswith("/") and not there(folder, name)]
-    return [f"not listed: {m}" for m in missing] + [f"listed, not there: {s}" for s in stale]
+    return [f"not listed: {folder}/{name}" for folder, name in sorted(present - shown)] + \
+        [f"listed, not there: {folder}/{name}" for folder, name in sorted(shown - present)]
 
 
 def test_the_module_list_names_every_module_and_nothing_else() -> None:
@@ -116,7 +84,7 @@ def test_the_module_list_names_every_module_and_nothing_else() -> None:
 
 
 def test_the_module_list_check_catches_a_missing_and_a_stale_module() -> None:
-    drifted = PAGE.replace("  drift.py        per robot", "  drift2.py       per robot")
+    drifted = PAGE.replace("      drift.py         Drift:", "      drift2.py        Drift:")
     assert drifted != PAGE
     assert list_drift(drifted) == ["not listed: services/embedding/detector/drift.py",
                                    "listed, not there: services/embedding/detector/drift2.py"]

@@ -1,8 +1,9 @@
-"""The settings and CLI references are generated from the code (issue 45: the hand-written
-tables drifted): section 7 of docs/architecture.md, between its markers, is what
-``settings_reference()`` renders from the settings classes, and docs/cli.md is what
-``cli_reference()`` renders from the parser. Each check is shown failing on a changed
-description (a check that cannot fail is a defect)."""
+"""The settings, CLI and module references are generated from the code (issue 45: the
+hand-written tables and module list drifted): section 7 of docs/architecture.md, between its
+markers, is what ``settings_reference()`` renders from the settings classes, section 2's
+module list what ``modules_reference()`` renders from the modules' docstrings, and
+docs/cli.md is what ``cli_reference()`` renders from the parser. Each check is shown failing
+on a changed description (a check that cannot fail is a defect)."""
 
 from __future__ import annotations
 
@@ -20,12 +21,19 @@ PAGE = (ROOT / "docs" / "architecture.md").read_text()
 CLI_PAGE = (ROOT / "docs" / "cli.md").read_text()
 SETTINGS_FIX = "run `python -m tools.reference settings --write` (and commit docs/architecture.md)"
 CLI_FIX = "run `python -m tools.reference cli --write` (and commit docs/cli.md)"
+MODULES_FIX = "run `python -m tools.reference modules --write` (and commit docs/architecture.md)"
 
 
 def settings_drift(page: str) -> str | None:
     """What to do when section 7's generated text is not what the code renders."""
     return None if reference.settings_in(page) == reference.settings_reference() else \
         f"docs/architecture.md section 7 differs from the settings classes: {SETTINGS_FIX}"
+
+
+def modules_drift(page: str) -> str | None:
+    """What to do when section 2's module list is not what the modules' docstrings render."""
+    return None if reference.modules_in(page) == reference.modules_reference() else \
+        f"docs/architecture.md section 2's module list differs from the modules: {MODULES_FIX}"
 
 
 def cli_drift(page: str) -> str | None:
@@ -35,6 +43,10 @@ def cli_drift(page: str) -> str | None:
 
 def test_section_7_is_what_the_settings_classes_render() -> None:
     assert settings_drift(PAGE) is None, settings_drift(PAGE)
+
+
+def test_section_2_is_what_the_modules_docstrings_render() -> None:
+    assert modules_drift(PAGE) is None, modules_drift(PAGE)
 
 
 def test_cli_md_is_what_the_parser_renders() -> None:
@@ -57,6 +69,74 @@ def test_a_changed_page_fails_the_settings_check() -> None:
     assert settings_drift(drifted) is not None
 
 
+def test_a_changed_docstring_fails_the_modules_check(monkeypatch: pytest.MonkeyPatch) -> None:
+    drift = ROOT / "services" / "embedding" / "detector" / "drift.py"
+    read = reference.docstring
+
+    def docstring(path: Path) -> str | None:
+        return "A meaning nobody reviewed.\n\nThe rest." if path == drift else read(path)
+
+    monkeypatch.setattr(reference, "docstring", docstring)
+    said = modules_drift(PAGE)
+    assert said is not None and "python -m tools.reference modules --write" in said
+    assert "\n      drift.py         A meaning nobody reviewed\n" in reference.modules_reference()
+
+
+def test_a_module_without_a_docstring_still_has_its_row(monkeypatch: pytest.MonkeyPatch) -> None:
+    drift = ROOT / "services" / "embedding" / "detector" / "drift.py"
+    read = reference.docstring
+    monkeypatch.setattr(reference, "docstring", lambda path: None if path == drift else read(path))
+    assert "\n      drift.py\n      errors.py " in reference.modules_reference()
+
+
+@pytest.mark.parametrize(("doc", "line"), [
+    ("Scores over a cache (paper Sec. IV-A).\n\nMore.", "Scores over a cache (paper Sec. IV-A)"),
+    ("The picture of one flight, aggregated\nfrom the bus. Pure: no I/O.", "The picture of one "
+     "flight, aggregated from the bus"),
+    ("Its routes are in :mod:`.routes`, ``/healthz`` from :func:`~.http.service_app`.",
+     "Its routes are in `.routes`, `/healthz` from `.http.service_app`"),
+    ("``aesop bench fairness``: one robot floods; does another keep up? It counts.",
+     "`aesop bench fairness`: one robot floods; does another keep up?"),
+    ("The selection of Y, eq. 3's MPC (``a. B``).", "The selection of Y, eq. 3's MPC (`a. B`)"),
+    (None, ""),
+])
+def test_a_module_is_listed_by_its_docstrings_first_sentence(doc: str | None, line: str) -> None:
+    assert reference.summary(doc) == line
+
+
+def test_the_module_list_is_a_tree_that_fits_the_page() -> None:
+    lines = reference.modules_reference().splitlines()
+    assert lines[0] == lines[-1] == "```" and max(map(len, lines)) <= reference.LIST_WIDTH
+    assert [line.split()[0] for line in lines if line[:1].isalpha()] == \
+        ["shared/", "services/", "tools/"]
+    services = [name for depth, name, _ in reference.rows(ROOT / "services") if depth == 1]
+    assert services == ["embedding/", "reasoner/", "control/", "sim/", "ros2/", "dashboard/"]
+    # a service's core folders by floor, then its own modules (the shell)
+    embedding = [name for depth, name, _ in reference.rows(ROOT / "services" / "embedding")
+                 if depth == 1]
+    shell = embedding.index("the shell:")
+    assert embedding[:shell + 1] == ["detector/", "models/", "storage/", "fleet/", "the shell:"]
+    assert embedding[shell + 1:] and all(name.endswith(".py") for name in embedding[shell + 1:])
+    # a row's description starts at one column, and what does not fit goes on under it
+    column = len(lines[1]) - len(lines[1].removeprefix("shared/").lstrip())
+    assert all(line[column - 2:column].strip() == "" and line[column:column + 1] != " "
+               for line in lines[1:-1])
+
+
+def test_the_references_write_their_place_and_say_when_a_page_differs(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    page = tmp_path / "architecture.md"
+    page.write_text(PAGE.replace("      drift.py         Drift:", "      drift.py         Dirft:"))
+    monkeypatch.setattr(reference, "ARCHITECTURE", page)
+    assert reference.main(["modules"]) == 1
+    assert "run python -m tools.reference modules --write" in capsys.readouterr().err
+    assert reference.main(["modules", "--write"]) == 0
+    assert page.read_text() == PAGE
+    assert reference.main(["modules"]) == 0
+    assert "section 2 is up to date" in capsys.readouterr().err
+
+
 def test_a_changed_help_fails_the_cli_check() -> None:
     drifted = CLI_PAGE.replace("| ticks per flight (default 60) |", "| ticks (default 60) |")
     assert drifted != CLI_PAGE
@@ -71,6 +151,11 @@ def test_writing_puts_the_text_between_the_markers_and_keeps_the_rest() -> None:
     assert reference.settings_in(written) == "| new |\n"
     with pytest.raises(ValueError, match="generated"):
         reference.settings_in("a page without markers")
+    # the two blocks of one page share the end marker; each write keeps the other block
+    both = f"{reference.MODULES_BEGIN}\nold list\n{reference.END}\n\n{page}"
+    written = reference.with_settings(reference.with_modules(both, "list\n"), "| new |\n")
+    assert reference.modules_in(written) == "list\n"
+    assert reference.settings_in(written) == "| new |\n"
 
 
 def test_every_setting_has_a_description() -> None:
