@@ -20,11 +20,12 @@ class VehicleLink(Group):
         description="a state that arrived more than this many ticks ago is stale: an "
                     "anomaly, flown blind on the recovery branch")
     setpoint_valid_ticks: float = Field(
-        default=10.0, gt=0.0, le=100.0,
+        default=16.0, gt=0.0, le=100.0,
         description="a set-point's `valid_until` past its `t` (the plan carried `ahead` that "
-                    "far; then the vehicle holds): 0.5 s at 20 Hz, so a loop late by a few "
-                    "ticks on a busy robot computer leaves the vehicle flying the plan, not "
-                    "holding; PX4 leaves offboard after `COM_OF_LOSS_T`, 1 s by default")
+                    "far, at most 16 commands; then the vehicle holds): 0.8 s at 20 Hz, so a "
+                    "loop late by several ticks on a busy robot computer leaves the vehicle "
+                    "flying the plan, not holding; PX4 leaves offboard after `COM_OF_LOSS_T`, "
+                    "1 s by default")
     frame: str = Field(default="world", min_length=1, max_length=64,
                        description="the frame a state must name")
     state_jump_m: float = Field(

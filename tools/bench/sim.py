@@ -33,6 +33,7 @@ from services.control.contract import ClockMap, StateInput, setpoint
 from services.control.core.controllers import METHODS, Method, make_controller
 from services.control.core.mpc import MPCConfig
 from services.control.core.scenario import Scenario
+from services.control.settings import VehicleLink
 from services.sim.judge import LIMIT_TOLERANCE, TOLERANCE, LimitTolerance, count_violations
 from services.sim.vehicle import Reporting, SimVehicle
 from shared.bus import Received
@@ -106,8 +107,9 @@ class Flight:
         return float(np.mean(np.linalg.norm(self.states[:, 3:6], axis=1)))
 
 
-STALE_TICKS = 3.0  # as the control service's default state_stale_ticks
-SETPOINT_TICKS = 10.0  # and setpoint_valid_ticks
+LINK = VehicleLink.model_fields
+STALE_TICKS: float = LINK["state_stale_ticks"].default  # as the control service's defaults
+SETPOINT_TICKS: float = LINK["setpoint_valid_ticks"].default
 
 
 def vehicle_loop(scenario: Scenario, x0: np.ndarray, reporting: Reporting
