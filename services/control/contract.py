@@ -1,4 +1,6 @@
-"""The vehicle as the control loop sees it (pure: every time comes in as an argument).
+"""The vehicle contract as the loop keeps it: freshness, refusals, clock map, set-points.
+
+Pure: every time comes in as an argument.
 
 * :class:`ClockMap` — the vehicle's clock on this host's (``time.monotonic()``). The
   two are not assumed to be one clock. When the vehicle answers clock queries

@@ -1,0 +1,2 @@
+"""The simulated vehicle: a quadrotor's truth and flight controller behind the vehicle
+contract."""

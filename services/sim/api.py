@@ -1,5 +1,6 @@
-"""The simulator's app: its lifespan runs the sim thread and opens the bus; the routes are
-in :mod:`.routes`, ``/healthz``, ``/readyz``, ``/metrics`` from ``service_app``."""
+"""The simulator's app: its lifespan runs the sim thread and opens the bus.
+
+The routes are in :mod:`.routes`, ``/healthz``, ``/readyz``, ``/metrics`` from ``service_app``."""
 
 from __future__ import annotations
 
