@@ -194,20 +194,25 @@ class Stats:
     def __init__(self) -> None:
         self.ages_ms: deque[float] = deque(maxlen=100_000)
         self.holds = 0  # begun between two set-points of one flight
+        self.hold_log: list[dict[str, float]] = []  # when each began, how long, the gap
         self.max_rate = 0.0
         self.max_tilt = 0.0
         self.followed = 0
         self.stalls = 0  # times the body fell more than 0.2 s behind the wall clock
         self.at_max: dict[str, object] = {}  # what it was doing at its largest body rate
+        self.max_speed = 0.0  # the largest speed on one axis in flight
+        self.at_max_speed: dict[str, object] = {}  # and what it was doing then
 
     def summary(self) -> dict[str, object]:
         ages = np.array(self.ages_ms) if self.ages_ms else None
-        return {"setpoints": self.followed, "holds": self.holds, "stalls": self.stalls,
+        return {"setpoints": self.followed, "holds": self.holds, "hold_log": self.hold_log[:20],
+                "stalls": self.stalls,
                 "age_p50_ms": None if ages is None else round(float(np.percentile(ages, 50)), 1),
                 "age_p99_ms": None if ages is None else round(float(np.percentile(ages, 99)), 1),
                 "age_max_ms": None if ages is None else round(float(ages.max()), 1),
                 "max_body_rate": round(self.max_rate, 3), "max_tilt": round(self.max_tilt, 3),
-                "at_max_rate": self.at_max}
+                "at_max_rate": self.at_max, "max_speed": round(self.max_speed, 3),
+                "at_max_speed": self.at_max_speed}
 
 
 def main() -> None:
@@ -245,6 +250,7 @@ def main() -> None:
         now = time.monotonic()
         t = now  # the body's time
         reset_at, taken, holding = now, None, False
+        held_from = now
         since = now + offset  # its clock at the last reset
         next_state, next_truth, next_stats = t, t, t + 1.0
         outbox: deque[tuple[float, VehicleState]] = deque()
@@ -267,6 +273,12 @@ def main() -> None:
                     sp = got.message
                     if holding and taken is not None:
                         stats.holds += 1  # the flight went on after a hold
+                        stats.hold_log.append({
+                            "s_since_reset": round(held_from - reset_at, 2),
+                            "held_s": round(t - held_from, 3),
+                            "gap_s": round(got.received_at - taken.received_at, 3),
+                            "new_age_ms": round((got.received_at + offset - sp.t) * 1e3, 1),
+                            "last_seq": taken.message.seq, "new_seq": sp.seq})
                     taken, holding = got, False
                     stats.followed += 1
                     stats.ages_ms.append((got.received_at + offset - sp.t) * 1000.0)
@@ -276,6 +288,7 @@ def main() -> None:
                 if taken is not None and clock <= taken.message.valid_until:
                     command = np.asarray(taken.message.command_at(clock), dtype=float)
                 else:
+                    held_from = t if not holding else held_from
                     holding = True
                     body.hold(t)
                 body.step(command, t, STEP_S)
@@ -291,6 +304,18 @@ def main() -> None:
                                         "command": None if command is None
                                         else command.round(2).tolist()}
                     stats.max_tilt = max(stats.max_tilt, body.tilt())
+                    speed = float(np.abs(body.v).max())
+                    if speed > stats.max_speed:
+                        stats.max_speed = speed
+                        stats.at_max_speed = {
+                            "s_since_reset": round(t - reset_at, 2), "holding": holding,
+                            "seq": taken.message.seq, "v": body.v.round(3).tolist(),
+                            "v_ref": body.v_ref.round(3).tolist(),
+                            "v_plan": body.v_plan.round(3).tolist(),
+                            "setpoint_v": [round(x, 3) for x in taken.message.velocity],
+                            "a_ref": body.a_ref.round(2).tolist(),
+                            "command": None if command is None
+                            else command.round(2).tolist()}
                 if t >= next_state:
                     next_state += 1.0 / args.rate_hz
                     outbox.append((t + args.delay_s, body.state(robot, seq, t + offset)))
