@@ -13,8 +13,8 @@
   ``ahead``), which it realizes with the scene's ``acceleration_lag`` (the planning
   model's); a new set-point's plan is reached over ``BLEND_S``, not stepped to; past
   ``valid_until`` it holds, easing from the last command into a hold where its reference is
-  over ``EASE_S``. It answers the reset query (and takes no set-point for an instant before
-  it: the loop sent it before the reset), publishes its state at
+  over ``EASE_S``. It answers the reset query (and takes no set-point planned from a state
+  before it or before it started: another flight's), publishes its state at
   ``--rate-hz`` ``--delay-s`` after the instant it is valid for (with the acceleration it
   realizes of the commands: its reference's), and its truth on
   ``vehicle/truth`` at 100 Hz; it answers clock queries (its clock is the wall clock), so
@@ -195,6 +195,7 @@ class Stats:
         self.ages_ms: deque[float] = deque(maxlen=100_000)
         self.holds = 0  # begun between two set-points of one flight
         self.hold_log: list[dict[str, float]] = []  # when each began, how long, the gap
+        self.first: list[dict[str, object]] = []  # each flight's first set-point, as taken
         self.max_rate = 0.0
         self.max_tilt = 0.0
         self.followed = 0
@@ -206,6 +207,7 @@ class Stats:
     def summary(self) -> dict[str, object]:
         ages = np.array(self.ages_ms) if self.ages_ms else None
         return {"setpoints": self.followed, "holds": self.holds, "hold_log": self.hold_log[:20],
+                "first_setpoints": self.first[:12],
                 "stalls": self.stalls,
                 "age_p50_ms": None if ages is None else round(float(np.percentile(ages, 50)), 1),
                 "age_p99_ms": None if ages is None else round(float(np.percentile(ages, 99)), 1),
@@ -268,7 +270,7 @@ def main() -> None:
                 clock = t + offset
                 got = setpoints.get()
                 if got is not None and got is not taken and reset_at < got.received_at <= t \
-                        and got.message.t >= since \
+                        and got.message.state_stamp >= since \
                         and got.message.acceleration is not None:  # arrived by now, this flight's
                     sp = got.message
                     if holding and taken is not None:
@@ -279,6 +281,15 @@ def main() -> None:
                             "gap_s": round(got.received_at - taken.received_at, 3),
                             "new_age_ms": round((got.received_at + offset - sp.t) * 1e3, 1),
                             "last_seq": taken.message.seq, "new_seq": sp.seq})
+                    if taken is None:
+                        stats.first.append({
+                            "s_since_reset": round(t - reset_at, 3),
+                            "planned_from_s": round(sp.state_stamp - since, 3),
+                            "t_s": round(sp.t - since, 3),
+                            "off_m": round(float(np.linalg.norm(
+                                np.asarray(sp.position) - body.p)), 3),
+                            "position": [round(x, 2) for x in sp.position],
+                            "at": body.p.round(2).tolist()})
                     taken, holding = got, False
                     stats.followed += 1
                     stats.ages_ms.append((got.received_at + offset - sp.t) * 1000.0)

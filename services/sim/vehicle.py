@@ -112,7 +112,7 @@ class SetpointAges:
     refused: int = 0
     # "kind" (a command this vehicle does not take), "older" (than the one it follows),
     # "future" (for an instant past MAX_AHEAD_S of its clock), "validity" (past MAX_VALID_S),
-    # "before_reset" (for an instant before the vehicle's last reset: the flight before's)
+    # "before_reset" (planned from a state before the vehicle's last reset: another flight's)
     refusals: dict[str, int] = field(default_factory=dict)
 
     def refuse(self, reason: str) -> None:
@@ -139,15 +139,17 @@ def refusal(sp: VehicleSetpoint, followed: VehicleSetpoint | None, clock: float,
             accelerations: bool, reset_at: float = -math.inf) -> str | None:
     """Why a vehicle whose clock reads ``clock`` and that follows ``followed`` does not
     take ``sp`` (None: it does). It must be of the kind the vehicle takes, newer than the one
-    it follows (a higher ``seq``, or a later ``t``: a restarted loop counts again), for an
-    instant after the vehicle's last reset (``reset_at``, its clock: one from before belongs
-    to the flight before, planned from where the vehicle was), and bounded: for an instant
+    it follows (a higher ``seq``, or a later ``t``: a restarted loop counts again), planned
+    from a state of this flight (``state_stamp`` after the vehicle's last reset, ``reset_at``,
+    its clock: one planned from before belongs to another flight, from where the vehicle was,
+    even when a loop flying blind on that state sends it for an instant of now), and
+    bounded: for an instant
     at most :data:`MAX_AHEAD_S` past the vehicle's clock, valid for at most
     :data:`MAX_VALID_S`, so that no one set-point, forged or broken, can lock out the loop's
     next ones by a far-future ``t`` or be flown for ever."""
     if (sp.acceleration is not None) != accelerations:
         return "kind"
-    if sp.t < reset_at:
+    if sp.state_stamp < reset_at:  # and so its t, which is later
         return "before_reset"
     if sp.t > clock + MAX_AHEAD_S:
         return "future"
@@ -184,7 +186,7 @@ class SimVehicle:
         """At rest at ``x0`` (12-state) from ``now``: no set-point, holding there."""
         self.plant: Plant = make_plant(self.scenario, np.asarray(x0, dtype=float))
         self.now = now
-        self._reset_clock = self.clock(now)  # a set-point for an instant before: refused
+        self._reset_clock = self.clock(now)  # one planned from a state before: refused
         self.seq = getattr(self, "seq", -1) + 1  # the count goes on across resets
         self._next_report = now
         self._reports.clear()

@@ -161,6 +161,25 @@ def test_after_a_reset_a_set_point_for_an_instant_before_it_is_refused() -> None
     assert not v.holding
 
 
+def test_after_a_reset_a_set_point_planned_from_a_state_before_it_is_refused() -> None:
+    """Issue 46: a loop that lost its vehicle (a vehicle restarted, or another process
+    started in its place) flies blind on the last state it had and goes on sending
+    set-points, each for an instant of now. The test airframe, started anew, took one
+    46 ms after it began: planned from a state 4.4 s before, its reference 2.4 m from where
+    the airframe stood. A set-point planned from a state before the reset (``state_stamp``)
+    is refused ("before_reset") whatever its ``t``; one planned from a state after it is
+    taken."""
+    v = vehicle()
+    v.reset(START, 100.2)
+    stale = VehicleSetpoint(seq=8, state_seq=0, state_stamp=95.9, t=100.3,
+                            valid_until=100.8, mode=Mode.NOMINAL, acceleration=(0.5, 0.0, 0.0),
+                            position=(-1.98, 0.8, 0.2), velocity=(0.0, 0.0, 0.0))
+    assert not v.receive(stale, 100.3)
+    assert v.holding and v.ages.refusals == {"before_reset": 1}
+    assert v.receive(accel(9, 100.35), 100.35)  # planned from a state of this flight
+    assert not v.holding
+
+
 def test_faults_a_drop_out_a_stop_lost_set_points_and_a_jump() -> None:
     v = vehicle()
     v.faults.silent_until = 100.5
@@ -208,7 +227,8 @@ def test_commands_ahead_on_an_epoch_clock_never_stall_the_integration() -> None:
     now = 1_795_689_442.4108565
     v = SimVehicle(HARDWARE, START, Reporting(clock_offset_s=0.3), now=now)
     ahead = tuple((0.1 * j, 0.0, 0.0) for j in range(8))
-    sp = VehicleSetpoint(seq=1, state_seq=0, state_stamp=now, t=v.clock(now) - 1e-7,
+    sp = VehicleSetpoint(seq=1, state_seq=0, state_stamp=v.clock(now) - 1e-7,
+                         t=v.clock(now) - 1e-7,
                          valid_until=v.clock(now) + 0.2, mode=Mode.NOMINAL,
                          acceleration=(0.0, 0.0, 0.0), position=(0.0, 0.0, 0.0),
                          velocity=(0.0, 0.0, 0.0), ahead=ahead, step_s=0.02)
