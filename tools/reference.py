@@ -28,7 +28,8 @@ import json
 import re
 import sys
 import textwrap
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -452,49 +453,59 @@ def modules_reference() -> str:
 
 # -- running it -------------------------------------------------------------------------------
 
-def rendered(which: str) -> str:
-    return {"settings": settings_reference, "cli": cli_reference,
-            "modules": modules_reference}[which]()
+@dataclass(frozen=True)
+class Reference:
+    """One generated reference: how it is rendered and where it goes (between ``begin`` and
+    the end marker of ``page``, or the whole page when ``begin`` is None)."""
+
+    render: Callable[[], str]
+    page: Path
+    where: str
+    begin: str | None = None
+
+    def held(self, page: str) -> str:
+        """What ``page`` holds of this reference."""
+        return page if self.begin is None else between(page, self.begin)
+
+    def placed(self, page: str, text: str) -> str:
+        """``page`` with ``text`` in this reference's place."""
+        return text if self.begin is None else with_between(page, text, self.begin)
 
 
-def held(which: str, page: str) -> str:
-    """What ``page`` holds of reference ``which``."""
-    if which == "cli":
-        return page
-    return settings_in(page) if which == "settings" else modules_in(page)
-
-
-def placed(which: str, page: str, text: str) -> str:
-    """``page`` with ``text`` in the place of reference ``which``."""
-    if which == "cli":
-        return text
-    return (with_settings if which == "settings" else with_modules)(page, text)
+def references() -> dict[str, Reference]:
+    """The references by name (the pages as this module names them when it is called)."""
+    return {
+        "settings": Reference(settings_reference, ARCHITECTURE,
+                              "docs/architecture.md section 7", BEGIN),
+        "cli": Reference(cli_reference, CLI_PAGE, "docs/cli.md"),
+        "modules": Reference(modules_reference, ARCHITECTURE,
+                             "docs/architecture.md section 2", MODULES_BEGIN),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m tools.reference",
         description="the settings, CLI and module references, generated from the code")
-    parser.add_argument("which", choices=["settings", "cli", "modules"],
+    known = references()
+    parser.add_argument("which", choices=list(known),
                         help="settings: section 7 of docs/architecture.md; cli: docs/cli.md; "
                              "modules: section 2's module list")
     parser.add_argument("--write", action="store_true",
                         help="write it into its place (default: print it, and exit 1 when "
                              "its page differs)")
     args = parser.parse_args(argv)
-    path = CLI_PAGE if args.which == "cli" else ARCHITECTURE
-    where = {"settings": "docs/architecture.md section 7", "cli": "docs/cli.md",
-             "modules": "docs/architecture.md section 2"}[args.which]
-    text = rendered(args.which)
+    ref = known[args.which]
+    text = ref.render()
     if args.write:
-        path.write_text(placed(args.which, path.read_text(), text))
+        ref.page.write_text(ref.placed(ref.page.read_text(), text))
         return 0
     sys.stdout.write(text)
-    if held(args.which, path.read_text()) != text:
-        print(f"{where} differs from the code: run python -m tools.reference {args.which} "
+    if ref.held(ref.page.read_text()) != text:
+        print(f"{ref.where} differs from the code: run python -m tools.reference {args.which} "
               "--write", file=sys.stderr)
         return 1
-    print(f"{where} is up to date", file=sys.stderr)
+    print(f"{ref.where} is up to date", file=sys.stderr)
     return 0
 
 
