@@ -70,6 +70,11 @@ def test_the_template_bench_refuses_a_server_without_threads(
     assert "--threads" in capsys.readouterr().err
 
 
+def test_the_fairness_bench_refuses_no_rounds(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli.main(["bench", "fairness", "--rounds", "0"]) == 2
+    assert "--rounds" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(("argv", "says"), [
     (["up", "--role", "robot", "--server", "h"], "--tls DIR"),
     (["up", "--server", "h"], "go with --role"),

@@ -124,13 +124,24 @@ def register(sub: argparse._SubParsersAction) -> None:
     _model_option(bb)
     _json_option(bb)
     bb.set_defaults(func=cmd_bench_bus)
+    _fairness_parser(bsub)
+    _ros2_parser(bsub)
+    _fleet_parser(bsub)
+    _link_parser(bsub)
+    bench.set_defaults(needs_bench_extra=True)
+
+
+def _fairness_parser(bsub: argparse._SubParsersAction) -> None:
     bf = bsub.add_parser("fairness", help="one robot floods its observations: another robot's "
                          "verdict latency and losses, through the hub (or --direct)")
     bf.add_argument("--flood-hz", type=float, default=2000.0,
                     help="robot1's observations per second (default 2000)")
     bf.add_argument("--rate", type=float, default=10.0, help="robot0's per second (10)")
-    bf.add_argument("--seconds", type=float, default=15.0,
-                    help="each phase, alone and flooded (default 15)")
+    bf.add_argument("--seconds", type=float, default=30.0,
+                    help="robot0 timed alone, and as long flooded (default 30)")
+    bf.add_argument("--rounds", type=int, default=3,
+                    help="alone then flooded, this many times over, to share the machine's "
+                         "drift (default 3)")
     bf.add_argument("--direct", action="store_true",
                     help="no hub: the robots reach the service as peers (its own defence only)")
     bf.add_argument("--same-text", action="store_true",
@@ -139,10 +150,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     _model_option(bf)
     _json_option(bf)
     bf.set_defaults(func=cmd_bench_fairness)
-    _ros2_parser(bsub)
-    _fleet_parser(bsub)
-    _link_parser(bsub)
-    bench.set_defaults(needs_bench_extra=True)
 
 
 def _ros2_parser(bsub: argparse._SubParsersAction) -> None:
@@ -359,11 +366,12 @@ def cmd_bench_bus(args: argparse.Namespace) -> int:
 def cmd_bench_fairness(args: argparse.Namespace) -> int:
     from tools.bench.fairness import run_fairness_bench
 
-    if not (args.flood_hz > 0 and args.rate > 0 and args.seconds > 0):
-        raise CliError("--flood-hz, --rate and --seconds must be positive")
+    if not (args.flood_hz > 0 and args.rate > 0 and args.seconds > 0 and args.rounds >= 1):
+        raise CliError("--flood-hz, --rate and --seconds must be positive, --rounds at least 1")
     return _with_processes("fairness", lambda: run_fairness_bench(
         seconds=args.seconds, rate_hz=args.rate, flood_hz=args.flood_hz, direct=args.direct,
-        model=args.model, table_out=not args.json, same_text=args.same_text), args.json)
+        model=args.model, table_out=not args.json, same_text=args.same_text,
+        rounds=args.rounds), args.json)
 
 
 @_shown

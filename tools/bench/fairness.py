@@ -8,10 +8,13 @@ scene's calibrated cache, as ``aesop bench bus`` builds it; the ``embedding`` us
 child processes. Two robots are client sessions of the hub, each with its own
 credential ``robot-<id>``, as a robot's camera is: robot0 publishes the nominal scene
 at ``rate_hz`` and times each verdict (publish to arrival here, both on this process's
-``time.monotonic``), first alone for ``seconds`` (the baseline), then for another
-``seconds`` while robot1, a process of its own, publishes at ``flood_hz``. A robot0
-observation without a verdict ``LOST_AFTER_S`` after the last one was published is
-lost.
+``time.monotonic``), alone and while robot1, a process of its own, publishes at
+``flood_hz``: ``rounds`` times over, ``seconds / rounds`` each, so that whatever else
+loads the machine over the run weighs on both conditions alike (with one phase of each,
+the ratio swung x1.2-2.9 between runs here as robot0's baseline p99 moved 4-9 ms with
+the machine's other load). The p99s are over all of a condition's verdicts; each round's
+ratio is reported beside. A robot0 observation without a verdict ``LOST_AFTER_S`` after
+the last one was published is lost.
 
 The flood is of **distinct** observations by default: the nominal scene with one more
 object, numbered afresh in every message, so no text (and no detection phrase) repeats
@@ -58,6 +61,8 @@ from tools.stack.acl import new_passwords, robot_user, users_of, write_credentia
 QUIET, FLOODER = "robot0", "robot1"
 LOST_AFTER_S = 5.0  # a verdict later than this after the last observation is lost
 TARGET_RATIO = 2.0
+ROUNDS = 3  # alone, then flooded, this many times over: the conditions interleaved
+QUIET_AFTER_S = 1.0  # after a flood phase, before robot0 is timed alone again
 
 
 class Timed:
@@ -124,18 +129,23 @@ def flood_payloads(text: str, n: int, *, same_text: bool) -> list[bytes]:
                                FLOODER).encode() for i in range(1, n + 1)]
 
 
-def flood(bus: Bus, payloads: list[bytes], hz: float, stop: Any) -> int:
-    """robot1's flood at ``hz`` until ``stop`` is set; how many it published. The
-    ``payloads`` in turn (again from the first if the flood outlasts them), through one
-    declared publisher, as a flooding robot would send them."""
+def flood(bus: Bus, payloads: list[bytes], hz: float, go: Any, stop: Any) -> int:
+    """robot1's flood at ``hz`` while ``go`` is set, until ``stop`` is; how many it
+    published. The ``payloads`` in turn (again from the first if the flood outlasts them),
+    through one declared publisher, as a flooding robot would send them."""
     publisher = bus.session.declare_publisher(topics.observation(FLOODER))
-    period, sent, start = 1.0 / hz, 0, time.monotonic()
+    period, sent = 1.0 / hz, 0
     while not stop.is_set():
-        publisher.put(payloads[sent % len(payloads)])
-        sent += 1
-        delay = start + sent * period - time.monotonic()
-        if delay > 0:
-            time.sleep(delay)
+        if not go.wait(0.1):
+            continue
+        start, burst = time.monotonic(), 0  # each flood phase on its own schedule
+        while go.is_set() and not stop.is_set():
+            publisher.put(payloads[sent % len(payloads)])
+            sent += 1
+            burst += 1
+            delay = start + burst * period - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
     publisher.undeclare()
     return sent
 
@@ -145,17 +155,17 @@ def flooding_robot(endpoint: str, passwords: dict[str, str] | None, text: str, n
                    sent: Any) -> None:
     """robot1 as a process of its own, as a robot is its own computer (on a thread of the
     bench it took the bench's interpreter lock from robot0's timing): its session and its
-    encoded observations ready, then the flood from ``go`` to ``stop``."""
+    encoded observations ready, then the flood while ``go`` is set, until ``stop``."""
     with robot_session(endpoint, FLOODER, passwords) as loud:
         payloads = flood_payloads(text, n, same_text=same_text)
         ready.set()
-        go.wait()
-        sent.value = flood(loud, payloads, hz, stop)
+        sent.value = flood(loud, payloads, hz, go, stop)
 
 
 class Flooder:
     """:func:`flooding_robot` in a spawned process: entered, its session is open and its
-    observations encoded; ``go`` starts the flood, :meth:`finish` ends it."""
+    observations encoded; setting ``go`` floods, clearing it pauses, :meth:`finish` ends
+    it."""
 
     def __init__(self, endpoint: str, passwords: dict[str, str] | None, text: str,
                  hz: float, n: int, same_text: bool) -> None:
@@ -176,12 +186,11 @@ class Flooder:
 
     def finish(self) -> int:
         self.stop.set()
-        self.go.set()
         self.process.join(WAIT_S)
         return int(self.sent.value)
 
     def __exit__(self, *_: object) -> None:
-        self.finish()  # a flood never started sends nothing: stop is set before go
+        self.finish()
         if self.process.is_alive():
             self.process.kill()
 
@@ -225,7 +234,7 @@ def robot_session(endpoint: str, robot: str, passwords: dict[str, str] | None) -
 
 
 async def _bench(seconds: float, rate_hz: float, flood_hz: float, direct: bool,
-                 model: str, same_text: bool) -> dict[str, Any]:
+                 model: str, same_text: bool, rounds: int) -> dict[str, Any]:
     token = secrets.token_urlsafe(24)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with tempfile.TemporaryDirectory(prefix="aesop-bench-fairness-") as tmp, \
@@ -248,21 +257,13 @@ async def _bench(seconds: float, rate_hz: float, flood_hz: float, direct: bool,
             info, _ = await build_scene_cache(detector, CACHE, model=model, say=say)
             nominal, _ = await pick_scenes(detector)
             loud = stack.enter_context(Flooder(endpoint, passwords, nominal, flood_hz,
-                                               round(flood_hz * (seconds + 1.0)), same_text))
+                                               round(flood_hz * (seconds + rounds)), same_text))
             timed = Timed(quiet, nominal)
             try:
                 await _warm_up(timed)
-                progress.step(f"baseline: {QUIET} alone at {rate_hz:g} Hz for {seconds:g} s",
-                              1, 2)
-                base = await timed.phase(seconds, rate_hz)
-                await timed.settle(base)
-                progress.step(f"flood: {FLOODER} at {flood_hz:g} Hz meanwhile, "
-                              f"{'one text' if same_text else 'distinct texts'}", 2, 2)
-                loud.go.set()
-                await asyncio.sleep(0.5)  # the flood is on before robot0 is timed
-                flooded = await timed.phase(seconds, rate_hz)
+                base, flooded, per_round = await _rounds(timed, loud, seconds, rate_hz,
+                                                         flood_hz, rounds, same_text)
                 sent = await asyncio.to_thread(loud.finish)
-                await timed.settle(flooded)
                 metrics = (await detector.http.get("/metrics")).text
             finally:
                 await timed.close()
@@ -272,7 +273,7 @@ async def _bench(seconds: float, rate_hz: float, flood_hz: float, direct: bool,
     ratio = None
     if baseline["p99"] and flooding_["p99"] is not None:
         ratio = round(float(flooding_["p99"]) / float(baseline["p99"]), 2)
-    return {"seconds": seconds, "rate_hz": rate_hz, "flood_hz": flood_hz,
+    return {"seconds": seconds, "rounds": rounds, "rate_hz": rate_hz, "flood_hz": flood_hz,
             "through": "peers" if direct else "hub", "model": info.model,
             "flood_texts": "one text" if same_text else "distinct texts",
             "baseline_ms": baseline, "flood_ms": flooding_,
@@ -280,9 +281,41 @@ async def _bench(seconds: float, rate_hz: float, flood_hz: float, direct: bool,
                             "flood": spread(timed.in_detector(flooded))},
             "baseline_p99_ms": baseline["p99"], "flood_p99_ms": flooding_["p99"],
             "p99_ratio": ratio, "lost": flood_lost, "baseline_lost": base_lost,
-            "flood_sent": sent, "flood_achieved_hz": round(sent / (seconds + 0.5), 1),
+            "per_round_p99_ratio": per_round,
+            "flood_sent": sent, "flood_achieved_hz": round(sent / (seconds + 0.5 * rounds), 1),
             "dropped": _dropped(metrics),
             "met": flood_lost == 0 and ratio is not None and ratio <= TARGET_RATIO}
+
+
+async def _rounds(timed: Timed, loud: Flooder, seconds: float, rate_hz: float,
+                  flood_hz: float, rounds: int, same_text: bool
+                  ) -> tuple[list[int], list[int], list[float | None]]:
+    """``rounds`` of robot0 alone then flooded, ``seconds / rounds`` each: a load that
+    drifts over the run (another process, the machine's clock speed) weighs on both
+    conditions alike. robot0's seqs alone and flooded, and each round's p99 ratio."""
+    base: list[int] = []
+    flooded: list[int] = []
+    per_round: list[float | None] = []
+    each = seconds / rounds
+    texts = "one text" if same_text else "distinct texts"
+    for r in range(rounds):
+        progress.step(f"round {r + 1} of {rounds}: {QUIET} alone at {rate_hz:g} Hz for "
+                      f"{each:g} s, then with {FLOODER} flooding {texts} at {flood_hz:g} Hz",
+                      r + 1, rounds)
+        alone = await timed.phase(each, rate_hz)
+        await timed.settle(alone)
+        loud.go.set()
+        await asyncio.sleep(0.5)  # the flood is on before robot0 is timed
+        under = await timed.phase(each, rate_hz)
+        loud.go.clear()
+        await timed.settle(under)
+        await asyncio.sleep(QUIET_AFTER_S)  # the flood's queues drained before the next round
+        base += alone
+        flooded += under
+        a, b = spread(timed.latencies(alone)[0]), spread(timed.latencies(under)[0])
+        per_round.append(round(float(b["p99"]) / float(a["p99"]), 2)
+                         if a["p99"] and b["p99"] is not None else None)
+    return base, flooded, per_round
 
 
 async def _warm_up(timed: Timed) -> None:
@@ -305,13 +338,14 @@ def _dropped(metrics: str) -> dict[str, float]:
     return out
 
 
-def run_fairness_bench(seconds: float = 15.0, rate_hz: float = 10.0, flood_hz: float = 2000.0,
+def run_fairness_bench(seconds: float = 30.0, rate_hz: float = 10.0, flood_hz: float = 2000.0,
                        direct: bool = False, model: str | None = None,
-                       table_out: bool = True, same_text: bool = False) -> dict[str, Any]:
-    if not (seconds > 0 and rate_hz > 0 and flood_hz > 0):
-        raise ValueError("seconds, rate_hz and flood_hz must be positive")
+                       table_out: bool = True, same_text: bool = False,
+                       rounds: int = ROUNDS) -> dict[str, Any]:
+    if not (seconds > 0 and rate_hz > 0 and flood_hz > 0 and rounds >= 1):
+        raise ValueError("seconds, rate_hz and flood_hz must be positive, rounds at least 1")
     result = asyncio.run(_bench(seconds, rate_hz, flood_hz, direct, model or SERVICE_MODEL,
-                                same_text))
+                                same_text, rounds))
     if table_out:
         print_table(result)
     return result
@@ -325,9 +359,10 @@ def print_table(result: dict[str, Any]) -> None:
                                 f"{result['flood_hz']:g} Hz", "flood_ms"))]
     verdict = "met" if result["met"] else "MISSED"
     print(table(f"fairness through the {result['through']}: robot0 at {result['rate_hz']:g} Hz, "
-                f"{result['seconds']:g} s a phase ({result['model']}); p99 ratio "
-                f"{result['p99_ratio']} (target <= {TARGET_RATIO:g}, none lost): {verdict}",
-                rows))
+                f"{result['seconds']:g} s of each in {result['rounds']} rounds "
+                f"({result['model']}); p99 ratio {result['p99_ratio']} (target <= "
+                f"{TARGET_RATIO:g}, none lost): {verdict}", rows))
+    print(f"each round's p99 ratio: {result['per_round_p99_ratio']}")
     inside = result["detector_ms"]
     print(f"robot1 published {result['flood_sent']} ({result['flood_achieved_hz']} Hz); "
           f"dropped by the detector: {result['dropped'] or 'none'}; in the detector (the "
