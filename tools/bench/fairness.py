@@ -203,6 +203,14 @@ def spread(ms: list[float]) -> dict[str, float | int | None]:
             "p99": round(float(np.percentile(a, 99)), 2), "max": round(float(a.max()), 2)}
 
 
+def p99_ratio(alone: dict[str, float | int | None], flooded: dict[str, float | int | None]
+              ) -> float | None:
+    """The flooded p99 over the one alone (None without both)."""
+    if not alone["p99"] or flooded["p99"] is None:
+        return None
+    return round(float(flooded["p99"]) / float(alone["p99"]), 2)
+
+
 @contextlib.contextmanager
 def hub_process(endpoint: str, users: Path) -> Any:
     """``aesop up``'s hub for the two robots: the ``users`` dictionary, the stack's ACL and
@@ -270,9 +278,7 @@ async def _bench(seconds: float, rate_hz: float, flood_hz: float, direct: bool,
         base_ms, base_lost = timed.latencies(base)
         flood_ms, flood_lost = timed.latencies(flooded)
     baseline, flooding_ = spread(base_ms), spread(flood_ms)
-    ratio = None
-    if baseline["p99"] and flooding_["p99"] is not None:
-        ratio = round(float(flooding_["p99"]) / float(baseline["p99"]), 2)
+    ratio = p99_ratio(baseline, flooding_)
     return {"seconds": seconds, "rounds": rounds, "rate_hz": rate_hz, "flood_hz": flood_hz,
             "through": "peers" if direct else "hub", "model": info.model,
             "flood_texts": "one text" if same_text else "distinct texts",
@@ -312,9 +318,8 @@ async def _rounds(timed: Timed, loud: Flooder, seconds: float, rate_hz: float,
         await asyncio.sleep(QUIET_AFTER_S)  # the flood's queues drained before the next round
         base += alone
         flooded += under
-        a, b = spread(timed.latencies(alone)[0]), spread(timed.latencies(under)[0])
-        per_round.append(round(float(b["p99"]) / float(a["p99"]), 2)
-                         if a["p99"] and b["p99"] is not None else None)
+        per_round.append(p99_ratio(spread(timed.latencies(alone)[0]),
+                                   spread(timed.latencies(under)[0])))
     return base, flooded, per_round
 
 
