@@ -108,7 +108,8 @@ class OnnxEmbedder(Embedder):
 
 def exported(source: ModelSource, export_dir: Path, *, int8: bool) -> Path:
     """The model's ONNX file under ``export_dir``, exported (and quantized) if missing:
-    written to a temporary name and renamed, so a file there is whole."""
+    written to a temporary name of this process's and renamed, so a file there is whole even
+    when two processes export at once (replicas or tools starting together on a fresh cache)."""
     folder = export_dir / re.sub(r"[^A-Za-z0-9_.-]+", "--", source.name)
     # the int8 file's name says its recipe: a cache pins "onnx-int8:<model>", and a
     # machine that still holds an export of the first recipe (per tensor) must not use it
@@ -119,7 +120,7 @@ def exported(source: ModelSource, export_dir: Path, *, int8: bool) -> Path:
     if int8 and not quantized.exists():
         from onnxruntime.quantization import QuantType, quantize_dynamic
 
-        tmp = quantized.with_name(quantized.name + ".tmp")
+        tmp = quantized.with_name(f"{quantized.name}.{os.getpid()}.tmp")
         # one scale per output channel, 7-bit weights: cosine to the float32 vectors
         # 0.993 mean / 0.989 worst on VTOL briefs, against 0.966 / 0.951 per tensor; the
         # reduced range keeps CPUs without VNNI from saturating their u8 x s8 products
@@ -146,7 +147,7 @@ def _export(path: Path, target: Path) -> None:
         def forward(self, *inputs: Any) -> Any:
             return self.model(**dict(zip(names, inputs, strict=True))).last_hidden_state
 
-    tmp = target.with_name(target.name + ".tmp")
+    tmp = target.with_name(f"{target.name}.{os.getpid()}.tmp")
     axes = {n: {0: "batch", 1: "tokens"} for n in names} | {"hidden": {0: "batch", 1: "tokens"}}
     try:
         with torch.no_grad(), warnings.catch_warnings():
