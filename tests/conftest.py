@@ -26,10 +26,13 @@ def pytest_sessionstart() -> None:
     _low["start"] = _low["least"] = (_free_gib(), "at the start")
 
 
-def pytest_runtest_teardown(item: pytest.Item) -> None:
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    # a report reaches the process that prints the summary, also from pytest-xdist's workers
+    if report.when != "teardown":
+        return
     free = _free_gib()
     if free < _low["least"][0]:
-        _low["least"] = (free, f"after {item.nodeid}")
+        _low["least"] = (free, f"after {report.nodeid}")
 
 
 def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
