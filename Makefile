@@ -30,7 +30,7 @@ IMAGE_BASE     ?= aesop-base:bookworm
 IMAGE_POSTGRES ?= aesop-postgres:15
 SMOLLM2_COMPOSE := -f docker-compose.yml -f deploy/compose.smollm2.yml
 
-.PHONY: setup system llama image stack-image image-smollm2 test test-realtime test-others demo bench lint clean
+.PHONY: setup system llama image stack-image image-smollm2 test demo bench lint clean
 
 setup: $(STAMP)
 
@@ -97,17 +97,7 @@ test:
 	$(MAKE) -j4 --output-sync=target $(STAMP) system llama stack-image
 	$(VENV)/bin/ruff check shared services tools tests
 	$(VENV)/bin/mypy
-	$(MAKE) -j2 --output-sync=target test-realtime test-others
-
-# Two lanes at once, each lane's output printed when it ends: the tests that fly a stack in
-# real time, race a deadline or time something (marker `realtime`) run one at a time as
-# ever, and the others beside them (on two cores, two flights at once starve each other's
-# detector: docs/testing.md)
-test-realtime:
-	$(PY) -m pytest -q --durations=15 -m realtime
-
-test-others:
-	$(PY) -m pytest -q --durations=15 -m "not realtime"
+	$(PY) -m pytest -q --durations=25
 
 # make demo LLM=local: the trained model served by llama.cpp (built by `make llama`)
 demo: $(STAMP) $(if $(filter local,$(LLM)),llama)
