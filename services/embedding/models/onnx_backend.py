@@ -120,7 +120,7 @@ def exported(source: ModelSource, export_dir: Path, *, int8: bool) -> Path:
     if int8 and not quantized.exists():
         from onnxruntime.quantization import QuantType, quantize_dynamic
 
-        tmp = quantized.with_name(f"{quantized.name}.{os.getpid()}.tmp")
+        tmp = _temporary(quantized)
         # one scale per output channel, 7-bit weights: cosine to the float32 vectors
         # 0.993 mean / 0.989 worst on VTOL briefs, against 0.966 / 0.951 per tensor; the
         # reduced range keeps CPUs without VNNI from saturating their u8 x s8 products
@@ -128,6 +128,11 @@ def exported(source: ModelSource, export_dir: Path, *, int8: bool) -> Path:
                          reduce_range=True)
         os.replace(tmp, quantized)
     return quantized if int8 else fp32
+
+
+def _temporary(target: Path) -> Path:
+    """This process's own name to write ``target`` under before the rename."""
+    return target.with_name(f"{target.name}.{os.getpid()}.tmp")
 
 
 def _export(path: Path, target: Path) -> None:
@@ -147,7 +152,7 @@ def _export(path: Path, target: Path) -> None:
         def forward(self, *inputs: Any) -> Any:
             return self.model(**dict(zip(names, inputs, strict=True))).last_hidden_state
 
-    tmp = target.with_name(f"{target.name}.{os.getpid()}.tmp")
+    tmp = _temporary(target)
     axes = {n: {0: "batch", 1: "tokens"} for n in names} | {"hidden": {0: "batch", 1: "tokens"}}
     try:
         with torch.no_grad(), warnings.catch_warnings():
