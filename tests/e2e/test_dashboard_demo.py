@@ -33,7 +33,7 @@ from tests.e2e.browser import canvas_count, screenshot
 from tools.demo.flights import demo_scenario, fly_scenarios
 from tools.stack.up import StackPlan
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(540)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(540)]
 
 SCENARIO = "2a"  # another quadrotor on the red box: land on the blue box instead
 KEYBOARD = "3"  # an unseen keyboard on the ground: continue

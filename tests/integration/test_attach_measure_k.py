@@ -31,7 +31,7 @@ from tests.demo_stack import running_stack
 from tools.demo.k import QUERIES, SCENE_FILE, control_k, how_to_fly
 from tools.stack.up import fly_command, hardware_scenario, plan_stack
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(420)]
 
 TOKEN = secrets.token_urlsafe(24)
 SCENE = load_scenario(hardware_scenario())

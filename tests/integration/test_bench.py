@@ -21,6 +21,8 @@ from services.embedding.models.embedders import pool_key
 from shared.tables import table
 from tools.bench.detector.common import BACKENDS, QUICK, jsonable
 
+pytestmark = pytest.mark.realtime
+
 ROOT = Path(__file__).resolve().parents[2]
 
 

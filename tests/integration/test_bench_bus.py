@@ -13,7 +13,7 @@ import sys
 
 import pytest
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(600)]
 
 OBSERVATIONS, ANOMALIES, RATE_HZ = 30, 3, 20.0
 

@@ -14,7 +14,7 @@ import sys
 
 import pytest
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(600)]
 
 SECONDS, ROUNDS, RATE_HZ, FLOOD_HZ = 4.0, 2, 10.0, 400.0
 

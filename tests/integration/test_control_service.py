@@ -187,8 +187,10 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
 
 
 def test_state_and_plans_stream_one_per_tick(stack: Stack) -> None:
-    """Every tick publishes a state one plant step (dt) after the last; the loop's
-    wall-clock rate is measured on /metrics and in benchmarks, not asserted here."""
+    """Every tick publishes a state one plant step (dt) after the last, or a whole number of
+    steps where the loop skipped deadlines after an overrun (a busy machine), each skip counted
+    in `missed_ticks`; the loop's wall-clock rate is measured on /metrics and in benchmarks,
+    not asserted here."""
     stack.nominal_flight()
     since_state, since_plan = stack.states.mark(), stack.plans.mark()
     wait_until(lambda: len(stack.states.items()) - since_state >= 10
@@ -196,7 +198,8 @@ def test_state_and_plans_stream_one_per_tick(stack: Stack) -> None:
     states = stack.states.items()[since_state:]
     plans = stack.plans.items()[since_plan:]
     steps = np.diff([s.t for s in states])
-    assert np.allclose(steps, 0.1, atol=1e-6), steps
+    whole = np.round(steps / 0.1)
+    assert np.all(whole >= 1) and np.allclose(steps, whole * 0.1, atol=1e-6), steps
     assert all(s.robot == ROBOT and len(s.x) == 12 and len(s.u) == 4 for s in states)
     assert all(s.mode == "nominal" for s in states)
     assert len(plans[-1].nominal) == 31 and plans[-1].consensus_steps == 10
@@ -208,6 +211,7 @@ def test_state_and_plans_stream_one_per_tick(stack: Stack) -> None:
     assert loop["rate_hz"] == 10 and loop["ticks"] > 10
     assert loop["jitter_p50_ms"] is not None and loop["jitter_p99_ms"] >= loop["jitter_p50_ms"]
     assert loop["overruns"] >= 0 and loop["last_step_ms"] > 0
+    assert loop["missed_ticks"] >= int(np.sum(whole - 1)), (steps, loop)
     vehicle = body["vehicle"]
     assert vehicle["fresh"] and vehicle["clock"] == "sync" and vehicle["setpoints"] > 0
     assert stack.vehicle.get("/v1/state").json()["setpoints"]["received"] > 0

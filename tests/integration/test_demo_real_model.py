@@ -26,7 +26,7 @@ from tools.demo.flights import fly_scenarios, fly_with_k
 from tools.local_llm import bundled_model
 from tools.stack.up import hardware_scenario
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(900)]
 
 TOKEN = secrets.token_urlsafe(24)
 SCENE = load_scenario(hardware_scenario())

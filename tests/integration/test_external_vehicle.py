@@ -17,7 +17,7 @@ import pytest
 from tests.integration.test_stack_up import interrupt
 from tests.integration.test_vehicle_contract import example
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(420)]
 
 ROOT = Path(__file__).resolve().parents[2]
 

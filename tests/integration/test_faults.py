@@ -52,7 +52,7 @@ from tools.bench.bus import (
 )
 from tools.scenes.hardware import build_scene_cache, camera_observation
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(240)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(240)]
 
 WAIT_S = 30.0  # a bound on each wait, far above what a healthy stack needs
 REGION_WAIT_S = 45.0  # from the fallback into the region: ~4 s of flight at 10 Hz

@@ -37,7 +37,7 @@ from tools.demo.flights import FLEET_ORDER, fly_fleet
 from tools.stack.acl import MONITOR
 from tools.stack.up import DETECTOR_CACHE, POSTGRES, StackPlan
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(600)]
 
 TOKEN = "fleet-test-token-0123456789"
 REPLICAS = ["embedding", "embedding-2"]

@@ -18,7 +18,7 @@ from tests.demo_stack import demo_stack
 from tools.demo.flights import fly_scenarios
 from tools.stack.up import DETECTOR_CACHE, StackPlan
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(600)]
 
 TOKEN = secrets.token_urlsafe(24)
 KEYBOARD = "3-keyboard-on-ground"

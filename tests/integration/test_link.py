@@ -18,7 +18,7 @@ import pytest
 from tools.link.netns import missing
 from tools.link.rig import FAULTS, Fault, Flight, Rig
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(900)]
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ from shared.messages import ReasonerDecision, ReasonerRequest
 from shared.settings import BusSettings
 from tools.bench import reasoner as bench
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(300)]
 
 REQUIRED = {"requests", "deadline_s", "deadline_misses", "overshoot_ms", "fallback_rate",
             "overhead_ms", "hedging"}

@@ -26,7 +26,7 @@ from shared.messages import Observation, Option, ReasonerDecision, ReasonerReque
 from shared.process import ServiceProcess, free_port
 from tests.zenoh_peers import wait_until
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(180)]
 
 WAIT_S = 60.0  # generous: nothing here is timed, only waited for
 TOKEN = secrets.token_urlsafe(24)

@@ -29,7 +29,7 @@ from tools.demo.report import ended_in
 from tools.scenes.hardware import build_scene_cache
 from tools.stack.up import DETECTOR_CACHE, hardware_scenario
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(600)]
 
 TOKEN = secrets.token_urlsafe(24)
 QUADROTOR = Path(__file__).resolve().parents[2] / "deploy" / "ros2" / "quadrotor.yaml"

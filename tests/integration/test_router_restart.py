@@ -20,7 +20,7 @@ from shared.process import file_sink
 from tools.demo.flights import fly_scenarios
 from tools.stack.up import Ports, Stack, StackOptions, plan_stack
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(420)]
 
 TOKEN = "restart-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

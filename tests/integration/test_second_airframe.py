@@ -23,7 +23,7 @@ import pytest
 
 from tests.integration.test_stack_up import interrupt
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(900)]
 
 ROOT = Path(__file__).resolve().parents[2]
 CONDITIONS = ((100.0, 0.0), (50.0, 0.05))  # state rate (Hz), delay (s)

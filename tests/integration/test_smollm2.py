@@ -24,7 +24,7 @@ from services.reasoner.settings import ReasonerSettings
 from shared.messages import Observation, Option, ReasonerRequest
 from tools.local_llm import REASONER_SETTINGS, STACK_THREADS, LocalModel, bundled_model, served
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(300)]
 
 OPTIONS = (
     Option(index=0, label="continue", description="proceed with landing on the red box"),

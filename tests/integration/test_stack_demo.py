@@ -12,7 +12,7 @@ import pytest
 
 from tools.recording.mcapfile import read_messages
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(600)]
 
 
 def test_demo_flies_the_papers_hardware_scenarios(tmp_path: Path) -> None:

@@ -17,7 +17,7 @@ import pytest
 
 from tests.zenoh_peers import wait_until
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(300)]
 
 SERVICES = ("fake-llm", "embedding", "reasoner", "control", "dashboard")
 

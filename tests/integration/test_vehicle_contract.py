@@ -22,7 +22,7 @@ from shared.settings import BusSettings
 from tests.vehicles import NominalDetector
 from tests.zenoh_peers import wait_until
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(180)]
 
 ROOT = Path(__file__).resolve().parents[2]
 ROBOT = "robot7"

@@ -20,7 +20,7 @@ from tests.vehicles import Flown, Vehicle, fly
 from tools.demo.report import ended_in
 from tools.scenes.hardware import GOAL
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
+pytestmark = [pytest.mark.realtime, pytest.mark.slow, pytest.mark.timeout(300)]
 
 SCENE = load_scenario("hardware")
 FAULT_AT = 3.0  # s into the flight, on the way in
