@@ -100,8 +100,8 @@ test:
 	$(MAKE) test-suite
 
 # The suite in two phases, one after the other, so nothing else runs beside a flight: first the
-# tests that only compute (everything not marked `realtime`) spread over two pytest-xdist
-# workers, one file per worker; then the `realtime` ones (they fly a stack in real time, race a
+# tests not marked `realtime` (servers, containers, models, but no clock raced) over two xdist
+# workers, a file at a time; then the `realtime` ones (they fly a stack in real time, race a
 # deadline or time something) one at a time, alone on the machine. Both phases always run; the
 # target fails if either did (docs/testing.md)
 test-suite:
