@@ -1,0 +1,50 @@
+"""shared.realtime: a favoured process gets its share against other sessions too (issue 46).
+
+Where the kernel groups processes by session (autogroups), a nice value only ranks a
+process's threads inside its session; ``aesop up`` starts each service in a session of its
+own, so a favoured service must also give its session's autogroup the nice value. These run
+in child processes: favouring this test's own process would favour pytest's session."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+PROBE = ("from shared.realtime import favoured\n"
+         "from pathlib import Path\n"
+         "group = Path('/proc/self/autogroup')\n"
+         "print(favoured(), os.getpriority(os.PRIO_PROCESS, 0),\n"
+         "      group.read_text().split()[-1] if group.exists() else None)\n")
+
+
+def _favoured_in_child(*, own_session: bool) -> tuple[str, str, str]:
+    out = subprocess.run([sys.executable, "-c", "import os\n" + PROBE], cwd=ROOT,
+                         capture_output=True, text=True, check=True, timeout=60,
+                         start_new_session=own_session).stdout.split()
+    return out[0], out[1], out[2]
+
+
+def _own_autogroup_nice() -> str | None:
+    group = Path("/proc/self/autogroup")
+    return group.read_text().split()[-1] if group.exists() else None
+
+
+def test_a_session_leader_favours_its_autogroup_as_well_as_its_threads() -> None:
+    favoured, nice, group = _favoured_in_child(own_session=True)
+    if favoured == "False":  # no CAP_SYS_NICE: nothing may change
+        assert nice == str(os.getpriority(os.PRIO_PROCESS, 0))
+        return
+    assert nice == "-10"
+    if _own_autogroup_nice() is not None:  # the kernel groups by session
+        assert group == "-10"
+
+
+def test_a_process_in_another_session_leaves_that_session_as_it_is() -> None:
+    before = _own_autogroup_nice()
+    favoured, _, group = _favoured_in_child(own_session=False)
+    assert group == str(before)
+    assert _own_autogroup_nice() == before
+    assert favoured in ("True", "False")
