@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from shared import topics
-from shared.bus import Bus, HealthChange, Subscription, zenoh_config
+from shared.bus import Bus, HealthChange, Latest, Subscription, zenoh_config
 from shared.messages import Detection, Observation, VehicleReset, VehicleState
 from shared.settings import BusSettings
 from tests.zenoh_peers import (
@@ -96,9 +96,11 @@ def test_latest_keeps_the_newest(listener: Bus, connector: Bus) -> None:
     assert latest.age() is None
     wait_routed(listener, connector)
     listener.session.put(OBS_KEY, b"garbage")
+    wait_until(lambda: latest.decode_errors == 1, "the garbage to be counted")
     for seq in range(1, 4):
         listener.publish(OBS_KEY, _obs(seq))
-    wait_until(lambda: latest.received == 3, "three messages")
+    wait_until(lambda: (got := latest.get()) is not None and got.message.seq == 3,
+               "the third message")
     got = latest.get()
     assert got is not None
     assert got.key == OBS_KEY
@@ -110,6 +112,50 @@ def test_latest_keeps_the_newest(listener: Bus, connector: Bus) -> None:
     latest.close()
     latest.close()
     assert latest.get() == got
+
+
+def test_latest_skips_what_it_could_not_take_in_time(listener: Bus, connector: Bus) -> None:
+    """Issue 46: a busy process (control beside CPU hogs, its interpreter's lock held by its
+    solver threads) takes messages in slower than they come. A Latest must then skip to the
+    newest, not work through a backlog: a per-message callback queue had control's vehicle
+    states arriving 1.7 s late, in order, every one. Here taking one in costs 50 ms (a
+    slow ``on_update``) and 40 come in a burst: the newest is taken without taking most
+    of the others."""
+    taken: list[int] = []
+    latest: Latest[Observation] | None = None
+
+    def slow() -> None:
+        assert latest is not None
+        got = latest.get()
+        assert got is not None
+        taken.append(got.message.seq)
+        time.sleep(0.05)
+
+    latest = connector.latest(ALL_OBS, Observation, on_update=slow)
+    wait_routed(listener, connector)
+    for seq in range(1, 41):
+        listener.publish(OBS_KEY, _obs(seq))
+    wait_until(lambda: bool(taken) and taken[-1] == 40, "the newest to be taken")
+    assert taken == sorted(taken)  # never an older one after a newer
+    assert len(taken) < 10, f"worked through a backlog: {taken}"
+    latest.close()
+
+
+def test_latest_goes_on_after_an_on_update_that_raised(listener: Bus, connector: Bus) -> None:
+    calls: list[int] = []
+
+    def fails() -> None:
+        calls.append(1)
+        raise RuntimeError("a waker with a bug")
+
+    latest = connector.latest(ALL_OBS, Observation, on_update=fails)
+    wait_routed(listener, connector)
+    listener.publish(OBS_KEY, _obs(1))
+    wait_until(lambda: len(calls) == 1, "the first message")
+    listener.publish(OBS_KEY, _obs(2))
+    wait_until(lambda: (got := latest.get()) is not None and got.message.seq == 2,
+               "the second message, after the waker raised")
+    latest.close()
 
 
 def test_a_query_carries_a_message_and_is_answered_with_one(
