@@ -307,3 +307,17 @@ class ServiceProcess:
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
         self.stop()
+
+
+def stop_on(stop: threading.Event, *signals: signal.Signals) -> None:
+    """Set ``stop`` on each of ``signals`` (SIGINT and SIGTERM if none are named).
+
+    Python runs a handler on the main thread between two bytecodes, which may be while
+    that thread holds ``stop``'s own lock inside ``stop.wait(timeout)``; ``stop.set()``
+    there would wait for that lock for ever. The handler sets it from a thread of its own,
+    which gets the lock as soon as the main thread lets go."""
+    def handler(signum: int, frame: object) -> None:
+        threading.Thread(target=stop.set, name="stop-on-signal", daemon=True).start()
+
+    for sig in signals or (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, handler)

@@ -82,12 +82,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def record_command(args: argparse.Namespace) -> int:
-    import signal
     import threading
     import time
 
     import zenoh
 
+    from shared.process import stop_on
     from shared.settings import BusSettings
     from tools.recording.record import key_exprs, record
 
@@ -103,8 +103,7 @@ def record_command(args: argparse.Namespace) -> int:
         raise CliError(f"--out: no directory {out.parent}")
     joined(settings, "record")  # exits 2 unless the endpoints let it in (no file made)
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):  # also where SIGINT started ignored
-        signal.signal(sig, lambda *_: stop.set())
+    stop_on(stop)  # also where SIGINT started ignored
     try:
         totals = record(settings, out, robot=args.robot, wanted=args.topics, stop=stop,
                         say=lambda line: print(line, file=sys.stderr, flush=True))
@@ -117,11 +116,11 @@ def record_command(args: argparse.Namespace) -> int:
 
 
 def replay_command(args: argparse.Namespace) -> int:
-    import signal
     import threading
 
     import zenoh
 
+    from shared.process import stop_on
     from shared.settings import BusSettings
     from tools.recording.recorded import RecordingError, check_recording
     from tools.recording.replay import replay, topic_filter
@@ -143,8 +142,7 @@ def replay_command(args: argparse.Namespace) -> int:
     # recording into nothing, for ever with --loop)
     joined(settings, "replay", ROBOT_LOGIN)
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop_on(stop)
     try:
         done = replay(settings, args.file, speed=args.speed, wanted=args.topics,
                       loop=args.loop, stop=stop,

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import socket
 import sys
 import threading
@@ -48,6 +47,7 @@ import zenoh
 
 from services.ros2.config import BridgeConfig, ConfigError, load_config
 from shared.bus import RECONNECT
+from shared.process import stop_on
 from shared.realtime import favoured
 
 from .acl import (
@@ -187,8 +187,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.role == "hub" and args.config is None and len(args.listen) != 1:
         parser.error("--role hub listens on one --listen endpoint")
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop_on(stop)
     try:
         if args.config is not None:
             conf = zenoh.Config.from_file(args.config)

@@ -65,6 +65,7 @@ from shared.process import (
     free_port,
     port_in_use,
     stderr_sink,
+    stop_on,
 )
 from shared.settings import BusSettings, ServiceSettings, read_settings, to_env
 from tools.fakes.llm import FakeLLMServiceSettings, FakeLLMSettings
@@ -860,8 +861,7 @@ def _zenoh_lines(plan: StackPlan) -> list[str]:
 
 def install_stop_handlers(stop: threading.Event) -> None:
     """SIGINT and SIGTERM set ``stop`` (the main thread then shuts the stack down)."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop_on(stop)
 
 
 def run_up(options: StackOptions, environ: Mapping[str, str]) -> int:
