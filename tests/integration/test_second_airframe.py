@@ -6,9 +6,9 @@ scenarios, beside two CPU hogs (a robot's computer runs perception too), with it
 truth topic: where it ended, asserted; the rows over the scene's limits (fence, speed, tilt,
 body rates, by limit), the set-points' age, the holds mid-flight and the largest body rate
 are printed (``pytest -s``) for docs/benchmarks.md, not asserted: on two cores beside two
-hogs they depend on the load. The target, 0 rows over a limit, is met in most runs and missed
-in about one flight in eight, by up to 0.17 rad/s of body rate or 0.10 m/s of speed: the
-airframe's own tracking while it brakes (docs/benchmarks.md)."""
+hogs they depend on the load. The target, 0 rows over a limit, is met in most flights and
+missed in about one in six, by up to 0.19 rad/s of body rate: the airframe's own tracking
+while it brakes (docs/benchmarks.md)."""
 
 from __future__ import annotations
 
