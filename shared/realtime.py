@@ -52,14 +52,14 @@ def favoured() -> bool:
 AUTOGROUP = "/proc/self/autogroup"
 
 
-def _favour_autogroup(path: str = AUTOGROUP) -> bool:
+def _favour_autogroup() -> bool:
     """Give this process's session, where it leads it, the nice value :data:`NICE` among the
     machine's sessions (the autogroup scheduler's share); whether it did. Elsewhere (no
     autogroups, another process's session, not allowed) nothing changes."""
     if os.getsid(0) != os.getpid():
         return False
     try:
-        with open(path, "w") as f:
+        with open(AUTOGROUP, "w") as f:
             f.write(str(NICE))
         return True
     except OSError:
