@@ -25,6 +25,7 @@ Either needs the ``CAP_SYS_NICE`` capability (root has it; in a container,
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import threading
@@ -52,18 +53,14 @@ def favoured() -> bool:
 AUTOGROUP = "/proc/self/autogroup"
 
 
-def _favour_autogroup() -> bool:
+def _favour_autogroup() -> None:
     """Give this process's session, where it leads it, the nice value :data:`NICE` among the
-    machine's sessions (the autogroup scheduler's share); whether it did. Elsewhere (no
-    autogroups, another process's session, not allowed) nothing changes."""
+    machine's sessions (the autogroup scheduler's share). Elsewhere (no autogroups, another
+    process's session, not allowed) nothing changes."""
     if os.getsid(0) != os.getpid():
-        return False
-    try:
-        with open(AUTOGROUP, "w") as f:
-            f.write(str(NICE))
-        return True
-    except OSError:
-        return False
+        return
+    with contextlib.suppress(OSError), open(AUTOGROUP, "w") as f:
+        f.write(str(NICE))
 
 
 def urgent(above: int = 0) -> Priority:

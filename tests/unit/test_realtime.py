@@ -12,23 +12,24 @@ import subprocess
 import sys
 from pathlib import Path
 
+from shared.realtime import AUTOGROUP
+
 ROOT = Path(__file__).resolve().parents[2]
-PROBE = ("from shared.realtime import favoured\n"
-         "from pathlib import Path\n"
-         "group = Path('/proc/self/autogroup')\n"
-         "print(favoured(), os.getpriority(os.PRIO_PROCESS, 0),\n"
-         "      group.read_text().split()[-1] if group.exists() else None)\n")
+PROBE = ("import os\n"
+         "from tests.unit.test_realtime import _own_autogroup_nice\n"
+         "from shared.realtime import favoured\n"
+         "print(favoured(), os.getpriority(os.PRIO_PROCESS, 0), _own_autogroup_nice())\n")
 
 
 def _favoured_in_child(*, own_session: bool) -> tuple[str, str, str]:
-    out = subprocess.run([sys.executable, "-c", "import os\n" + PROBE], cwd=ROOT,
+    out = subprocess.run([sys.executable, "-c", PROBE], cwd=ROOT,
                          capture_output=True, text=True, check=True, timeout=60,
                          start_new_session=own_session).stdout.split()
     return out[0], out[1], out[2]
 
 
 def _own_autogroup_nice() -> str | None:
-    group = Path("/proc/self/autogroup")
+    group = Path(AUTOGROUP)
     return group.read_text().split()[-1] if group.exists() else None
 
 
