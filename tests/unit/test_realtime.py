@@ -12,6 +12,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from shared.realtime import AUTOGROUP
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -29,8 +31,20 @@ def _favoured_in_child(*, own_session: bool) -> tuple[str, str, str]:
 
 
 def _own_autogroup_nice() -> str | None:
+    """This process's autogroup nice value; None where there is none to read: no autogroups
+    in this kernel, or a process in the boot session's autogroup, whose file is empty (PID 1
+    and whatever it starts without a new session, as a CI runner may)."""
     group = Path(AUTOGROUP)
-    return group.read_text().split()[-1] if group.exists() else None
+    fields = group.read_text().split() if group.exists() else []
+    return fields[-1] if fields else None
+
+
+def test_an_autogroup_file_with_nothing_in_it_reads_as_no_autogroup(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    empty = tmp_path / "autogroup"
+    empty.write_text("")
+    monkeypatch.setattr(sys.modules[__name__], "AUTOGROUP", str(empty))
+    assert _own_autogroup_nice() is None
 
 
 def test_a_session_leader_favours_its_autogroup_as_well_as_its_threads() -> None:
