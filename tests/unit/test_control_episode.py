@@ -2,6 +2,7 @@
 other values a tick replaces: the plan kept to fly blind (kept.py) and the regions'
 deadline (deadlines.py)."""
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -132,10 +133,11 @@ class Ladder:
                               else Status(self.decided)})()
 
 
-def test_a_late_region_is_pushed_back_rung_by_rung_and_said_once() -> None:
+def test_a_late_region_is_pushed_back_to_the_earliest_rung_and_said_once() -> None:
     solve = Ladder(reach=15)
     plan, last, said = late(solve, 10, CONFIG, None, "recovering")
-    assert plan.feasible and last == 16 and solve.asked == [10, 13, 16]
+    assert plan.feasible and last == 16  # the rungs are 13, 16, 19, T = 20, then T + 1
+    assert solve.asked == [10, 21, 13, 19, 16]  # no deadline, then galloping, halving
     assert said == "recovering: region out of reach by step 10; heading for it by step 16"
     _, last, said = late(Ladder(reach=15), 10, CONFIG, 16, "recovering")
     assert last == 16 and said is None  # no further than before: nothing new to say
@@ -147,3 +149,26 @@ def test_a_rung_that_did_not_decide_drops_the_deadline_and_infeasible_keeps_the_
     assert solve.asked == [10, 21] and last == 21 and said.endswith("with no deadline")
     plan, last, said = late(Ladder(reach=99), 10, CONFIG, 12, "recovering")
     assert not plan.feasible and last == 12 and said is None
+
+
+HARDWARE = MPCConfig(horizon=200, consensus=86, min_region_step=10)  # the paper's grid: T = 10 s
+
+
+def test_a_region_out_of_reach_at_every_deadline_costs_two_solves_not_one_per_rung() -> None:
+    """Issue 46: one tick solved all 39 rungs of the hardware grid (5 steps apart) before it
+    flew the least-violating plan, 0.4-0.65 s beside two CPU hogs, and the vehicle held."""
+    solve = Ladder(reach=999)
+    plan, last, said = late(solve, 10, HARDWARE, None, "recovering")
+    assert not plan.feasible and last is None and said is None
+    assert solve.asked == [10, 201]  # the deadline, then none: feasibility only grows with s
+
+
+@pytest.mark.parametrize("reach", [11, 14, 15, 16, 99, 137, 196, 199, 200, 201])
+def test_the_earliest_reachable_rung_is_found_by_galloping_and_halving(reach: int) -> None:
+    solve = Ladder(reach=reach)
+    plan, last, _ = late(solve, 10, HARDWARE, None, "recovering")
+    rungs = [*range(15, 200, 5), 200, 201]  # s pushed back 5 steps at a time, T, then none
+    assert plan.feasible and last == min(r for r in rungs if r >= reach)
+    assert len(solve.asked) <= 2 + 2 * math.ceil(math.log2(len(rungs)))  # 14, not up to 40
+    if reach <= 15:  # one rung late: the deadline, none, the rung
+        assert solve.asked == [10, 201, 15]
