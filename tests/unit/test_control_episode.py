@@ -155,7 +155,7 @@ HARDWARE = MPCConfig(horizon=200, consensus=86, min_region_step=10)  # the paper
 
 
 def test_a_region_out_of_reach_at_every_deadline_costs_two_solves_not_one_per_rung() -> None:
-    """Issue 46: one tick solved all 39 rungs of the hardware grid (5 steps apart) before it
+    """Issue 46: one tick solved all 38 rungs of the hardware grid (5 steps apart) before it
     flew the least-violating plan, 0.4-0.65 s beside two CPU hogs, and the vehicle held."""
     solve = Ladder(reach=999)
     plan, last, said = late(solve, 10, HARDWARE, None, "recovering")
