@@ -28,9 +28,7 @@ from tools.bench.reference import reference_solve
 
 SCENE = load_scenario("hardware")
 MODEL = planning_model(SCENE)
-# what is decided, not how soon: the scene's time budget per warm solve (40 ms) stops a
-# solve undecided on a busy machine (an xdist worker beside another)
-CONFIG = dataclasses.replace(mpc_config(SCENE), time_limit_s=0.0)
+CONFIG = mpc_config(SCENE)
 PAIR = (1, 2)
 REGIONS = [SCENE.region(i) for i in PAIR]
 
@@ -118,7 +116,7 @@ def test_the_referee_settles_what_osqp_leaves_at_its_cap():
 def test_from_rest_at_the_papers_grid_the_robot_flies():
     """The 200-step regression: from the start at rest a tree is found at once and the
     robot sets off toward the red box (before, no subset was ever found)."""
-    controller = make_controller("aesop", SCENE, config=CONFIG)
+    controller = make_controller("aesop", SCENE)
     x0 = np.zeros(12)
     x0[:3] = SCENE.start_center
     controller.warm_up(x0)
@@ -150,7 +148,7 @@ def test_a_realized_acceleration_the_vehicle_reports_replaces_the_predicted_lag_
     that reports the acceleration it realizes has the loop plan from that instead (clipped
     to the inputs a command may take), so each command stays within the lag gap of what
     the vehicle does. Without a report, or with a non-finite one, the prediction stands."""
-    controller = make_controller("aesop", SCENE, config=CONFIG)
+    controller = make_controller("aesop", SCENE)
     x0 = np.zeros(12)
     x0[:3] = SCENE.start_center
     controller.warm_up(x0)
