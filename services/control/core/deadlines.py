@@ -74,14 +74,15 @@ def _earliest(solve: Callable[[int], Plan], rungs: list[int], s: int, plan: Plan
     feasible, and its plan; ``(s, plan)``, a feasible plan past the last rung, where none is
     or a solve does not decide. Galloping (rungs 1, 2, 4, 8, ... on), then halving the gap
     the first feasible one closes: a region a rung or two late costs a solve or two."""
-    below, above, reach = -1, len(rungs), 1  # rungs[below] infeasible, rungs[above] feasible
+    below, above = -1, len(rungs)  # rungs[below] infeasible, rungs[above] feasible
+    reach = 1  # the gallop's next stride; 0 once a feasible rung bounds the search
     while above - below > 1:
         middle = min(below + reach, above - 1) if reach else (below + above) // 2
         tried = solve(rungs[middle])
         if tried.feasible:
             above, s, plan, reach = middle, rungs[middle], tried, 0
-        elif tried.status.decided:
-            below, reach = middle, reach and 2 * reach
-        else:
+        elif not tried.status.decided:
             break
+        else:
+            below, reach = middle, 2 * reach
     return s, plan
