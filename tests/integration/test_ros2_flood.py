@@ -122,15 +122,25 @@ def stuck(endpoint: str, monkeypatch: pytest.MonkeyPatch) -> Iterator[Rig]:  # n
     with TestClient(app, headers={"Authorization": f"Bearer {TOKEN}"}) as bridge, \
             Bus.open(BusSettings(zenoh_connect=[endpoint]), "stack") as stack, \
             zenoh.open(zenoh_config(BusSettings(zenoh_connect=[endpoint]))) as session:
-        robot = Robot(session)
+        robot, sent = Robot(session), 0
         states = stack.latest(topics.vehicle_state(ROBOT), VehicleState)
-        wait_until(lambda: robot.put("odometry", odometry_cdr(state(1)))
-                   or states.get() is not None, "a first odometry through the bridge")
+
+        def odometry(seq: int) -> None:
+            nonlocal sent
+            put(robot, "odometry", odometry_cdr(state(seq)))
+            sent += 1
+
+        wait_until(lambda: odometry(1) or states.get() is not None,
+                   "a first odometry through the bridge")
         wait_until(lambda: stack.publish(topics.vehicle_setpoint(ROBOT), setpoint(0))
                    or bool(robot.heard.get("setpoint")), "a first set-point on the ROS topic")
         armed.set()
-        wait_until(lambda: robot.put("odometry", odometry_cdr(state(2))) or holding.is_set(),
+        wait_until(lambda: odometry(2) or holding.is_set(),
                    "the inbound worker holding an odometry")
+        # the odometry put just before the worker took one may still be on its way: a test
+        # that counts the queue from here must not see it arrive later
+        wait_until(lambda: status(bridge)["odometry"]["received"] == sent,
+                   "every odometry put so far at the bridge")
         try:
             yield Rig(bridge, stack, robot, gate.set)
         finally:
