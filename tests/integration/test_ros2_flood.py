@@ -179,16 +179,18 @@ def test_set_points_go_out_while_a_flood_fills_the_stuck_inbound_side(
     assert "queue" not in status(bridge)["setpoint"]["dropped"]
     stuck.release()
     states = stack.latest(topics.vehicle_state(ROBOT), VehicleState)
-    wait_until(lambda: robot.put("odometry", odometry_cdr(state(5, (7.0, 0.0, 1.0))))
-               or ((got := states.get()) is not None and got.message.position == (7.0, 0.0, 1.0)),
-               "a good odometry after the flood")
+    # put once, so that it pushes at most one queued NaN out: a put every poll would push
+    # out one per poll for as long as the worker decodes the queue, however slow it is
+    put(robot, "odometry", odometry_cdr(state(5, (7.0, 0.0, 1.0))))
+    wait_until(lambda: (got := states.get()) is not None
+               and got.message.position == (7.0, 0.0, 1.0), "a good odometry after the flood")
     wait_until(lambda: status(bridge)["detections"]["dropped"].get("cdr")
                == lanes["detections"]["items"], "the queued detections decoded")
     # each queued odometry with a NaN decoded, or pushed out by an older (the ones the
-    # fixture put past the held one) or a newer (a good one, just after the release)
+    # fixture put past the held one) or a newer (the good one, just after the release)
     dropped = status(bridge)["odometry"]["dropped"]
     assert dropped["non_finite"] + dropped["queue"] == FLOOD + before["odometry"]["items"]
-    assert dropped["non_finite"] >= lanes["odometry"]["items"] - 8, dropped
+    assert dropped["non_finite"] >= lanes["odometry"]["items"] - 1, dropped
 
 
 def test_a_flood_on_one_ros_topic_leaves_another_topics_queued_odometry_alone(
