@@ -543,6 +543,9 @@ class Controller:
                        "branch",)
             planned = u = np.asarray(flown.u, dtype=float)
         self.kept = self.kept.finite_ahead()
+        if self.model.n_lag:  # acceleration commands, sent as planned: each within reach
+            self.kept, u = self.kept.within_reach(self.model, self._lag, planned, self.config)
+            planned = u
         ahead = self._sendable(self.kept.ahead)  # every row at once: this runs each tick
         self._sent.append((planned.copy(), self._lag))
         self._lag = self.model.advance(self._lag, u)

@@ -6,7 +6,10 @@ safest thing to fly blind, ending at rest in its region). A step that does not s
 or has no usable state, flies the kept plan one input further on (``blind``). Either way
 the step says what it flew as a :class:`Flown`: the input, the model state the plan
 expects now (the set-point's reference) and the plan's next inputs (``ahead``), which
-the vehicle flies through ticks the loop misses.
+the vehicle flies through ticks the loop misses. A lagged input the step sends, and each
+one ahead, starts within the lag gap the MPC plans with of the lag state it meets
+(:meth:`Kept.within_reach`): the recovery branch flown blind after late ticks, the trunk's
+inputs ahead having been flown meanwhile, would otherwise step the vehicle's tilt.
 
 Pure and immutable: :class:`Kept` values are replaced, never changed.
 """
@@ -17,7 +20,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .mpc import Plan
+from .mpc import MPCConfig, Plan
+from .planning import PlanningModel
 
 AHEAD = 16  # the plan's next inputs an output carries (the set-point sends some of them)
 
@@ -63,6 +67,15 @@ class Kept:
         kept = replace(self, age=age, ahead=self.inputs[step + 1:step + 1 + AHEAD])
         return kept, Flown(self.inputs[step].copy(), None, reference,
                            blind=len(self.inputs) - 1 - step)
+
+    def within_reach(self, model: PlanningModel, lag: np.ndarray, u: np.ndarray,
+                     config: MPCConfig) -> tuple[Kept, np.ndarray]:
+        """``u`` (meeting the lag states ``lag``) and the inputs ahead, each moved within
+        the share of its lag gap the MPC plans with (:meth:`.PlanningModel.within_reach`);
+        a solved plan's inputs are already there."""
+        rows = np.vstack([u, self.ahead.reshape(-1, len(u))])
+        rows = model.within_reach(lag, rows, config.lag_gap_share)
+        return replace(self, ahead=rows[1:]), rows[0]
 
     def skipped(self, ticks: int) -> Kept:
         """``ticks`` ticks passed unstepped (the vehicle flew what was sent ahead)."""

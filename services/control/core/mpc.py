@@ -231,6 +231,12 @@ class MPCConfig:
         if self.time_limit_s < 0:
             raise ValueError("need time_limit_s >= 0")
 
+    @property
+    def lag_gap_share(self) -> float:
+        """The share of each lag gap (``|u - a|``) an input may use: ``shrink`` and
+        ``jerk_margin`` are held back."""
+        return 1.0 - self.shrink - self.jerk_margin
+
 
 @dataclass(frozen=True)
 class Plan:
@@ -381,7 +387,7 @@ def tightened_lag_gaps(model: PlanningModel, config: MPCConfig
     out = []
     for j, (channel, gap) in enumerate(zip(model.lag_inputs, model.lag_gap, strict=False)):
         if np.isfinite(gap):
-            width = gap * (1.0 - config.shrink - config.jerk_margin)
+            width = gap * config.lag_gap_share
             hover = float(model.linear.u_hover[channel])
             out.append((first + j, channel, -width - hover, width - hover))
     return out

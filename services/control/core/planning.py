@@ -108,6 +108,22 @@ class PlanningModel:
                               + (1.0 - decay) * np.asarray(u, dtype=float)[list(self.lag_inputs)])
         return lagged
 
+    def within_reach(self, lag: np.ndarray, rows: np.ndarray, share: float) -> np.ndarray:
+        """``rows`` (inputs of consecutive steps, the first meeting the lag states ``lag``)
+        with each lagged input moved to within ``share`` of its ``lag_gap`` of the lag state
+        it meets, the lag advanced by each row as moved. The MPC plans every input so
+        (:func:`.mpc.tightened_lag_gaps`): this bounds what a plan did not make for the
+        vehicle's state, such as a kept plan's branch flown blind after late ticks."""
+        out = np.array(rows, dtype=float, ndmin=2)
+        if not self.n_lag:
+            return out
+        channels, gap = list(self.lag_inputs), share * np.asarray(self.lag_gap)
+        a = np.asarray(lag, dtype=float)
+        for row in out:
+            row[channels] = np.clip(row[channels], a - gap, a + gap)
+            a = self.advance(a, row)
+        return out
+
     def advance_by(self, lag: np.ndarray, u: np.ndarray, duration: float) -> np.ndarray:
         """The lag states ``duration`` seconds on with ``u`` held (:meth:`advance` for dt)."""
         decay = np.asarray(self.lag_decay) ** (duration / self.dt)
