@@ -115,13 +115,15 @@ class PlanningModel:
         (:func:`.mpc.tightened_lag_gaps`): this bounds what a plan did not make for the
         vehicle's state, such as a kept plan's branch flown blind after late ticks."""
         out = np.array(rows, dtype=float, ndmin=2)
-        if not self.n_lag:
-            return out
-        channels, gap = list(self.lag_inputs), share * np.asarray(self.lag_gap)
-        a = np.asarray(lag, dtype=float)
-        for row in out:
-            row[channels] = np.clip(row[channels], a - gap, a + gap)
-            a = self.advance(a, row)
+        # each lag state follows its own input alone (:meth:`advance`): a channel at a time,
+        # in floats (this runs every tick, on a few rows)
+        for a, channel, decay, gap in zip(np.asarray(lag, dtype=float).tolist(),
+                                          self.lag_inputs, self.lag_decay, self.lag_gap,
+                                          strict=True):
+            column, width = out[:, channel], share * gap
+            for i, u in enumerate(column.tolist()):
+                column[i] = u = min(max(u, a - width), a + width)
+                a = decay * a + (1.0 - decay) * u
         return out
 
     def advance_by(self, lag: np.ndarray, u: np.ndarray, duration: float) -> np.ndarray:
