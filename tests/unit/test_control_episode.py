@@ -186,7 +186,8 @@ def test_a_pending_tree_out_of_reach_by_its_promise_is_due_by_t_and_stays_pushed
     assert promise(CONFIG, 6, last) == 19  # one step earlier a tick, as Algorithm 1's T - k
     solve = Ladder(reach=19)
     plan, last, said = pushed(solve, CONFIG, 6, 20)
-    assert plan.feasible and last == 20 and said is None and solve.asked == [19]
+    assert plan.feasible and last == 19 and said is None and solve.asked == [19]
+    assert promise(CONFIG, 7, last) == 18  # it slides on: the regions are due, not put off
 
 
 def test_a_pending_tree_past_t_has_no_deadline_and_an_undecided_solve_ends_the_search() -> None:
@@ -196,7 +197,7 @@ def test_a_pending_tree_past_t_has_no_deadline_and_an_undecided_solve_ends_the_s
     assert promise(CONFIG, 6, last) == 20  # never past T
     solve = Ladder(reach=99, decided=False)
     plan, last, said = pushed(solve, CONFIG, 5, 17)
-    assert not plan.feasible and last == 17 and said is None and solve.asked == [16]
+    assert not plan.feasible and last == 16 and said is None and solve.asked == [16]
     solve = Ladder(reach=99)  # out of reach even with no deadline: the kept plan, blind
     plan, last, _ = pushed(solve, CONFIG, 5, None)
     assert not plan.feasible and last is None and len(solve.asked) == 3

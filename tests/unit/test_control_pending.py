@@ -65,6 +65,9 @@ def test_a_tree_out_of_reach_by_its_promise_is_flown_with_its_regions_due_by_t()
     assert out.plan is not None and out.plan.feasible
     assert out.plan.region_step == ctrl.config.horizon - 1
     assert not any("out of reach" in e for e in out.events)
+    x = ctrl.model.predict(x, ctrl.lag, [out.u], ctrl.model.dt)
+    out = ctrl.make_step(x, anomaly=False)  # and on: the regions come nearer, a step a tick
+    assert out.plan is not None and out.plan.region_step == ctrl.config.horizon - 2
 
 
 def test_the_deadline_pushed_back_while_pending_holds_into_recovery() -> None:
