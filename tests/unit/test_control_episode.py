@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from services.control.core.deadlines import late, promise, pushed, region_step
+from services.control.core.deadlines import late, promise, region_step
 from services.control.core.episode import Episode, commit, decide, detect
 from services.control.core.kept import AHEAD, Kept
 from services.control.core.mpc import MPCConfig, SolveStatus
@@ -172,32 +172,3 @@ def test_the_earliest_reachable_rung_is_found_by_galloping_and_halving(reach: in
     assert len(solve.asked) <= 2 + 2 * math.ceil(math.log2(len(rungs)))  # 14, not up to 40
     if reach <= 15:  # one rung late: the deadline, none, the rung
         assert solve.asked == [10, 201, 15]
-
-
-def test_a_pending_tree_out_of_reach_by_its_promise_is_due_by_t_and_stays_pushed_back() -> None:
-    """Issue 46: while the reasoner thinks, two solves on the tick the promise is missed
-    (the promise, then T), and from then on one a tick at the pushed deadline."""
-    s = promise(CONFIG, 5, None)
-    solve = Ladder(reach=s + 1)
-    plan, last, said = pushed(solve, CONFIG, 5, None)
-    assert plan.feasible and last == 20 and solve.asked == [s, 20]
-    assert said == f"while the reasoner thinks: regions out of reach by step {s}; " \
-        "promised by step 20"
-    assert promise(CONFIG, 6, last) == 19  # one step earlier a tick, as Algorithm 1's T - k
-    solve = Ladder(reach=19)
-    plan, last, said = pushed(solve, CONFIG, 6, 20)
-    assert plan.feasible and last == 19 and said is None and solve.asked == [19]
-    assert promise(CONFIG, 7, last) == 18  # it slides on: the regions are due, not put off
-
-
-def test_a_pending_tree_past_t_has_no_deadline_and_an_undecided_solve_ends_the_search() -> None:
-    solve = Ladder(reach=21)
-    plan, last, said = pushed(solve, CONFIG, 5, None)
-    assert plan.feasible and last == 21 and said.endswith("promised with no deadline")
-    assert promise(CONFIG, 6, last) == 20  # never past T
-    solve = Ladder(reach=99, decided=False)
-    plan, last, said = pushed(solve, CONFIG, 5, 17)
-    assert not plan.feasible and last == 16 and said is None and solve.asked == [16]
-    solve = Ladder(reach=99)  # out of reach even with no deadline: the kept plan, blind
-    plan, last, _ = pushed(solve, CONFIG, 5, None)
-    assert not plan.feasible and last is None and len(solve.asked) == 3

@@ -22,40 +22,10 @@ def region_step(config: MPCConfig, k: int, last: int | None) -> int:
 
 def promise(config: MPCConfig, k: int, last: int | None) -> int:
     """While the reasoner thinks (or a hold lasts), ``k`` ticks into the consensus budget:
-    the tree's relaxing promise (:func:`.mpc.promised_step`), at least ``min_region_step``;
-    a deadline :func:`pushed` back stays pushed back (``last - 1``, never past ``T``)."""
-    s = max(config.min_region_step, promised_step(config, k))
-    return s if last is None else max(s, min(last - 1, config.horizon))
-
-
-def pushed(solve: Callable[[int], Plan], config: MPCConfig, k: int, last: int | None,
-           what: str = "while the reasoner thinks") -> tuple[Plan, int | None, str | None]:
-    """The tree ``k`` ticks into the consensus budget: ``solve(s)`` at its :func:`promise`
-    ``s``; if shown infeasible, ``solve`` with its regions due by ``T``, then with no deadline
-    (``T + 1``). Returns the plan, the deadline to remember (``s`` once one was pushed:
-    it comes a step nearer every tick, as Algorithm 1's ``T - k``; None before) and what
-    to say.
-
-    The promise tightens a step a tick; a vehicle that realizes the trunk's inputs a little
-    late (the nonlinear airframe, late ticks) can put the regions out of reach by it while
-    they are still within T (issue 46: every other pending tick in the hardware scene on
-    the second airframe, each then flown blind). Two solves on the tick it happens, and
-    :func:`promise` keeps the pushed deadline, a step nearer a tick, so the ticks after it
-    solve once. A solve that does not decide ends the search.
-    """
-    s = promise(config, k, last)
-    plan, due = solve(s), None if last is None else s
-    if plan.feasible or not plan.status.decided:
-        return plan, due, None
-    for later in (config.horizon, config.horizon + 1):
-        tried = solve(later)
-        if tried.feasible:
-            when = "with no deadline" if later > config.horizon else f"by step {later}"
-            said = f"{what}: regions out of reach by step {s}; promised {when}"
-            return tried, later, said
-        if not tried.status.decided:
-            break
-    return plan, due, None
+    the tree's relaxing promise (:func:`.mpc.promised_step`), never later than
+    :func:`region_step`."""
+    return min(max(config.min_region_step, promised_step(config, k)),
+               region_step(config, k, last))
 
 
 def late(solve: Callable[[int], Plan], s: int, config: MPCConfig, last: int | None,
