@@ -64,7 +64,9 @@ Robustness details for a plant that is not the linear model:
   bounds of the first ``relax_steps`` steps (after ``relax_lag``) are widened
   by that excess, at least by ``relax_floor`` on the symmetric limits,
   tapering linearly to zero, so the problem stays feasible while the plan
-  brings the state back;
+  brings the state back; and on each step by what a lag still pushing a state
+  toward its bound carries it over when braking as hard as its gap allows
+  (:func:`carried_excess`);
 * AESOP's plans sit on the edge of feasibility (the nominal branch pulls them
   there), where a plant a hair off its plan turns the next tick infeasible.
   With ``reserve_steps = R`` the tree promises its regions ``R`` steps before
@@ -341,6 +343,47 @@ def promised_step(config: MPCConfig, k: int) -> int:
     r, big_k = config.reserve_steps, max(config.consensus, 1)
     reserve = r - (r * min(k, big_k)) // big_k
     return config.horizon - k - reserve
+
+
+CARRY_STEPS = 40  # the braking flight simulated at most (2 s on the hardware grid)
+
+
+def carried_excess(chain: Chain, x0: np.ndarray, config: MPCConfig) -> np.ndarray:
+    """``(T, n)``: how far over its tightened box each state of ``chain`` is carried on steps
+    ``k = 1..T`` when every lagged input brakes as hard as its lag gap allows from ``x0``.
+
+    A lag state still pushing a velocity toward its cap carries it over before any command
+    can stop it (the gap bounds how fast the command may turn). Nothing would then be
+    feasible, not even with no deadline, and the least-violating plan's slack shifts the
+    whole velocity box: on the second airframe it flew 1.24 m/s against the 1 m/s limit
+    (issue 46). The braking flight is feasible by construction, so the box is widened by
+    what it is carried over, on the steps it is. Simulated until every state the lags
+    drive turns back inside its box (a step or two in nominal flight)."""
+    out = np.zeros((config.horizon, len(chain.states)))
+    if not chain.lags:
+        return out
+    x = np.asarray(x0, dtype=float)
+    lags = [(state, channel, gap_lo, gap_hi, _driven(chain, state))
+            for state, channel, gap_lo, gap_hi in chain.lags]
+    u = np.zeros(len(chain.inputs))
+    for k in range(min(config.horizon, CARRY_STEPS)):
+        before = np.abs(x[[lag[4] for lag in lags]])
+        for state, channel, gap_lo, gap_hi, driven in lags:
+            stop = -x[driven] / (chain.a[driven, state] or 1.0)  # stops it in a step, at most
+            toward = min(max(stop, chain.du_lo[channel]), chain.du_hi[channel])
+            u[channel] = min(max(toward, x[state] + gap_lo), x[state] + gap_hi)
+        x = chain.a @ x + chain.b @ u
+        out[k] = np.maximum(np.maximum(x - chain.x_hi, chain.x_lo - x), 0.0)
+        if not out[k].any() and np.all(np.abs(x[[lag[4] for lag in lags]]) <= before):
+            break  # inside, and braking: nothing more to carry
+    return out
+
+
+def _driven(chain: Chain, state: int) -> int:
+    """The chain state the lag ``state`` drives most (a point mass's velocity)."""
+    pushed = np.abs(chain.a[:, state]).copy()
+    pushed[state] = 0.0
+    return int(np.argmax(pushed))
 
 
 def relax_taper(config: MPCConfig) -> np.ndarray:
@@ -652,7 +695,8 @@ class ChainQP:
         lo[init] = hi[init] = np.tile(x0, nb)
         # state boxes, widened early on by any excess of x0 over the tightened limits
         excess = np.maximum(np.maximum(x0 - chain.x_hi, chain.x_lo - x0), chain.floor)
-        widen = relax_taper(cfg)[:, None] * excess[None, :]  # (T, n), step k = 1..T
+        widen = np.maximum(relax_taper(cfg)[:, None] * excess[None, :],  # (T, n), k = 1..T
+                           carried_excess(chain, x0, cfg))
         box_lo = np.repeat((chain.x_lo - widen)[None], nb, axis=0)
         box_hi = np.repeat((chain.x_hi + widen)[None], nb, axis=0)
         targets = np.empty((nb, n))
