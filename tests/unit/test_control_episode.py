@@ -172,3 +172,19 @@ def test_the_earliest_reachable_rung_is_found_by_galloping_and_halving(reach: in
     assert len(solve.asked) <= 2 + 2 * math.ceil(math.log2(len(rungs)))  # 14, not up to 40
     if reach <= 15:  # one rung late: the deadline, none, the rung
         assert solve.asked == [10, 201, 15]
+
+
+def test_a_pushed_pending_deadline_comes_a_step_nearer_a_tick_until_the_promise_is_later() -> None:
+    """Issue 46: while the reasoner thinks, a tree out of reach by its promise is pushed back
+    as a late region is (:func:`late`); then the deadline comes a step nearer each tick and
+    the promise, which relaxes by less, takes over again."""
+    config = replace(HARDWARE, reserve_steps=20)  # the scene's: 1 s, relaxing over K
+    s = promise(config, 12, None)
+    solve = Ladder(reach=s + 1)
+    plan, last, said = late(solve, s, config, None, "while the reasoner thinks")
+    assert plan.feasible and last == s + 5 and solve.asked == [s, 201, s + 5]
+    ticks = [promise(config, 12 + i, last + 1 - i) for i in range(1, 40)]
+    assert ticks[:5] == [s + 4, s + 3, s + 2, s + 1, s]  # last - 1, a step a tick
+    assert ticks[-1] == promise(config, 51, None)  # then the promise again
+    assert all(0 <= a - b <= 1 for a, b in zip(ticks, ticks[1:], strict=False))
+

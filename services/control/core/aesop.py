@@ -23,7 +23,9 @@ so that the nonlinear plant's small model errors never pin a region to the
 very next step (documented deviation from ``max(0, T - k)``). While
 recovering, a region out of reach by that step is planned to be reached
 later (:func:`.deadlines.late`): the nonlinear truth arrives a little after
-Theorem 1's ``t_anom + T`` rather than not at all.
+Theorem 1's ``t_anom + T`` rather than not at all. So is the tree while the
+reasoner thinks, from its promise: the robot flies a solved tree rather than the last
+one blind.
 
 Holding (beyond the paper). In nominal operation nothing guarantees that
 some subset is feasible at the *full* ``K`` and ``T`` on the next tick: the
@@ -348,9 +350,8 @@ class Controller:
     def _select(self, selector: SubsetSelector, x: np.ndarray) -> tuple[Flown, SolveStatus]:
         """One selection tick: keep the cheapest feasible subset active and follow its plan.
 
-        With no subset shown feasible, hold the last one with the consensus
-        and horizon shrunk by the ticks since it was (module docstring).
-        """
+        With no subset shown feasible, hold the last one with the consensus and horizon
+        shrunk by the ticks since it was (module docstring)."""
         selection = selector.select(x, self.goal)
         if selection.feasible or not self._active:
             if selection.feasible:
@@ -467,9 +468,11 @@ class Controller:
             return self._output(flown, status, ep.active(()))
         if ep.mode is Mode.PENDING and policy.waits_on_tree:
             assert self.selector is not None
-            k = ep.k(self.t)
-            plan = self.selector.solve(ep.options, x, self.goal, self.config.consensus - k,
-                                       promise(self.config, k, self.region_step))
+            k, solve, what = ep.k(self.t), self.selector.solve, "while the reasoner thinks"
+            plan, self.region_step, said = late(lambda s: solve(
+                ep.options, x, self.goal, self.config.consensus - k, s),
+                promise(self.config, k, self.region_step), self.config, self.region_step, what)
+            self._said.extend([said] if said else [])
             return self._output(self._follow(plan, plan.feasible), plan.status, ep.options)
         if self.selector is not None:
             flown, status = self._select(self.selector, x)

@@ -22,10 +22,11 @@ def region_step(config: MPCConfig, k: int, last: int | None) -> int:
 
 def promise(config: MPCConfig, k: int, last: int | None) -> int:
     """While the reasoner thinks (or a hold lasts), ``k`` ticks into the consensus budget:
-    the tree's relaxing promise (:func:`.mpc.promised_step`), never later than
-    :func:`region_step`."""
-    return min(max(config.min_region_step, promised_step(config, k)),
-               region_step(config, k, last))
+    the tree's relaxing promise (:func:`.mpc.promised_step`), at least ``min_region_step``;
+    a deadline pushed back :func:`late` comes a step nearer a tick (``last - 1``, never
+    past ``T``) until the promise is later again (it relaxes: less than a step a tick)."""
+    s = max(config.min_region_step, promised_step(config, k))
+    return s if last is None else max(s, min(last - 1, config.horizon))
 
 
 def late(solve: Callable[[int], Plan], s: int, config: MPCConfig, last: int | None,
