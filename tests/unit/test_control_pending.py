@@ -8,10 +8,11 @@ scene, turning back at the red box with the far regions binding, the tree at the
 was infeasible on about one pending tick in two (found on the second airframe, at 50 Hz
 with 50 ms added, beside two CPU hogs). Each such tick flew the kept plan blind, open
 loop, and in one flight for 1.2 s in a row: the body rate went over its limit. The same
-tree with its regions due by T was feasible every time. Pushed to T, though, the trunk
-flew on toward the goal (nothing due soon) and the recovery chosen later rode its speed
-limit from farther away: the second airframe went 0.2 m/s over it. So the push is
-:func:`~services.control.core.deadlines.late`'s: the earliest rung that is feasible.
+tree with its regions due by T was feasible every time. The push is
+:func:`~services.control.core.deadlines.late`'s, the earliest rung that is feasible, so
+that the trunk still turns back; and it needs the box widened by what the lag carries
+(``test_control_carry.py``): without it the recovery chosen later, riding its speed cap,
+went infeasible and the least-violating plan flew the airframe 0.2 m/s over its limit.
 """
 
 from __future__ import annotations
