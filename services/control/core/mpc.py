@@ -365,16 +365,17 @@ def carried_excess(chain: Chain, x0: np.ndarray, config: MPCConfig) -> np.ndarra
     x = np.asarray(x0, dtype=float)
     lags = [(state, channel, gap_lo, gap_hi, _driven(chain, state))
             for state, channel, gap_lo, gap_hi in chain.lags]
+    driven_states = [lag[4] for lag in lags]
     u = np.zeros(len(chain.inputs))
     for k in range(min(config.horizon, CARRY_STEPS)):
-        before = np.abs(x[[lag[4] for lag in lags]])
+        before = np.abs(x[driven_states])
         for state, channel, gap_lo, gap_hi, driven in lags:
             stop = -x[driven] / (chain.a[driven, state] or 1.0)  # stops it in a step, at most
             toward = min(max(stop, chain.du_lo[channel]), chain.du_hi[channel])
             u[channel] = min(max(toward, x[state] + gap_lo), x[state] + gap_hi)
         x = chain.a @ x + chain.b @ u
         out[k] = np.maximum(np.maximum(x - chain.x_hi, chain.x_lo - x), 0.0)
-        if not out[k].any() and np.all(np.abs(x[[lag[4] for lag in lags]]) <= before):
+        if not out[k].any() and np.all(np.abs(x[driven_states]) <= before):
             break  # inside, and braking: nothing more to carry
     return out
 
