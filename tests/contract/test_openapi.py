@@ -69,6 +69,7 @@ def test_the_service_keeps_its_published_contract(service: str, tmp_path: Path) 
              f"http://127.0.0.1:{port}/openapi.json", "--checks", "all",
              "--max-examples", str(EXAMPLES), "--seed", str(SEED),
              "--request-timeout", str(REQUEST_TIMEOUT_S),
+             "--max-response-time", str(REQUEST_TIMEOUT_S),
              "--header", f"Authorization: Bearer {TOKEN}"],
             capture_output=True, text=True, timeout=500, cwd=tmp_path)  # its caches go there
     assert run.returncode == 0, f"{service}:\n{run.stdout[-12000:]}\n{run.stderr[-2000:]}"
